@@ -1,0 +1,28 @@
+"""torchql: system identification by quasilinearization, in PyTorch."""
+
+from . import models
+from .fit import METHODS, fit
+from .integrate import SOLVER_NAMES, IntegrationError, simulate
+from .model import ODEModel
+from .newton import NewtonResult, newton_raphson
+from .observations import Observations
+from .result import FitError, FitResult, IterationRecord, Status
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ODEModel",
+    "Observations",
+    "fit",
+    "FitResult",
+    "FitError",
+    "IterationRecord",
+    "Status",
+    "METHODS",
+    "SOLVER_NAMES",
+    "IntegrationError",
+    "simulate",
+    "newton_raphson",
+    "NewtonResult",
+    "models",
+]

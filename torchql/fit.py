@@ -1,0 +1,662 @@
+"""``fit``: identify an ODE model's coefficients and initial state by quasilinearization.
+
+The loop (one per iteration):
+
+1. propagate the particular and homogeneous solutions about the current reference
+   (``method="kantorovich"``: the stored superposed trajectory; ``method="shooting"``: the
+   nonlinear solution from the current initial estimate, with its variational equations);
+2. form the rows ``C_k = H_k Z(t_k)`` and ``d_k = y_k - h(z_n(t_k)) - H_k (z0(t_k) - z_n(t_k))``;
+3. solve for ``alpha`` (weighted least squares, exact rows met exactly);
+4. update ``z(t0) <- z0(t0) + Z(t0) alpha`` (and, for Kantorovich, the stored trajectory);
+5. stop when the scaled ``alpha`` (the relative change of the estimates) falls below ``xtol``,
+   or the SSE stops changing, or after ``max_iter`` updates.
+
+A final pass integrates the nonlinear model with its sensitivities at the estimates: the
+reported SSE, residuals and Jacobian are those of the fitted model itself.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+
+from .integrate import ADAPTIVE_SOLVERS, IntegrationError, check_solver, default_tolerances, solve
+from .linearize import linearize
+from .lstsq import ExactRowsError, solve_update
+from .model import AugmentedSystem, ODEModel, coefficient_names
+from .observations import ObservationOperator, Observations
+from .result import FitError, FitResult, IterationRecord, Status
+from .superposition import initial_columns, propagate_linear
+from .trajectory import LinearizedReference
+
+__all__ = ["fit", "METHODS"]
+
+#: The iteration schemes ``fit`` offers.
+METHODS: tuple[str, ...] = ("kantorovich", "shooting")
+_INITIAL_TRAJECTORIES = ("integrate", "data")
+
+
+def fit(
+    model: ODEModel,
+    data: Observations,
+    x0=None,
+    *,
+    params: Sequence[str] | None = None,
+    fixed_x0: Sequence[str] | None = None,
+    t0: float | None = None,
+    method: str = "kantorovich",
+    bounds: dict | None = None,
+    max_iter: int = 50,
+    throw: bool = False,
+    solver: str = "dopri5",
+    rtol: float | None = None,
+    atol: float | None = None,
+    xtol: float | None = None,
+    ftol: float | None = None,
+    rcond: float | None = None,
+    grid: int | torch.Tensor | None = None,
+    initial_trajectory: str = "integrate",
+    max_steps: int | None = None,
+    callback: Callable[[IterationRecord], None] | None = None,
+) -> FitResult:
+    """Fit the unknown coefficients and initial state of ``model`` to ``data``.
+
+    Parameters
+    ----------
+    model : ODEModel
+        The model; its buffer values are the initial guesses. Never modified.
+    data : Observations
+        Measurements; see :class:`torchql.Observations`.
+    x0 : Tensor ``(n_states,)``, optional
+        Initial-state guess at ``t0`` (exact values for the states in ``fixed_x0``). If
+        omitted, every state must be observed directly at ``t0`` and the data are used.
+    params : sequence of str, optional
+        Buffers to estimate. Default: every floating-point buffer not listed in the model's
+        ``constants``. Vector and matrix buffers are estimated element-wise.
+    fixed_x0 : sequence of str, optional
+        States whose initial value is known exactly (taken from ``x0``); they get no
+        homogeneous solution and are honoured exactly.
+    t0 : float, optional
+        Time of the initial state; default the first observation time. May precede it.
+    method : {"kantorovich", "shooting"}
+        ``"kantorovich"``: the Newton–Raphson–Kantorovich iteration of function space; the
+        next linearization uses the stored superposed trajectory. ``"shooting"``:
+        Gauss–Newton, re-integrating the nonlinear model with its variational equations.
+    bounds : None
+        Reserved for lower/upper bounds on the unknowns; only ``None`` is accepted.
+    max_iter : int
+        Maximum number of updates.
+    throw : bool
+        Raise :class:`torchql.FitError` instead of returning an unsuccessful result.
+    solver : str
+        torchdiffeq method (``torchql.SOLVER_NAMES``); default ``"dopri5"``.
+    rtol, atol : float, optional
+        Integrator tolerances; default ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` below.
+    xtol : float, optional
+        Convergence when ``max_i |alpha_i| / max(|u_i|, s_i) <= xtol`` (``u`` the unknowns, ``s``
+        their typical magnitude: the largest ``|x_i(t)|`` of the first trajectory for states,
+        the guess for coefficients). Default ``max(1e-8, 100 * rtol)``.
+    ftol : float, optional
+        Convergence also when the SSE changes by less than ``ftol`` relative (and the scaled
+        update is below ``sqrt(xtol)``). Default ``1e-12`` (float64), ``1e-6`` below.
+    rcond : float, optional
+        Relative singular-value threshold below which a direction of the unknowns counts as
+        not identifiable. Default ``max(1e3 * rtol, 1e3 * eps)``.
+    grid : int or Tensor, optional
+        Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``
+        (default 2000), or extra times to include. Observation times and ``t0`` are always nodes.
+    initial_trajectory : {"integrate", "data"}
+        Kantorovich's first reference: the nonlinear model integrated from the guesses, or
+        the data (directly observed states interpolated linearly, others held at ``x0``).
+    max_steps : int, optional
+        Step budget of adaptive solvers per integration.
+    callback : callable, optional
+        Called with each :class:`IterationRecord` as it is made.
+
+    Returns
+    -------
+    FitResult
+
+    Raises
+    ------
+    TypeError, ValueError
+        For invalid arguments (the message names the argument, what was expected and received).
+    FitError
+        When ``throw=True`` and the fit does not converge.
+    """
+    problem = _Problem(
+        model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
+        rcond, grid, initial_trajectory, max_steps,
+    )
+    result = problem.run(callback)
+    if throw and not result.success:
+        raise FitError(result)
+    return result
+
+
+class _Problem:
+    """A validated fitting problem and its iteration."""
+
+    def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
+                 xtol, ftol, rcond, grid, initial_trajectory, max_steps):
+        if not isinstance(model, ODEModel):
+            raise TypeError(f"`model` must be a torchql.ODEModel; received {type(model).__name__}")
+        names = tuple(model.state_names)
+        if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
+            raise ValueError(
+                f"`model.state_names` must be a non-empty tuple of distinct strings; received {names!r}"
+            )
+        if isinstance(data, (list, tuple)):
+            raise TypeError(
+                "`data` must be one torchql.Observations; several experiments in one fit are not supported yet"
+            )
+        if not isinstance(data, Observations):
+            raise TypeError(f"`data` must be a torchql.Observations; received {type(data).__name__}")
+        if method not in METHODS:
+            raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
+        check_solver(solver)
+        if initial_trajectory not in _INITIAL_TRAJECTORIES:
+            raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
+        if initial_trajectory == "data" and method != "kantorovich":
+            raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
+        if bounds is not None:
+            raise NotImplementedError("`bounds` are not supported yet; pass bounds=None")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
+            raise ValueError(f"`max_iter` must be a non-negative integer; received {max_iter!r}")
+        if max_steps is not None and (not isinstance(max_steps, int) or max_steps < 1):
+            raise ValueError(f"`max_steps` must be a positive integer; received {max_steps!r}")
+
+        floats = [b for b in model.buffers() if b.is_floating_point()]
+        self.dtype = floats[0].dtype if floats else torch.float64
+        for b in floats[1:]:
+            self.dtype = torch.promote_types(self.dtype, b.dtype)
+        self.device = next((b.device for b in model.buffers()), torch.device("cpu"))
+        dtype, device = self.dtype, self.device
+        rtol, atol = default_tolerances(dtype, rtol, atol)
+        for name, value in (("rtol", rtol), ("atol", atol)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"`{name}` must be a positive finite number; received {value!r}")
+        eps = torch.finfo(dtype).eps
+        self.rtol, self.atol = float(rtol), float(atol)
+        self.xtol = float(xtol) if xtol is not None else max(1e-8 if dtype == torch.float64 else 1e-4, 100 * rtol)
+        self.ftol = float(ftol) if ftol is not None else (1e-12 if dtype == torch.float64 else 1e-6)
+        self.rcond = float(rcond) if rcond is not None else max(1e3 * rtol, 1e3 * eps)
+        for name, value in (("xtol", self.xtol), ("ftol", self.ftol), ("rcond", self.rcond)):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"`{name}` must be a positive finite number; received {value!r}")
+        self.method, self.solver, self.max_iter, self.max_steps = method, solver, max_iter, max_steps
+        self.initial_trajectory = initial_trajectory
+
+        # --- unknown coefficients
+        available = coefficient_names(model)
+        if params is None:
+            params = [name for name in available if name not in tuple(model.constants)]
+        else:
+            if isinstance(params, str):
+                raise TypeError(f"`params` must be a sequence of buffer names, not a string; use [{params!r}]")
+            params = list(params)
+            for name in params:
+                if name not in available:
+                    raise ValueError(f"`params` names unknown buffer {name!r}; the model's float buffers are {tuple(available)}")
+            if len(set(params)) != len(params):
+                raise ValueError(f"`params` lists a buffer twice: {params!r}")
+        self.system = AugmentedSystem(model, params, dtype, device)
+        system = self.system
+        n = system.n
+
+        # --- observations
+        self.t_obs = data.t.to(dtype=dtype, device=device)
+        self.y = data.y.to(dtype=dtype, device=device)
+        self.operator = ObservationOperator(data.observe, names, data.n_outputs, dtype, device)
+        mask = data.mask.to(device)
+        self.rows_mask = mask  # (T, K)
+        self.weights = (1.0 / data.sigma.to(dtype=dtype, device=device))[mask]
+        self.exact = data.exact.to(device)[mask]
+        self.y_rows = self.y[mask]
+
+        # --- times
+        if t0 is None:
+            self.t0 = self.t_obs[0].clone()
+        else:
+            if not isinstance(t0, (int, float, torch.Tensor)) or not math.isfinite(float(t0)):
+                raise ValueError(f"`t0` must be a finite number; received {t0!r}")
+            self.t0 = torch.as_tensor(float(t0), dtype=dtype, device=device)
+            if self.t0 > self.t_obs[0]:
+                raise ValueError(
+                    f"`t0` must not be later than the first observation time {self.t_obs[0].item():g}; received {float(t0):g}"
+                )
+
+        # --- initial state
+        if x0 is None:
+            x0 = self._x0_from_data(names)
+        else:
+            try:
+                x0 = torch.as_tensor(x0, dtype=dtype, device=device).clone()
+            except (TypeError, ValueError) as exc:
+                raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); received {type(x0).__name__}") from exc
+        if x0.shape != (n,):
+            raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
+        if not torch.isfinite(x0).all():
+            raise ValueError("`x0` must be finite; received NaN or inf")
+        p0 = system.pack_params()
+        if not torch.isfinite(p0).all():
+            bad = [nm for nm, v in zip(system.element_names, p0.tolist()) if not math.isfinite(v)]
+            raise ValueError(f"the guesses of {bad} (the model's buffers) must be finite")
+        self.z0 = torch.cat([x0, p0])
+
+        fixed_x0 = [] if fixed_x0 is None else fixed_x0
+        if isinstance(fixed_x0, str):
+            raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
+        for name in fixed_x0:
+            if name not in names:
+                raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {names}")
+        free_states = [i for i, s in enumerate(names) if s not in fixed_x0]
+        self.unknown_index = torch.tensor(free_states + list(range(n, system.M)), dtype=torch.long, device=device)
+        self.unknown_names = [f"{names[i]}(t0)" for i in free_states] + system.element_names
+        m = self.unknown_index.numel()
+        if m == 0:
+            raise ValueError("nothing to estimate: every initial state is in `fixed_x0` and `params` is empty")
+        L = int(mask.sum())
+        if L < m:
+            raise ValueError(
+                f"fewer usable observations ({L}) than unknowns ({m}: {self.unknown_names}); "
+                "add observations, or fix some unknowns with `params=`/`fixed_x0=`"
+            )
+        if int(self.exact.sum()) > m:
+            raise ValueError(
+                f"more values are marked `exact` ({int(self.exact.sum())}) than there are unknowns ({m}); "
+                "at most one exact value per unknown can be met"
+            )
+
+        # --- the model and the observation operator on the guesses
+        self._check_model(x0)
+        self.operator.check(x0)
+
+        # --- grids
+        t_end = self.t_obs[-1]
+        self.grid = self._make_grid(grid, t_end)
+        self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
+        self.nfev = 0
+
+    # ------------------------------------------------------------------------------------
+    def _x0_from_data(self, names) -> torch.Tensor:
+        if self.t0 != self.t_obs[0]:
+            raise ValueError("`x0` is required when `t0` precedes the first observation")
+        direct = self.operator.observed_states
+        x0 = torch.full((len(names),), float("nan"), dtype=self.dtype, device=self.device)
+        for k, i in enumerate(direct):
+            if i is not None and self.rows_mask[0, k]:
+                x0[i] = self.y[0, k]
+        if torch.isnan(x0).any():
+            missing = [names[i] for i in range(len(names)) if torch.isnan(x0[i])]
+            raise ValueError(f"`x0` is required: the states {missing} are not observed directly at t0")
+        return x0
+
+    def _check_model(self, x0: torch.Tensor) -> None:
+        model = self.system.model
+        n = self.system.n
+        try:
+            with torch.no_grad():
+                out = model(self.t0, x0)
+        except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
+            raise ValueError(f"`model` forward(t, x) failed for x of shape ({n},): {exc}") from exc
+        if not isinstance(out, torch.Tensor):
+            raise TypeError(f"`model` forward must return a Tensor; received {type(out).__name__}")
+        if out.shape != (n,):
+            raise ValueError(
+                f"`model` forward must return dx/dt of the state's shape ({n},) for x of shape ({n},); "
+                f"received shape {tuple(out.shape)}"
+            )
+        if out.dtype != self.dtype:
+            raise TypeError(f"`model` forward must return dtype {self.dtype} (the buffers' dtype); received {out.dtype}")
+        try:
+            linearize(self.system, self.t0.reshape(1), self.z0.unsqueeze(0))
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(
+                "`model` forward could not be differentiated with torch.func.jacrev/vmap: "
+                f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor values."
+            ) from exc
+
+    def _make_grid(self, grid, t_end) -> torch.Tensor:
+        dtype, device = self.dtype, self.device
+        span = float(t_end - self.t0)
+        extra = torch.zeros(0, dtype=dtype, device=device)
+        intervals = 2000
+        if isinstance(grid, torch.Tensor):
+            extra = grid.to(dtype=dtype, device=device).reshape(-1)
+            if not torch.isfinite(extra).all():
+                raise ValueError("`grid` times must be finite")
+            extra = extra[(extra > self.t0) & (extra < t_end)]
+        elif grid is not None:
+            if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
+                raise ValueError(f"`grid` must be a positive number of intervals or a tensor of times; received {grid!r}")
+            intervals = grid
+        if span <= 0:
+            return self.t0.reshape(1)
+        uniform = torch.linspace(float(self.t0), float(t_end), intervals + 1, dtype=dtype, device=device)
+        fixed = torch.cat([self.t0.reshape(1), self.t_obs])
+        # drop uniform nodes that nearly coincide with a fixed node (tiny intervals help nothing)
+        gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
+        uniform = uniform[gap > 1e-6 * span / intervals]
+        return torch.unique(torch.cat([fixed, uniform, extra]))
+
+    # ------------------------------------------------------------------------------------
+    def _rows(self, z_ref_obs, zp_obs, Z_obs):
+        """Least-squares rows at the observations: ``C (L, m)``, ``d (L,)``, current residuals ``(L,)``."""
+        n = self.system.n
+        x_ref = z_ref_obs[:, :n]
+        h_ref, H = self.operator.value_and_jacobian(x_ref)
+        predicted = h_ref + torch.einsum("tkn,tn->tk", H, zp_obs[:, :n] - x_ref)
+        C = torch.einsum("tkn,tnm->tkm", H, Z_obs[:, :n, :])
+        mask = self.rows_mask
+        return C[mask], (self.y - predicted)[mask], (self.y - h_ref)[mask]
+
+    def _residual(self, z_obs: torch.Tensor) -> torch.Tensor:
+        """Unweighted residuals ``y - h(x(t_k))`` of a trajectory at the observations: ``(L,)``."""
+        value, _ = self.operator.value_and_jacobian(z_obs[:, : self.system.n])
+        return (self.y - value)[self.rows_mask]
+
+    def _sse(self, residual: torch.Tensor) -> float:
+        r = residual * self.weights
+        return float((r[~self.exact] ** 2).sum())
+
+    def _record(self, iteration, z0, sse, trajectory_t=None, trajectory=None) -> IterationRecord:
+        n = self.system.n
+        params = {k: v.detach().clone() for k, v in self.system.unpack_params(z0[n:]).items()}
+        return IterationRecord(
+            iteration=iteration, params=params, x0=z0[:n].detach().clone(), sse=sse,
+            trajectory=None if trajectory is None else trajectory.detach().clone(),
+            trajectory_t=trajectory_t,
+        )
+
+    def _forward(self, z0: torch.Tensor) -> torch.Tensor:
+        """The nonlinear model integrated from ``z0 (M,)`` over the grid: ``(G, M)``.
+
+        Observation times are grid nodes the solver steps onto exactly.
+        """
+        n = self.system.n
+        counter = _Counter(self.system.model_with(z0[n:]))
+        with torch.no_grad():
+            x = solve(counter, z0[:n], self.grid, solver=self.solver, rtol=self.rtol, atol=self.atol,
+                      hit=self.t_obs, max_steps=self.max_steps)
+        self.nfev += counter.n_evals
+        return torch.cat([x, z0[n:].expand(x.shape[0], -1)], dim=1)
+
+    def _about_nonlinear(self, z0: torch.Tensor, z_traj: torch.Tensor) -> torch.Tensor:
+        """Sensitivities along the nonlinear solution ``z_traj``: ``W (G, M, 1 + m)``, column 0 = ``z_traj``.
+
+        The variational equations ``Z' = df/dz(z(t)) Z`` are the homogeneous part of the
+        linearization about ``z_traj``, propagated on the grid like Kantorovich's system.
+        """
+        lin = linearize(self.system, self.grid, z_traj)
+        reference = LinearizedReference(self.grid, z_traj, lin.f, *lin)
+        W, evals = propagate_linear(reference, initial_columns(z0, self.unknown_index), solver=self.solver,
+                                    rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+        self.nfev += evals
+        W = W.clone()
+        W[:, :, 0] = z_traj
+        return W
+
+    def _initial_reference(self) -> LinearizedReference:
+        system, grid = self.system, self.grid
+        if self.initial_trajectory == "integrate":
+            z_ref = self._forward(self.z0)
+            lin = linearize(system, grid, z_ref)
+            return LinearizedReference(grid, z_ref, lin.f, *lin)
+        z_ref = self.z0.unsqueeze(0).repeat(grid.shape[0], 1)
+        for k, i in enumerate(self.operator.observed_states):
+            if i is None:
+                continue
+            ok = self.rows_mask[:, k]
+            if int(ok.sum()) >= 1:
+                z_ref[:, i] = _interp_linear(grid, self.t_obs[ok], self.y[ok, k])
+        z_dot = torch.gradient(z_ref, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z_ref)
+        lin = linearize(system, grid, z_ref)
+        return LinearizedReference(grid, z_ref, z_dot, *lin)
+
+    # ------------------------------------------------------------------------------------
+    def run(self, callback) -> FitResult:
+        state = _IterationState(self.z0.clone(), callback)
+        try:
+            if self.method == "kantorovich":
+                self._iterate_kantorovich(state)
+            else:
+                self._iterate_shooting(state)
+        except IntegrationError as exc:
+            state.status, state.detail = Status.INTEGRATION_FAILED, f" The solver said: {exc}."
+        return self._finish(state)
+
+    def _evaluate(self, state, it, z_ref_obs, W, obs, traj_t, traj):
+        """Rows and SSE of the current iterate; records it. Returns ``(C, d, sse)`` or None on failure."""
+        C, d, resid = self._rows(z_ref_obs, W[obs, :, 0], W[obs, :, 1:])
+        sse = self._sse(resid)
+        record = self._record(it, state.z0, sse, traj_t, traj)
+        state.history.append(record)
+        if state.scale is None:
+            state.scale = self._typical_scale(traj)
+        if not (math.isfinite(sse) and torch.isfinite(C).all() and torch.isfinite(d).all()):
+            state.status, state.detail = Status.DIVERGED, " The residuals became non-finite."
+            return None
+        return C, d, sse
+
+    def _update(self, state, C, d):
+        """Solve for alpha; returns ``(alpha, scaled)`` or None when the iteration must stop."""
+        try:
+            sol = solve_update(C, d, self.weights, self.exact, self.rcond)
+        except ExactRowsError:
+            state.status = Status.EXACT_INFEASIBLE
+            return None
+        alpha = sol.alpha
+        u = state.z0[self.unknown_index]
+        scaled = float((alpha.abs() / torch.maximum(u.abs(), state.scale)).max())
+        record = state.history[-1]
+        record.alpha, record.alpha_norm = alpha.detach().clone(), scaled
+        if state.callback is not None:
+            state.callback(record)
+        if not (torch.isfinite(alpha).all() and math.isfinite(scaled)):
+            state.status, state.detail = Status.DIVERGED, " The update alpha became non-finite."
+            return None
+        return alpha, scaled
+
+    def _shifted(self, z0, alpha):
+        z = z0.clone()
+        z[self.unknown_index] = z0[self.unknown_index] + alpha
+        return z
+
+    def _converged(self, state, scaled, sse) -> bool:
+        if scaled <= self.xtol:
+            state.status = Status.CONVERGED
+            return True
+        if (state.sse_prev is not None and sse > 0 and abs(sse - state.sse_prev) <= self.ftol * sse
+                and scaled <= math.sqrt(self.xtol)):
+            state.status = Status.CONVERGED_SSE
+            return True
+        state.sse_prev = sse
+        return False
+
+    def _iterate_kantorovich(self, state) -> None:
+        """Newton–Raphson–Kantorovich: the next reference is the superposed linear solution."""
+        n = self.system.n
+        reference = self._initial_reference()
+        obs = self.obs_in_grid
+        for it in range(self.max_iter):
+            W, evals = propagate_linear(reference, initial_columns(state.z0, self.unknown_index),
+                                        solver=self.solver, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+            self.nfev += evals
+            rows = self._evaluate(state, it, reference.z[obs], W, obs, self.grid, reference.z[:, :n])
+            if rows is None:
+                return
+            C, d, sse = rows
+            step = self._update(state, C, d)
+            if step is None:
+                return
+            alpha, scaled = step
+            state.z0 = self._shifted(state.z0, alpha)
+            state.iterations += 1
+            z_new = W[:, :, 0] + W[:, :, 1:] @ alpha
+            if not torch.isfinite(z_new).all():
+                state.status, state.detail = Status.DIVERGED, " The superposed trajectory became non-finite."
+                return
+            lin = linearize(self.system, self.grid, z_new)
+            reference = LinearizedReference(self.grid, z_new, reference.slopes_of(z_new), *lin)
+            if self._converged(state, scaled, sse):
+                return
+
+    def _iterate_shooting(self, state) -> None:
+        """Gauss–Newton on the initial state and coefficients, safeguarded.
+
+        The step is first shortened so that no unknown moves by more than ``_STEP_CAP`` times
+        its magnitude (this never binds near the solution, so convergence stays quadratic);
+        a step that does not lower the SSE (or whose trajectory cannot be integrated) is then
+        halved, up to ``_MAX_HALVINGS`` times; steps already at the noise level are accepted.
+        """
+        n = self.system.n
+        obs = self.obs_in_grid
+        z_traj = self._forward(state.z0)
+        for it in range(self.max_iter):
+            W = self._about_nonlinear(state.z0, z_traj)
+            rows = self._evaluate(state, it, z_traj[obs], W, obs, self.grid, z_traj[:, :n])
+            if rows is None:
+                return
+            C, d, sse = rows
+            step = self._update(state, C, d)
+            if step is None:
+                return
+            alpha, scaled = step
+            lam = min(1.0, _STEP_CAP / scaled) if scaled > 0 else 1.0
+            for _ in range(_MAX_HALVINGS + 1):
+                trial = self._shifted(state.z0, lam * alpha)
+                try:
+                    trial_traj = self._forward(trial)
+                    sse_trial = self._sse(self._residual(trial_traj[obs]))
+                except IntegrationError:
+                    sse_trial = math.inf
+                if (math.isfinite(sse_trial) and sse_trial <= sse) or lam * scaled <= math.sqrt(self.xtol):
+                    break
+                lam *= 0.5
+            else:
+                state.status = Status.STALLED
+                return
+            state.z0, z_traj = trial, trial_traj
+            state.final_traj = z_traj
+            state.iterations += 1
+            if self._converged(state, lam * scaled, sse):
+                return
+
+    def _typical_scale(self, traj: torch.Tensor) -> torch.Tensor:
+        """Magnitudes ``s_i`` of the unknowns for the relative step test (never zero)."""
+        n = self.system.n
+        typical = torch.cat([traj.abs().amax(dim=0), self.z0[n:].abs()])
+        typical = torch.where(typical > 0, typical, torch.ones_like(typical))
+        return typical[self.unknown_index]
+
+    def _finish(self, state) -> FitResult:
+        system, n = self.system, self.system.n
+        z0, history, status, detail = state.z0, state.history, state.status, state.detail
+        iterations, callback = state.iterations, state.callback
+        m = self.unknown_index.numel()
+        L = self.y_rows.numel()
+        nan = torch.full((L,), float("nan"), dtype=self.dtype, device=self.device)
+        residuals, jacobian = nan, torch.full((L, m), float("nan"), dtype=self.dtype, device=self.device)
+        sse, exact_residual = float("nan"), float("nan")
+        singular_values = torch.zeros(0, dtype=self.dtype, device=self.device)
+        final_ok = status not in (Status.DIVERGED, Status.INTEGRATION_FAILED)
+        if final_ok:
+            try:
+                z_traj = state.final_traj if state.final_traj is not None else self._forward(z0)
+                W = self._about_nonlinear(z0, z_traj)
+                obs = self.obs_in_grid
+                C, _, resid = self._rows(W[obs, :, 0], W[obs, :, 0], W[obs, :, 1:])
+                residuals = resid * self.weights
+                jacobian = C * self.weights.unsqueeze(-1)
+                sse = self._sse(resid)
+                exact_residual = float(resid[self.exact].abs().max()) if bool(self.exact.any()) else 0.0
+                record = self._record(iterations, z0, sse, self.grid, z_traj[:, :n])
+                history.append(record)
+                if callback is not None:
+                    callback(record)
+                if not math.isfinite(sse):
+                    status, detail = Status.DIVERGED, " The fitted trajectory is non-finite."
+                else:
+                    sol = solve_update(jacobian, torch.zeros(L, dtype=self.dtype, device=self.device),
+                                       torch.ones(L, dtype=self.dtype, device=self.device),
+                                       torch.zeros(L, dtype=torch.bool, device=self.device), self.rcond)
+                    singular_values = sol.singular_values
+                    if sol.rank_deficient and status.success:
+                        status, detail = Status.NOT_IDENTIFIABLE, self._null_detail(sol.null_vectors)
+            except IntegrationError as exc:
+                status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
+        fitted = system.model_with(z0[n:])
+        return FitResult(
+            success=status.success,
+            status=status,
+            message=status.value + detail,
+            params={k: v.clone() for k, v in dict(fitted.named_buffers()).items() if v.is_floating_point()},
+            x0=z0[:n].detach().clone(),
+            t0=float(self.t0),
+            unknown_names=list(self.unknown_names),
+            estimates=z0[self.unknown_index].detach().clone(),
+            iterations=iterations,
+            history=history,
+            sse=sse,
+            residuals=residuals.detach(),
+            jacobian=jacobian.detach(),
+            exact_residual=exact_residual,
+            singular_values=singular_values.detach(),
+            n_observations=L,
+            nfev=self.nfev,
+            method=self.method,
+            model=fitted,
+            solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
+        )
+
+    def _null_detail(self, null_vectors: torch.Tensor) -> str:
+        parts = []
+        for k in range(null_vectors.shape[1]):
+            v = null_vectors[:, k]
+            involved = [name for name, c in zip(self.unknown_names, v.tolist()) if abs(c) > 0.1]
+            parts.append("{" + ", ".join(involved) + "}")
+        return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
+
+
+#: Step halvings a shooting update may take before the iteration counts as stalled.
+_MAX_HALVINGS = 30
+#: Trust region of a shooting update: no unknown moves by more than this times its magnitude.
+_STEP_CAP = 1.0
+
+
+class _IterationState:
+    """Mutable state of one fit's iteration."""
+
+    def __init__(self, z0: torch.Tensor, callback) -> None:
+        self.z0 = z0
+        self.callback = callback
+        self.history: list[IterationRecord] = []
+        self.status, self.detail = Status.MAX_ITER, ""
+        self.scale: torch.Tensor | None = None
+        self.sse_prev: float | None = None
+        self.iterations = 0
+        self.final_traj: torch.Tensor | None = None  # nonlinear trajectory of z0, when already computed
+
+
+class _Counter:
+    """Wraps a right-hand side to count its evaluations."""
+
+    def __init__(self, func):
+        self.func = func
+        self.n_evals = 0
+
+    def __call__(self, t, y):
+        self.n_evals += 1
+        return self.func(t, y)
+
+
+def _interp_linear(tq: torch.Tensor, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Piecewise-linear interpolation of ``(t, y)`` at ``tq``, constant beyond the ends."""
+    if t.numel() == 1:
+        return y.expand(tq.shape[0]).clone()
+    idx = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
+    w = ((tq - t[idx]) / (t[idx + 1] - t[idx])).clamp(0.0, 1.0)
+    return y[idx] + w * (y[idx + 1] - y[idx])

@@ -1,0 +1,136 @@
+"""Integration through torchdiffeq: solver choice, tolerances, and plain forward simulation."""
+
+from __future__ import annotations
+
+import torch
+from torchdiffeq import odeint
+from torchdiffeq._impl.odeint import SOLVERS
+
+from .model import ODEModel
+
+__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances", "solve", "simulate"]
+
+#: Every solver name torchdiffeq accepts.
+SOLVER_NAMES: tuple[str, ...] = tuple(name for name in SOLVERS if name != "scipy_solver")
+#: Solvers with step-size control (they accept ``rtol``/``atol`` and land steps on ``step_t``).
+ADAPTIVE_SOLVERS: tuple[str, ...] = ("dopri8", "dopri5", "bosh3", "fehlberg2", "adaptive_heun")
+
+
+class IntegrationError(RuntimeError):
+    """The ODE solver failed (step-size underflow, step budget exceeded, non-finite state)."""
+
+
+def check_solver(solver: str) -> None:
+    """Raise ``ValueError`` naming the valid solvers when ``solver`` is not one of them."""
+    if solver not in SOLVER_NAMES:
+        raise ValueError(f"`solver` must be one of {SOLVER_NAMES}; received {solver!r}")
+
+
+def default_tolerances(dtype: torch.dtype, rtol: float | None, atol: float | None) -> tuple[float, float]:
+    """Integrator tolerances: ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` in lower precision."""
+    if dtype == torch.float64:
+        return (1e-10 if rtol is None else rtol), (1e-12 if atol is None else atol)
+    return (1e-6 if rtol is None else rtol), (1e-8 if atol is None else atol)
+
+
+def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, atol: float,
+          hit: torch.Tensor | None = None, max_steps: int | None = None, norm=None) -> torch.Tensor:
+    """``odeint`` with our conventions; solver failures become :class:`IntegrationError`.
+
+    Parameters
+    ----------
+    func : callable ``(t, y) -> dy/dt``
+    y0 : Tensor
+        State at ``t[0]``.
+    t : Tensor ``(G,)``
+        Strictly increasing output times (``t[0]`` is the initial time).
+    solver : str
+        A torchdiffeq method name.
+    rtol, atol : float
+        Tolerances of adaptive solvers.
+    hit : Tensor, optional
+        Times that adaptive solvers must step onto exactly (observation times), rather than
+        interpolate to. Fixed-grid solvers step on every output time anyway.
+    max_steps : int, optional
+        Step budget of adaptive solvers.
+    norm : callable, optional
+        Error norm of adaptive solvers (torchdiffeq's RMS norm by default).
+
+    Returns
+    -------
+    Tensor ``(G, *y0.shape)``
+    """
+    if t.numel() == 1:
+        return y0.unsqueeze(0)
+    options = {}
+    if solver in ADAPTIVE_SOLVERS:
+        if hit is not None:
+            inner = hit[(hit > t[0]) & (hit < t[-1])]
+            if inner.numel():
+                options["step_t"] = inner
+        if max_steps is not None:
+            options["max_num_steps"] = max_steps
+        if norm is not None:
+            options["norm"] = norm
+    try:
+        out = odeint(func, y0, t, rtol=rtol, atol=atol, method=solver, options=options)
+    except AssertionError as exc:  # torchdiffeq reports solver failures by assert
+        raise IntegrationError(str(exc)) from exc
+    if not torch.isfinite(out).all():
+        raise IntegrationError("the solution became non-finite (NaN or inf)")
+    return out
+
+
+def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "dopri5",
+             rtol: float | None = None, atol: float | None = None) -> torch.Tensor:
+    """Integrate ``model`` from ``x0`` at time ``t0`` and return the states at times ``t``.
+
+    Parameters
+    ----------
+    model : ODEModel
+        Its buffers are the coefficients used.
+    x0 : Tensor ``(n_states,)``
+        State at ``t0``.
+    t : Tensor ``(T,)``
+        Output times, strictly increasing; they may lie before ``t0`` (integrated backwards).
+    t0 : float, optional
+        Time of ``x0``; default ``t[0]``.
+    solver, rtol, atol
+        As in :func:`torchql.fit`.
+
+    Returns
+    -------
+    Tensor ``(T, n_states)``
+    """
+    check_solver(solver)
+    dtype = next((b.dtype for b in model.buffers() if b.is_floating_point()), torch.float64)
+    device = next((b.device for b in model.buffers()), torch.device("cpu"))
+    t = torch.as_tensor(t, dtype=dtype, device=device)
+    x0 = torch.as_tensor(x0, dtype=dtype, device=device)
+    n = len(model.state_names)
+    if t.dim() != 1 or t.numel() == 0:
+        raise ValueError(f"`t` must be a non-empty one-dimensional tensor; received shape {tuple(t.shape)}")
+    if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
+        raise ValueError("`t` must be strictly increasing")
+    if x0.shape != (n,):
+        raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
+    rtol, atol = default_tolerances(dtype, rtol, atol)
+    t0_ = t[0] if t0 is None else torch.as_tensor(t0, dtype=dtype, device=device)
+    with torch.no_grad():
+        return _integrate_both_ways(model, x0, t, t0_, solver, rtol, atol)
+
+
+def _integrate_both_ways(func, x0, t, t0, solver, rtol, atol):
+    """States at ``t`` from ``x0`` at ``t0``, integrating forward and backward as needed."""
+    pieces = []
+    before = t[t < t0]
+    if before.numel():
+        times = torch.cat([t0.reshape(1), before.flip(0)])
+        pieces.append(solve(func, x0, times, solver=solver, rtol=rtol, atol=atol)[1:].flip(0))
+    after = t[t >= t0]
+    if after.numel():
+        starts_at_t0 = bool(after[0] == t0)
+        times = after if starts_at_t0 else torch.cat([t0.reshape(1), after])
+        out = solve(func, x0, times, solver=solver, rtol=rtol, atol=atol)
+        pieces.append(out if starts_at_t0 else out[1:])
+    return torch.cat(pieces)

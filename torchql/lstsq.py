@@ -1,0 +1,121 @@
+"""The alpha update: weighted least squares with exactly-met rows, by orthogonal factorizations.
+
+Solves ``min || W (C alpha - d) ||`` over the least-squares rows subject to
+``C_e alpha = d_e`` on the exact rows (equality-constrained least squares, null-space method):
+
+1. Columns are scaled to unit norm (the problem's conditioning then does not depend on the
+   units of the unknowns).
+2. ``C_e^T = Q R`` (QR); ``alpha = Q_1 R^{-T} d_e + Q_2 beta`` satisfies the exact rows for
+   every ``beta``.
+3. ``beta`` minimizes the remaining weighted residual, by SVD (rank revealing, never the
+   normal equations).
+
+Singular values below ``rcond`` times the largest are treated as zero: the update is then the
+minimum-norm one and the problem is reported rank deficient.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+__all__ = ["LstsqSolution", "ExactRowsError", "solve_update"]
+
+
+class ExactRowsError(ValueError):
+    """The exactly-met observations are linearly dependent or contradict each other."""
+
+
+class LstsqSolution(NamedTuple):
+    """Result of :func:`solve_update`.
+
+    Attributes
+    ----------
+    alpha : Tensor ``(m,)``
+        The update of the unknowns.
+    singular_values : Tensor ``(r,)``
+        Singular values of the column-scaled weighted least-squares matrix (after eliminating
+        the exact rows), in decreasing order.
+    rank_deficient : bool
+        Whether some singular value fell below ``rcond`` times the largest.
+    null_vectors : Tensor ``(m, k)``
+        Unit directions (in the unknowns' own units) that the data cannot determine.
+    """
+
+    alpha: torch.Tensor
+    singular_values: torch.Tensor
+    rank_deficient: bool
+    null_vectors: torch.Tensor
+
+
+def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact: torch.Tensor,
+                 rcond: float) -> LstsqSolution:
+    """Solve for ``alpha``.
+
+    Parameters
+    ----------
+    C : Tensor ``(L, m)``
+        Sensitivities of the observations to the unknowns (unweighted).
+    d : Tensor ``(L,)``
+        Residuals ``data - prediction`` (unweighted).
+    weights : Tensor ``(L,)``
+        ``1 / sigma`` per row.
+    exact : bool Tensor ``(L,)``
+        Rows to satisfy exactly.
+    rcond : float
+        Relative singular-value threshold for rank decisions.
+
+    Returns
+    -------
+    LstsqSolution
+    """
+    m = C.shape[1]
+    Cw = C * weights.unsqueeze(-1)
+    dw = d * weights
+    scale = torch.linalg.vector_norm(Cw, dim=0)
+    zero_cols = scale == 0
+    scale = torch.where(zero_cols, torch.ones_like(scale), scale)
+    Cs = Cw / scale
+    alpha_s = torch.zeros(m, dtype=C.dtype, device=C.device)
+
+    A, b = Cs[~exact], dw[~exact]
+    basis = torch.eye(m, dtype=C.dtype, device=C.device)
+    if bool(exact.any()):
+        E, e = Cs[exact], dw[exact]
+        Q, R = torch.linalg.qr(E.T, mode="complete")
+        k = E.shape[0]
+        R1 = R[:k, :k]
+        diag = torch.diagonal(R1).abs()
+        if k > m or bool((diag <= rcond * max(diag.max().item(), 1.0)).any()):
+            raise ExactRowsError(
+                "the observations marked `exact` are linearly dependent or contradictory at the current "
+                "iterate: they cannot all be met exactly; mark fewer values exact"
+            )
+        y1 = torch.linalg.solve_triangular(R1.T, e.unsqueeze(-1), upper=False).squeeze(-1)
+        alpha_s = Q[:, :k] @ y1
+        basis = Q[:, k:]
+        b = b - A @ alpha_s
+        A = A @ basis
+
+    if A.shape[1] == 0 or A.shape[0] == 0:
+        sv = torch.zeros(0, dtype=C.dtype, device=C.device)
+        deficient = A.shape[1] > 0
+        null = basis / scale.unsqueeze(-1) if deficient else torch.zeros(m, 0, dtype=C.dtype, device=C.device)
+        return LstsqSolution(alpha_s / scale, sv, deficient or bool(zero_cols.any()), _normalize(null))
+    U, S, Vh = torch.linalg.svd(A, full_matrices=True)
+    r = S.shape[0]
+    keep = S > rcond * S[0] if r else S > 0
+    coeff = torch.where(keep, (U[:, :r].T @ b) / torch.where(keep, S, torch.ones_like(S)), torch.zeros_like(S))
+    beta = Vh[:r].T @ coeff
+    alpha_s = alpha_s + basis @ beta
+    deficient = bool((~keep).any()) or A.shape[0] < A.shape[1] or bool(zero_cols.any())
+    dropped = torch.cat([Vh[:r][~keep], Vh[r:]], dim=0).T  # (cols of A, k)
+    null = basis @ dropped / scale.unsqueeze(-1)
+    return LstsqSolution(alpha_s / scale, S, deficient, _normalize(null))
+
+
+def _normalize(vectors: torch.Tensor) -> torch.Tensor:
+    if vectors.shape[1] == 0:
+        return vectors
+    return vectors / torch.linalg.vector_norm(vectors, dim=0, keepdim=True).clamp_min(torch.finfo(vectors.dtype).tiny)

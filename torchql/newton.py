@@ -1,0 +1,110 @@
+"""Algebraic Newton–Raphson for systems of nonlinear equations (thesis eq. 3.7)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from torch.func import jacrev
+
+__all__ = ["newton_raphson", "NewtonResult"]
+
+
+@dataclass
+class NewtonResult:
+    """What :func:`newton_raphson` found.
+
+    Attributes
+    ----------
+    x : Tensor ``(m,)``
+        The last iterate.
+    success : bool
+        Whether the step fell below ``xtol`` (relative) or the residual below ``ftol``.
+    message : str
+        Why it stopped.
+    iterations : int
+        Number of Newton steps taken.
+    history : list of Tensor ``(m,)``
+        Every iterate, the initial guess first.
+    residual_norms : list of float
+        ``max |R(x)|`` at every iterate in ``history``.
+    """
+
+    x: torch.Tensor
+    success: bool
+    message: str
+    iterations: int
+    history: list[torch.Tensor] = field(default_factory=list)
+    residual_norms: list[float] = field(default_factory=list)
+
+
+def newton_raphson(
+    residual: Callable[[torch.Tensor], torch.Tensor],
+    x0,
+    *,
+    max_iter: int = 50,
+    xtol: float = 1e-12,
+    ftol: float = 0.0,
+    jacobian: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> NewtonResult:
+    """Solve ``R(x) = 0`` by ``x_{n+1} = x_n - J_n^{-1} R(x_n)``.
+
+    Parameters
+    ----------
+    residual : callable ``R(x) -> (m,)``
+        Differentiable residual function of ``x (m,)``.
+    x0 : Tensor ``(m,)``
+        Initial guess (float64 unless given otherwise).
+    max_iter : int
+        Maximum number of steps.
+    xtol : float
+        Stop when ``max |dx_i| <= xtol * max(|x_i|, 1)``.
+    ftol : float
+        Stop when ``max |R(x)| <= ftol``.
+    jacobian : callable ``J(x) -> (m, m)``, optional
+        Analytic Jacobian; default :func:`torch.func.jacrev` of ``residual``. Non-square
+        systems are solved in the least-squares sense (Gauss–Newton).
+
+    Returns
+    -------
+    NewtonResult
+    """
+    x = torch.as_tensor(x0)
+    if not x.is_floating_point():
+        x = x.to(torch.float64)
+    x = x.clone()
+    if x.dim() != 1:
+        raise ValueError(f"`x0` must be one-dimensional, shape (m,); received shape {tuple(x.shape)}")
+    if not torch.isfinite(x).all():
+        raise ValueError("`x0` must be finite")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
+        raise ValueError(f"`max_iter` must be a non-negative integer; received {max_iter!r}")
+    jac_fn = jacobian if jacobian is not None else jacrev(residual)
+    history, norms = [x.clone()], []
+    r = residual(x)
+    if not isinstance(r, torch.Tensor) or r.dim() != 1:
+        raise ValueError("`residual` must return a one-dimensional tensor (m,)")
+    norms.append(float(r.abs().max()))
+    message, success = "The maximum number of iterations was reached. Increase `max_iter`.", False
+    it = 0
+    for it in range(1, max_iter + 1):
+        J = jac_fn(x)
+        if J.shape != (r.shape[0], x.shape[0]):
+            raise ValueError(f"`jacobian` must return shape ({r.shape[0]}, {x.shape[0]}); received {tuple(J.shape)}")
+        if J.shape[0] == J.shape[1]:
+            dx = torch.linalg.solve(J, -r)
+        else:
+            dx = torch.linalg.lstsq(J, -r.unsqueeze(-1)).solution.squeeze(-1)
+        x = x + dx
+        r = residual(x)
+        history.append(x.clone())
+        norms.append(float(r.abs().max()))
+        if not (torch.isfinite(x).all() and math.isfinite(norms[-1])):
+            message = "The iteration diverged (non-finite iterate). Start closer to the root."
+            break
+        if float((dx.abs() / x.abs().clamp_min(1.0)).max()) <= xtol or norms[-1] <= ftol:
+            message, success = "Converged.", True
+            break
+    return NewtonResult(x=x, success=success, message=message, iterations=it, history=history, residual_norms=norms)

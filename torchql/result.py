@@ -1,0 +1,188 @@
+"""The result of a fit: estimates, status with an actionable message, and iteration history."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import torch
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .model import ODEModel
+
+__all__ = ["Status", "IterationRecord", "FitResult", "FitError"]
+
+
+class Status(enum.Enum):
+    """Why a fit stopped. Each value is the message a user needs to act on."""
+
+    CONVERGED = "Converged: the update alpha and the change in the estimates fell below `xtol`."
+    CONVERGED_SSE = "Converged: the weighted sum of squares stopped changing (relative change below `ftol`)."
+    MAX_ITER = (
+        "The maximum number of iterations was reached before convergence. Increase `max_iter`, "
+        "or start from guesses closer to the solution."
+    )
+    DIVERGED = (
+        "The iteration diverged: the update or the trajectory became non-finite. Start from guesses "
+        "closer to the solution, or observe more of the trajectory."
+    )
+    INTEGRATION_FAILED = (
+        "The ODE solver failed. Start from better guesses (the model may blow up there), loosen "
+        "`rtol`/`atol`, or choose another `solver`."
+    )
+    STALLED = (
+        "The iteration stalled: no fraction of the Gauss-Newton step lowered the sum of squares. "
+        "Start from guesses closer to the solution, or try method=\"kantorovich\"."
+    )
+    NOT_IDENTIFIABLE = (
+        "The data do not determine every unknown: the least-squares problem is rank deficient. "
+        "Fix the named unknowns (`params=`, `fixed_x0=`), or observe more states or times."
+    )
+    EXACT_INFEASIBLE = (
+        "The observations marked `exact` cannot all be met: they are linearly dependent or "
+        "contradictory. Mark fewer values exact."
+    )
+
+    @property
+    def success(self) -> bool:
+        """Whether this status is a successful convergence."""
+        return self in (Status.CONVERGED, Status.CONVERGED_SSE)
+
+
+class FitError(RuntimeError):
+    """Raised by ``fit(..., throw=True)`` when the fit does not converge; ``.result`` holds it."""
+
+    def __init__(self, result: "FitResult") -> None:
+        super().__init__(result.message)
+        self.result = result
+
+
+@dataclass
+class IterationRecord:
+    """One iterate of the fit (iteration 0 is the initial guess).
+
+    Attributes
+    ----------
+    iteration : int
+        Iteration number.
+    params : dict of str to Tensor
+        Estimated buffers at this iterate (each of its buffer's shape).
+    x0 : Tensor ``(n_states,)``
+        Initial-state estimate at this iterate.
+    sse : float
+        Weighted sum of squared residuals of this iterate's trajectory (for the Kantorovich
+        method, the stored superposed trajectory; for shooting, the nonlinear solution).
+    alpha : Tensor ``(m,)`` or None
+        The update computed from this iterate (None if none was computed).
+    alpha_norm : float
+        ``max_i |alpha_i| / (|u_i| + s_i)``: the update scaled by the unknowns' magnitudes.
+    trajectory : Tensor ``(G, n_states)`` or None
+        This iterate's trajectory on ``trajectory_t``.
+    trajectory_t : Tensor ``(G,)`` or None
+    """
+
+    iteration: int
+    params: dict[str, torch.Tensor]
+    x0: torch.Tensor
+    sse: float
+    alpha: torch.Tensor | None = None
+    alpha_norm: float = float("nan")
+    trajectory: torch.Tensor | None = None
+    trajectory_t: torch.Tensor | None = None
+
+
+@dataclass
+class FitResult:
+    """What :func:`torchql.fit` found.
+
+    Attributes
+    ----------
+    success : bool
+        Whether the iteration converged.
+    status : Status
+        Why it stopped.
+    message : str
+        ``status.value`` plus details (which unknowns are not identifiable, what the solver said).
+    params : dict of str to Tensor
+        Estimated buffers (unknown ones at their estimates, others as given), buffer shapes.
+    x0 : Tensor ``(n_states,)``
+        Estimated initial state at ``t0``.
+    t0 : float
+        Time of ``x0``.
+    unknown_names : list of str
+        Names of the estimated quantities, in the order of ``estimates`` and of the columns of
+        ``jacobian``: unknown initial states (``"y(t0)"`` style names use the state name), then
+        coefficient elements.
+    estimates : Tensor ``(m,)``
+        The estimated unknowns, in ``unknown_names`` order.
+    iterations : int
+        Number of updates applied.
+    history : list of IterationRecord
+        Every iterate, from the initial guess (iteration 0) to the last.
+    sse : float
+        Weighted sum of squared residuals ``sum(((y - h(x(t))) / sigma)^2)`` of the fitted model
+        (nonlinear solution from ``x0`` with ``params``), over the least-squares observations.
+    residuals : Tensor ``(L,)``
+        Weighted residuals ``(y - h(x(t))) / sigma`` of the fitted model at every used value
+        (time-major order, NaNs skipped), exact ones included.
+    jacobian : Tensor ``(L, m)``
+        Weighted sensitivities ``d h(x(t)) / d unknowns / sigma`` at the estimates (the final
+        homogeneous solutions at the observation times).
+    exact_residual : float
+        Largest ``|y - h(x(t))|`` over the values marked exact (0 if none).
+    singular_values : Tensor ``(r,)``
+        Singular values of the column-scaled weighted Jacobian at the estimates.
+    n_observations : int
+        Number of values used, ``L``.
+    nfev : int
+        Number of right-hand-side evaluations of the integrated systems.
+    method : str
+        ``"kantorovich"`` or ``"shooting"``.
+    model : ODEModel
+        A copy of the user's model whose buffers hold the estimates.
+    """
+
+    success: bool
+    status: Status
+    message: str
+    params: dict[str, torch.Tensor]
+    x0: torch.Tensor
+    t0: float
+    unknown_names: list[str]
+    estimates: torch.Tensor
+    iterations: int
+    history: list[IterationRecord]
+    sse: float
+    residuals: torch.Tensor
+    jacobian: torch.Tensor
+    exact_residual: float
+    singular_values: torch.Tensor
+    n_observations: int
+    nfev: int
+    method: str
+    model: "ODEModel"
+    solver_options: dict = field(default_factory=dict, repr=False)
+
+    def predict(self, t) -> torch.Tensor:
+        """The fitted trajectory: the model with the estimated coefficients, integrated from ``x0``.
+
+        Parameters
+        ----------
+        t : Tensor ``(T,)``
+            Strictly increasing times; times before ``t0`` are integrated backwards.
+
+        Returns
+        -------
+        Tensor ``(T, n_states)``
+        """
+        from .integrate import simulate
+
+        return simulate(self.model, self.x0, t, t0=self.t0, **self.solver_options)
+
+    def __repr__(self) -> str:
+        est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))
+        return (
+            f"FitResult(success={self.success}, status={self.status.name}, iterations={self.iterations}, "
+            f"sse={self.sse:.6g}, {est})"
+        )

@@ -1,0 +1,95 @@
+"""The stored iterate trajectory ``z_n(t)`` on a time grid, and the quasilinear system about it.
+
+The Kantorovich iteration linearizes about the previous iterate, which exists only as values
+on a grid. Between two grid nodes it is represented by the cubic Hermite polynomial through
+the node values and node slopes (fourth-order accurate, continuously differentiable). The
+same interpolation gives ``f(z_n(t))`` from the node values ``f_j`` and their time
+derivatives ``A_j z_n'(t_j) + df/dt``, so the quasilinear right-hand side is known everywhere
+without calling the model again: one vmapped Jacobian evaluation over the grid per iteration.
+
+Inside one grid interval every coefficient is a polynomial in time, so the interval's
+transfer (its propagator ``Phi_j`` and forced response ``c_j``) is a smooth problem that any
+torchdiffeq solver integrates in a few steps, for all intervals at once.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["LinearizedReference", "IntervalSystem", "hermite_basis"]
+
+
+def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cubic Hermite basis ``(h00, h10, h01, h11)`` at local coordinate ``s`` in ``[0, 1]``."""
+    s2 = s * s
+    s3 = s2 * s
+    return 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
+
+
+class LinearizedReference:
+    """The reference trajectory on its grid with the linearization at every node.
+
+    ``w' = A(t) w + B(t)`` with ``A(t) = df/dz(z_n(t))`` and ``B(t) = f(z_n(t)) - A(t) z_n(t)``,
+    where ``z_n`` and ``f(z_n)`` are cubic Hermite interpolants of node data and ``A`` is
+    interpolated linearly (its error multiplies ``w - z_n``, which vanishes at convergence, so
+    it does not limit the final accuracy).
+
+    Parameters
+    ----------
+    t : Tensor ``(G,)``
+        Grid times.
+    z : Tensor ``(G, M)``
+        Reference values ``z_n(t_j)``.
+    z_dot : Tensor ``(G, M)``
+        Reference slopes ``z_n'(t_j)``.
+    f, jac, f_t : Tensors ``(G, M)``, ``(G, M, M)``, ``(G, M)``
+        The linearization at the nodes (see :func:`torchql.linearize.linearize`).
+    """
+
+    def __init__(self, t, z, z_dot, f, jac, f_t) -> None:
+        self.t = t
+        self.z = z
+        self.z_dot = z_dot
+        self.f = f
+        self.jac = jac
+        self.f_dot = torch.einsum("gij,gj->gi", jac, z_dot) + f_t
+
+    def slopes_of(self, z_new: torch.Tensor) -> torch.Tensor:
+        """Slopes at the nodes of a solution ``z_new (G, M)`` of this linear system."""
+        return self.f + torch.einsum("gij,gj->gi", self.jac, z_new - self.z)
+
+
+class IntervalSystem:
+    """All grid intervals' transfer problems as one system in the local time ``s`` in ``[0, 1]``.
+
+    State ``Y (G-1, M, M+1) = [Phi | c]`` with ``Phi(0) = I``, ``c(0) = 0`` and
+    ``dY/ds = h_j (A_j(s) Y + [0 | B_j(s)])``: at ``s = 1``, ``w(t_{j+1}) = Phi_j w(t_j) + c_j``
+    for the particular solution and ``Phi_j`` alone for the homogeneous ones.
+    """
+
+    def __init__(self, ref: LinearizedReference) -> None:
+        self.h = (ref.t[1:] - ref.t[:-1])
+        hh = self.h.unsqueeze(-1)
+        self.z0, self.z1 = ref.z[:-1], ref.z[1:]
+        self.zd0, self.zd1 = ref.z_dot[:-1] * hh, ref.z_dot[1:] * hh
+        self.f0, self.f1 = ref.f[:-1], ref.f[1:]
+        self.fd0, self.fd1 = ref.f_dot[:-1] * hh, ref.f_dot[1:] * hh
+        self.J0, self.dJ = ref.jac[:-1], ref.jac[1:] - ref.jac[:-1]
+        self.n_evals = 0
+
+    def initial(self) -> torch.Tensor:
+        """``[I | 0]`` for every interval: shape ``(G-1, M, M+1)``."""
+        G1, M = self.z0.shape
+        eye = torch.eye(M, M + 1, dtype=self.z0.dtype, device=self.z0.device)
+        return eye.expand(G1, M, M + 1).clone()
+
+    def __call__(self, s: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
+        self.n_evals += 1
+        b00, b10, b01, b11 = hermite_basis(s)
+        z = b00 * self.z0 + b10 * self.zd0 + b01 * self.z1 + b11 * self.zd1
+        f = b00 * self.f0 + b10 * self.fd0 + b01 * self.f1 + b11 * self.fd1
+        A = self.J0 + s * self.dJ
+        dY = A @ Y
+        forcing = f - (A @ z.unsqueeze(-1)).squeeze(-1)
+        dY[:, :, -1] += forcing
+        return dY * self.h.reshape(-1, 1, 1)
