@@ -106,7 +106,7 @@ def fit(
         not identifiable. Default ``max(1e3 * rtol, 1e3 * eps)``.
     grid : int or Tensor, optional
         Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``
-        (default 2000), or extra times to include. Observation times and ``t0`` are always nodes.
+        (default 1000), or extra times to include. Observation times and ``t0`` are always nodes.
     initial_trajectory : {"integrate", "data"}
         Kantorovich's first reference: the nonlinear model integrated from the guesses, or
         the data (directly observed states interpolated linearly, others held at ``x0``).
@@ -323,7 +323,7 @@ class _Problem:
         dtype, device = self.dtype, self.device
         span = float(t_end - self.t0)
         extra = torch.zeros(0, dtype=dtype, device=device)
-        intervals = 2000
+        intervals = 1000
         if isinstance(grid, torch.Tensor):
             extra = grid.to(dtype=dtype, device=device).reshape(-1)
             if not torch.isfinite(extra).all():
@@ -371,15 +371,19 @@ class _Problem:
             trajectory_t=trajectory_t,
         )
 
-    def _forward(self, z0: torch.Tensor) -> torch.Tensor:
+    def _forward(self, z0: torch.Tensor, loose: bool = False) -> torch.Tensor:
         """The nonlinear model integrated from ``z0 (M,)`` over the grid: ``(G, M)``.
 
-        Observation times are grid nodes the solver steps onto exactly.
+        Observation times are grid nodes the solver steps onto exactly. ``loose`` integrates
+        at ``_LOOSE_RTOL`` (or ``rtol`` if looser): enough for a first reference trajectory,
+        whose only role is to be linearized about.
         """
         n = self.system.n
         counter = _Counter(self.system.model_with(z0[n:]))
+        rtol = max(self.rtol, _LOOSE_RTOL) if loose else self.rtol
+        atol = self.atol * rtol / self.rtol
         with torch.no_grad():
-            x = solve(counter, z0[:n], self.grid, solver=self.solver, rtol=self.rtol, atol=self.atol,
+            x = solve(counter, z0[:n], self.grid, solver=self.solver, rtol=rtol, atol=atol,
                       hit=self.t_obs, max_steps=self.max_steps)
         self.nfev += counter.n_evals
         return torch.cat([x, z0[n:].expand(x.shape[0], -1)], dim=1)
@@ -391,7 +395,7 @@ class _Problem:
         linearization about ``z_traj``, propagated on the grid like Kantorovich's system.
         """
         lin = linearize(self.system, self.grid, z_traj)
-        reference = LinearizedReference(self.grid, z_traj, lin.f, *lin)
+        reference = LinearizedReference(self.grid, z_traj, lin.f, lin)
         W, evals = propagate_linear(reference, initial_columns(z0, self.unknown_index), solver=self.solver,
                                     rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
         self.nfev += evals
@@ -402,9 +406,9 @@ class _Problem:
     def _initial_reference(self) -> LinearizedReference:
         system, grid = self.system, self.grid
         if self.initial_trajectory == "integrate":
-            z_ref = self._forward(self.z0)
+            z_ref = self._forward(self.z0, loose=True)
             lin = linearize(system, grid, z_ref)
-            return LinearizedReference(grid, z_ref, lin.f, *lin)
+            return LinearizedReference(grid, z_ref, lin.f, lin)
         z_ref = self.z0.unsqueeze(0).repeat(grid.shape[0], 1)
         for k, i in enumerate(self.operator.observed_states):
             if i is None:
@@ -413,8 +417,7 @@ class _Problem:
             if int(ok.sum()) >= 1:
                 z_ref[:, i] = _interp_linear(grid, self.t_obs[ok], self.y[ok, k])
         z_dot = torch.gradient(z_ref, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z_ref)
-        lin = linearize(system, grid, z_ref)
-        return LinearizedReference(grid, z_ref, z_dot, *lin)
+        return LinearizedReference(grid, z_ref, z_dot, linearize(system, grid, z_ref, z_dot))
 
     # ------------------------------------------------------------------------------------
     def run(self, callback) -> FitResult:
@@ -499,8 +502,8 @@ class _Problem:
             if not torch.isfinite(z_new).all():
                 state.status, state.detail = Status.DIVERGED, " The superposed trajectory became non-finite."
                 return
-            lin = linearize(self.system, self.grid, z_new)
-            reference = LinearizedReference(self.grid, z_new, reference.slopes_of(z_new), *lin)
+            z_dot = reference.slopes_of(z_new)
+            reference = LinearizedReference(self.grid, z_new, z_dot, linearize(self.system, self.grid, z_new, z_dot))
             if self._converged(state, scaled, sse):
                 return
 
@@ -621,6 +624,8 @@ class _Problem:
         return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
 
 
+#: Tolerance of the first Kantorovich reference, integrated from the guesses.
+_LOOSE_RTOL = 1e-6
 #: Step halvings a shooting update may take before the iteration counts as stalled.
 _MAX_HALVINGS = 30
 #: Trust region of a shooting update: no unknown moves by more than this times its magnitude.

@@ -34,7 +34,8 @@ def default_tolerances(dtype: torch.dtype, rtol: float | None, atol: float | Non
 
 
 def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, atol: float,
-          hit: torch.Tensor | None = None, max_steps: int | None = None, norm=None) -> torch.Tensor:
+          hit: torch.Tensor | None = None, max_steps: int | None = None, norm=None,
+          first_step: float | None = None) -> torch.Tensor:
     """``odeint`` with our conventions; solver failures become :class:`IntegrationError`.
 
     Parameters
@@ -55,6 +56,8 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
         Step budget of adaptive solvers.
     norm : callable, optional
         Error norm of adaptive solvers (torchdiffeq's RMS norm by default).
+    first_step : float, optional
+        First step tried by adaptive solvers (default: torchdiffeq's estimate).
 
     Returns
     -------
@@ -72,6 +75,8 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
             options["max_num_steps"] = max_steps
         if norm is not None:
             options["norm"] = norm
+        if first_step is not None:
+            options["first_step"] = first_step
     try:
         out = odeint(func, y0, t, rtol=rtol, atol=atol, method=solver, options=options)
     except AssertionError as exc:  # torchdiffeq reports solver failures by assert

@@ -2,7 +2,9 @@
 
 Every Jacobian is taken with :func:`torch.func.jacrev`; over a grid of times it is one
 :func:`torch.func.vmap` call, so a whole iteration's linearization costs a single batched
-evaluation of the model.
+evaluation of the model. The same call carries a forward-mode tangent along the trajectory
+(:func:`torch.func.jvp`), which gives the time derivatives of ``f`` and of ``A`` at the nodes
+for the cubic Hermite interpolation between them.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch.func import jacrev, vmap
+from torch.func import jacrev, jvp, vmap
 
 from .model import AugmentedSystem
 
@@ -18,7 +20,7 @@ __all__ = ["Linearization", "linearize"]
 
 
 class Linearization(NamedTuple):
-    """The augmented right-hand side and its derivatives at a set of points.
+    """The augmented right-hand side and its derivatives along a trajectory, at its nodes.
 
     Attributes
     ----------
@@ -26,25 +28,21 @@ class Linearization(NamedTuple):
         ``f(t_j, z_j)``.
     jac : Tensor ``(G, M, M)``
         ``A_j = df/dz (t_j, z_j)``.
-    f_t : Tensor ``(G, M)``
-        ``df/dt (t_j, z_j)`` (zero for autonomous models).
+    f_dot : Tensor ``(G, M)``
+        ``d/dt f(t, z(t))`` at the nodes: ``A_j z'_j + df/dt``.
+    jac_dot : Tensor ``(G, M, M)``
+        ``d/dt A(t, z(t))`` at the nodes.
     """
 
     f: torch.Tensor
     jac: torch.Tensor
-    f_t: torch.Tensor
+    f_dot: torch.Tensor
+    jac_dot: torch.Tensor
 
 
-def _with_aux(system: AugmentedSystem):
-    def g(t, z):
-        out = system.f(t, z)
-        return out, out
-
-    return g
-
-
-def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor) -> Linearization:
-    """Linearize ``f`` at points ``(t_j, z_j)``.
+def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
+              z_dot: torch.Tensor | None = None) -> Linearization:
+    """Linearize ``f`` along a trajectory given at nodes ``(t_j, z_j)`` with slopes ``z'_j``.
 
     Parameters
     ----------
@@ -53,11 +51,21 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor) -> Line
         Times.
     z : Tensor ``(G, M)``
         Augmented states.
+    z_dot : Tensor ``(G, M)``, optional
+        Slopes of the trajectory; default ``f(t_j, z_j)`` (a solution of the model).
 
     Returns
     -------
     Linearization
-        ``f``, ``df/dz`` and ``df/dt`` at every point, from one vmapped ``jacrev`` call.
     """
-    (f_t, jac), f = vmap(jacrev(_with_aux(system), argnums=(0, 1), has_aux=True))(t, z)
-    return Linearization(f=f, jac=jac, f_t=f_t)
+    if z_dot is None:
+        z_dot = vmap(system.f)(t, z)
+
+    def value_and_jacobian(ti, zi):
+        return system.f(ti, zi), jacrev(system.f, argnums=1)(ti, zi)
+
+    def along(ti, zi, zdi):
+        return jvp(value_and_jacobian, (ti, zi), (torch.ones_like(ti), zdi))
+
+    (f, jac), (f_dot, jac_dot) = vmap(along)(t, z, z_dot)
+    return Linearization(f=f, jac=jac, f_dot=f_dot, jac_dot=jac_dot)

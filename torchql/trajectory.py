@@ -30,9 +30,8 @@ class LinearizedReference:
     """The reference trajectory on its grid with the linearization at every node.
 
     ``w' = A(t) w + B(t)`` with ``A(t) = df/dz(z_n(t))`` and ``B(t) = f(z_n(t)) - A(t) z_n(t)``,
-    where ``z_n`` and ``f(z_n)`` are cubic Hermite interpolants of node data and ``A`` is
-    interpolated linearly (its error multiplies ``w - z_n``, which vanishes at convergence, so
-    it does not limit the final accuracy).
+    where ``z_n``, ``f(z_n)`` and ``A`` are cubic Hermite interpolants of their node values and
+    node time derivatives.
 
     Parameters
     ----------
@@ -42,17 +41,19 @@ class LinearizedReference:
         Reference values ``z_n(t_j)``.
     z_dot : Tensor ``(G, M)``
         Reference slopes ``z_n'(t_j)``.
-    f, jac, f_t : Tensors ``(G, M)``, ``(G, M, M)``, ``(G, M)``
-        The linearization at the nodes (see :func:`torchql.linearize.linearize`).
+    lin : Linearization
+        ``f``, ``A`` and their time derivatives at the nodes, along ``z_dot``
+        (see :func:`torchql.linearize.linearize`).
     """
 
-    def __init__(self, t, z, z_dot, f, jac, f_t) -> None:
+    def __init__(self, t, z, z_dot, lin) -> None:
         self.t = t
         self.z = z
         self.z_dot = z_dot
-        self.f = f
-        self.jac = jac
-        self.f_dot = torch.einsum("gij,gj->gi", jac, z_dot) + f_t
+        self.f = lin.f
+        self.jac = lin.jac
+        self.f_dot = lin.f_dot
+        self.jac_dot = lin.jac_dot
 
     def slopes_of(self, z_new: torch.Tensor) -> torch.Tensor:
         """Slopes at the nodes of a solution ``z_new (G, M)`` of this linear system."""
@@ -68,13 +69,15 @@ class IntervalSystem:
     """
 
     def __init__(self, ref: LinearizedReference) -> None:
-        self.h = (ref.t[1:] - ref.t[:-1])
-        hh = self.h.unsqueeze(-1)
+        self.h = ref.t[1:] - ref.t[:-1]
+        hv = self.h.unsqueeze(-1)
+        hm = self.h.reshape(-1, 1, 1)
         self.z0, self.z1 = ref.z[:-1], ref.z[1:]
-        self.zd0, self.zd1 = ref.z_dot[:-1] * hh, ref.z_dot[1:] * hh
+        self.zd0, self.zd1 = ref.z_dot[:-1] * hv, ref.z_dot[1:] * hv
         self.f0, self.f1 = ref.f[:-1], ref.f[1:]
-        self.fd0, self.fd1 = ref.f_dot[:-1] * hh, ref.f_dot[1:] * hh
-        self.J0, self.dJ = ref.jac[:-1], ref.jac[1:] - ref.jac[:-1]
+        self.fd0, self.fd1 = ref.f_dot[:-1] * hv, ref.f_dot[1:] * hv
+        self.J0, self.J1 = ref.jac[:-1], ref.jac[1:]
+        self.Jd0, self.Jd1 = ref.jac_dot[:-1] * hm, ref.jac_dot[1:] * hm
         self.n_evals = 0
 
     def initial(self) -> torch.Tensor:
@@ -88,7 +91,7 @@ class IntervalSystem:
         b00, b10, b01, b11 = hermite_basis(s)
         z = b00 * self.z0 + b10 * self.zd0 + b01 * self.z1 + b11 * self.zd1
         f = b00 * self.f0 + b10 * self.fd0 + b01 * self.f1 + b11 * self.fd1
-        A = self.J0 + s * self.dJ
+        A = b00 * self.J0 + b10 * self.Jd0 + b01 * self.J1 + b11 * self.Jd1
         dY = A @ Y
         forcing = f - (A @ z.unsqueeze(-1)).squeeze(-1)
         dY[:, :, -1] += forcing

@@ -1,0 +1,74 @@
+"""The alpha update: weighted least squares, exact rows, rank decisions."""
+
+import pytest
+import torch
+
+from torchql.lstsq import ExactRowsError, solve_update
+
+torch.manual_seed(0)
+DT = torch.float64
+
+
+def _problem(L=20, m=4, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    C = torch.randn(L, m, generator=g, dtype=DT)
+    d = torch.randn(L, generator=g, dtype=DT)
+    w = torch.rand(L, generator=g, dtype=DT) + 0.5
+    return C, d, w
+
+
+def test_matches_weighted_least_squares_solution():
+    C, d, w = _problem()
+    sol = solve_update(C, d, w, torch.zeros(20, dtype=torch.bool), rcond=1e-12)
+    expected = torch.linalg.lstsq(C * w[:, None], d * w).solution
+    torch.testing.assert_close(sol.alpha, expected, rtol=1e-12, atol=1e-12)
+    assert not sol.rank_deficient
+
+
+def test_badly_scaled_columns_are_solved_accurately():
+    # unknowns differing by 1e8 in scale: column scaling keeps the solve exact
+    C, _, w = _problem()
+    C = C * torch.tensor([1e-4, 1.0, 1e4, 1.0], dtype=DT)
+    alpha_true = torch.tensor([3e3, -2.0, 5e-5, 0.7], dtype=DT)
+    d = C @ alpha_true
+    sol = solve_update(C, d, w, torch.zeros(20, dtype=torch.bool), rcond=1e-12)
+    torch.testing.assert_close(sol.alpha, alpha_true, rtol=1e-10, atol=0)
+
+
+def test_exact_rows_are_met_and_the_rest_is_the_constrained_optimum():
+    C, d, w = _problem()
+    exact = torch.zeros(20, dtype=torch.bool)
+    exact[[0, 7]] = True
+    sol = solve_update(C, d, w, exact, rcond=1e-12)
+    torch.testing.assert_close(C[exact] @ sol.alpha, d[exact], rtol=0, atol=1e-12)
+    # KKT system of  min ||W(C a - d)||^2  s.t.  C_e a = d_e
+    A, b = C[~exact] * w[~exact, None], d[~exact] * w[~exact]
+    E = C[exact]
+    kkt = torch.zeros(6, 6, dtype=DT)
+    kkt[:4, :4] = 2 * A.T @ A
+    kkt[:4, 4:] = E.T
+    kkt[4:, :4] = E
+    rhs = torch.cat([2 * A.T @ b, d[exact]])
+    expected = torch.linalg.solve(kkt, rhs)[:4]
+    torch.testing.assert_close(sol.alpha, expected, rtol=1e-9, atol=1e-11)
+
+
+def test_dependent_exact_rows_raise():
+    C, d, w = _problem()
+    C[1] = 2 * C[0]
+    exact = torch.zeros(20, dtype=torch.bool)
+    exact[[0, 1]] = True
+    with pytest.raises(ExactRowsError, match="exact"):
+        solve_update(C, d, w, exact, rcond=1e-10)
+
+
+def test_rank_deficiency_is_detected_with_its_null_direction():
+    C, d, w = _problem()
+    C[:, 3] = C[:, 1] * 2.0  # unknowns 1 and 3 only appear as u1 + 2 u3
+    sol = solve_update(C, d, w, torch.zeros(20, dtype=torch.bool), rcond=1e-10)
+    assert sol.rank_deficient
+    assert sol.null_vectors.shape == (4, 1)
+    v = sol.null_vectors[:, 0]
+    torch.testing.assert_close(C @ v, torch.zeros(20, dtype=DT), rtol=0, atol=1e-12)
+    assert v[0].abs() < 1e-12 and v[2].abs() < 1e-12
+    assert torch.isfinite(sol.alpha).all()
