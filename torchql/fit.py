@@ -22,7 +22,8 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from .integrate import ADAPTIVE_SOLVERS, IntegrationError, check_solver, default_tolerances, solve
+from . import _checks
+from .integrate import IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
 from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, coefficient_names
@@ -126,6 +127,8 @@ def fit(
     FitError
         When ``throw=True`` and the fit does not converge.
     """
+    if callback is not None and not callable(callback):
+        raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
     problem = _Problem(
         model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
         rcond, grid, initial_trajectory, max_steps,
@@ -141,13 +144,8 @@ class _Problem:
 
     def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
                  xtol, ftol, rcond, grid, initial_trajectory, max_steps):
-        if not isinstance(model, ODEModel):
-            raise TypeError(f"`model` must be a torchql.ODEModel; received {type(model).__name__}")
+        _checks.model_class(model)
         names = tuple(model.state_names)
-        if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
-            raise ValueError(
-                f"`model.state_names` must be a non-empty tuple of distinct strings; received {names!r}"
-            )
         if isinstance(data, (list, tuple)):
             raise TypeError(
                 "`data` must be one torchql.Observations; several experiments in one fit are not supported yet"
@@ -163,10 +161,9 @@ class _Problem:
             raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
         if bounds is not None:
             raise NotImplementedError("`bounds` are not supported yet; pass bounds=None")
-        if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
-            raise ValueError(f"`max_iter` must be a non-negative integer; received {max_iter!r}")
-        if max_steps is not None and (not isinstance(max_steps, int) or max_steps < 1):
-            raise ValueError(f"`max_steps` must be a positive integer; received {max_steps!r}")
+        max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
+        if max_steps is not None:
+            max_steps = _checks.positive_int("max_steps", max_steps)
 
         floats = [b for b in model.buffers() if b.is_floating_point()]
         self.dtype = floats[0].dtype if floats else torch.float64
@@ -175,17 +172,14 @@ class _Problem:
         self.device = next((b.device for b in model.buffers()), torch.device("cpu"))
         dtype, device = self.dtype, self.device
         rtol, atol = default_tolerances(dtype, rtol, atol)
-        for name, value in (("rtol", rtol), ("atol", atol)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be a positive finite number; received {value!r}")
+        rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
         eps = torch.finfo(dtype).eps
-        self.rtol, self.atol = float(rtol), float(atol)
-        self.xtol = float(xtol) if xtol is not None else max(1e-8 if dtype == torch.float64 else 1e-4, 100 * rtol)
-        self.ftol = float(ftol) if ftol is not None else (1e-12 if dtype == torch.float64 else 1e-6)
-        self.rcond = float(rcond) if rcond is not None else max(1e3 * rtol, 1e3 * eps)
-        for name, value in (("xtol", self.xtol), ("ftol", self.ftol), ("rcond", self.rcond)):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be a positive finite number; received {value!r}")
+        self.rtol, self.atol = rtol, atol
+        self.xtol = (_checks.positive_number("xtol", xtol) if xtol is not None
+                     else max(1e-8 if dtype == torch.float64 else 1e-4, 100 * rtol))
+        self.ftol = (_checks.positive_number("ftol", ftol) if ftol is not None
+                     else (1e-12 if dtype == torch.float64 else 1e-6))
+        self.rcond = _checks.positive_number("rcond", rcond) if rcond is not None else max(1e3 * rtol, 1e3 * eps)
         self.method, self.solver, self.max_iter, self.max_steps = method, solver, max_iter, max_steps
         self.initial_trajectory = initial_trajectory
 
@@ -220,9 +214,7 @@ class _Problem:
         if t0 is None:
             self.t0 = self.t_obs[0].clone()
         else:
-            if not isinstance(t0, (int, float, torch.Tensor)) or not math.isfinite(float(t0)):
-                raise ValueError(f"`t0` must be a finite number; received {t0!r}")
-            self.t0 = torch.as_tensor(float(t0), dtype=dtype, device=device)
+            self.t0 = torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
             if self.t0 > self.t_obs[0]:
                 raise ValueError(
                     f"`t0` must not be later than the first observation time {self.t_obs[0].item():g}; received {float(t0):g}"
@@ -252,6 +244,8 @@ class _Problem:
         for name in fixed_x0:
             if name not in names:
                 raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {names}")
+        if len(set(fixed_x0)) != len(list(fixed_x0)):
+            raise ValueError(f"`fixed_x0` lists a state twice: {list(fixed_x0)!r}")
         free_states = [i for i, s in enumerate(names) if s not in fixed_x0]
         self.unknown_index = torch.tensor(free_states + list(range(n, system.M)), dtype=torch.long, device=device)
         self.unknown_names = [f"{names[i]}(t0)" for i in free_states] + system.element_names
@@ -332,7 +326,7 @@ class _Problem:
         elif grid is not None:
             if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
                 raise ValueError(f"`grid` must be a positive number of intervals or a tensor of times; received {grid!r}")
-            intervals = grid
+            intervals = int(grid)
         if span <= 0:
             return self.t0.reshape(1)
         uniform = torch.linspace(float(self.t0), float(t_end), intervals + 1, dtype=dtype, device=device)

@@ -6,6 +6,7 @@ import torch
 from torchdiffeq import odeint
 from torchdiffeq._impl.odeint import SOLVERS
 
+from . import _checks
 from .model import ODEModel
 
 __all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances", "solve", "simulate"]
@@ -107,6 +108,7 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     -------
     Tensor ``(T, n_states)``
     """
+    _checks.model_class(model)
     check_solver(solver)
     dtype = next((b.dtype for b in model.buffers() if b.is_floating_point()), torch.float64)
     device = next((b.device for b in model.buffers()), torch.device("cpu"))
@@ -115,12 +117,17 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     n = len(model.state_names)
     if t.dim() != 1 or t.numel() == 0:
         raise ValueError(f"`t` must be a non-empty one-dimensional tensor; received shape {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise ValueError("`t` must be finite; received NaN or inf times")
     if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
         raise ValueError("`t` must be strictly increasing")
     if x0.shape != (n,):
         raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
+    if not torch.isfinite(x0).all():
+        raise ValueError("`x0` must be finite; received NaN or inf")
     rtol, atol = default_tolerances(dtype, rtol, atol)
-    t0_ = t[0] if t0 is None else torch.as_tensor(t0, dtype=dtype, device=device)
+    rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
+    t0_ = t[0] if t0 is None else torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
     with torch.no_grad():
         return _integrate_both_ways(model, x0, t, t0_, solver, rtol, atol)
 

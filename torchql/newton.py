@@ -89,12 +89,19 @@ def newton_raphson(
     norms.append(float(r.abs().max()))
     message, success = "The maximum number of iterations was reached. Increase `max_iter`.", False
     it = 0
+    if norms[0] <= ftol:
+        return NewtonResult(x=x, success=True, message="Converged: the initial guess meets `ftol`.", iterations=0,
+                            history=history, residual_norms=norms)
     for it in range(1, max_iter + 1):
         J = jac_fn(x)
         if J.shape != (r.shape[0], x.shape[0]):
             raise ValueError(f"`jacobian` must return shape ({r.shape[0]}, {x.shape[0]}); received {tuple(J.shape)}")
         if J.shape[0] == J.shape[1]:
-            dx = torch.linalg.solve(J, -r)
+            dx, info = torch.linalg.solve_ex(J, -r)
+            if int(info) != 0 or not torch.isfinite(dx).all():
+                message = "The Jacobian is singular at the current iterate. Start from another guess."
+                it -= 1
+                break
         else:
             dx = torch.linalg.lstsq(J, -r.unsqueeze(-1)).solution.squeeze(-1)
         x = x + dx

@@ -47,7 +47,7 @@ class Observations:
         ``x (..., n_states)``, linearized like the right-hand side.
     sigma : float, Tensor of shape ``(K,)`` or ``(T, K)``, optional
         Standard deviation of each value (same unit as ``y``). Residuals are divided by it.
-        Default 1 for every value.
+        Default 1 for every value. With ``K == 1``, shape ``(T,)`` is accepted too.
     exact : bool Tensor of shape ``(T,)`` or ``(T, K)``, optional
         Values to be met exactly (equality-constrained least squares) rather than in the
         least-squares sense. A ``(T,)`` mask marks every value at those times.
@@ -91,8 +91,8 @@ class Observations:
         if torch.isnan(y).all():
             raise ValueError("`y` holds no value: every entry is NaN")
         T, K = y.shape
-        self.t = t
-        self.y = y.to(t.dtype) if y.dtype != t.dtype else y
+        self.t = t.clone()
+        self.y = y.to(t.dtype) if y.dtype != t.dtype else y.clone()
         self.observe = observe
         self._check_observe_spec(observe, K)
 
@@ -102,6 +102,8 @@ class Observations:
             sig = _as_float_tensor(sigma, "sigma", self.y.dtype)
             if sig.dim() == 0:
                 sig = sig.expand(T, K)
+            elif K == 1 and sig.shape == (T,):
+                sig = sig.unsqueeze(-1)
             elif sig.shape == (K,):
                 sig = sig.unsqueeze(0).expand(T, K)
             elif sig.shape != (T, K):

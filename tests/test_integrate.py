@@ -1,0 +1,172 @@
+"""``torchql.simulate``: plain forward (and backward) integration of a model."""
+
+import contextlib
+import math
+import signal
+
+import pytest
+import torch
+
+import torchql
+from torchql.models import HarmonicOscillator
+
+K = 0.7
+X0 = 2.0
+
+
+class Decay(torchql.ODEModel):
+    """``y' = -k y``."""
+
+    state_names = ("y",)
+
+    def __init__(self, k=K, dtype=torch.float64):
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=dtype))
+
+    def forward(self, t, x):
+        return -self.k * x
+
+
+def exact(t, t0=0.0):
+    return X0 * torch.exp(-K * (t - t0))
+
+
+def test_matches_analytic_solution():
+    t = torch.linspace(0.0, 3.0, 7, dtype=torch.float64)
+    x = torchql.simulate(Decay(), torch.tensor([X0], dtype=torch.float64), t, rtol=1e-11, atol=1e-13)
+    assert x.shape == (7, 1) and x.dtype == torch.float64
+    assert x[0, 0].item() == X0
+    torch.testing.assert_close(x[:, 0], exact(t), rtol=0, atol=1e-9)
+
+
+def test_default_tolerances_are_tight_in_float64():
+    t = torch.linspace(0.0, 3.0, 7, dtype=torch.float64)
+    x = torchql.simulate(Decay(), [X0], t)
+    torch.testing.assert_close(x[:, 0], exact(t), rtol=0, atol=1e-8)
+
+
+def test_integrates_backwards_before_t0():
+    t = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0], dtype=torch.float64)
+    x = torchql.simulate(Decay(), torch.tensor([X0], dtype=torch.float64), t, t0=0.0, rtol=1e-11, atol=1e-13)
+    assert x.shape == (5, 1)
+    assert x[2, 0].item() == X0
+    torch.testing.assert_close(x[:, 0], exact(t), rtol=1e-9, atol=0)
+
+
+def test_all_times_before_t0():
+    t = torch.tensor([-2.0, -1.0], dtype=torch.float64)
+    x = torchql.simulate(Decay(), torch.tensor([X0], dtype=torch.float64), t, t0=0.5, rtol=1e-11, atol=1e-13)
+    torch.testing.assert_close(x[:, 0], exact(t, 0.5), rtol=1e-9, atol=0)
+
+
+def test_t0_between_output_times():
+    t = torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64)
+    x = torchql.simulate(Decay(), torch.tensor([X0], dtype=torch.float64), t, t0=0.4, rtol=1e-11, atol=1e-13)
+    torch.testing.assert_close(x[:, 0], exact(t, 0.4), rtol=1e-9, atol=0)
+
+
+def test_two_state_model_and_single_time():
+    t = torch.linspace(0.0, 2.0, 5, dtype=torch.float64)
+    x = torchql.simulate(HarmonicOscillator(4.0), torch.tensor([1.0, 0.0], dtype=torch.float64), t,
+                         rtol=1e-11, atol=1e-13)
+    torch.testing.assert_close(x, torch.stack([torch.cos(2 * t), -2 * torch.sin(2 * t)], dim=1), rtol=0, atol=1e-9)
+    one = torchql.simulate(HarmonicOscillator(4.0), torch.tensor([1.0, 0.0], dtype=torch.float64), [0.0])
+    assert torch.equal(one, torch.tensor([[1.0, 0.0]], dtype=torch.float64))
+
+
+def test_float32_model_gives_float32():
+    x = torchql.simulate(Decay(dtype=torch.float32), [X0], [0.0, 1.0])
+    assert x.dtype == torch.float32
+    assert x[1, 0].item() == pytest.approx(X0 * math.exp(-K), rel=1e-5)
+
+
+def test_fixed_step_solver():
+    t = torch.linspace(0.0, 1.0, 101, dtype=torch.float64)
+    x = torchql.simulate(Decay(), [X0], t, solver="rk4")
+    torch.testing.assert_close(x[:, 0], exact(t), rtol=1e-8, atol=0)
+
+
+def test_model_and_inputs_not_modified():
+    model = Decay()
+    x0 = torch.tensor([X0], dtype=torch.float64)
+    t = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    torchql.simulate(model, x0, t)
+    assert model.k.item() == K and x0.item() == X0 and torch.equal(t, torch.tensor([0.0, 1.0], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("solver", ["rk45", "DOPRI5", "scipy_solver", ""])
+def test_bad_solver_name_lists_valid_ones(solver):
+    with pytest.raises(ValueError, match=r"`solver` must be one of \(.*'dopri5'.*\); received") as info:
+        torchql.simulate(Decay(), [X0], [0.0, 1.0], solver=solver)
+    for name in torchql.SOLVER_NAMES:
+        assert repr(name) in str(info.value)
+
+
+def test_solver_names():
+    assert "dopri5" in torchql.SOLVER_NAMES and "rk4" in torchql.SOLVER_NAMES
+    assert "scipy_solver" not in torchql.SOLVER_NAMES
+
+
+@pytest.mark.parametrize("x0", [[1.0, 2.0], [[1.0]], 1.0, []])
+def test_bad_x0_shape(x0):
+    with pytest.raises(ValueError, match=r"`x0` must have shape \(n_states,\) = \(1,\)"):
+        torchql.simulate(Decay(), x0, [0.0, 1.0])
+
+
+@pytest.mark.parametrize("t", [[], [[0.0, 1.0]], 0.0])
+def test_bad_t_shape(t):
+    with pytest.raises(ValueError, match="`t` must be a non-empty one-dimensional tensor"):
+        torchql.simulate(Decay(), [X0], t)
+
+
+@pytest.mark.parametrize("t", [[0.0, 0.0], [1.0, 0.0]])
+def test_t_not_increasing(t):
+    with pytest.raises(ValueError, match="`t` must be strictly increasing"):
+        torchql.simulate(Decay(), [X0], t)
+
+
+# ------------------------------------------------------------------ validation gaps (see reasons)
+@contextlib.contextmanager
+def time_limit(seconds):
+    """Turn a hang into a TimeoutError (POSIX only)."""
+
+    def handler(signum, frame):
+        raise TimeoutError(f"did not return within {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, handler)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGALRM"), reason="needs SIGALRM")
+def test_infinite_output_time_rejected():
+    with time_limit(1.0):
+        with pytest.raises(ValueError, match="`t` must be finite"):
+            torchql.simulate(Decay(), [X0], [0.0, math.inf])
+
+
+@pytest.mark.parametrize("t0", [math.nan, math.inf])
+def test_non_finite_t0_rejected(t0):
+    with pytest.raises(ValueError, match="`t0` must be"):
+        torchql.simulate(Decay(), [X0], [0.0, 1.0], t0=t0)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_non_finite_x0_rejected(bad):
+    with pytest.raises(ValueError, match="`x0` must be finite"):
+        torchql.simulate(Decay(), [bad], [0.0, 1.0])
+
+
+@pytest.mark.parametrize("tolerances", [dict(rtol=-1.0), dict(rtol=0.0, atol=0.0), dict(atol=math.nan)])
+def test_bad_tolerances_rejected(tolerances):
+    with pytest.raises(ValueError, match="`(rtol|atol)` must be a positive finite number"):
+        torchql.simulate(Decay(), [X0], [0.0, 1.0], **tolerances)
+
+
+def test_model_not_an_odemodel():
+    with pytest.raises(TypeError, match="`model` must be a torchql.ODEModel"):
+        torchql.simulate(torch.nn.Linear(1, 1), [X0], [0.0, 1.0])

@@ -1,0 +1,51 @@
+"""Argument checks shared by the public entry points; each error names the argument."""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import torch
+
+__all__ = ["positive_number", "finite_number", "positive_int", "model_class"]
+
+
+def _is_real_number(value) -> bool:
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, torch.Tensor):
+        return value.numel() == 1 and not value.dtype.is_complex and value.dtype != torch.bool
+    return isinstance(value, numbers.Real)
+
+
+def finite_number(name: str, value) -> float:
+    """``value`` as a float; ``ValueError`` naming ``name`` unless it is a finite real number."""
+    if not _is_real_number(value) or not math.isfinite(float(value)):
+        raise ValueError(f"`{name}` must be a finite number; received {value!r}")
+    return float(value)
+
+
+def positive_number(name: str, value) -> float:
+    """``value`` as a float; ``ValueError`` naming ``name`` unless it is finite and > 0."""
+    if not _is_real_number(value) or not math.isfinite(float(value)) or float(value) <= 0:
+        raise ValueError(f"`{name}` must be a positive finite number; received {value!r}")
+    return float(value)
+
+
+def positive_int(name: str, value, minimum: int = 1) -> int:
+    """``value``; ``ValueError`` naming ``name`` unless it is an integer >= ``minimum`` (bools rejected)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        kind = {0: "a non-negative integer", 1: "a positive integer"}.get(minimum, f"an integer >= {minimum}")
+        raise ValueError(f"`{name}` must be {kind}; received {value!r}")
+    return int(value)
+
+
+def model_class(model) -> None:
+    """``TypeError`` unless ``model`` is a :class:`torchql.ODEModel` with valid state names."""
+    from .model import ODEModel
+
+    if not isinstance(model, ODEModel):
+        raise TypeError(f"`model` must be a torchql.ODEModel; received {type(model).__name__}")
+    names = tuple(model.state_names)
+    if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
+        raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {names!r}")
