@@ -425,21 +425,23 @@ class _Problem:
             state.status, state.detail = Status.INTEGRATION_FAILED, f" The solver said: {exc}."
         return self._finish(state)
 
-    def _evaluate(self, state, it, z_ref_obs, W, obs, traj_t, traj):
-        """Rows and SSE of the current iterate; records it. Returns ``(C, d, sse)`` or None on failure."""
+    def _step(self, state, it, z_ref_obs, W, traj):
+        """Record the current iterate and solve for its update.
+
+        Parameters: the reference at the observations ``(T, M)``, the propagated ``W (G, M, 1+m)``
+        and the iterate's trajectory on the grid ``(G, n)``. Returns ``(alpha, scaled, sse)``,
+        or ``None`` when the iteration must stop (``state.status`` says why).
+        """
+        obs = self.obs_in_grid
         C, d, resid = self._rows(z_ref_obs, W[obs, :, 0], W[obs, :, 1:])
         sse = self._sse(resid)
-        record = self._record(it, state.z0, sse, traj_t, traj)
+        record = self._record(it, state.z0, sse, self.grid, traj)
         state.history.append(record)
         if state.scale is None:
             state.scale = self._typical_scale(traj)
         if not (math.isfinite(sse) and torch.isfinite(C).all() and torch.isfinite(d).all()):
             state.status, state.detail = Status.DIVERGED, " The residuals became non-finite."
             return None
-        return C, d, sse
-
-    def _update(self, state, C, d):
-        """Solve for alpha; returns ``(alpha, scaled)`` or None when the iteration must stop."""
         try:
             sol = solve_update(C, d, self.weights, self.exact, self.rcond)
         except ExactRowsError:
@@ -448,14 +450,13 @@ class _Problem:
         alpha = sol.alpha
         u = state.z0[self.unknown_index]
         scaled = float((alpha.abs() / torch.maximum(u.abs(), state.scale)).max())
-        record = state.history[-1]
         record.alpha, record.alpha_norm = alpha.detach().clone(), scaled
         if state.callback is not None:
             state.callback(record)
         if not (torch.isfinite(alpha).all() and math.isfinite(scaled)):
             state.status, state.detail = Status.DIVERGED, " The update alpha became non-finite."
             return None
-        return alpha, scaled
+        return alpha, scaled, sse
 
     def _shifted(self, z0, alpha):
         z = z0.clone()
@@ -482,14 +483,10 @@ class _Problem:
             W, evals = propagate_linear(reference, initial_columns(state.z0, self.unknown_index),
                                         solver=self.solver, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
             self.nfev += evals
-            rows = self._evaluate(state, it, reference.z[obs], W, obs, self.grid, reference.z[:, :n])
-            if rows is None:
-                return
-            C, d, sse = rows
-            step = self._update(state, C, d)
+            step = self._step(state, it, reference.z[obs], W, reference.z[:, :n])
             if step is None:
                 return
-            alpha, scaled = step
+            alpha, scaled, sse = step
             state.z0 = self._shifted(state.z0, alpha)
             state.iterations += 1
             z_new = W[:, :, 0] + W[:, :, 1:] @ alpha
@@ -514,14 +511,10 @@ class _Problem:
         z_traj = self._forward(state.z0)
         for it in range(self.max_iter):
             W = self._about_nonlinear(state.z0, z_traj)
-            rows = self._evaluate(state, it, z_traj[obs], W, obs, self.grid, z_traj[:, :n])
-            if rows is None:
-                return
-            C, d, sse = rows
-            step = self._update(state, C, d)
+            step = self._step(state, it, z_traj[obs], W, z_traj[:, :n])
             if step is None:
                 return
-            alpha, scaled = step
+            alpha, scaled, sse = step
             lam = min(1.0, _STEP_CAP / scaled) if scaled > 0 else 1.0
             for _ in range(_MAX_HALVINGS + 1):
                 trial = self._shifted(state.z0, lam * alpha)
