@@ -18,6 +18,7 @@ reported SSE, residuals and Jacobian are those of the fitted model itself.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 
 import torch
@@ -201,6 +202,12 @@ class _Problem:
         n = system.n
 
         # --- observations
+        if torch.finfo(data.y.dtype).eps > torch.finfo(dtype).eps:
+            warnings.warn(
+                f"`data` holds {data.y.dtype} values but the model computes in {dtype}: the data's own "
+                "rounding limits the fit's accuracy; build the Observations from float64 tensors",
+                UserWarning, stacklevel=3,
+            )
         self.t_obs = data.t.to(dtype=dtype, device=device)
         self.y = data.y.to(dtype=dtype, device=device)
         self.operator = ObservationOperator(data.observe, names, data.n_outputs, dtype, device)
@@ -553,6 +560,9 @@ class _Problem:
         sse, exact_residual = float("nan"), float("nan")
         singular_values = torch.zeros(0, dtype=self.dtype, device=self.device)
         final_ok = status not in (Status.DIVERGED, Status.INTEGRATION_FAILED)
+        if not final_ok and (not history or not torch.equal(history[-1].x0, z0[:n])
+                             or history[-1].iteration != iterations):
+            history.append(self._record(iterations, z0, float("nan")))  # the estimate returned, unevaluated
         if final_ok:
             try:
                 z_traj = state.final_traj if state.final_traj is not None else self._forward(z0)
