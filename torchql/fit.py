@@ -31,6 +31,7 @@ from .model import AugmentedSystem, ODEModel, coefficient_names
 from .observations import ObservationOperator, Observations
 from .result import FitError, FitResult, IterationRecord, Status
 from .superposition import initial_columns, propagate_linear
+from .uncertainty import covariance
 from .trajectory import LinearizedReference
 
 __all__ = ["fit", "METHODS"]
@@ -216,6 +217,7 @@ class _Problem:
         self.weights = (1.0 / data.sigma.to(dtype=dtype, device=device))[mask]
         self.exact = data.exact.to(device)[mask]
         self.y_rows = self.y[mask]
+        self.sigma_known = data.sigma_given
 
         # --- times
         if t0 is None:
@@ -559,6 +561,7 @@ class _Problem:
         residuals, jacobian = nan, torch.full((L, m), float("nan"), dtype=self.dtype, device=self.device)
         sse, exact_residual = float("nan"), float("nan")
         singular_values = torch.zeros(0, dtype=self.dtype, device=self.device)
+        cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
         final_ok = status not in (Status.DIVERGED, Status.INTEGRATION_FAILED)
         if not final_ok and (not history or not torch.equal(history[-1].x0, z0[:n])
                              or history[-1].iteration != iterations):
@@ -586,6 +589,7 @@ class _Problem:
                     singular_values = sol.singular_values
                     if sol.rank_deficient and status.success:
                         status, detail = Status.NOT_IDENTIFIABLE, self._null_detail(sol.null_vectors)
+                    cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
             except IntegrationError as exc:
                 status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
         fitted = system.model_with(z0[n:])
@@ -605,6 +609,11 @@ class _Problem:
             jacobian=jacobian.detach(),
             exact_residual=exact_residual,
             singular_values=singular_values.detach(),
+            covariance=cov.matrix.detach(),
+            dof=cov.dof,
+            residual_variance=cov.residual_variance,
+            sigma_known=self.sigma_known,
+            exact_mask=self.exact.clone(),
             n_observations=L,
             nfev=self.nfev,
             method=self.method,

@@ -56,6 +56,9 @@ class Observations:
     ----------
     t : Tensor ``(T,)``; y : Tensor ``(T, K)``; sigma : Tensor ``(T, K)``; exact : bool Tensor ``(T, K)``
     observe : the ``observe`` argument as given.
+    sigma_given : bool
+        Whether ``sigma`` was given (then it is taken as the known standard deviation of the
+        values; otherwise the residual variance is estimated from the fit).
     """
 
     def __init__(
@@ -114,6 +117,7 @@ class Observations:
             if not torch.isfinite(sig).all() or (sig <= 0).any():
                 raise ValueError("`sigma` must be finite and strictly positive; received a value <= 0, NaN or inf")
         self.sigma = sig.clone()
+        self.sigma_given = sigma is not None
 
         if exact is None:
             ex = torch.zeros(T, K, dtype=torch.bool)

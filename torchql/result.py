@@ -133,6 +133,18 @@ class FitResult:
         Largest ``|y - h(x(t))|`` over the values marked exact (0 if none).
     singular_values : Tensor ``(r,)``
         Singular values of the column-scaled weighted Jacobian at the estimates.
+    covariance : Tensor ``(m, m)``
+        Covariance of ``estimates`` (``unknown_names`` order), from the final Jacobian:
+        ``s^2 (J^T J)^{-1}`` restricted to the directions the exact values leave free; NaN
+        when the problem is not identifiable or the fit failed.
+    dof : int
+        Degrees of freedom of the residuals, ``L - m``.
+    residual_variance : float
+        ``s^2``: ``sse / dof`` when the data's ``sigma`` was not given, else 1.
+    sigma_known : bool
+        Whether the data's ``sigma`` was given (known standard deviations).
+    exact_mask : bool Tensor ``(L,)``
+        Which used values were met exactly.
     n_observations : int
         Number of values used, ``L``.
     nfev : int
@@ -158,11 +170,48 @@ class FitResult:
     jacobian: torch.Tensor
     exact_residual: float
     singular_values: torch.Tensor
+    covariance: torch.Tensor
+    dof: int
+    residual_variance: float
+    sigma_known: bool
+    exact_mask: torch.Tensor
     n_observations: int
     nfev: int
     method: str
     model: "ODEModel"
     solver_options: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def stderr(self) -> dict[str, float]:
+        """Standard error of every unknown, by name (initial states as ``"y(t0)"``)."""
+        diag = torch.diagonal(self.covariance).clamp_min(0).sqrt()
+        return {name: float(v) for name, v in zip(self.unknown_names, diag)}
+
+    @property
+    def correlation(self) -> torch.Tensor:
+        """Correlation matrix of the estimates, ``(m, m)`` in ``unknown_names`` order."""
+        sd = torch.diagonal(self.covariance).clamp_min(0).sqrt()
+        return self.covariance / sd.unsqueeze(-1) / sd.unsqueeze(0)
+
+    def confidence_intervals(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """Wald intervals ``estimate -/+ q * stderr`` at confidence ``level``, by name.
+
+        ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual
+        variance was estimated, the normal quantile when ``sigma`` was known. Wald intervals
+        rely on the model being close to linear in the unknowns over the interval.
+        """
+        from .uncertainty import normal_quantile, student_t_quantile
+
+        if not (isinstance(level, float) and 0.0 < level < 1.0):
+            raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
+        p = 0.5 + 0.5 * level
+        if self.sigma_known:
+            q = normal_quantile(p)
+        else:
+            q = student_t_quantile(p, self.dof) if self.dof > 0 else float("nan")
+        se = self.stderr
+        return {name: (float(v) - q * se[name], float(v) + q * se[name])
+                for name, v in zip(self.unknown_names, self.estimates)}
 
     def predict(self, t) -> torch.Tensor:
         """The fitted trajectory: the model with the estimated coefficients, integrated from ``x0``.

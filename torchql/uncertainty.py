@@ -1,0 +1,152 @@
+"""Uncertainty of the estimates: covariance from the final Jacobian, and Wald intervals.
+
+At convergence the homogeneous solutions at the observation times are the Jacobian ``J`` of
+the (weighted) observations with respect to the unknowns. The covariance of the estimates is
+``s^2 N (N^T J^T J N)^{-1} N^T``, where ``N`` spans the directions left free by the values
+marked exact (``N = I`` without them) and ``s^2`` is the residual variance: ``SSE / dof``
+when the data's ``sigma`` is not given, ``1`` when it is (the residuals are then already in
+units of their standard deviation). ``dof = L - m``: the least-squares values minus the
+unknowns that the exact values do not already fix. The inverse is taken through an SVD of the
+column-scaled ``J N``, never by forming ``J^T J``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+__all__ = ["Covariance", "covariance", "normal_quantile", "student_t_quantile"]
+
+
+class Covariance(NamedTuple):
+    """Result of :func:`covariance`.
+
+    Attributes
+    ----------
+    matrix : Tensor ``(m, m)``
+        Covariance of the unknowns (NaN where it cannot be determined).
+    dof : int
+        Degrees of freedom of the residuals.
+    residual_variance : float
+        ``s^2`` used (1 when ``sigma`` is known; NaN when ``dof <= 0`` and it is not).
+    """
+
+    matrix: torch.Tensor
+    dof: int
+    residual_variance: float
+
+
+def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_known: bool,
+               rcond: float) -> Covariance:
+    """Covariance of the estimates from the weighted Jacobian at the optimum.
+
+    Parameters
+    ----------
+    jacobian : Tensor ``(L, m)``
+        Weighted sensitivities of every used value (exact ones included).
+    exact : bool Tensor ``(L,)``
+        Values met exactly.
+    sse : float
+        Weighted sum of squares over the least-squares values.
+    sigma_known : bool
+        Whether the weights are true standard deviations.
+    rcond : float
+        Relative singular-value threshold; below it the covariance is undetermined (NaN).
+    """
+    L, m = jacobian.shape
+    nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
+    dof = L - m
+    if sigma_known:
+        s2 = 1.0
+    else:
+        s2 = sse / dof if dof > 0 else float("nan")
+    if not torch.isfinite(jacobian).all():
+        return Covariance(nan, dof, s2)
+    free = torch.eye(m, dtype=jacobian.dtype, device=jacobian.device)
+    if bool(exact.any()):
+        E = jacobian[exact]
+        Q, _ = torch.linalg.qr(E.T, mode="complete")
+        free = Q[:, E.shape[0]:]
+    A = jacobian[~exact] @ free
+    if A.shape[1] == 0:
+        return Covariance(torch.zeros_like(nan), dof, s2)
+    scale = torch.linalg.vector_norm(A, dim=0)
+    if bool((scale == 0).any()):
+        return Covariance(nan, dof, s2)
+    _, S, Vh = torch.linalg.svd(A / scale, full_matrices=False)
+    if S.shape[0] < A.shape[1] or bool((S <= rcond * S[0]).any()):
+        return Covariance(nan, dof, s2)
+    inner = (Vh.T / S**2) @ Vh / scale.unsqueeze(-1) / scale.unsqueeze(0)
+    cov = s2 * free @ inner @ free.T
+    return Covariance(0.5 * (cov + cov.T), dof, s2)
+
+
+def normal_quantile(p: float) -> float:
+    """Quantile of the standard normal distribution."""
+    return float(torch.special.ndtri(torch.tensor(p, dtype=torch.float64)))
+
+
+def _betacf(a: float, b: float, x: float) -> float:
+    """Continued fraction of the regularized incomplete beta function (modified Lentz)."""
+    tiny = 1e-300
+    qab, qap, qam = a + b, a + 1.0, a - 1.0
+    c, d = 1.0, 1.0 - qab * x / qap
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for k in range(1, 500):
+        k2 = 2 * k
+        aa = k * (b - k) * x / ((qam + k2) * (a + k2))
+        d = 1.0 + aa * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + aa / c if abs(1.0 + aa / c) > tiny else tiny
+        h *= d * c
+        aa = -(a + k) * (qab + k) * x / ((a + k2) * (qap + k2))
+        d = 1.0 + aa * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + aa / c if abs(1.0 + aa / c) > tiny else tiny
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < 1e-15:
+            break
+    return h
+
+
+def _betainc(a: float, b: float, x: float, y: float) -> float:
+    """Regularized incomplete beta function ``I_x(a, b)``, given ``x`` and ``y = 1 - x`` (both accurate)."""
+    if x <= 0.0:
+        return 0.0
+    if y <= 0.0:
+        return 1.0
+    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log(y))
+    if x < (a + 1.0) / (a + b + 2.0):
+        return front * _betacf(a, b, x) / a
+    return 1.0 - front * _betacf(b, a, y) / b
+
+
+def _student_t_cdf(t: float, dof: float) -> float:
+    half = 0.5 * _betainc(0.5, 0.5 * dof, t * t / (dof + t * t), dof / (dof + t * t))
+    return 0.5 + half if t >= 0 else 0.5 - half
+
+
+def student_t_quantile(p: float, dof: float) -> float:
+    """Quantile of Student's t distribution with ``dof`` degrees of freedom (bisection on the CDF)."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"`p` must lie strictly between 0 and 1; received {p!r}")
+    if dof <= 0:
+        raise ValueError(f"`dof` must be positive; received {dof!r}")
+    lo, hi = -1.0, 1.0
+    while _student_t_cdf(lo, dof) > p:
+        lo *= 2.0
+    while _student_t_cdf(hi, dof) < p:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if _student_t_cdf(mid, dof) < p:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-13 * max(1.0, abs(mid)):
+            break
+    return 0.5 * (lo + hi)
