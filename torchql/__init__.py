@@ -6,6 +6,7 @@ from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
 from .newton import NewtonResult, newton_raphson
 from .observations import Observations
+from .profile import ProfileResult, profile
 from .result import FitError, FitResult, IterationRecord, Status
 
 __version__ = "0.1.0"
@@ -14,6 +15,8 @@ __all__ = [
     "ODEModel",
     "Observations",
     "fit",
+    "profile",
+    "ProfileResult",
     "FitResult",
     "FitError",
     "IterationRecord",

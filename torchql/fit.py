@@ -136,6 +136,13 @@ def fit(
         rcond, grid, initial_trajectory, max_steps,
     )
     result = problem.run(callback)
+    result.data = data
+    result.fit_kwargs = dict(
+        x0=None if x0 is None else torch.as_tensor(x0).detach().clone(), params=None if params is None else list(params),
+        fixed_x0=None if fixed_x0 is None else list(fixed_x0), t0=t0, method=method, max_iter=max_iter, solver=solver,
+        rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory,
+        max_steps=max_steps,
+    )
     if throw and not result.success:
         raise FitError(result)
     return result

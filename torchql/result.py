@@ -10,6 +10,7 @@ import torch
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import ODEModel
+    from .observations import Observations
 
 __all__ = ["Status", "IterationRecord", "FitResult", "FitError"]
 
@@ -153,6 +154,13 @@ class FitResult:
         ``"kantorovich"`` or ``"shooting"``.
     model : ODEModel
         A copy of the user's model whose buffers hold the estimates.
+    data : Observations or None
+        The observations the fit was made to (used by :func:`torchql.profile` and
+        :meth:`plot_fit`).
+    fit_kwargs : dict
+        The keyword arguments :func:`torchql.fit` was called with (``x0``, ``params``,
+        ``fixed_x0``, ``t0``, ``method``, tolerances, ``grid``, ...; not ``callback``/``throw``),
+        so that a re-fit (a profile) reproduces the fit's settings.
     """
 
     success: bool
@@ -180,6 +188,8 @@ class FitResult:
     method: str
     model: "ODEModel"
     solver_options: dict = field(default_factory=dict, repr=False)
+    data: "Observations | None" = field(default=None, repr=False)
+    fit_kwargs: dict = field(default_factory=dict, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
@@ -212,6 +222,36 @@ class FitResult:
         se = self.stderr
         return {name: (float(v) - q * se[name], float(v) + q * se[name])
                 for name, v in zip(self.unknown_names, self.estimates)}
+
+    @property
+    def condition_number(self) -> float:
+        """Condition number of the column-scaled weighted Jacobian at the estimates.
+
+        ``max / min`` of :attr:`singular_values`; ``inf`` when the problem is rank deficient,
+        ``nan`` when the Jacobian could not be evaluated (the fit failed).
+        """
+        from .report import condition_number
+
+        return condition_number(self)
+
+    def report(self, *, level: float = 0.95, min_correlation: float = 0.1, iterations: bool = True,
+               print: bool = False) -> str:
+        """A text report of the fit (like lmfit's ``fit_report``); see :func:`torchql.report.fit_report`."""
+        from .report import fit_report
+
+        return fit_report(self, level=level, min_correlation=min_correlation, iterations=iterations, print=print)
+
+    def plot_fit(self, data=None, ax=None):
+        """Plot the fit against the data, with a residual panel; see :func:`torchql.plotting.plot_fit`."""
+        from .plotting import plot_fit
+
+        return plot_fit(self, data, ax=ax)
+
+    def plot_convergence(self, ax=None, *, values: bool = False):
+        """Plot the unknowns and the SSE against iteration; see :func:`torchql.plotting.plot_convergence`."""
+        from .plotting import plot_convergence
+
+        return plot_convergence(self, ax=ax, values=values)
 
     def predict(self, t) -> torch.Tensor:
         """The fitted trajectory: the model with the estimated coefficients, integrated from ``x0``.

@@ -1,0 +1,188 @@
+"""The text report, the condition number, and the plots (Agg backend)."""
+
+import math
+import re
+import sys
+
+import pytest
+import torch
+
+import torchql
+from torchql.models import CoastingCar
+from torchql.report import information_criteria
+
+DT = torch.float64
+SUNBEAM = torch.tensor([117.3, 104.9, 95.3, 87.3, 79.2, 71.9, 65.7, 59.8, 54.0], dtype=DT)
+CAR_TIMES = torch.arange(9, dtype=DT) * 5.0
+
+
+@pytest.fixture(scope="module")
+def car():
+    result = torchql.fit(CoastingCar(17.3, 80.43), torchql.Observations(CAR_TIMES, SUNBEAM, observe=["v"]), grid=100)
+    assert result.success
+    return result
+
+
+@pytest.fixture(scope="module")
+def product():
+    """``y' = -a b y``: a and b cannot be separated."""
+
+    class Product(torchql.ODEModel):
+        state_names = ("y",)
+
+        def __init__(self, a=1.0, b=1.0):
+            super().__init__()
+            self.register_buffer("a", torch.tensor(a, dtype=DT))
+            self.register_buffer("b", torch.tensor(b, dtype=DT))
+
+        def forward(self, t, x):
+            return -self.a * self.b * x
+
+    times = torch.linspace(0, 2, 11, dtype=DT)
+    data = torchql.Observations(times, torch.exp(-0.6 * times), observe=["y"])
+    result = torchql.fit(Product(1.0, 1.0), data, x0=torch.tensor([1.0], dtype=DT), grid=20)
+    assert result.status is torchql.Status.NOT_IDENTIFIABLE
+    return result
+
+
+def test_car_report_lists_every_unknown_with_error_bar_and_interval(car):
+    text = car.report()
+    se = car.stderr
+    cis = car.confidence_intervals(0.95)
+    for name, value in zip(car.unknown_names, car.estimates.tolist()):
+        line = next(line for line in text.splitlines() if line.strip().startswith(name + " "))
+        assert f"= {value:.7g} +/- {se[name]:.4g} ({100 * se[name] / abs(value):.2f}%)" in line
+        lo, hi = cis[name]
+        assert f"95% CI [{lo:.7g}, {hi:.7g}]" in line
+    for part in ("[[Fit]]", "kantorovich", "CONVERGED", car.message, f"iterations         = {car.iterations}",
+                 f"function evals     = {car.nfev}", "data points        = 9", "unknowns           = 3",
+                 "degrees of freedom = 6", f"SSE (chi-square)   = {car.sse:.7g}",
+                 f"residual std       = {math.sqrt(car.sse / 6):.7g}"):
+        assert part in text
+    assert "reduced chi-square" not in text  # sigma not given: the residual std is the estimate
+    assert "without error bars" not in text
+
+
+def test_car_report_correlations_sorted_above_threshold(car):
+    text = car.report()
+    block = text.split("[[Correlations]] (|r| > 0.1)\n")[1].split("[[")[0]
+    found = re.findall(r"C\((.+?), (.+?)\)\s+= ([+-]\d\.\d{4})", block)
+    assert found[0][:2] == ("C_D", "mu")
+    r = float(found[0][2])
+    assert r == pytest.approx(car.correlation[1, 2].item(), abs=1e-4)
+    assert -0.99 < r < -0.96
+    magnitudes = [abs(float(x[2])) for x in found]
+    assert magnitudes == sorted(magnitudes, reverse=True) and min(magnitudes) > 0.1
+    assert len(found) == 3
+    few = car.report(min_correlation=0.9).split("[[Correlations]]")[1].split("[[")[0]
+    assert "C(C_D, mu)" in few and "v(t0)" not in few
+
+
+def test_aic_bic_follow_lmfit(car):
+    n, m = 9, 3
+    aic, bic = information_criteria(car)
+    assert aic == pytest.approx(n * math.log(car.sse / n) + 2 * m, rel=1e-14)
+    assert bic == pytest.approx(n * math.log(car.sse / n) + math.log(n) * m, rel=1e-14)
+    text = car.report()
+    assert f"AIC                = {aic:.7g}" in text
+    assert f"BIC                = {bic:.7g}" in text
+
+
+def test_condition_number_and_iteration_table(car):
+    s = car.singular_values
+    assert car.condition_number == pytest.approx((s.max() / s.min()).item())
+    assert 1 < car.condition_number < 1e3
+    text = car.report()
+    assert f"condition number   = {car.condition_number:.4g}" in text
+    table = text.split("[[Iterations]]")[1].splitlines()[1:]
+    assert table[0].split()[:3] == ["iter", "SSE", "|alpha|"] and table[0].split()[3:] == car.unknown_names
+    rows = [row.split() for row in table[1:]]
+    assert [int(r[0]) for r in rows] == [rec.iteration for rec in car.history]
+    assert float(rows[0][3]) == pytest.approx(117.3)  # the guesses: v(t0) from the data, C_D, mu from the model
+    assert float(rows[0][4]) == pytest.approx(0.4) and float(rows[0][5]) == pytest.approx(0.02)
+    for name, value in zip(car.unknown_names, rows[-1][3:]):
+        assert float(value) == pytest.approx(car.estimates[car.unknown_names.index(name)].item(), rel=1e-9)
+    assert float(rows[-1][1]) == pytest.approx(car.sse, rel=1e-5)
+    assert rows[-1][2] == "-"  # no update computed from the final evaluation
+    assert "[[Iterations]]" not in car.report(iterations=False)
+
+
+def test_report_prints_and_validates(car, capsys):
+    text = car.report(print=True)
+    assert capsys.readouterr().out == text + "\n"
+    assert car.report() == text and capsys.readouterr().out == ""
+    with pytest.raises(ValueError, match="`level`"):
+        car.report(level=95)
+    with pytest.raises(ValueError, match="`min_correlation`"):
+        car.report(min_correlation=2)
+
+
+def test_known_sigma_report_shows_reduced_chi_square():
+    result = torchql.fit(CoastingCar(17.3, 80.43), torchql.Observations(CAR_TIMES, SUNBEAM, observe=["v"], sigma=0.4),
+                         grid=100)
+    text = result.report(level=0.9)
+    assert f"reduced chi-square = {result.sse / 6:.7g}" in text
+    assert "sigma given" in text and "90% CI" in text
+
+
+def test_not_identifiable_report_explains_missing_error_bars(product):
+    assert product.condition_number == math.inf
+    text = product.report()
+    assert "NOT_IDENTIFIABLE" in text and "condition number   = inf" in text
+    block = text.split("[[Unknowns without error bars]]\n")[1].splitlines()[0]
+    assert block.strip().startswith("y(t0), a, b:") and "not identifiable" in block and "{a, b}" in block
+    for name in product.unknown_names:
+        assert re.search(rf"\n    {re.escape(name)} +=.*\+/- nan \(no error bar\)\n", text)
+    assert "[[Correlations]]" not in text
+
+
+# ----------------------------------------------------------------------------------------- plots
+@pytest.fixture()
+def agg():
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    yield plt
+    plt.close("all")
+
+
+def test_plot_fit_writes_a_figure(car, agg, tmp_path):
+    fig, (ax_fit, ax_res) = car.plot_fit()
+    assert ax_res is not None and len(ax_fit.lines) >= 2
+    path = tmp_path / "fit.png"
+    fig.savefig(path)
+    assert path.stat().st_size > 1000
+    fig2, axes = agg.subplots(1, 2)
+    out_fig, (a, b) = car.plot_fit(car.data, ax=axes)  # into given axes, data explicit
+    assert out_fig is fig2 and a is axes[0] and b is axes[1] and len(b.lines) >= 1
+    _, (_, none) = car.plot_fit(ax=axes[0])
+    assert none is None
+
+
+def test_plot_convergence_writes_a_figure(car, agg, tmp_path):
+    fig, (ax_u, ax_sse) = car.plot_convergence()
+    assert ax_u.get_yscale() == "log" and ax_sse.get_yscale() == "log"
+    assert len(ax_u.lines) == 3
+    path = tmp_path / "convergence.png"
+    fig.savefig(path)
+    assert path.stat().st_size > 1000
+    fig, (ax_u, _) = car.plot_convergence(values=True)
+    assert ax_u.get_yscale() == "linear"
+
+
+def test_plot_profile_writes_a_figure(car, agg, tmp_path):
+    prof = torchql.profile(car, "mu", max_points=2)
+    fig, ax = prof.plot()
+    path = tmp_path / "profile.png"
+    fig.savefig(path)
+    assert path.stat().st_size > 1000
+
+
+def test_missing_matplotlib_names_the_extra(car, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    with pytest.raises(ImportError, match=r"pip install torchql\[plot\]"):
+        car.plot_fit()
+    with pytest.raises(ImportError, match=r"pip install torchql\[plot\]"):
+        car.plot_convergence()

@@ -1,0 +1,475 @@
+"""Profile-likelihood confidence intervals.
+
+The profile of an unknown ``theta`` (a scalar coefficient, or an initial state such as
+``"y(t0)"``) is the least sum of squares the other unknowns can reach with ``theta`` held
+fixed: ``S(theta) = min_{others} SSE``. :func:`profile` re-fits the model with ``theta`` fixed
+at a sequence of values walking outwards from the estimate on each side (each fit
+warm-started from its neighbour), until the profile crosses the threshold
+
+* ``S(theta) - S_min <= s^2 F_{1,dof}(level) = s^2 t_{dof}((1 + level) / 2)^2`` when the
+  residual variance ``s^2 = S_min / dof`` is estimated (``sigma`` not given);
+* ``S(theta) - S_min <= chi2_1(level) = z((1 + level) / 2)^2`` when ``sigma`` is known;
+
+and the crossing is located by root finding (Illinois regula falsi on
+``sqrt(S(theta) - S_min) - sqrt(threshold - S_min)``, which is nearly linear in ``theta``).
+Unlike Wald intervals, profile intervals follow the model's nonlinearity: they are
+asymmetric where the sum of squares is, and open where the data do not bound the unknown.
+For a model linear in its unknowns the two coincide.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+
+from .model import _set_buffer
+from .observations import ObservationOperator, Observations
+from .result import FitResult, Status
+from .uncertainty import normal_quantile, student_t_quantile
+
+__all__ = ["profile", "ProfileResult"]
+
+#: fit() keyword arguments a profile re-fit inherits from the original fit.
+_INHERITED = ("t0", "method", "max_iter", "solver", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
+              "initial_trajectory", "max_steps")
+#: Halvings of a step towards the last good point when a re-fit fails.
+_FAIL_HALVINGS = 3
+
+
+@dataclass
+class ProfileResult:
+    """What :func:`torchql.profile` found.
+
+    Attributes
+    ----------
+    name : str
+        The profiled unknown.
+    level : float
+        Confidence level of :attr:`interval`.
+    estimate : float
+        Its estimate in the free fit.
+    sse_min : float
+        The free fit's SSE.
+    threshold : float
+        The SSE at which the interval ends: ``sse_min + s^2 t^2`` (estimated variance) or
+        ``sse_min + z^2`` (known ``sigma``).
+    interval : tuple of float
+        ``(lower, upper)``; ``-inf``/``inf`` on a side where the profile did not cross the
+        threshold within the search (see :attr:`closed` and :attr:`message`).
+    closed : tuple of bool
+        Whether each side's end was found.
+    wald : tuple of float
+        The Wald interval at the same level, for comparison.
+    values : Tensor ``(K,)``
+        The fixed values of the unknown at which the profile was evaluated, increasing
+        (the estimate and the root-finding evaluations included).
+    sse : Tensor ``(K,)``
+        The optimal SSE at each value.
+    estimates : Tensor ``(K, m)``
+        The optimal unknowns at each value, in :attr:`unknown_names` order (the profiled
+        unknown's column holds :attr:`values`).
+    unknown_names : list of str
+        The fit's unknowns.
+    message : str
+        What was found, and for an open side why (search range exhausted, bound reached, or
+        re-fits failing there).
+    n_fits : int
+        Number of re-fits made.
+    failures : list of (float, str)
+        Values at which a re-fit failed, with its status name.
+    sigma_known : bool
+    residual_variance : float
+        ``s^2`` used (1 when ``sigma`` is known).
+    """
+
+    name: str
+    level: float
+    estimate: float
+    sse_min: float
+    threshold: float
+    interval: tuple[float, float]
+    closed: tuple[bool, bool]
+    wald: tuple[float, float]
+    values: torch.Tensor
+    sse: torch.Tensor
+    estimates: torch.Tensor
+    unknown_names: list[str]
+    message: str
+    n_fits: int
+    failures: list = field(default_factory=list)
+    sigma_known: bool = False
+    residual_variance: float = 1.0
+
+    @property
+    def tau(self) -> torch.Tensor:
+        """Signed root statistic ``sign(value - estimate) sqrt(max(SSE - sse_min, 0) / s^2)``, ``(K,)``.
+
+        For a model linear in its unknowns it is a straight line of slope ``1 / stderr``; its
+        curvature shows the nonlinearity (Bates & Watts' profile t plot).
+        """
+        excess = (self.sse - self.sse_min).clamp_min(0.0) / self.residual_variance
+        return torch.sign(self.values - self.estimate) * excess.sqrt()
+
+    def plot(self, ax=None):
+        """Plot the profile, threshold and intervals; see :func:`torchql.plotting.plot_profile`."""
+        from .plotting import plot_profile
+
+        return plot_profile(self, ax=ax)
+
+    def __repr__(self) -> str:
+        lo, hi = self.interval
+        return (f"ProfileResult(name={self.name!r}, estimate={self.estimate:.6g}, level={self.level:g}, "
+                f"interval=({lo:.6g}, {hi:.6g}), closed={self.closed}, points={self.values.numel()})")
+
+
+class _Point(NamedTuple):
+    value: float
+    sse: float
+    estimates: torch.Tensor  # (m,) in the free fit's unknown order
+    model: object  # fitted model copy (warm start of the neighbours)
+    x0: torch.Tensor
+
+
+def profile(
+    result: FitResult,
+    name: str,
+    *,
+    data: Observations | None = None,
+    level: float = 0.95,
+    bounds: tuple[float | None, float | None] | None = None,
+    step: float | None = None,
+    growth: float = 1.5,
+    max_points: int = 12,
+    xtol: float = 1e-3,
+    **fit_options,
+) -> ProfileResult:
+    """Profile-likelihood confidence interval of one unknown of a fit.
+
+    Parameters
+    ----------
+    result : FitResult
+        A converged fit (``Status.NOT_IDENTIFIABLE`` is accepted too: its profile is flat
+        where the data cannot separate the unknowns).
+    name : str
+        The unknown to profile, one of ``result.unknown_names``: a scalar coefficient
+        (``"C_D"``) or an initial state (``"v(t0)"``).
+    data : Observations, optional
+        The data of the fit; default ``result.data`` (kept by :func:`torchql.fit`).
+    level : float
+        Confidence level, strictly between 0 and 1.
+    bounds : (float or None, float or None), optional
+        Limits of the search for ``name``'s value (e.g. ``(0, None)`` for a rate that must stay
+        positive). A side that reaches its limit without crossing is reported open.
+    step : float, optional
+        Scale of the first step out from the estimate, in the unknown's units. Default: its
+        standard error (or 10% of its magnitude when that is not available); the first step is
+        ``step`` times half the threshold's quantile (about one standard error).
+    growth : float
+        Each further step is ``growth`` times the previous one.
+    max_points : int
+        Maximum number of steps out on each side before it is declared open.
+    xtol : float
+        The interval's ends are located to ``xtol * step``.
+    **fit_options
+        Keyword arguments of :func:`torchql.fit` overriding those of the original fit
+        (``method=``, ``grid=``, ``rtol=``, ``max_iter=``, ...).
+
+    Returns
+    -------
+    ProfileResult
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``name`` (the message lists the valid ones), a coefficient element of
+        a vector or matrix buffer, a failed fit, a missing ``data``, or invalid options.
+    """
+    from .fit import fit
+
+    if not isinstance(result, FitResult):
+        raise TypeError(f"`result` must be a torchql.FitResult (from torchql.fit); received {type(result).__name__}")
+    names = list(result.unknown_names)
+    if not isinstance(name, str) or name not in names:
+        raise ValueError(f"`name` must be one of the fit's unknowns {names}; received {name!r}")
+    if not (isinstance(level, float) and 0.0 < level < 1.0):
+        raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
+    if data is None:
+        data = result.data
+    if data is None:
+        raise ValueError("`data` is required: this FitResult does not hold the observations it was fitted to")
+    if not isinstance(data, Observations):
+        raise TypeError(f"`data` must be a torchql.Observations; received {type(data).__name__}")
+    if not (result.success or result.status is Status.NOT_IDENTIFIABLE) or not math.isfinite(result.sse):
+        raise ValueError(f"`result` must be a converged fit to profile; its status is {result.status.name}: {result.message}")
+    for label, value, lo in (("growth", growth, 1.0), ("xtol", xtol, 0.0)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > lo or not math.isfinite(value):
+            raise ValueError(f"`{label}` must be a finite number > {lo:g}; received {value!r}")
+    if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < 1:
+        raise ValueError(f"`max_points` must be a positive int; received {max_points!r}")
+    for bad in ("params", "fixed_x0", "x0", "callback", "throw", "bounds"):
+        if bad in fit_options:
+            raise ValueError(f"`{bad}` cannot be overridden in a profile: it is set by the profile itself")
+
+    m = len(names)
+    index = names.index(name)
+    theta_hat = float(result.estimates[index])
+    states = list(result.model.state_names)
+    buffers = {k: v for k, v in result.model.named_buffers() if v.is_floating_point()}
+
+    # --- the unknowns of the original fit, and how `name` is held fixed
+    free_params = _original_params(result, buffers)
+    fixed_states = [s for s in states if f"{s}(t0)" not in names]
+    state_index = None
+    if name.endswith("(t0)") and name[:-4] in states and name not in buffers:
+        state_index = states.index(name[:-4])
+        params = free_params
+        fixed_x0 = fixed_states + [states[state_index]]
+    elif name in buffers and buffers[name].dim() == 0:
+        params = [p for p in free_params if p != name]
+        fixed_x0 = fixed_states
+    else:
+        raise ValueError(
+            f"`name` {name!r} is an element of a vector or matrix coefficient: only scalar coefficients and "
+            "initial states can be profiled"
+        )
+
+    options = {k: result.fit_kwargs[k] for k in _INHERITED if k in result.fit_kwargs}
+    options.setdefault("method", result.method)
+    options.update({k: v for k, v in result.solver_options.items() if k not in options or options[k] is None})
+    options["t0"] = result.t0
+    options.update(fit_options)
+
+    # --- threshold
+    p = 0.5 + 0.5 * level
+    if result.sigma_known:
+        s2 = 1.0
+        q2 = normal_quantile(p) ** 2
+    else:
+        if result.dof <= 0:
+            raise ValueError(f"no degrees of freedom are left to estimate the residual variance (dof = {result.dof})")
+        s2 = result.sse / result.dof
+        q2 = student_t_quantile(p, result.dof) ** 2
+    sse_min = result.sse
+    delta = s2 * q2
+    threshold = sse_min + delta
+    if s2 <= 0:
+        raise ValueError("the fit's SSE is zero: the data are met exactly and the profile threshold is zero-width")
+
+    se = result.stderr[name]
+    if step is None:
+        h = se if (math.isfinite(se) and se > 0) else (0.1 * abs(theta_hat) if theta_hat != 0 else 0.1)
+    else:
+        if isinstance(step, bool) or not isinstance(step, (int, float)) or not (step > 0 and math.isfinite(step)):
+            raise ValueError(f"`step` must be a finite number > 0; received {step!r}")
+        h = float(step)
+    lower_bound, upper_bound = _check_bounds(bounds, theta_hat)
+
+    n_fits = 0
+    failures: list[tuple[float, str]] = []
+
+    def evaluate(value: float, warm) -> _Point | None:
+        nonlocal n_fits
+        n_fits += 1
+        model = copy.deepcopy(warm.model)
+        x0 = warm.x0.clone()
+        if state_index is None:
+            _set_buffer(model, name, torch.tensor(value, dtype=buffers[name].dtype, device=buffers[name].device))
+        else:
+            x0[state_index] = value
+        if m == 1:  # nothing left to fit: the SSE of the model itself
+            sse = _sse_of(model, x0, result.t0, data, options)
+            if not math.isfinite(sse):
+                failures.append((value, "INTEGRATION_FAILED"))
+                return None
+            est = torch.tensor([value], dtype=result.estimates.dtype)
+            return _Point(value, sse, est, model, x0)
+        try:
+            r = fit(model, data, x0, params=params, fixed_x0=fixed_x0, **options)
+        except (ValueError, RuntimeError) as exc:
+            if warm is result:
+                raise
+            failures.append((value, f"{type(exc).__name__}: {exc}"))
+            return None
+        if not (r.success or r.status is Status.NOT_IDENTIFIABLE) or not math.isfinite(r.sse):
+            failures.append((value, r.status.name))
+            return None
+        by_name = dict(zip(r.unknown_names, r.estimates.tolist()))
+        by_name[name] = value
+        est = torch.tensor([by_name[u] for u in names], dtype=result.estimates.dtype)
+        return _Point(value, r.sse, est, r.model, r.x0)
+
+    center = evaluate(theta_hat, result)
+    if center is None:
+        raise RuntimeError(f"re-fitting with {name} fixed at its estimate {theta_hat:g} failed ({failures[-1][1]})")
+    points = [center]
+    q = math.sqrt(q2)
+
+    def excess(pt: _Point) -> float:
+        return math.sqrt(max(pt.sse - sse_min, 0.0)) - math.sqrt(delta)
+
+    ends, closed, notes = [], [], []
+    for direction, limit in ((-1.0, lower_bound), (1.0, upper_bound)):
+        side = "below" if direction < 0 else "above"
+        prev = center
+        dist = 0.5 * q * h
+        end, why = None, None
+        for _ in range(max_points):
+            target = prev.value + direction * dist
+            at_limit = limit is not None and (target - limit) * direction >= 0
+            if at_limit:
+                target = limit
+            point = evaluate(target, prev)
+            halvings, trial_dist = 0, abs(target - prev.value)
+            while point is None and halvings < _FAIL_HALVINGS:
+                halvings += 1
+                trial_dist *= 0.5
+                at_limit = False
+                target = prev.value + direction * trial_dist
+                point = evaluate(target, prev)
+            if point is None:
+                why = (f"the re-fits failed {side} {name} = {prev.value:.6g} "
+                       f"({failures[-1][1]}; the profile stays below the threshold up to there)")
+                break
+            points.append(point)
+            if excess(point) >= 0:
+                end, extra = _crossing(prev, point, excess, evaluate, xtol * h)
+                points.extend(extra)
+                break
+            prev = point
+            dist *= growth
+            if at_limit:
+                why = f"the search bound {limit:.6g} was reached with the profile still below the threshold"
+                break
+        else:
+            why = (f"the profile stays below the threshold up to {name} = {prev.value:.6g} "
+                   f"({max_points} steps; widen the search with `max_points=`/`growth=`/`step=`)")
+        if end is None:
+            ends.append(direction * math.inf)
+            closed.append(False)
+            notes.append(f"open {side}: {why}")
+        else:
+            ends.append(end)
+            closed.append(True)
+
+    points.sort(key=lambda pt: pt.value)
+    values = torch.tensor([pt.value for pt in points], dtype=torch.float64)
+    sses = torch.tensor([pt.sse for pt in points], dtype=torch.float64)
+    estimates = torch.stack([pt.estimates for pt in points])
+    wald = result.confidence_intervals(level)[name]
+
+    pct = f"{100 * level:g}%"
+    message = (f"{name}: {pct} profile interval [{ends[0]:.6g}, {ends[1]:.6g}] "
+               f"(Wald [{wald[0]:.6g}, {wald[1]:.6g}], estimate {theta_hat:.6g}).")
+    if all(closed):
+        message += " The profile crosses the threshold on both sides."
+    else:
+        message += " The interval is " + "; ".join(notes) + ": the data do not bound it there at this level."
+    lowest = int(torch.argmin(sses))
+    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, delta) - _sse_noise(result, data, options):
+        note = (f" The profile found a lower SSE ({float(sses[lowest]):.6g} at {name} = {float(values[lowest]):.6g}) "
+                f"than the fit ({sse_min:.6g}): the fit is not at the least-squares optimum; re-fit from there.")
+        message += note
+        warnings.warn(note.strip(), UserWarning, stacklevel=2)
+    return ProfileResult(
+        name=name, level=level, estimate=theta_hat, sse_min=sse_min, threshold=threshold,
+        interval=(ends[0], ends[1]), closed=(closed[0], closed[1]), wald=(float(wald[0]), float(wald[1])),
+        values=values, sse=sses, estimates=estimates, unknown_names=names, message=message, n_fits=n_fits,
+        failures=failures, sigma_known=result.sigma_known, residual_variance=s2,
+    )
+
+
+def _crossing(inside: _Point, outside: _Point, excess, evaluate, tol: float):
+    """Locate ``excess(theta) = 0`` between ``inside`` (< 0) and ``outside`` (>= 0): Illinois regula falsi.
+
+    Returns the root and the points evaluated on the way.
+    """
+    a, b = inside, outside
+    fa, fb = excess(a), excess(b)
+    extra = []
+    side = 0
+    for _ in range(40):
+        if abs(b.value - a.value) <= tol:
+            break
+        x = b.value - fb * (b.value - a.value) / (fb - fa)
+        lo, hi = sorted((a.value, b.value))
+        if not lo < x < hi:
+            x = 0.5 * (a.value + b.value)
+        warm = a if abs(x - a.value) <= abs(x - b.value) else b
+        pt = evaluate(x, warm)
+        if pt is None:  # keep the last bracket; interpolate below
+            break
+        extra.append(pt)
+        fx = excess(pt)
+        if abs(fx) <= 1e-9 * max(1.0, abs(fa), abs(fb)):
+            return x, extra
+        if fx < 0:
+            a, fa = pt, fx
+            if side == -1:
+                fb *= 0.5
+            side = -1
+        else:
+            b, fb = pt, fx
+            if side == 1:
+                fa *= 0.5
+            side = 1
+    return a.value - excess(a) * (b.value - a.value) / (excess(b) - excess(a)), extra
+
+
+def _original_params(result: FitResult, buffers: dict) -> list[str]:
+    """The buffers estimated by the original fit."""
+    given = result.fit_kwargs.get("params")
+    if given is not None:
+        return list(given)
+    unknown = set(result.unknown_names)
+    out = []
+    for buf, value in buffers.items():
+        if buf in unknown or any(u.startswith(buf + "[") for u in unknown):
+            out.append(buf)
+    return out
+
+
+def _check_bounds(bounds, theta_hat: float) -> tuple[float | None, float | None]:
+    if bounds is None:
+        return None, None
+    try:
+        lo, hi = bounds
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"`bounds` must be a pair (lower, upper), either may be None; received {bounds!r}") from exc
+    lo = None if lo is None else float(lo)
+    hi = None if hi is None else float(hi)
+    if (lo is not None and not lo < theta_hat) or (hi is not None and not hi > theta_hat):
+        raise ValueError(f"`bounds` {bounds!r} must enclose the estimate {theta_hat:.6g} strictly")
+    return lo, hi
+
+
+def _sse_noise(result: FitResult, data: Observations, options: dict) -> float:
+    """SSE differences below this are integration error: ``100 rtol^2 sum((y / sigma)^2)``."""
+    from .integrate import default_tolerances
+
+    rtol, _ = default_tolerances(result.x0.dtype, options.get("rtol"), options.get("atol"))
+    mask = data.mask
+    yw = (data.y / data.sigma)[mask][~data.exact[mask]]
+    return 100.0 * rtol**2 * float((yw.to(torch.float64) ** 2).sum())
+
+
+def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dict) -> float:
+    """Weighted SSE over the least-squares values of ``model`` integrated from ``x0`` (no fitting)."""
+    from .integrate import IntegrationError, simulate
+
+    dtype, device = x0.dtype, x0.device
+    try:
+        x = simulate(model, x0, data.t.to(dtype=dtype, device=device), t0=t0, solver=options.get("solver", "dopri5"),
+                     rtol=options.get("rtol"), atol=options.get("atol"))
+    except IntegrationError:
+        return math.nan
+    operator = ObservationOperator(data.observe, model.state_names, data.n_outputs, dtype, device)
+    value, _ = operator.value_and_jacobian(x)
+    mask = data.mask.to(device)
+    r = ((data.y.to(dtype=dtype, device=device) - value) / data.sigma.to(dtype=dtype, device=device))[mask]
+    r = r[~data.exact.to(device)[mask]]
+    return float((r ** 2).sum())

@@ -1,0 +1,207 @@
+"""A text report of a fit, in the manner of lmfit's ``fit_report``.
+
+The report has five parts: the fit (method, status, message, iterations, evaluations); its
+statistics (values, unknowns, degrees of freedom, SSE, residual standard deviation, reduced
+chi-square when ``sigma`` was given, AIC and BIC, condition number of the scaled Jacobian);
+every unknown as ``value +/- stderr (relative %)`` with its Wald interval; the correlations
+above a threshold; the unknowns without error bars and why; and the iteration table (SSE,
+scaled ``|alpha|`` and every unknown per iterate, like the thesis' Table 3.2).
+
+AIC and BIC are computed from the SSE as lmfit does (a Gaussian likelihood with the variance
+profiled out): ``N ln(SSE / N) + 2 m`` and ``N ln(SSE / N) + ln(N) m``, with ``N`` the
+least-squares values (exact ones excluded) and ``m`` the unknowns.
+"""
+
+from __future__ import annotations
+
+import builtins
+import math
+from typing import TYPE_CHECKING
+
+import torch
+
+from .model import _element_names
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .result import FitResult, IterationRecord
+
+__all__ = ["fit_report", "condition_number", "information_criteria", "unknown_values"]
+
+
+def condition_number(result: "FitResult") -> float:
+    """``max / min`` singular value of the column-scaled weighted Jacobian at the estimates.
+
+    ``inf`` when the problem is rank deficient (``Status.NOT_IDENTIFIABLE`` or a zero singular
+    value), ``nan`` when the Jacobian was not evaluated (the fit failed).
+    """
+    from .result import Status
+
+    s = result.singular_values
+    if result.status is Status.NOT_IDENTIFIABLE:
+        return math.inf
+    if s.numel() == 0 or not bool(torch.isfinite(s).all()):
+        return math.nan
+    smin, smax = float(s.min()), float(s.max())
+    if smin <= 0.0:
+        return math.inf
+    return smax / smin
+
+
+def information_criteria(result: "FitResult") -> tuple[float, float]:
+    """``(AIC, BIC)`` from the SSE, as lmfit computes them.
+
+    ``N ln(SSE/N) + 2 m`` and ``N ln(SSE/N) + ln(N) m``, ``N`` the least-squares values (the
+    values marked exact are met exactly and do not count), ``m`` the number of unknowns.
+    ``nan`` when the SSE is not finite, ``-inf`` when it is zero.
+    """
+    n = result.n_observations - int(result.exact_mask.sum())
+    m = len(result.unknown_names)
+    sse = result.sse
+    if not math.isfinite(sse) or n <= 0:
+        return math.nan, math.nan
+    if sse <= 0.0:
+        return -math.inf, -math.inf
+    neg2_log_likelihood = n * math.log(sse / n)
+    return neg2_log_likelihood + 2 * m, neg2_log_likelihood + math.log(n) * m
+
+
+def unknown_values(result: "FitResult", record: "IterationRecord") -> list[float]:
+    """The unknowns of one iterate, in ``result.unknown_names`` order."""
+    states = list(result.model.state_names)
+    elements = {}
+    for name, value in record.params.items():
+        flat = value.reshape(-1)
+        for i, el in enumerate(_element_names(name, value.shape)):
+            elements[el] = flat[i]
+    out = []
+    for name in result.unknown_names:
+        if name in elements:
+            out.append(float(elements[name]))
+        elif name.endswith("(t0)") and name[:-4] in states:
+            out.append(float(record.x0[states.index(name[:-4])]))
+        else:  # pragma: no cover - every unknown is a state or a coefficient element
+            out.append(math.nan)
+    return out
+
+
+def _g(x: float, digits: int = 7) -> str:
+    if isinstance(x, float) and math.isnan(x):
+        return "nan"
+    return f"{x:.{digits}g}"
+
+
+def _no_errorbar_reason(result: "FitResult") -> str:
+    from .result import Status
+
+    if result.status is Status.NOT_IDENTIFIABLE:
+        detail = result.message[len(result.status.value):].strip()
+        return "not identifiable: the scaled Jacobian is rank deficient" + (f" ({detail})" if detail else "")
+    if not result.success:
+        return f"the fit did not converge ({result.status.name})"
+    if not result.sigma_known and result.dof <= 0:
+        return f"no degrees of freedom are left to estimate the residual variance (dof = {result.dof})"
+    return "the covariance could not be computed (the scaled Jacobian is numerically singular)"
+
+
+def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: float = 0.1,
+               iterations: bool = True, print: bool = False) -> str:
+    """A text report of ``result``.
+
+    Parameters
+    ----------
+    result : FitResult
+    level : float
+        Confidence level of the Wald intervals shown with the unknowns.
+    min_correlation : float
+        Correlations with ``|r|`` at or below this are not listed.
+    iterations : bool
+        Include the iteration table.
+    print : bool
+        Also print the report.
+
+    Returns
+    -------
+    str
+    """
+    if not (isinstance(level, float) and 0.0 < level < 1.0):
+        raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
+    if isinstance(min_correlation, bool) or not isinstance(min_correlation, (int, float)) or not 0 <= min_correlation < 1:
+        raise ValueError(f"`min_correlation` must be a number in [0, 1); received {min_correlation!r}")
+    names = list(result.unknown_names)
+    m = len(names)
+    width = max([len(n) for n in names] + [10])
+    lines: list[str] = []
+    add = lines.append
+
+    add("[[Fit]]")
+    add(f"    method             = {result.method}")
+    add(f"    status             = {result.status.name}")
+    add(f"    success            = {result.success}")
+    add(f"    message            = {result.message}")
+    add(f"    iterations         = {result.iterations}")
+    add(f"    function evals     = {result.nfev}")
+
+    n_exact = int(result.exact_mask.sum())
+    aic, bic = information_criteria(result)
+    add("[[Fit statistics]]")
+    add(f"    data points        = {result.n_observations}" + (f" ({n_exact} met exactly)" if n_exact else ""))
+    add(f"    unknowns           = {m}")
+    add(f"    degrees of freedom = {result.dof}")
+    add(f"    SSE (chi-square)   = {_g(result.sse)}")
+    if result.sigma_known:
+        red = result.sse / result.dof if result.dof > 0 else math.nan
+        add(f"    reduced chi-square = {_g(red)}")
+        add("    residual std       = 1 (sigma given: the residuals are in units of sigma)")
+    else:
+        rv = result.residual_variance
+        add(f"    residual std       = {_g(math.sqrt(rv) if rv >= 0 else math.nan)} (estimated, sqrt(SSE / dof))")
+    add(f"    AIC                = {_g(aic)}")
+    add(f"    BIC                = {_g(bic)}")
+    add(f"    condition number   = {_g(condition_number(result), 4)} (column-scaled weighted Jacobian)")
+
+    se = result.stderr
+    est = result.estimates.tolist()
+    cis = result.confidence_intervals(level)
+    pct = f"{100 * level:g}%"
+    add(f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval)")
+    missing = []
+    for name, value in zip(names, est):
+        s = se[name]
+        if not math.isfinite(s):
+            missing.append(name)
+            add(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
+            continue
+        rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
+        lo, hi = cis[name]
+        add(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
+    if missing:
+        add("[[Unknowns without error bars]]")
+        add(f"    {', '.join(missing)}: {_no_errorbar_reason(result)}")
+
+    if m > 1 and not missing:
+        corr = result.correlation
+        pairs = [(abs(float(corr[i, j])), float(corr[i, j]), names[i], names[j])
+                 for i in range(m) for j in range(i + 1, m)]
+        shown = sorted((p for p in pairs if math.isfinite(p[1]) and p[0] > min_correlation), reverse=True)
+        add(f"[[Correlations]] (|r| > {min_correlation:g})")
+        if not shown:
+            add("    none")
+        cw = max([len(f"C({a}, {b})") for _, _, a, b in shown] + [0])
+        for _, r, a, b in shown:
+            add(f"    {f'C({a}, {b})':<{cw}} = {r:+.4f}")
+
+    if iterations and result.history:
+        add("[[Iterations]] (|alpha|: the update scaled by the unknowns' magnitudes)")
+        cols = [max(14, len(n) + 1) for n in names]
+        add(f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols)))
+        for rec in result.history:
+            vals = unknown_values(result, rec)
+            alpha = "-" if not math.isfinite(rec.alpha_norm) else f"{rec.alpha_norm:.3e}"
+            sse = f"{rec.sse:.6g}" if math.isfinite(rec.sse) else "nan"
+            add(f"    {rec.iteration:>4} {sse:>12} {alpha:>10} "
+                + " ".join(f"{_g(v, 10):>{w}}" for v, w in zip(vals, cols)))
+
+    text = "\n".join(lines)
+    if print:
+        builtins.print(text)
+    return text
