@@ -26,7 +26,7 @@ class Covariance(NamedTuple):
     Attributes
     ----------
     matrix : Tensor ``(m, m)``
-        Covariance of the unknowns (NaN where it cannot be determined).
+        Covariance of the unknowns (NaN rows and columns for unknowns the data cannot determine).
     dof : int
         Degrees of freedom of the residuals.
     residual_variance : float
@@ -53,7 +53,8 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     sigma_known : bool
         Whether the weights are true standard deviations.
     rcond : float
-        Relative singular-value threshold; below it the covariance is undetermined (NaN).
+        Relative singular-value threshold. Unknowns with a component along a direction whose
+        singular value falls below it get NaN variances and covariances; the others keep theirs.
     """
     L, m = jacobian.shape
     nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
@@ -75,12 +76,23 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     scale = torch.linalg.vector_norm(A, dim=0)
     if bool((scale == 0).any()):
         return Covariance(nan, dof, s2)
-    _, S, Vh = torch.linalg.svd(A / scale, full_matrices=False)
-    if S.shape[0] < A.shape[1] or bool((S <= rcond * S[0]).any()):
-        return Covariance(nan, dof, s2)
-    inner = (Vh.T / S**2) @ Vh / scale.unsqueeze(-1) / scale.unsqueeze(0)
+    _, S, Vh = torch.linalg.svd(A / scale, full_matrices=True)
+    r = S.shape[0]
+    keep = S > rcond * S[0]
+    rows = Vh[:r][keep]
+    inner = (rows.T / S[keep] ** 2) @ rows / scale.unsqueeze(-1) / scale.unsqueeze(0)
     cov = s2 * free @ inner @ free.T
-    return Covariance(0.5 * (cov + cov.T), dof, s2)
+    cov = 0.5 * (cov + cov.T)
+    null = torch.cat([Vh[:r][~keep], Vh[r:]], dim=0)  # scaled directions the data cannot determine
+    if null.shape[0]:
+        # an unknown is determined only if it has no component along an undetermined direction;
+        # the others keep their (pseudo-inverse) variance, as lmfit reports what it can
+        directions = free @ (null.T / scale.unsqueeze(-1))
+        directions = directions / torch.linalg.vector_norm(directions, dim=0, keepdim=True)
+        undetermined = (directions.abs() > 1e-6).any(dim=1)
+        cov[undetermined, :] = float("nan")
+        cov[:, undetermined] = float("nan")
+    return Covariance(cov, dof, s2)
 
 
 def normal_quantile(p: float) -> float:
