@@ -1,6 +1,6 @@
 """torchql: system identification by quasilinearization, in PyTorch."""
 
-from . import models
+from . import baselines, models
 from .fit import METHODS, fit
 from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
@@ -28,4 +28,5 @@ __all__ = [
     "newton_raphson",
     "NewtonResult",
     "models",
+    "baselines",
 ]
