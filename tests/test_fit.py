@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Product
 from torchql.models import HarmonicOscillator, LinearOscillator, NonlinearOscillator
 
 DT = torch.float64
@@ -263,17 +264,6 @@ def test_matrix_coefficient_and_several_outputs_with_missing_values():
 
 
 def test_product_of_parameters_is_reported_not_identifiable():
-    class Product(torchql.ODEModel):
-        state_names = ("y",)
-
-        def __init__(self, a=1.0, b=1.0):
-            super().__init__()
-            self.register_buffer("a", torch.tensor(a, dtype=DT))
-            self.register_buffer("b", torch.tensor(b, dtype=DT))
-
-        def forward(self, t, x):
-            return -self.a * self.b * x
-
     times = torch.linspace(0, 2, 11, dtype=DT)
     data = torchql.Observations(times, torch.exp(-0.6 * times), observe=["y"])
     result = torchql.fit(Product(1.0, 1.0), data, x0=torch.tensor([1.0], dtype=DT))

@@ -7,22 +7,10 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Decay
 from torchql.models import LinearOscillator
 
 GRID = 10  # a coarse Kantorovich storage grid keeps these tiny fits fast
-
-
-class Decay(torchql.ODEModel):
-    """``y' = -k y``."""
-
-    state_names = ("y",)
-
-    def __init__(self, k=1.0, dtype=torch.float64):
-        super().__init__()
-        self.register_buffer("k", torch.tensor(k, dtype=dtype))
-
-    def forward(self, t, x):
-        return -self.k * x
 
 
 class Custom(Decay):

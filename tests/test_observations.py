@@ -7,19 +7,7 @@ import pytest
 import torch
 
 import torchql
-
-
-class Decay(torchql.ODEModel):
-    """``y' = -k y``."""
-
-    state_names = ("y",)
-
-    def __init__(self, k=1.0):
-        super().__init__()
-        self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
-
-    def forward(self, t, x):
-        return -self.k * x
+from testmodels import Decay
 
 
 T3 = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64)

@@ -13,21 +13,11 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Decay, Product
 from torchql.models import CoastingCar
 from torchql.uncertainty import normal_quantile, student_t_quantile
 
 DT = torch.float64
-
-
-class Decay(torchql.ODEModel):
-    state_names = ("y",)
-
-    def __init__(self, k=1.0):
-        super().__init__()
-        self.register_buffer("k", torch.tensor(k, dtype=DT))
-
-    def forward(self, t, x):
-        return -self.k * x
 
 
 class Ramp(torchql.ODEModel):
@@ -252,17 +242,6 @@ def test_vector_coefficient_elements_cannot_be_profiled():
 
 
 def test_unidentifiable_pair_has_a_flat_open_profile():
-    class Product(torchql.ODEModel):
-        state_names = ("y",)
-
-        def __init__(self, a=1.0, b=1.0):
-            super().__init__()
-            self.register_buffer("a", torch.tensor(a, dtype=DT))
-            self.register_buffer("b", torch.tensor(b, dtype=DT))
-
-        def forward(self, t, x):
-            return -self.a * self.b * x
-
     times = torch.linspace(0, 2, 11, dtype=DT)
     g = torch.Generator().manual_seed(2)
     data = torchql.Observations(times, torch.exp(-0.6 * times) + 0.01 * torch.randn(11, generator=g, dtype=DT),

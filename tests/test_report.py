@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Product
 from torchql.models import CoastingCar
 from torchql.report import information_criteria
 
@@ -26,17 +27,6 @@ def car():
 @pytest.fixture(scope="module")
 def product():
     """``y' = -a b y``: a and b cannot be separated."""
-
-    class Product(torchql.ODEModel):
-        state_names = ("y",)
-
-        def __init__(self, a=1.0, b=1.0):
-            super().__init__()
-            self.register_buffer("a", torch.tensor(a, dtype=DT))
-            self.register_buffer("b", torch.tensor(b, dtype=DT))
-
-        def forward(self, t, x):
-            return -self.a * self.b * x
 
     times = torch.linspace(0, 2, 11, dtype=DT)
     data = torchql.Observations(times, torch.exp(-0.6 * times), observe=["y"])

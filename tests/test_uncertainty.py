@@ -7,21 +7,11 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Decay, Product
 from torchql.models import CoastingCar
 from torchql.uncertainty import normal_quantile, student_t_quantile
 
 DT = torch.float64
-
-
-class Decay(torchql.ODEModel):
-    state_names = ("y",)
-
-    def __init__(self, k=1.0):
-        super().__init__()
-        self.register_buffer("k", torch.tensor(k, dtype=DT))
-
-    def forward(self, t, x):
-        return -self.k * x
 
 
 SUNBEAM = torch.tensor([117.3, 104.9, 95.3, 87.3, 79.2, 71.9, 65.7, 59.8, 54.0], dtype=DT)
@@ -93,17 +83,6 @@ def test_exact_values_leave_no_variance_along_their_constraint():
 
 
 def test_not_identifiable_has_no_error_bars():
-    class Product(torchql.ODEModel):
-        state_names = ("y",)
-
-        def __init__(self):
-            super().__init__()
-            self.register_buffer("a", torch.tensor(1.0, dtype=DT))
-            self.register_buffer("b", torch.tensor(1.0, dtype=DT))
-
-        def forward(self, t, x):
-            return -self.a * self.b * x
-
     times = torch.linspace(0, 2, 11, dtype=DT)
     result = torchql.fit(Product(), torchql.Observations(times, torch.exp(-0.6 * times), observe=["y"]),
                          x0=torch.tensor([1.0], dtype=DT))
