@@ -1,4 +1,4 @@
-"""Particular and homogeneous solutions, integrated together as one torchdiffeq system.
+"""Particular and homogeneous solutions, propagated together over the grid.
 
 The state integrated is ``W (M, 1 + m)``: column 0 is the particular solution, columns
 ``1..m`` the homogeneous solutions started from unit vectors on the ``m`` unknown components of
@@ -18,8 +18,21 @@ import torch
 
 from .integrate import solve
 from .trajectory import IntervalSystem, LinearizedReference
+from .transfer import Transfers, compose_transfers, interval_transfers
 
-__all__ = ["initial_columns", "propagate_linear"]
+__all__ = ["LINEAR_SOLVERS", "DEFAULT_LINEAR_SOLVER", "check_linear_solver", "initial_columns", "propagate_linear"]
+
+#: Integrators of the interval transfers: ``"rk4_doubling"`` (fixed RK4 steps with step doubling
+#: and refinement of the intervals that need it, :mod:`torchql.transfer`) or ``"torchdiffeq"``
+#: (one adaptive torchdiffeq call over all intervals, with the solver named by ``solver``).
+LINEAR_SOLVERS: tuple[str, ...] = ("rk4_doubling", "torchdiffeq")
+DEFAULT_LINEAR_SOLVER: str = "rk4_doubling"
+
+
+def check_linear_solver(linear_solver: str) -> None:
+    """Raise ``ValueError`` naming the valid choices when ``linear_solver`` is not one of them."""
+    if linear_solver not in LINEAR_SOLVERS:
+        raise ValueError(f"`linear_solver` must be one of {LINEAR_SOLVERS}; received {linear_solver!r}")
 
 
 def initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
@@ -30,41 +43,70 @@ def initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tens
     return torch.cat([z0.unsqueeze(-1), E], dim=1)
 
 
-def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver: str, rtol: float,
-                     atol: float, max_steps: int | None = None) -> tuple[torch.Tensor, int]:
+def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver: str = "dopri5", rtol: float,
+                     atol: float, max_steps: int | None = None,
+                     linear_solver: str = DEFAULT_LINEAR_SOLVER) -> tuple[torch.Tensor, int]:
     """Integrate the quasilinear system over the reference's grid.
 
-    Every interval's transfer ``(Phi_j, c_j)`` is integrated at once by one torchdiffeq call
-    (local time ``s`` in ``[0, 1]``; max-norm error control so no interval dilutes another's
-    error; tolerances divided by the square root of the number of intervals, for the
-    accumulation of local errors; first step the whole interval, since the intervals are
-    short against the dynamics); the transfers are then composed node by node.
+    Every interval's transfer ``(Phi_j, c_j)`` is integrated at once, in the local time ``s``
+    in ``[0, 1]``, with max-norm error control so that no interval dilutes another's error and
+    tolerances divided by the square root of the number of intervals, for the accumulation of
+    local errors. The transfers are then composed over the grid by a parallel prefix scan.
+
+    Parameters
+    ----------
+    reference : LinearizedReference
+        Grid ``(G,)`` and the linearization at its nodes.
+    w0 : Tensor ``(M, 1 + m)``
+        Particular (column 0) and homogeneous initial columns at the first node.
+    solver : str
+        The torchdiffeq method of ``linear_solver="torchdiffeq"`` (unused otherwise).
+    rtol, atol : float
+        Tolerances of the whole propagation.
+    max_steps : int, optional
+        Step budget of the torchdiffeq call (unused by ``"rk4_doubling"``, which caps the steps
+        per interval instead; see :func:`torchql.transfer.interval_transfers`).
+    linear_solver : str
+        One of :data:`LINEAR_SOLVERS`: ``"rk4_doubling"`` (default) integrates with fixed RK4
+        steps and step doubling, refining only the intervals that need it; ``"torchdiffeq"``
+        with one adaptive torchdiffeq call (first step the whole interval, since the intervals
+        are short against the dynamics).
 
     Returns
     -------
     W : Tensor ``(G, M, 1 + m)``
         Particular (column 0) and homogeneous solutions at every grid node.
     n_evals : int
-        Evaluations of the batched interval system.
+        Evaluations of the interval system's coefficients, each one at one local time on all
+        intervals being integrated at once (for ``"torchdiffeq"`` one call of the batched
+        :class:`~torchql.trajectory.IntervalSystem`).
+
+    Raises
+    ------
+    IntegrationError
+        When a transfer cannot be integrated to the tolerance or becomes non-finite.
     """
+    check_linear_solver(linear_solver)
     G = reference.t.shape[0]
     if G == 1:
         return w0.unsqueeze(0), 0
     system = IntervalSystem(reference)
     intervals = G - 1
     tiny = 10 * torch.finfo(w0.dtype).eps
-    s = torch.tensor([0.0, 1.0], dtype=w0.dtype, device=w0.device)
-    Y = solve(system, system.initial(), s, solver=solver, rtol=max(rtol / intervals**0.5, tiny),
-              atol=max(atol / intervals**0.5, tiny), max_steps=max_steps, norm=_max_norm, first_step=1.0)[-1]
+    rtol_j, atol_j = max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
     M = w0.shape[0]
-    Phi, c = Y[:, :, :M], Y[:, :, M]
-    out = [w0]
-    w = w0
-    for j in range(intervals):
-        w = Phi[j] @ w
-        w[:, 0] += c[j]
-        out.append(w)
-    return torch.stack(out), system.n_evals
+    if linear_solver == "rk4_doubling":
+        transfers, n_evals = interval_transfers(system, rtol=rtol_j, atol=atol_j)
+    else:
+        s = torch.tensor([0.0, 1.0], dtype=w0.dtype, device=w0.device)
+        Y = solve(system, system.initial(), s, solver=solver, rtol=rtol_j, atol=atol_j, max_steps=max_steps,
+                  norm=_max_norm, first_step=1.0)[-1]
+        T = torch.zeros(intervals, M + 1, M + 1, dtype=w0.dtype, device=w0.device)
+        T[:, :M] = Y
+        T[:, M, M] = 1.0
+        transfers = Transfers.from_full(T)
+        n_evals = system.n_evals
+    return compose_transfers(transfers, w0), n_evals
 
 
 def _max_norm(x: torch.Tensor) -> torch.Tensor:

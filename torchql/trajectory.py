@@ -8,8 +8,9 @@ derivatives ``A_j z_n'(t_j) + df/dt``, so the quasilinear right-hand side is kno
 without calling the model again: one vmapped Jacobian evaluation over the grid per iteration.
 
 Inside one grid interval every coefficient is a polynomial in time, so the interval's
-transfer (its propagator ``Phi_j`` and forced response ``c_j``) is a smooth problem that any
-torchdiffeq solver integrates in a few steps, for all intervals at once.
+transfer (its propagator ``Phi_j`` and forced response ``c_j``) is a smooth problem that a few
+fixed Runge–Kutta steps (:mod:`torchql.transfer`) or any torchdiffeq solver integrate, for all
+intervals at once.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ class IntervalSystem:
     """
 
     def __init__(self, ref: LinearizedReference) -> None:
+        self.t_start = ref.t[:-1]
         self.h = ref.t[1:] - ref.t[:-1]
         hv = self.h.unsqueeze(-1)
         hm = self.h.reshape(-1, 1, 1)

@@ -1,0 +1,280 @@
+"""Every grid interval's transfer at once, by Runge–Kutta steps with step doubling, and their composition.
+
+Over the interval ``[t_j, t_{j+1}]`` the quasilinear system ``w' = A(t) w + B(t)`` maps
+``w(t_j)`` to ``w(t_{j+1}) = Phi_j w(t_j) + c_j``. On the augmented state ``[w; 1]`` that affine
+map is one matrix ``T_j = [[Phi_j, c_j], [0, 1]]`` of size ``(M+1, M+1)``, the value at ``s = 1``
+of ``dT/ds = X_j(s) T``, ``T(0) = I``, with ``X_j = [[h_j A_j, h_j B_j], [0, 0]]`` in the local
+time ``s`` in ``[0, 1]``.
+
+Classical RK4 applied to a linear system is a matrix polynomial in the coefficients at the
+start, middle and end of a step, so its propagator is formed directly (three matrix products a
+step). Each interval is integrated with ``n`` and with ``2n`` equal steps (``n = 1`` first); the
+two share their coefficient evaluations. Their difference over 15 estimates the error of the
+finer one (RK4 is of order 4); the transfer returned is the Richardson extrapolation
+``fine + (fine - coarse) / 15`` (order 5), as an embedded pair propagates its higher-order
+solution. Intervals whose estimate exceeds the tolerance are integrated again with more steps
+(as many as the estimate predicts, a power of two), only those, until all pass or the step
+cap is reached.
+
+The transfers are composed by a parallel prefix scan (Hillis–Steele doubling):
+``ceil(log2(G - 1))`` batched matrix products instead of a loop over the nodes.
+
+Only the rows of the components that change are integrated (coefficients have null equations)
+and the interval index is the last, contiguous dimension of every array, so that each
+elementwise operation runs over all intervals at once; the small matrix products are written
+as broadcast products over the inner index (batched GEMM on 2x2 to 8x8 matrices costs far more
+per entry).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from .integrate import IntegrationError
+from .trajectory import IntervalSystem, hermite_basis
+
+__all__ = ["Transfers", "interval_transfers", "prefix_products", "compose_transfers"]
+
+#: Largest number of interval-steps integrated in one batch (bounds the memory of refinement).
+_CHUNK = 1 << 16
+#: Safety factor on the predicted number of steps.
+_SAFETY = 2.0
+
+
+class Transfers(NamedTuple):
+    """The transfers ``T_j`` of ``N`` intervals, stored by the rows that change.
+
+    Components whose equations are null on every interval (the coefficients, ``p' = 0``) keep
+    unit rows in every ``T_j``; only the ``a`` others ("active") are stored and integrated.
+    Rows and columns are ordered as ``order``: active components, then the constant ones, then
+    the augmented ``1``; in that order ``T_j = [[Y_j], [0 | I]]``.
+
+    Attributes
+    ----------
+    Y : Tensor ``(a, M+1, N)``
+        The active rows of every ``T_j``, columns in ``order``, the interval index last.
+    order : Tensor ``(M+1,)`` of int
+        Components in stored order.
+    """
+
+    Y: torch.Tensor
+    order: torch.Tensor
+
+    @property
+    def active(self) -> int:
+        """Number ``a`` of integrated components."""
+        return self.Y.shape[0]
+
+    def full(self) -> torch.Tensor:
+        """``T (N, M+1, M+1) = [[Phi_j, c_j], [0, 1]]`` in the original order."""
+        a, P, N = self.Y.shape
+        T_perm = torch.eye(P, dtype=self.Y.dtype, device=self.Y.device).repeat(N, 1, 1)
+        T_perm[:, :a] = self.Y.permute(2, 0, 1)
+        T = torch.empty_like(T_perm)
+        T[:, self.order.unsqueeze(-1), self.order] = T_perm
+        return T
+
+    @classmethod
+    def from_full(cls, T: torch.Tensor) -> "Transfers":
+        """All ``M`` rows of ``T (N, M+1, M+1)`` as active, in the original order."""
+        M = T.shape[-1] - 1
+        return cls(T[:, :M].permute(1, 2, 0).contiguous(), torch.arange(M + 1, device=T.device))
+
+
+def _after(Y2: torch.Tensor, Y1: torch.Tensor) -> torch.Tensor:
+    """Active rows of ``T2 @ T1`` from those of ``T2`` and ``T1``, both ``(..., a, M+1, N)``."""
+    a = Y2.shape[-3]
+    if a == 0:
+        return Y2.clone()
+    out = Y2[..., :, 0:1, :] * Y1[..., 0:1, :, :]
+    for j in range(1, a):
+        out += Y2[..., :, j:j + 1, :] * Y1[..., j:j + 1, :, :]
+    out[..., a:, :] += Y2[..., a:, :]
+    return out
+
+
+def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
+                       max_substeps: int = 1024) -> tuple[Transfers, int]:
+    """Transfers ``T_j`` of all grid intervals, each within the tolerance.
+
+    The error test is the one of an adaptive solver with max-norm, entry by entry on the rows
+    of ``[Phi_j | c_j]``: ``|fine - coarse| / 15 <= atol + rtol * max(|T(0)|, |fine|)``.
+
+    Parameters
+    ----------
+    system : IntervalSystem
+        The coefficients of every interval (``N = G - 1`` intervals, state dimension ``M``).
+    rtol, atol : float
+        Tolerances of one interval's transfer.
+    max_substeps : int
+        Most RK4 steps spent on one interval (a power of two, at least 2).
+
+    Returns
+    -------
+    transfers : Transfers
+        ``T_j = [[Phi_j, c_j], [0, 1]]`` of the ``N`` intervals.
+    n_evals : int
+        Batched coefficient evaluations: one evaluates ``A_j(s)`` and ``B_j(s)`` at one local
+        time ``s`` on every interval being integrated (5 for the first pass over all intervals,
+        ``4n + 1`` for each refinement with ``2n`` steps on the intervals that need it).
+
+    Raises
+    ------
+    IntegrationError
+        When an interval still fails the tolerance with ``max_substeps`` steps, or a transfer is
+        not finite.
+    """
+    if max_substeps < 2 or max_substeps & (max_substeps - 1):
+        raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
+    coefficients = _Coefficients(system)
+    Y, ratio, n_evals = _rk4_pair(coefficients, None, 1, rtol, atol)
+    steps = torch.full_like(ratio, 2, dtype=torch.long)  # fine steps used per interval
+    while True:
+        bad = ~(ratio <= 1.0)  # NaN fails too
+        if not bool(bad.any()):
+            break
+        index = bad.nonzero().squeeze(-1)
+        current = steps[index]
+        if bool((current >= max_substeps).any()):
+            _fail(system, index, current, ratio, rtol, atol, max_substeps)
+        # fine error ~ steps^-4: predict the steps needed, a power of two, at least double
+        r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
+        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
+        wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
+        for n_fine in wanted.unique().tolist():
+            group = index[wanted == n_fine]
+            Y_g, ratio_g, evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
+            Y[..., group], ratio[group], steps[group] = Y_g, ratio_g, n_fine
+            n_evals += evals
+    if not torch.isfinite(Y).all():
+        raise IntegrationError("the transfer of a grid interval became non-finite (NaN or inf)")
+    return Transfers(Y, coefficients.order), n_evals
+
+
+class _Coefficients:
+    """The local-time coefficients ``X_j(s)`` of every interval, active rows only, in stored order.
+
+    The node values and scaled slopes of ``z``, ``h f`` and ``h A`` are stacked once, so that
+    the cubic Hermite interpolation at any local times is one matrix product. A component is
+    active when its row of ``f`` or ``A`` (or of their slopes) is nonzero at some node.
+    """
+
+    def __init__(self, system: IntervalSystem) -> None:
+        N, M = system.z0.shape
+        h = system.h.reshape(1, N, 1)
+        z = torch.stack([system.z0, system.zd0, system.z1, system.zd1])  # (4, N, M)
+        fJ = torch.cat([torch.stack([system.f0, system.fd0, system.f1, system.fd1]).unsqueeze(-1),
+                        torch.stack([system.J0, system.Jd0, system.J1, system.Jd1])], dim=-1) * h.unsqueeze(-1)
+        moving = ~(fJ == 0).all(dim=-1).all(dim=1).all(dim=0)  # (M,); NaN counts as moving
+        index = torch.arange(M, device=z.device)
+        self.order = torch.cat([index[moving], index[~moving], torch.tensor([M], device=z.device)])
+        self.a, self.M = int(moving.sum()), M
+        perm = self.order[:-1]
+        fJ = fJ[:, :, perm[:self.a]][..., torch.cat([torch.zeros(1, dtype=perm.dtype, device=perm.device), perm + 1])]
+        data = torch.cat([z[..., perm], fJ.flatten(-2)], dim=-1)  # (4, N, M + a (M+1))
+        self.data = data.transpose(1, 2).contiguous()  # (4, Q, N)
+
+    @property
+    def intervals(self) -> int:
+        return self.data.shape[-1]
+
+    def at(self, s: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
+        """``X (K, a, M+1, I)``: active rows of ``[[h A, h B], [0, 0]]`` at local times ``s (K,)``."""
+        data = self.data if index is None else self.data[..., index]
+        basis = torch.stack(hermite_basis(s), dim=-1)  # (K, 4)
+        values = (basis @ data.flatten(1)).unflatten(1, data.shape[1:])  # (K, Q, I)
+        M, a = self.M, self.a
+        z, fA = values[:, :M], values[:, M:].unflatten(1, (a, M + 1))  # (K, M, I), (K, a, 1 + M, I)
+        b = fA[:, :, 0] - (fA[:, :, 1:] * z.unsqueeze(1)).sum(dim=2)
+        return torch.cat([fA[:, :, 1:], b.unsqueeze(2)], dim=2)
+
+
+def _rk4_pair(coefficients: _Coefficients, index: torch.Tensor | None, n: int, rtol: float,
+              atol: float) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Extrapolated active rows ``(a, M+1, I)`` from ``n`` and ``2n`` RK4 steps, error ratios ``(I,)``, evaluations."""
+    count = coefficients.intervals if index is None else index.numel()
+    per_chunk = max(1, _CHUNK // (4 * n + 1))
+    if count > per_chunk:
+        if index is None:
+            index = torch.arange(count, device=coefficients.data.device)
+        parts = [_rk4_pair(coefficients, index[k:k + per_chunk], n, rtol, atol) for k in range(0, count, per_chunk)]
+        return torch.cat([p[0] for p in parts], dim=-1), torch.cat([p[1] for p in parts]), parts[0][2]
+    dtype, device = coefficients.data.dtype, coefficients.data.device
+    s = torch.arange(4 * n + 1, dtype=dtype, device=device) / (4 * n)
+    X = coefficients.at(s, index)
+    # steps scaled by their length: 2n fine steps then n coarse ones, batched together
+    X0 = torch.cat([X[0:-1:2] / (2 * n), X[0:-1:4] / n])
+    Xm = torch.cat([X[1::2] / (2 * n), X[2::4] / n])
+    X1 = torch.cat([X[2::2] / (2 * n), X[4::4] / n])
+    R = _rk4_steps(X0, Xm, X1)
+    fine, coarse = _product(R[:2 * n]), _product(R[2 * n:])
+    diff = (fine - coarse) / 15
+    a, P = fine.shape[:2]
+    eye = torch.eye(a, P, dtype=dtype, device=device).unsqueeze(-1)
+    scale = atol + rtol * torch.maximum(eye, fine.abs())
+    ratio = (diff.abs() / scale).flatten(0, 1).amax(dim=0) if a else fine.new_zeros(fine.shape[-1])
+    return fine + diff, ratio, s.numel()
+
+
+def _rk4_steps(X0: torch.Tensor, Xm: torch.Tensor, X1: torch.Tensor) -> torch.Tensor:
+    """RK4 transfers ``(S, a, M+1, I)`` of unit steps of ``T' = X(s) T``, from the start, middle and end coefficients."""
+    a, P = X0.shape[1:3]
+    eye = torch.eye(a, P, dtype=X0.dtype, device=X0.device).unsqueeze(-1)
+    K2 = _after(Xm, eye + X0 / 2)
+    K3 = _after(Xm, eye + K2 / 2)
+    K4 = _after(X1, eye + K3)
+    return eye + (X0 + 2 * (K2 + K3) + K4) / 6
+
+
+def _product(R: torch.Tensor) -> torch.Tensor:
+    """Active rows of ``T[n-1] @ ... @ T[0]`` from ``R (n, a, M+1, I)``, ``n`` a power of two: ``(a, M+1, I)``."""
+    while R.shape[0] > 1:
+        R = _after(R[1::2], R[0::2])
+    return R[0]
+
+
+def _fail(system, index, steps, ratio, rtol, atol, max_substeps) -> None:
+    worst = index[ratio[index].nan_to_num(nan=math.inf).argmax()]
+    t_worst = float(system.t_start[worst])
+    value = float(ratio[worst])
+    what = "non-finite" if not math.isfinite(value) else f"{value:.3g} times the tolerance"
+    raise IntegrationError(
+        f"the transfer of {int((steps >= max_substeps).sum())} grid interval(s) did not meet the tolerance "
+        f"(rtol={rtol:.3g}, atol={atol:.3g}) with {max_substeps} RK4 steps each (worst: the interval starting "
+        f"at t = {t_worst:.6g}, error {what}); refine the grid where the solution changes fast, loosen "
+        f"`rtol`/`atol`, or use `linear_solver='torchdiffeq'`")
+
+
+def prefix_products(Y: torch.Tensor) -> torch.Tensor:
+    """Running products ``P_j = T_j @ T_{j-1} @ ... @ T_0``, by active rows ``Y (a, M+1, N)``: ``(a, M+1, N)``.
+
+    Hillis–Steele doubling: after the pass with offset ``d``, ``P_j`` holds the product of
+    ``T_{max(0, j-2d+1)} .. T_j``; ``ceil(log2 N)`` passes of one batched product each.
+    """
+    P = Y
+    d = 1
+    N = Y.shape[-1]
+    while d < N:
+        P = torch.cat([P[..., :d], _after(P[..., d:], P[..., :-d])], dim=-1)
+        d *= 2
+    return P
+
+
+def compose_transfers(transfers: Transfers, w0: torch.Tensor) -> torch.Tensor:
+    """Columns ``w0 (M, 1 + m)`` carried over the grid: ``W (N + 1, M, 1 + m)`` with ``W[0] = w0``.
+
+    Column 0 is the particular solution (it takes the forced responses ``c_j``), the others are
+    homogeneous (``Phi_j`` alone), as in ``w_{j+1} = Phi_j w_j + c_j e_0^T``.
+    """
+    M, cols = w0.shape
+    order, a = transfers.order, transfers.active
+    one = torch.zeros(1, cols, dtype=w0.dtype, device=w0.device)
+    one[0, 0] = 1.0
+    w = torch.cat([w0, one])[order]
+    P = prefix_products(transfers.Y)  # (a, M+1, N)
+    W = w0.repeat(P.shape[-1] + 1, 1, 1)
+    W[1:, order[:a]] = torch.tensordot(P, w, dims=([1], [0])).permute(1, 0, 2)
+    return W
