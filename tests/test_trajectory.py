@@ -2,10 +2,11 @@
 
 import math
 
+import pytest
 import torch
 
 from torchql.linearize import Linearization
-from torchql.superposition import initial_columns, propagate_linear
+from torchql.superposition import LINEAR_SOLVERS, initial_columns, propagate_linear
 from torchql.trajectory import LinearizedReference, hermite_basis
 
 DT = torch.float64
@@ -36,11 +37,12 @@ def _reference_for(a, grid):
     return LinearizedReference(t, z, f, lin), z
 
 
-def test_grid_propagation_matches_the_analytic_solution():
+@pytest.mark.parametrize("linear_solver", LINEAR_SOLVERS)
+def test_grid_propagation_matches_the_analytic_solution(linear_solver):
     grid = torch.linspace(0, 3, 301, dtype=DT)
     ref, z = _reference_for(torch.cos, grid)
     w0 = initial_columns(torch.tensor([1.0], dtype=DT), torch.tensor([0]))
-    W, n_evals = propagate_linear(ref, w0, solver="dopri5", rtol=1e-12, atol=1e-14)
+    W, n_evals = propagate_linear(ref, w0, solver="dopri5", rtol=1e-12, atol=1e-14, linear_solver=linear_solver)
     assert W.shape == (301, 1, 2)
     # the particular solution reproduces the reference; the homogeneous one is exp(sin t) too
     torch.testing.assert_close(W[:, 0, 0], z[:, 0], rtol=1e-9, atol=0)
@@ -48,7 +50,8 @@ def test_grid_propagation_matches_the_analytic_solution():
     assert n_evals > 0
 
 
-def test_constant_coefficients_match_the_matrix_exponential():
+@pytest.mark.parametrize("linear_solver", LINEAR_SOLVERS)
+def test_constant_coefficients_match_the_matrix_exponential(linear_solver):
     # z' = K z with K a rotation-plus-decay: propagate the homogeneous solutions and compare with expm
     K = torch.tensor([[-0.1, 2.0], [-2.0, -0.1]], dtype=DT)
     grid = torch.linspace(0, 2, 101, dtype=DT)
@@ -58,7 +61,7 @@ def test_constant_coefficients_match_the_matrix_exponential():
     lin = Linearization(f=f, jac=jac, f_dot=f @ K.T, jac_dot=torch.zeros_like(jac))
     ref = LinearizedReference(grid, z, f, lin)
     w0 = initial_columns(z[0], torch.tensor([0, 1]))
-    W, _ = propagate_linear(ref, w0, solver="dopri5", rtol=1e-12, atol=1e-14)
+    W, _ = propagate_linear(ref, w0, solver="dopri5", rtol=1e-12, atol=1e-14, linear_solver=linear_solver)
     expected = torch.linalg.matrix_exp(K * 2.0)
     torch.testing.assert_close(W[-1, :, 1:], expected, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(W[-1, :, 0], z[-1], rtol=1e-10, atol=1e-12)
