@@ -170,3 +170,85 @@ def test_bad_tolerances_rejected(tolerances):
 def test_model_not_an_odemodel():
     with pytest.raises(TypeError, match="`model` must be a torchql.ODEModel"):
         torchql.simulate(torch.nn.Linear(1, 1), [X0], [0.0, 1.0])
+
+
+# --- the nonlinear model on a grid by multiple shooting (torchql.grid_solve) -----------------
+
+class _Damped(torchql.ODEModel):
+    """``y'' + c y' + k y = 0``: closed form, and linear so that one Newton step is exact."""
+
+    state_names = ("y", "v")
+
+    def __init__(self, c=0.1, k=3.0):
+        super().__init__()
+        self.register_buffer("c", torch.tensor(c, dtype=torch.float64))
+        self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
+
+    def forward(self, t, x):
+        y, v = x.unbind(-1)
+        return torch.stack((v, -self.c * v - self.k * y), dim=-1)
+
+
+class _Duffing(torchql.ODEModel):
+    """A damped Duffing oscillator with a time-dependent forcing (nonlinear, non-autonomous)."""
+
+    state_names = ("y", "v")
+
+    def forward(self, t, x):
+        y, v = x.unbind(-1)
+        return torch.stack((v, -0.1 * v - 3.0 * y - 4.0 * y**3 + 0.5 * torch.cos(2 * t)), dim=-1)
+
+
+def _damped_exact(t, c=0.1, k=3.0):
+    w = math.sqrt(k - c * c / 4)
+    y = torch.exp(-c * t / 2) * torch.sin(w * t) / w  # y(0) = 0, y'(0) = 1
+    v = torch.exp(-c * t / 2) * (torch.cos(w * t) - c / (2 * w) * torch.sin(w * t))
+    return torch.stack([y, v], dim=-1)
+
+
+def test_grid_solve_matches_the_closed_form():
+    from torchql.grid_solve import solve_on_grid
+
+    grid = torch.linspace(0, 6.5, 651, dtype=torch.float64)
+    z0 = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    rtol, atol = 1e-10, 1e-12
+    X, info = solve_on_grid(_Damped(), z0, grid, rtol=rtol, atol=atol)
+    # linear model: Newton is exact after one step; the second only confirms
+    assert info.newton_iterations == 2
+    # each interval within rtol / sqrt(N); accumulated over the grid, within sqrt(N) rtol at worst
+    err = (X - _damped_exact(grid)).abs().max().item()
+    assert err < (650**0.5) * (atol + rtol)
+    assert X[0].tolist() == z0.tolist()
+
+
+def test_grid_solve_agrees_with_dopri5_on_a_nonlinear_model():
+    from torchql.grid_solve import solve_on_grid
+    from torchql.integrate import solve
+
+    grid = torch.linspace(0, 5, 501, dtype=torch.float64)
+    z0 = torch.tensor([0.5, 0.0], dtype=torch.float64)
+    model = _Duffing()
+    truth = solve(model, z0, grid, solver="dopri8", rtol=1e-13, atol=1e-15)
+    dopri5 = solve(model, z0, grid, solver="dopri5", rtol=1e-10, atol=1e-12)
+    # a guess near the solution (as a linear prediction would be): quadratic convergence
+    guess = truth + 1e-3 * torch.sin(3 * grid).unsqueeze(-1)
+    X, info = solve_on_grid(model, z0, grid, rtol=1e-10, atol=1e-12, guess=guess)
+    assert info.newton_iterations <= 4
+    assert info.max_defect < 1e-12
+    err, err5 = (X - truth).abs().max().item(), (dopri5 - truth).abs().max().item()
+    assert err < max(10 * err5, 1e-9), (err, err5)
+
+
+def test_grid_solve_failures():
+    from torchql.grid_solve import solve_on_grid
+    from torchql.integrate import IntegrationError
+
+    grid = torch.linspace(0, 5, 11, dtype=torch.float64)
+    z0 = torch.tensor([0.5, 0.0], dtype=torch.float64)
+    with pytest.raises(IntegrationError, match="could not be integrated to the tolerance.*4 RK4 steps"):
+        solve_on_grid(_Duffing(), z0, grid, rtol=1e-12, atol=1e-14, max_substeps=4)
+    with pytest.raises(IntegrationError, match="did not converge in `max_newton` = 1"):
+        solve_on_grid(_Duffing(), z0, torch.linspace(0, 5, 101, dtype=torch.float64), rtol=1e-10, atol=1e-12,
+                      max_newton=1)
+    with pytest.raises(ValueError, match="power of two"):
+        solve_on_grid(_Duffing(), z0, grid, rtol=1e-10, atol=1e-12, max_substeps=3)
