@@ -130,8 +130,12 @@ class _Field:
 
     def __init__(self, func) -> None:
         def value_and_jacobian(t, x):
-            fx = func(t, x)
-            return fx, jacrev(func, argnums=1)(t, x)
+            def twice(x):
+                fx = func(t, x)
+                return fx, fx
+
+            jac, fx = jacrev(twice, has_aux=True)(x)
+            return fx, jac
 
         self.batched = vmap(value_and_jacobian)
 
