@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
+from .bounds import Bounds
 from .integrate import IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
 from .lstsq import ExactRowsError, solve_update
@@ -39,6 +40,7 @@ __all__ = ["fit", "METHODS"]
 #: The iteration schemes ``fit`` offers.
 METHODS: tuple[str, ...] = ("kantorovich", "shooting")
 _INITIAL_TRAJECTORIES = ("integrate", "data")
+_DAMPINGS = ("lm", None)
 
 
 def fit(
@@ -62,6 +64,7 @@ def fit(
     grid: int | torch.Tensor | None = None,
     initial_trajectory: str = "integrate",
     max_steps: int | None = None,
+    damping: str | None = "lm",
     callback: Callable[[IterationRecord], None] | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
@@ -87,8 +90,14 @@ def fit(
         ``"kantorovich"``: the Newton–Raphson–Kantorovich iteration of function space; the
         next linearization uses the stored superposed trajectory. ``"shooting"``:
         Gauss–Newton, re-integrating the nonlinear model with its variational equations.
-    bounds : None
-        Reserved for lower/upper bounds on the unknowns; only ``None`` is accepted.
+    bounds : dict, optional
+        ``{name: (lower, upper)}`` with ``None`` for an open side, e.g. ``{"k": (0.0, None)}``.
+        A name is a coefficient (a vector or matrix buffer's name bounds every element; an
+        element is named like ``"W[0,1]"``) or a state (its initial value, also ``"x(t0)"``).
+        The guesses must lie strictly inside. Bounded unknowns are iterated in a transformed
+        variable (logarithmic for one-sided bounds, logistic for two-sided), so every iterate
+        stays inside; estimates, covariance and reports are in the user's units, and an
+        estimate that ends at a bound is named in the message.
     max_iter : int
         Maximum number of updates.
     throw : bool
@@ -115,6 +124,12 @@ def fit(
         the data (directly observed states interpolated linearly, others held at ``x0``).
     max_steps : int, optional
         Step budget of adaptive solvers per integration.
+    damping : {"lm", None}
+        ``"lm"`` (default): globalized by Levenberg–Marquardt damping. The undamped
+        quasilinearization step is always tried first and kept when it lowers the sum of
+        squares (so near the optimum the iteration is the thesis' one, quadratically
+        convergent); otherwise, or when its trajectory cannot be integrated, the step is
+        damped until it does. ``None``: the undamped iteration of the thesis, step for step.
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
 
@@ -133,7 +148,7 @@ def fit(
         raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
     problem = _Problem(
         model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
-        rcond, grid, initial_trajectory, max_steps,
+        rcond, grid, initial_trajectory, max_steps, damping,
     )
     result = problem.run(callback)
     result.data = data
@@ -141,7 +156,7 @@ def fit(
         x0=None if x0 is None else torch.as_tensor(x0).detach().clone(), params=None if params is None else list(params),
         fixed_x0=None if fixed_x0 is None else list(fixed_x0), t0=t0, method=method, max_iter=max_iter, solver=solver,
         rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory,
-        max_steps=max_steps,
+        max_steps=max_steps, damping=damping, bounds=None if bounds is None else dict(bounds),
     )
     if throw and not result.success:
         raise FitError(result)
@@ -152,7 +167,7 @@ class _Problem:
     """A validated fitting problem and its iteration."""
 
     def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
-                 xtol, ftol, rcond, grid, initial_trajectory, max_steps):
+                 xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping="lm"):
         _checks.model_class(model)
         names = tuple(model.state_names)
         if isinstance(data, (list, tuple)):
@@ -168,8 +183,9 @@ class _Problem:
             raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
         if initial_trajectory == "data" and method != "kantorovich":
             raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
-        if bounds is not None:
-            raise NotImplementedError("`bounds` are not supported yet; pass bounds=None")
+        if damping not in _DAMPINGS:
+            raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
+        self.damping = damping
         max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
         if max_steps is not None:
             max_steps = _checks.positive_int("max_steps", max_steps)
@@ -280,6 +296,15 @@ class _Problem:
                 "at most one exact value per unknown can be met"
             )
 
+        # --- bounds (the guesses strictly inside)
+        n_free = len(free_states)
+        groups, k = {}, n_free
+        for name, size in zip(system.param_names, system.param_sizes):
+            groups[name] = list(range(k, k + size))
+            k += size
+        self.bounds = Bounds(bounds, self.unknown_names, groups, list(names) + list(available), dtype, device)
+        self.bounds.check_inside(self.z0[self.unknown_index])
+
         # --- the model and the observation operator on the guesses
         self._check_model(x0)
         self.operator.check(x0)
@@ -372,6 +397,11 @@ class _Problem:
         r = residual * self.weights
         return float((r[~self.exact] ** 2).sum())
 
+    def _merit(self, residual: torch.Tensor) -> float:
+        """Weighted sum of squares plus ``_EXACT_PENALTY`` times the exact rows' squared misfit."""
+        r = residual * self.weights
+        return float((r[~self.exact] ** 2).sum() + _EXACT_PENALTY * (r[self.exact] ** 2).sum())
+
     def _record(self, iteration, z0, sse, trajectory_t=None, trajectory=None) -> IterationRecord:
         n = self.system.n
         params = {k: v.detach().clone() for k, v in self.system.unpack_params(z0[n:]).items()}
@@ -434,45 +464,206 @@ class _Problem:
         state = _IterationState(self.z0.clone(), callback)
         try:
             if self.method == "kantorovich":
-                self._iterate_kantorovich(state)
+                first = self._evaluate_kantorovich(self.z0, self._initial_reference())
             else:
-                self._iterate_shooting(state)
+                first = self._evaluate_shooting(self.z0)
+            self._iterate(state, first)
         except IntegrationError as exc:
             state.status, state.detail = Status.INTEGRATION_FAILED, f" The solver said: {exc}."
         return self._finish(state)
 
-    def _step(self, state, it, z_ref_obs, W, traj):
-        """Record the current iterate and solve for its update.
+    # ------------------------------------------------------------------------------------
+    def _evaluate_kantorovich(self, z0: torch.Tensor, reference: LinearizedReference) -> _Iterate:
+        """Propagate the linear system about ``reference`` from ``z0``; rows at the observations."""
+        n, obs = self.system.n, self.obs_in_grid
+        W, evals = propagate_linear(reference, initial_columns(z0, self.unknown_index), solver=self.solver,
+                                    rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+        self.nfev += evals
+        C, d, resid = self._rows(reference.z[obs], W[obs, :, 0], W[obs, :, 1:])
+        return _Iterate(z0, reference.z[:, :n], W, C, d, self._sse(resid), self._merit(d), reference)
 
-        Parameters: the reference at the observations ``(T, M)``, the propagated ``W (G, M, 1+m)``
-        and the iterate's trajectory on the grid ``(G, n)``. Returns ``(alpha, scaled, sse)``,
-        or ``None`` when the iteration must stop (``state.status`` says why).
+    def _evaluate_shooting(self, z0: torch.Tensor) -> _Iterate:
+        """Integrate the nonlinear model from ``z0`` with its sensitivities; rows at the observations."""
+        n, obs = self.system.n, self.obs_in_grid
+        z_traj = self._forward(z0)
+        W = self._about_nonlinear(z0, z_traj)
+        C, d, _ = self._rows(z_traj[obs], z_traj[obs], W[obs, :, 1:])
+        return _Iterate(z0, z_traj[:, :n], W, C, d, self._sse(d), self._merit(d), z_traj)
+
+    def _propose(self, current: _Iterate, alpha: torch.Tensor) -> _Iterate:
+        """Evaluate the iterate that ``alpha`` leads to from ``current``.
+
+        Kantorovich: the superposed solution becomes the next reference, linearized and
+        propagated. Shooting: the nonlinear model is integrated from the shifted initial state.
         """
-        obs = self.obs_in_grid
-        C, d, resid = self._rows(z_ref_obs, W[obs, :, 0], W[obs, :, 1:])
-        sse = self._sse(resid)
-        record = self._record(it, state.z0, sse, self.grid, traj)
+        z0 = self._shifted(current.z0, alpha)
+        if self.method == "shooting":
+            return self._evaluate_shooting(z0)
+        W = current.W
+        z_new = W[:, :, 0] + W[:, :, 1:] @ alpha
+        if not torch.isfinite(z_new).all():
+            raise IntegrationError("the superposed trajectory became non-finite")
+        reference = current.reference
+        z_dot = reference.slopes_of(z_new)
+        lin = linearize(self.system, self.grid, z_new, z_dot)
+        return self._evaluate_kantorovich(z0, LinearizedReference(self.grid, z_new, z_dot, lin))
+
+    def _iterate(self, state, current: _Iterate) -> None:
+        """Quasilinearization steps, globalized by Levenberg–Marquardt damping.
+
+        From each iterate the undamped step (``damping = 0``: the thesis' iteration) is tried
+        first, so the iteration is the thesis' one wherever that step works and convergence
+        near the optimum stays quadratic. A trial step is accepted when it lowers the sum of
+        squares (see :meth:`_better`). When it does not (or its trajectory cannot be
+        integrated), Kantorovich first re-anchors: the reference becomes the model's own
+        solution from the current estimates (integrated for that test anyway), so that the
+        linear problem is the true one's linearization, and the undamped step is retried from
+        there. Then the step is re-solved with the damping raised: first to a tenth of what the
+        previous iterate needed (at least ``_DAMPING_START``), then tenfold each time, which
+        shortens it and turns it toward steepest descent, until a step lowers the sum of
+        squares or the damping exceeds ``_DAMPING_MAX`` (the iteration has stalled).
+        """
+        damping = last_damping = 0.0
+        while True:
+            if state.iterations >= self.max_iter:
+                state.status = Status.MAX_ITER
+                return
+            record = self._record_iterate(state, current)
+            if record is None:
+                return
+            rejected = 0
+            while True:
+                solved = self._solve(state, current, damping)
+                if solved is None:
+                    return
+                alpha, scaled = solved
+                record.alpha, record.alpha_norm, record.damping, record.rejected = (
+                    alpha.detach().clone(), scaled, damping, rejected)
+                if damping == 0.0 and self._converged(state, scaled, current.sse):
+                    state.z0 = self._shifted(current.z0, alpha)
+                    state.iterations += 1
+                    state.final_traj = None  # the final pass integrates the shifted estimates
+                    self._notify(state, record)
+                    return
+                try:
+                    trial = self._propose(current, alpha)
+                    ok = math.isfinite(trial.merit) and bool(torch.isfinite(trial.C).all())
+                except IntegrationError:
+                    ok = False
+                if ok and (self.damping is None or self._better(trial, current)):
+                    break
+                if self.damping is None:  # the thesis' iteration: the step is taken, and fails
+                    state.z0 = self._shifted(current.z0, alpha)
+                    state.iterations += 1
+                    self._notify(state, record)
+                    state.status, state.detail = Status.INTEGRATION_FAILED, (
+                        " The undamped step led to a trajectory that cannot be integrated; the default "
+                        "damping=\"lm\" would have shortened it.")
+                    return
+                rejected += 1
+                anchored = self._anchored(current) if damping == 0.0 else None
+                if anchored is not None:
+                    current = anchored
+                    record.sse, record.trajectory = current.sse, current.traj.detach().clone()
+                    continue
+                damping = max(_DAMPING_START, last_damping / 10) if damping == 0.0 else 10 * damping
+                if damping > _DAMPING_MAX:
+                    record.rejected = rejected
+                    state.status = Status.STALLED
+                    self._notify(state, record)
+                    return
+            self._notify(state, record)
+            last_damping, damping = damping, 0.0
+            state.iterations += 1
+            if self.method == "shooting":
+                state.final_traj = trial.reference
+            state.z0 = trial.z0
+            current = trial
+
+    def _anchored(self, current: _Iterate) -> _Iterate | None:
+        """Kantorovich's iterate re-linearized about the model's solution from its estimates.
+
+        ``None`` when there is nothing to gain: shooting (always anchored), an iterate already
+        anchored, or estimates from which the model cannot be integrated.
+        """
+        if self.method != "kantorovich" or current.anchored:
+            return None
+        self._nonlinear_sse(current)
+        if current.nonlinear_traj is None:
+            return None
+        z_traj = current.nonlinear_traj
+        lin = linearize(self.system, self.grid, z_traj)
+        anchored = self._evaluate_kantorovich(current.z0, LinearizedReference(self.grid, z_traj, lin.f, lin))
+        anchored.anchored = True
+        anchored.nonlinear_sse, anchored.nonlinear_traj = current.nonlinear_sse, z_traj
+        return anchored
+
+    def _better(self, trial: _Iterate, current: _Iterate) -> bool:
+        """Whether ``trial`` lowers the sum of squares relative to ``current``.
+
+        The cheap test compares the merits (for Kantorovich, the particular solutions' sums of
+        squares, which approximate the nonlinear ones to second order in the trajectory's
+        distance from the model's solution). Far from the solution, where a Kantorovich step
+        can raise that approximation and still be a good step, the model is integrated from
+        both initial estimates and the nonlinear sums of squares decide.
+        """
+        if trial.merit <= current.merit * (1 + _MERIT_SLACK):
+            return True
+        if self.method == "shooting":
+            return False
+        return self._nonlinear_sse(trial) <= self._nonlinear_sse(current) * (1 + _MERIT_SLACK)
+
+    def _nonlinear_sse(self, it: _Iterate) -> float:
+        """Sum of squares of the nonlinear model integrated from ``it.z0`` (inf if it fails); cached."""
+        if it.nonlinear_sse is None:
+            try:
+                z_traj = self._forward(it.z0)
+                it.nonlinear_sse = self._merit(self._residual(z_traj[self.obs_in_grid]))
+                it.nonlinear_traj = z_traj
+            except IntegrationError:
+                it.nonlinear_sse = math.inf
+            if not math.isfinite(it.nonlinear_sse):
+                it.nonlinear_sse = math.inf
+        return it.nonlinear_sse
+
+    def _record_iterate(self, state, current: _Iterate) -> IterationRecord | None:
+        """Append the iterate to the history; ``None`` (status set) when its rows are non-finite."""
+        record = self._record(state.iterations, current.z0, current.sse, self.grid, current.traj)
         state.history.append(record)
         if state.scale is None:
-            state.scale = self._typical_scale(traj)
-        if not (math.isfinite(sse) and torch.isfinite(C).all() and torch.isfinite(d).all()):
+            state.scale = self._typical_scale(current.traj)
+        if not (math.isfinite(current.sse) and torch.isfinite(current.C).all() and torch.isfinite(current.d).all()):
             state.status, state.detail = Status.DIVERGED, " The residuals became non-finite."
+            self._notify(state, record)
             return None
+        return record
+
+    def _solve(self, state, current: _Iterate, damping: float):
+        """``(alpha, scaled size)`` of the damped update, or ``None`` (status set)."""
+        u = current.z0[self.unknown_index]
+        C = current.C * self.bounds.derivative(u) if self.bounds.active else current.C
         try:
-            sol = solve_update(C, d, self.weights, self.exact, self.rcond)
+            sol = solve_update(C, current.d, self.weights, self.exact, self.rcond, damping)
+            alpha, blocked = self.bounds.step(u, sol.alpha)
+            if bool(blocked.any()):  # moved onto their bounds and held; the others re-solved
+                move = alpha.masked_fill(~blocked, 0.0)
+                sol = solve_update(C.masked_fill(blocked, 0.0), current.d - current.C @ move, self.weights,
+                                   self.exact, self.rcond, damping)
+                rest, _ = self.bounds.step(u, sol.alpha.masked_fill(blocked, 0.0))
+                alpha = torch.where(blocked, move, rest)
         except ExactRowsError:
             state.status = Status.EXACT_INFEASIBLE
             return None
-        alpha = sol.alpha
-        u = state.z0[self.unknown_index]
         scaled = float((alpha.abs() / torch.maximum(u.abs(), state.scale)).max())
-        record.alpha, record.alpha_norm = alpha.detach().clone(), scaled
-        if state.callback is not None:
-            state.callback(record)
         if not (torch.isfinite(alpha).all() and math.isfinite(scaled)):
             state.status, state.detail = Status.DIVERGED, " The update alpha became non-finite."
             return None
-        return alpha, scaled, sse
+        return alpha, scaled
+
+    @staticmethod
+    def _notify(state, record: IterationRecord) -> None:
+        if state.callback is not None:
+            state.callback(record)
 
     def _shifted(self, z0, alpha):
         z = z0.clone()
@@ -489,67 +680,6 @@ class _Problem:
             return True
         state.sse_prev = sse
         return False
-
-    def _iterate_kantorovich(self, state) -> None:
-        """Newton–Raphson–Kantorovich: the next reference is the superposed linear solution."""
-        n = self.system.n
-        reference = self._initial_reference()
-        obs = self.obs_in_grid
-        for it in range(self.max_iter):
-            W, evals = propagate_linear(reference, initial_columns(state.z0, self.unknown_index),
-                                        solver=self.solver, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
-            self.nfev += evals
-            step = self._step(state, it, reference.z[obs], W, reference.z[:, :n])
-            if step is None:
-                return
-            alpha, scaled, sse = step
-            state.z0 = self._shifted(state.z0, alpha)
-            state.iterations += 1
-            z_new = W[:, :, 0] + W[:, :, 1:] @ alpha
-            if not torch.isfinite(z_new).all():
-                state.status, state.detail = Status.DIVERGED, " The superposed trajectory became non-finite."
-                return
-            z_dot = reference.slopes_of(z_new)
-            reference = LinearizedReference(self.grid, z_new, z_dot, linearize(self.system, self.grid, z_new, z_dot))
-            if self._converged(state, scaled, sse):
-                return
-
-    def _iterate_shooting(self, state) -> None:
-        """Gauss–Newton on the initial state and coefficients, safeguarded.
-
-        The step is first shortened so that no unknown moves by more than ``_STEP_CAP`` times
-        its magnitude (this never binds near the solution, so convergence stays quadratic);
-        a step that does not lower the SSE (or whose trajectory cannot be integrated) is then
-        halved, up to ``_MAX_HALVINGS`` times; steps already at the noise level are accepted.
-        """
-        n = self.system.n
-        obs = self.obs_in_grid
-        z_traj = self._forward(state.z0)
-        for it in range(self.max_iter):
-            W = self._about_nonlinear(state.z0, z_traj)
-            step = self._step(state, it, z_traj[obs], W, z_traj[:, :n])
-            if step is None:
-                return
-            alpha, scaled, sse = step
-            lam = min(1.0, _STEP_CAP / scaled) if scaled > 0 else 1.0
-            for _ in range(_MAX_HALVINGS + 1):
-                trial = self._shifted(state.z0, lam * alpha)
-                try:
-                    trial_traj = self._forward(trial)
-                    sse_trial = self._sse(self._residual(trial_traj[obs]))
-                except IntegrationError:
-                    sse_trial = math.inf
-                if (math.isfinite(sse_trial) and sse_trial <= sse) or lam * scaled <= math.sqrt(self.xtol):
-                    break
-                lam *= 0.5
-            else:
-                state.status = Status.STALLED
-                return
-            state.z0, z_traj = trial, trial_traj
-            state.final_traj = z_traj
-            state.iterations += 1
-            if self._converged(state, lam * scaled, sse):
-                return
 
     def _typical_scale(self, traj: torch.Tensor) -> torch.Tensor:
         """Magnitudes ``s_i`` of the unknowns for the relative step test (never zero)."""
@@ -599,6 +729,10 @@ class _Problem:
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
             except IntegrationError as exc:
                 status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
+        at_bound = self.bounds.at_bound(z0[self.unknown_index]) if self.bounds.active else []
+        if at_bound:
+            detail += (f" The estimates of {at_bound} lie at their bounds: the data pull them outside, and "
+                       "their standard errors and intervals assume an interior optimum.")
         fitted = system.model_with(z0[n:])
         return FitResult(
             success=status.success,
@@ -639,10 +773,36 @@ class _Problem:
 
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
-#: Step halvings a shooting update may take before the iteration counts as stalled.
-_MAX_HALVINGS = 30
-#: Trust region of a shooting update: no unknown moves by more than this times its magnitude.
-_STEP_CAP = 1.0
+#: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
+#: largest squared singular value of the scaled least-squares matrix).
+_DAMPING_START = 1e-3
+_DAMPING_MAX = 1e12
+#: A trial step is accepted when its merit is at most ``(1 + _MERIT_SLACK)`` times the current one
+#: (rounding of the sums of squares must not reject a converging step).
+_MERIT_SLACK = 1e-10
+#: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
+_EXACT_PENALTY = 1e6
+
+
+class _Iterate:
+    """One iterate, evaluated: its linear system's rows at the observations.
+
+    Attributes: ``z0 (M,)``; ``traj (G, n)`` its trajectory (Kantorovich: the reference, the
+    previous superposed solution; shooting: the nonlinear solution); ``W (G, M, 1 + m)`` the
+    particular and homogeneous solutions; ``C (L, m)``, ``d (L,)`` the rows; ``sse`` of ``traj``;
+    ``merit``, the sum of squares of the particular solution (for shooting, equal to ``sse``);
+    ``reference``, the LinearizedReference (Kantorovich) or the nonlinear trajectory ``(G, M)``;
+    ``nonlinear_sse``/``nonlinear_traj``, the model's own from ``z0`` once integrated; ``anchored``,
+    whether the reference is that solution.
+    """
+
+    def __init__(self, z0, traj, W, C, d, sse, merit, reference) -> None:
+        self.z0, self.traj, self.W, self.C, self.d = z0, traj, W, C, d
+        self.sse, self.merit, self.reference = sse, merit, reference
+        shooting = isinstance(reference, torch.Tensor)
+        self.nonlinear_sse: float | None = merit if shooting else None
+        self.nonlinear_traj: torch.Tensor | None = reference if shooting else None
+        self.anchored = shooting  # linearized about the model's own solution from z0
 
 
 class _IterationState:

@@ -12,6 +12,12 @@ Solves ``min || W (C alpha - d) ||`` over the least-squares rows subject to
 
 Singular values below ``rcond`` times the largest are treated as zero: the update is then the
 minimum-norm one and the problem is reported rank deficient.
+
+Levenberg–Marquardt damping ``lambda`` (relative to the largest singular value squared) solves
+``min ||A beta - b||^2 + lambda S_0^2 ||beta||^2`` in the column-scaled unknowns by filter factors
+on the same SVD: ``beta = V diag(S / (S^2 + lambda S_0^2)) U^T b``. ``lambda = 0`` is the plain
+Gauss–Newton (Kantorovich) update; a large ``lambda`` shortens the step and turns it toward the
+scaled steepest descent.
 """
 
 from __future__ import annotations
@@ -50,7 +56,7 @@ class LstsqSolution(NamedTuple):
 
 
 def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact: torch.Tensor,
-                 rcond: float) -> LstsqSolution:
+                 rcond: float, damping: float = 0.0) -> LstsqSolution:
     """Solve for ``alpha``.
 
     Parameters
@@ -65,6 +71,9 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
         Rows to satisfy exactly.
     rcond : float
         Relative singular-value threshold for rank decisions.
+    damping : float
+        Levenberg–Marquardt parameter relative to the largest singular value squared (``>= 0``).
+        The exact rows are met whatever the damping.
 
     Returns
     -------
@@ -106,7 +115,10 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     U, S, Vh = torch.linalg.svd(A, full_matrices=True)
     r = S.shape[0]
     keep = S > rcond * S[0] if r else S > 0
-    coeff = torch.where(keep, (U[:, :r].T @ b) / torch.where(keep, S, torch.ones_like(S)), torch.zeros_like(S))
+    safe = torch.where(keep, S, torch.ones_like(S))
+    if damping > 0 and r:
+        safe = safe + damping * S[0] ** 2 / safe
+    coeff = torch.where(keep, (U[:, :r].T @ b) / safe, torch.zeros_like(S))
     beta = Vh[:r].T @ coeff
     alpha_s = alpha_s + basis @ beta
     deficient = bool((~keep).any()) or A.shape[0] < A.shape[1] or bool(zero_cols.any())

@@ -36,7 +36,7 @@ __all__ = ["profile", "ProfileResult"]
 
 #: fit() keyword arguments a profile re-fit inherits from the original fit.
 _INHERITED = ("t0", "method", "max_iter", "solver", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
-              "initial_trajectory", "max_steps")
+              "initial_trajectory", "max_steps", "damping")
 #: Halvings of a step towards the last good point when a re-fit fails.
 _FAIL_HALVINGS = 3
 
@@ -242,6 +242,9 @@ def profile(
     options.setdefault("method", result.method)
     options.update({k: v for k, v in result.solver_options.items() if k not in options or options[k] is None})
     options["t0"] = result.t0
+    if result.fit_kwargs.get("bounds"):  # the profiled unknown is held fixed: its own bound goes
+        options["bounds"] = {k: v for k, v in result.fit_kwargs["bounds"].items()
+                             if k not in (name, name.removesuffix("(t0)"))}
     options.update(fit_options)
 
     # --- threshold

@@ -33,8 +33,9 @@ class Status(enum.Enum):
         "`rtol`/`atol`, or choose another `solver`."
     )
     STALLED = (
-        "The iteration stalled: no fraction of the Gauss-Newton step lowered the sum of squares. "
-        "Start from guesses closer to the solution, or try method=\"kantorovich\"."
+        "The iteration stalled: no damped step lowered the sum of squares (the Levenberg-Marquardt "
+        "damping reached its limit). Start from guesses closer to the solution, use `bounds` to keep "
+        "the unknowns in a sensible range, or try several starts (torchql.multistart)."
     )
     NOT_IDENTIFIABLE = (
         "The data do not determine every unknown: the least-squares problem is rank deficient. "
@@ -81,6 +82,13 @@ class IterationRecord:
     trajectory : Tensor ``(G, n_states)`` or None
         This iterate's trajectory on ``trajectory_t``.
     trajectory_t : Tensor ``(G,)`` or None
+    damping : float
+        Levenberg–Marquardt parameter of the step taken from this iterate, relative to the
+        largest squared singular value of the scaled least-squares matrix (0: the undamped
+        quasilinearization step).
+    rejected : int
+        Trial steps from this iterate that were rejected (they raised the sum of squares or
+        could not be integrated) before one was accepted.
     """
 
     iteration: int
@@ -91,6 +99,8 @@ class IterationRecord:
     alpha_norm: float = float("nan")
     trajectory: torch.Tensor | None = None
     trajectory_t: torch.Tensor | None = None
+    damping: float = 0.0
+    rejected: int = 0
 
 
 @dataclass

@@ -1,0 +1,166 @@
+"""Lower and upper bounds on the unknowns, honoured by a smooth change of variables.
+
+Each bounded unknown ``u`` is written through an unbounded internal variable ``q``:
+
+* lower bound only: ``u = lo + exp(q)`` (a positive rate constant is fitted in its logarithm,
+  which also makes the step scale-free);
+* upper bound only: ``u = hi - exp(q)``;
+* both: ``u = lo + (hi - lo) / (1 + exp(-q))``.
+
+The least-squares update is solved for ``q`` (the sensitivity columns multiplied by
+``du/dq``) and mapped back, so every iterate lies strictly inside its bounds and the stored
+trajectory is updated by the actual change of ``u``. Everything a user sees (estimates,
+covariance, reports) is in ``u``, the user's units.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import torch
+
+__all__ = ["Bounds"]
+
+
+class Bounds:
+    """Bounds of the ``m`` unknowns, parsed from the ``bounds=`` argument of :func:`torchql.fit`.
+
+    Parameters
+    ----------
+    bounds : dict or None
+        ``{name: (lower, upper)}``; ``None`` (or an infinity) leaves a side open. A name is an
+        unknown's name (``"A"``, ``"W[0,1]"``, ``"y(t0)"``), a state's name (its initial value),
+        or a vector/matrix buffer's name (every element).
+    unknown_names : list of str
+        Names of the unknowns, in order (``"x(t0)"`` for initial states).
+    groups : dict of str to list of int
+        Further accepted names: a buffer's name -> the indices of its elements among the
+        unknowns.
+    all_names : sequence of str
+        Every state and coefficient name of the model, to tell a known-but-fixed name (error:
+        it is not estimated) from a typo.
+    """
+
+    def __init__(self, bounds: Mapping | None, unknown_names: Sequence[str], groups: Mapping[str, list[int]],
+                 all_names: Sequence[str], dtype: torch.dtype, device: torch.device) -> None:
+        m = len(unknown_names)
+        lower = [-math.inf] * m
+        upper = [math.inf] * m
+        if bounds is not None:
+            if not isinstance(bounds, Mapping):
+                raise TypeError(
+                    f"`bounds` must be a dict {{name: (lower, upper)}}; received {type(bounds).__name__}")
+            index = {name: [i] for i, name in enumerate(unknown_names)}
+            index.update({name[:-4]: [i] for i, name in enumerate(unknown_names) if name.endswith("(t0)")})
+            index.update({k: list(v) for k, v in groups.items()})
+            for name, pair in bounds.items():
+                if name not in index:
+                    if name in all_names or (isinstance(name, str) and name.removesuffix("(t0)") in all_names):
+                        raise ValueError(
+                            f"`bounds` names {name!r}, which is not estimated in this fit (add it to `params=`, "
+                            "or remove it from `fixed_x0=`)")
+                    raise ValueError(f"`bounds` names unknown {name!r}; the unknowns are {list(unknown_names)}")
+                lo, hi = _pair(name, pair)
+                for i in index[name]:
+                    lower[i], upper[i] = lo, hi
+        self.lower = torch.tensor(lower, dtype=dtype, device=device)
+        self.upper = torch.tensor(upper, dtype=dtype, device=device)
+        self.names = list(unknown_names)
+        self.has_lower = torch.isfinite(self.lower)
+        self.has_upper = torch.isfinite(self.upper)
+        self.active = bool((self.has_lower | self.has_upper).any())
+
+    def check_inside(self, u: torch.Tensor) -> None:
+        """Raise ``ValueError`` naming every guess that is not strictly inside its bounds."""
+        outside = (self.has_lower & (u <= self.lower)) | (self.has_upper & (u >= self.upper))
+        if bool(outside.any()):
+            bad = [f"{self.names[i]} = {u[i].item():g} not in ({self.lower[i].item():g}, {self.upper[i].item():g})"
+                   for i in torch.nonzero(outside).flatten().tolist()]
+            raise ValueError(
+                "the guesses must lie strictly inside their `bounds`: " + "; ".join(bad)
+                + " (the model's buffers and `x0` are the guesses)")
+
+    def _both(self) -> torch.Tensor:
+        return self.has_lower & self.has_upper
+
+    def internal(self, u: torch.Tensor) -> torch.Tensor:
+        """``q(u)``: shape ``(m,)``."""
+        both, lo_only, hi_only = self._both(), self.has_lower & ~self.has_upper, self.has_upper & ~self.has_lower
+        q = u.clone()
+        lo = torch.where(self.has_lower, self.lower, torch.zeros_like(u))
+        hi = torch.where(self.has_upper, self.upper, torch.ones_like(u))
+        q = torch.where(lo_only, torch.log((u - lo).clamp_min(torch.finfo(u.dtype).tiny)), q)
+        q = torch.where(hi_only, torch.log((hi - u).clamp_min(torch.finfo(u.dtype).tiny)), q)
+        frac = ((u - lo) / (hi - lo)).clamp(torch.finfo(u.dtype).tiny, 1 - torch.finfo(u.dtype).eps)
+        return torch.where(both, torch.log(frac) - torch.log1p(-frac), q)
+
+    def external(self, q: torch.Tensor) -> torch.Tensor:
+        """``u(q)``: shape ``(m,)``."""
+        both, lo_only, hi_only = self._both(), self.has_lower & ~self.has_upper, self.has_upper & ~self.has_lower
+        lo = torch.where(self.has_lower, self.lower, torch.zeros_like(q))
+        hi = torch.where(self.has_upper, self.upper, torch.ones_like(q))
+        u = torch.where(lo_only, lo + torch.exp(q), q)
+        u = torch.where(hi_only, hi - torch.exp(q), u)
+        return torch.where(both, lo + (hi - lo) * torch.sigmoid(q), u)
+
+    def derivative(self, u: torch.Tensor) -> torch.Tensor:
+        """``du/dq`` at ``u``: shape ``(m,)`` (ones where unbounded)."""
+        both, lo_only, hi_only = self._both(), self.has_lower & ~self.has_upper, self.has_upper & ~self.has_lower
+        lo = torch.where(self.has_lower, self.lower, torch.zeros_like(u))
+        hi = torch.where(self.has_upper, self.upper, torch.ones_like(u))
+        d = torch.ones_like(u)
+        d = torch.where(lo_only, u - lo, d)
+        d = torch.where(hi_only, hi - u, d)
+        return torch.where(both, (u - lo) * (hi - u) / (hi - lo), d)
+
+    def step(self, u: torch.Tensor, alpha_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The change of ``u`` when ``q`` moves by ``alpha_q``; the result stays strictly inside.
+
+        Where rounding would put ``u + change`` on a bound, the iterate moves to the nearest
+        representable number inside it.
+
+        Returns
+        -------
+        change : Tensor ``(m,)``
+        blocked : bool Tensor ``(m,)``
+            Unknowns that the step pushed onto their bound (already at it in all but
+            rounding): the caller re-solves with them held, so the others' step is consistent.
+        """
+        if not self.active:
+            return alpha_q, torch.zeros_like(alpha_q, dtype=torch.bool)
+        u_new = self.external(self.internal(u) + alpha_q)
+        inf = torch.full_like(u, math.inf)
+        low = self.has_lower & (u_new <= self.lower)
+        high = self.has_upper & (u_new >= self.upper)
+        u_new = torch.where(low, torch.nextafter(self.lower, inf), u_new)
+        u_new = torch.where(high, torch.nextafter(self.upper, -inf), u_new)
+        return torch.where(self.has_lower | self.has_upper, u_new - u, alpha_q), low | high
+
+    def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
+        """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""
+        scale = torch.maximum(u.abs(), torch.ones_like(u))
+        near_lo = self.has_lower & ((u - self.lower).abs() <= rel * torch.maximum(scale, self.lower.abs().nan_to_num(0)))
+        near_hi = self.has_upper & ((self.upper - u).abs() <= rel * torch.maximum(scale, self.upper.abs().nan_to_num(0)))
+        return [self.names[i] for i in torch.nonzero(near_lo | near_hi).flatten().tolist()]
+
+
+def _pair(name: str, pair) -> tuple[float, float]:
+    """``(lower, upper)`` as floats (``None`` -> infinite), validated."""
+    if isinstance(pair, (str, bytes)) or not isinstance(pair, (tuple, list)) or len(pair) != 2:
+        raise TypeError(f"`bounds[{name!r}]` must be a pair (lower, upper); received {pair!r}")
+    out = []
+    for side, value, open_value in (("lower", pair[0], -math.inf), ("upper", pair[1], math.inf)):
+        if value is None:
+            out.append(open_value)
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) and not (
+                isinstance(value, torch.Tensor) and value.numel() == 1):
+            raise TypeError(f"`bounds[{name!r}]` {side} bound must be a number or None; received {value!r}")
+        value = float(value)
+        if math.isnan(value):
+            raise ValueError(f"`bounds[{name!r}]` {side} bound is NaN")
+        out.append(value)
+    if not out[0] < out[1]:
+        raise ValueError(f"`bounds[{name!r}]` needs lower < upper; received ({out[0]:g}, {out[1]:g})")
+    return out[0], out[1]
