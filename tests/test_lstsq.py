@@ -72,3 +72,27 @@ def test_rank_deficiency_is_detected_with_its_null_direction():
     torch.testing.assert_close(C @ v, torch.zeros(20, dtype=DT), rtol=0, atol=1e-12)
     assert v[0].abs() < 1e-12 and v[2].abs() < 1e-12
     assert torch.isfinite(sol.alpha).all()
+
+
+def test_damping_equals_the_augmented_least_squares_problem():
+    """``damping = lam`` solves min ||A b - r||^2 + lam S0^2 ||b||^2 in the column-scaled unknowns."""
+    g = torch.Generator().manual_seed(3)
+    C = torch.randn(12, 4, generator=g, dtype=torch.float64) * torch.tensor([1.0, 10.0, 0.1, 5.0], dtype=torch.float64)
+    d = torch.randn(12, generator=g, dtype=torch.float64)
+    w = torch.ones(12, dtype=torch.float64)
+    none = torch.zeros(12, dtype=torch.bool)
+    lam = 0.3
+    scale = torch.linalg.vector_norm(C, dim=0)
+    Cs = C / scale
+    s0 = torch.linalg.svdvals(Cs)[0]
+    augmented = torch.cat([Cs, (lam ** 0.5) * s0 * torch.eye(4, dtype=torch.float64)])
+    rhs = torch.cat([d, torch.zeros(4, dtype=torch.float64)])
+    expected = torch.linalg.lstsq(augmented, rhs.unsqueeze(-1)).solution.squeeze(-1) / scale
+    got = solve_update(C, d, w, none, 1e-12, damping=lam).alpha
+    assert torch.allclose(got, expected, rtol=1e-12, atol=1e-14)
+    # zero damping is the plain solution; growing damping shortens the step
+    plain = solve_update(C, d, w, none, 1e-12).alpha
+    assert torch.equal(solve_update(C, d, w, none, 1e-12, damping=0.0).alpha, plain)
+    norms = [torch.linalg.vector_norm(solve_update(C, d, w, none, 1e-12, damping=x).alpha * scale).item()
+             for x in (0.0, 0.01, 1.0, 100.0)]
+    assert norms == sorted(norms, reverse=True)

@@ -8,6 +8,7 @@ from .newton import NewtonResult, newton_raphson
 from .observations import Observations
 from .profile import ProfileResult, profile
 from .result import FitError, FitResult, IterationRecord, Status
+from .superposition import LINEAR_SOLVERS
 
 __version__ = "0.1.0"
 
@@ -23,6 +24,7 @@ __all__ = [
     "Status",
     "METHODS",
     "SOLVER_NAMES",
+    "LINEAR_SOLVERS",
     "IntegrationError",
     "simulate",
     "newton_raphson",

@@ -111,7 +111,7 @@ class Bounds:
         hi = torch.where(self.has_upper, self.upper, torch.ones_like(u))
         d = torch.ones_like(u)
         d = torch.where(lo_only, u - lo, d)
-        d = torch.where(hi_only, hi - u, d)
+        d = torch.where(hi_only, u - hi, d)
         return torch.where(both, (u - lo) * (hi - u) / (hi - lo), d)
 
     def step(self, u: torch.Tensor, alpha_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

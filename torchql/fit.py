@@ -17,6 +17,7 @@ reported SSE, residuals and Jacobian are those of the fitted model itself.
 
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 from collections.abc import Callable, Sequence
@@ -28,10 +29,11 @@ from .bounds import Bounds
 from .integrate import IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
 from .lstsq import ExactRowsError, solve_update
-from .model import AugmentedSystem, ODEModel, coefficient_names
+from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names
+from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
 from .result import FitError, FitResult, IterationRecord, Status
-from .superposition import initial_columns, propagate_linear
+from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns, propagate_linear
 from .uncertainty import covariance
 from .trajectory import LinearizedReference
 
@@ -65,6 +67,7 @@ def fit(
     initial_trajectory: str = "integrate",
     max_steps: int | None = None,
     damping: str | None = "lm",
+    linear_solver: str = DEFAULT_LINEAR_SOLVER,
     callback: Callable[[IterationRecord], None] | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
@@ -73,8 +76,13 @@ def fit(
     ----------
     model : ODEModel
         The model; its buffer values are the initial guesses. Never modified.
-    data : Observations
-        Measurements; see :class:`torchql.Observations`.
+    data : Observations or list of Observations
+        Measurements; see :class:`torchql.Observations`. A list holds several experiments that
+        share the coefficients, each with its own times and initial state, fitted as one problem
+        (each experiment on its own normalized time ``(t - t0_e) / span_e``, see
+        :mod:`torchql.multi`). ``x0`` is then ``(E, n_states)``, ``t0`` one time or one per
+        experiment, ``fixed_x0`` and state ``bounds`` apply to every experiment, and the
+        result's ``x0`` is ``(E, n_states)`` (``result.predict(t, experiment=e)``).
     x0 : Tensor ``(n_states,)``, optional
         Initial-state guess at ``t0`` (exact values for the states in ``fixed_x0``). If
         omitted, every state must be observed directly at ``t0`` and the data are used.
@@ -130,6 +138,12 @@ def fit(
         squares (so near the optimum the iteration is the thesis' one, quadratically
         convergent); otherwise, or when its trajectory cannot be integrated, the step is
         damped until it does. ``None``: the undamped iteration of the thesis, step for step.
+    linear_solver : str
+        How the linear (particular and homogeneous) system is propagated over the grid: one of
+        ``torchql.LINEAR_SOLVERS``. ``"rk4_doubling"`` (default): every grid interval's transfer
+        matrix at once by RK4 with step-doubling error control, composed by a parallel prefix
+        scan; ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with ``solver``.
+        ``solver`` integrates the nonlinear model in either case.
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
 
@@ -146,9 +160,15 @@ def fit(
     """
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
+    if isinstance(data, (list, tuple)):
+        return _fit_experiments(
+            model, list(data), x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
+            max_iter=max_iter, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond,
+            grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping,
+            linear_solver=linear_solver, callback=callback)
     problem = _Problem(
         model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
-        rcond, grid, initial_trajectory, max_steps, damping,
+        rcond, grid, initial_trajectory, max_steps, damping, linear_solver,
     )
     result = problem.run(callback)
     result.data = data
@@ -156,7 +176,7 @@ def fit(
         x0=None if x0 is None else torch.as_tensor(x0).detach().clone(), params=None if params is None else list(params),
         fixed_x0=None if fixed_x0 is None else list(fixed_x0), t0=t0, method=method, max_iter=max_iter, solver=solver,
         rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory,
-        max_steps=max_steps, damping=damping, bounds=None if bounds is None else dict(bounds),
+        max_steps=max_steps, damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds),
     )
     if throw and not result.success:
         raise FitError(result)
@@ -167,15 +187,13 @@ class _Problem:
     """A validated fitting problem and its iteration."""
 
     def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
-                 xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping="lm"):
+                 xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping="lm",
+                 linear_solver=DEFAULT_LINEAR_SOLVER):
         _checks.model_class(model)
         names = tuple(model.state_names)
-        if isinstance(data, (list, tuple)):
-            raise TypeError(
-                "`data` must be one torchql.Observations; several experiments in one fit are not supported yet"
-            )
         if not isinstance(data, Observations):
-            raise TypeError(f"`data` must be a torchql.Observations; received {type(data).__name__}")
+            raise TypeError(
+                f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
         check_solver(solver)
@@ -186,6 +204,8 @@ class _Problem:
         if damping not in _DAMPINGS:
             raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
         self.damping = damping
+        check_linear_solver(linear_solver)
+        self.linear_solver = linear_solver
         max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
         if max_steps is not None:
             max_steps = _checks.positive_int("max_steps", max_steps)
@@ -437,7 +457,8 @@ class _Problem:
         lin = linearize(self.system, self.grid, z_traj)
         reference = LinearizedReference(self.grid, z_traj, lin.f, lin)
         W, evals = propagate_linear(reference, initial_columns(z0, self.unknown_index), solver=self.solver,
-                                    rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+                                    rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
+                                    linear_solver=self.linear_solver)
         self.nfev += evals
         W = W.clone()
         W[:, :, 0] = z_traj
@@ -477,7 +498,8 @@ class _Problem:
         """Propagate the linear system about ``reference`` from ``z0``; rows at the observations."""
         n, obs = self.system.n, self.obs_in_grid
         W, evals = propagate_linear(reference, initial_columns(z0, self.unknown_index), solver=self.solver,
-                                    rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+                                    rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
+                                    linear_solver=self.linear_solver)
         self.nfev += evals
         C, d, resid = self._rows(reference.z[obs], W[obs, :, 0], W[obs, :, 1:])
         return _Iterate(z0, reference.z[:, :n], W, C, d, self._sse(resid), self._merit(d), reference)
@@ -838,3 +860,91 @@ def _interp_linear(tq: torch.Tensor, t: torch.Tensor, y: torch.Tensor) -> torch.
     idx = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
     w = ((tq - t[idx]) / (t[idx + 1] - t[idx])).clamp(0.0, 1.0)
     return y[idx] + w * (y[idx + 1] - y[idx])
+
+
+def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, grid, throw, callback,
+                     **options) -> FitResult:
+    """Several experiments sharing the coefficients: the stacked problem of :mod:`torchql.multi`."""
+    _checks.model_class(model)
+    if not datasets:
+        raise ValueError("`data` is an empty list: give one torchql.Observations per experiment")
+    for e, d in enumerate(datasets):
+        if not isinstance(d, Observations):
+            raise TypeError(f"`data[{e}]` must be a torchql.Observations; received {type(d).__name__}")
+    E, names = len(datasets), list(model.state_names)
+    n = len(names)
+    floats = [b for b in model.buffers() if b.is_floating_point()]
+    dtype = floats[0].dtype if floats else torch.float64
+    device = next((b.device for b in model.buffers()), torch.device("cpu"))
+    first = torch.stack([d.t[0].to(dtype) for d in datasets]).to(device)
+    last = torch.stack([d.t[-1].to(dtype) for d in datasets]).to(device)
+    if t0 is None:
+        t0s = first.clone()
+    else:
+        values = [t0] * E if not isinstance(t0, (list, tuple, torch.Tensor)) or (
+            isinstance(t0, torch.Tensor) and t0.dim() == 0) else list(t0)
+        if len(values) != E:
+            raise ValueError(f"`t0` must be one time or one per experiment ({E}); received {len(values)}")
+        t0s = torch.tensor([_checks.finite_number(f"t0[{e}]", float(v)) for e, v in enumerate(values)],
+                           dtype=dtype, device=device)
+        late = [e for e in range(E) if t0s[e] > first[e]]
+        if late:
+            raise ValueError(f"`t0` must not be later than each experiment's first observation; experiments {late} "
+                             f"start at {[float(first[e]) for e in late]}, t0 = {[float(t0s[e]) for e in late]}")
+    span = last - t0s
+    span = torch.where(span > 0, span, torch.ones_like(span))
+    if x0 is not None:
+        try:
+            x0_t = torch.as_tensor(x0, dtype=dtype, device=device)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"`x0` must be a tensor of shape (E, n_states) = ({E}, {n}); received {type(x0).__name__}") from exc
+        if x0_t.shape != (E, n):
+            raise ValueError(f"`x0` must have shape (E, n_states) = ({E}, {n}) with {E} experiments; "
+                             f"received shape {tuple(x0_t.shape)}")
+        x0_flat = x0_t.reshape(-1).clone()
+    else:
+        if t0 is not None and bool((t0s != first).any()):
+            raise ValueError("`x0` is required when `t0` precedes an experiment's first observation")
+        x0_flat = None
+    if isinstance(grid, torch.Tensor):
+        raise ValueError("`grid` must be a number of intervals (per experiment) with several experiments; "
+                         "received a tensor of times")
+    stacked = StackedModel(model, t0s, span)
+    data = stack_observations(datasets, names, t0s, span, dtype, device)
+    if isinstance(fixed_x0, str):
+        raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
+    fixed = None
+    if fixed_x0 is not None:
+        for name in fixed_x0:
+            if name not in names:
+                raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {tuple(names)}")
+        fixed = [experiment_state_name(s, e) for e in range(E) for s in fixed_x0]
+    stacked_bounds = None
+    if bounds is not None:
+        if not isinstance(bounds, dict):
+            raise TypeError(f"`bounds` must be a dict {{name: (lower, upper)}}; received {type(bounds).__name__}")
+        stacked_bounds = {}
+        for key, pair in bounds.items():
+            state = key.removesuffix("(t0)") if isinstance(key, str) else key
+            if state in names:
+                stacked_bounds.update({experiment_state_name(state, e): pair for e in range(E)})
+            else:
+                stacked_bounds[key] = pair
+    result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds, grid=grid,
+                 throw=False, callback=callback, **options)
+    fitted = copy.deepcopy(model)
+    own = dict(model.named_buffers())
+    result.params = {name: value for name, value in result.params.items() if name in own}
+    for name, value in result.params.items():
+        _set_buffer(fitted, name, value)
+    result.model = fitted
+    result.x0 = result.x0.reshape(E, n)
+    result.experiment_t0 = [float(v) for v in t0s]
+    result.data = datasets
+    result.fit_kwargs = dict(
+        x0=None if x0 is None else torch.as_tensor(x0).detach().clone(),
+        params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
+        t0=t0, grid=grid, bounds=None if bounds is None else dict(bounds), **options)
+    if throw and not result.success:
+        raise FitError(result)
+    return result

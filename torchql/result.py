@@ -171,6 +171,10 @@ class FitResult:
         The keyword arguments :func:`torchql.fit` was called with (``x0``, ``params``,
         ``fixed_x0``, ``t0``, ``method``, tolerances, ``grid``, ...; not ``callback``/``throw``),
         so that a re-fit (a profile) reproduces the fit's settings.
+    experiment_t0 : list of float or None
+        With several experiments (``data`` a list): each one's initial time; ``x0`` is then
+        ``(E, n_states)``, one row per experiment, and ``t0`` is 0 (the normalized time of the
+        stacked problem that ``history`` trajectories live on).
     """
 
     success: bool
@@ -200,6 +204,7 @@ class FitResult:
     solver_options: dict = field(default_factory=dict, repr=False)
     data: "Observations | None" = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
+    experiment_t0: list[float] | None = field(default=None, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
@@ -263,13 +268,15 @@ class FitResult:
 
         return plot_convergence(self, ax=ax, values=values)
 
-    def predict(self, t) -> torch.Tensor:
+    def predict(self, t, experiment: int | None = None) -> torch.Tensor:
         """The fitted trajectory: the model with the estimated coefficients, integrated from ``x0``.
 
         Parameters
         ----------
         t : Tensor ``(T,)``
             Strictly increasing times; times before ``t0`` are integrated backwards.
+        experiment : int, optional
+            With several experiments, which one (its initial state and time); required then.
 
         Returns
         -------
@@ -277,7 +284,15 @@ class FitResult:
         """
         from .integrate import simulate
 
-        return simulate(self.model, self.x0, t, t0=self.t0, **self.solver_options)
+        if self.experiment_t0 is None:
+            if experiment is not None:
+                raise ValueError("`experiment` applies only to fits of several experiments")
+            return simulate(self.model, self.x0, t, t0=self.t0, **self.solver_options)
+        E = len(self.experiment_t0)
+        if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
+            raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments); "
+                             f"received {experiment!r}")
+        return simulate(self.model, self.x0[experiment], t, t0=self.experiment_t0[experiment], **self.solver_options)
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))

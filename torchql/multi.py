@@ -1,0 +1,129 @@
+"""Several experiments that share the model's coefficients, fitted as one problem.
+
+Experiment ``e`` has its own observation times, initial time ``t0_e`` and initial state; all
+share the coefficients. Each is mapped onto the normalized time ``tau = (t - t0_e) / T_e`` in
+``[0, 1]`` (``T_e`` its span), and the experiments' states are stacked into one model
+
+    dX_e/dtau = T_e f(t0_e + T_e tau, X_e; p),    e = 1..E,
+
+with the coefficients ``p`` its buffers. The stacked problem is an ordinary single-experiment
+fit: one grid, one linearization per iteration, one least-squares update for every
+experiment's initial state and the shared coefficients together, and one covariance.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.func import functional_call
+
+from .model import ODEModel
+from .observations import ObservationOperator, Observations
+
+__all__ = ["StackedModel", "stack_observations", "experiment_state_name"]
+
+
+def experiment_state_name(name: str, e: int) -> str:
+    """Name of state ``name`` of experiment ``e`` in the stacked model: ``"name[e]"``."""
+    return f"{name}[{e}]"
+
+
+class StackedModel(ODEModel):
+    """``E`` copies of ``model`` in normalized time, sharing its buffers (the coefficients).
+
+    Parameters
+    ----------
+    model : ODEModel
+        The user's model (not modified; a copy is held).
+    t0 : Tensor ``(E,)``
+        Initial time of each experiment.
+    span : Tensor ``(E,)``
+        Time span ``T_e > 0`` of each experiment.
+    """
+
+    def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor) -> None:
+        super().__init__()
+        names = [name for name, _ in model.named_buffers()]
+        nested = [name for name in names if "." in name]
+        if nested:
+            raise ValueError(
+                f"several experiments need a model whose buffers are its own (not a submodule's); found {nested}")
+        self.inner = _Frozen(model)
+        for name, value in model.named_buffers():
+            self.register_buffer(name, value.detach().clone())
+        self._buffer_names = names
+        self.E = int(t0.shape[0])
+        self.n = len(model.state_names)
+        self.state_names = [experiment_state_name(s, e) for e in range(self.E) for s in model.state_names]
+        self.constants = tuple(getattr(model, "constants", ())) + ("_t0", "_span")
+        self.register_buffer("_t0", t0.clone(), persistent=False)
+        self.register_buffer("_span", span.clone(), persistent=False)
+
+    def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        buffers = {name: getattr(self, name) for name in self._buffer_names}
+        out = []
+        for e in range(self.E):
+            xe = x[..., e * self.n:(e + 1) * self.n]
+            te = self._t0[e] + self._span[e] * t
+            out.append(self._span[e] * functional_call(self.inner.model, buffers, (te, xe)))
+        return torch.cat(out, dim=-1)
+
+
+class _Frozen(nn.Module):
+    """Holds the user's model without registering its buffers under a prefix."""
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        object.__setattr__(self, "model", model)
+
+
+def stack_observations(datasets: list[Observations], state_names: list[str], t0: torch.Tensor, span: torch.Tensor,
+                       dtype: torch.dtype, device: torch.device) -> Observations:
+    """The experiments' observations as one :class:`Observations` of the stacked model.
+
+    Times become normalized times (their union); each experiment's values fill its own
+    columns and are missing (NaN) at the others' times. Observation operators given as state
+    names or matrices become one block-diagonal matrix; callables are applied block by block.
+    """
+    n = len(state_names)
+    E = len(datasets)
+    taus = [((d.t.to(dtype=dtype, device=device) - t0[e]) / span[e]) for e, d in enumerate(datasets)]
+    tau = torch.unique(torch.cat(taus))
+    K = [d.n_outputs for d in datasets]
+    offsets = [sum(K[:e]) for e in range(E)]
+    nan = float("nan")
+    y = torch.full((tau.numel(), sum(K)), nan, dtype=dtype, device=device)
+    sigma = torch.ones_like(y)
+    exact = torch.zeros_like(y, dtype=torch.bool)
+    for e, d in enumerate(datasets):
+        rows = torch.searchsorted(tau, taus[e])
+        cols = slice(offsets[e], offsets[e] + K[e])
+        y[rows, cols] = d.y.to(dtype=dtype, device=device)
+        sigma[rows, cols] = d.sigma.to(dtype=dtype, device=device)
+        exact[rows, cols] = d.exact.to(device)
+    operators = [ObservationOperator(d.observe, state_names, d.n_outputs, dtype, device) for d in datasets]
+    if all(op.matrix is not None for op in operators):
+        Q = torch.zeros(sum(K), E * n, dtype=dtype, device=device)
+        for e, op in enumerate(operators):
+            Q[offsets[e]:offsets[e] + K[e], e * n:(e + 1) * n] = op.matrix
+        observe = Q
+    else:
+        observe = _BlockObservation([d.observe for d in datasets], operators, n)
+    sigma_given = all(d.sigma_given for d in datasets)
+    if not sigma_given and any(d.sigma_given for d in datasets):
+        raise ValueError("`sigma` must be given for every experiment or for none (the residual variance is shared)")
+    return Observations(tau, y, observe=observe, sigma=sigma if sigma_given else None, exact=exact)
+
+
+class _BlockObservation:
+    """``h(X) = [h_1(X_1), ..., h_E(X_E)]`` for the stacked state ``X``."""
+
+    def __init__(self, specs, operators: list[ObservationOperator], n: int) -> None:
+        self.specs, self.operators, self.n = specs, operators, n
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        out = []
+        for e, (spec, op) in enumerate(zip(self.specs, self.operators)):
+            xe = x[..., e * self.n:(e + 1) * self.n]
+            out.append(spec(xe) if op.matrix is None else xe @ op.matrix.T)
+        return torch.cat(out, dim=-1)
