@@ -4,6 +4,7 @@ from . import baselines, models
 from .fit import METHODS, fit
 from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
+from .multistart import MultiStartResult, multistart
 from .newton import NewtonResult, newton_raphson
 from .observations import Observations
 from .profile import ProfileResult, profile
@@ -17,6 +18,8 @@ __all__ = [
     "Observations",
     "fit",
     "profile",
+    "multistart",
+    "MultiStartResult",
     "ProfileResult",
     "FitResult",
     "FitError",

@@ -1,0 +1,82 @@
+"""Multi-start: reproducible draws within the range or bounds, the best fit, distinct optima."""
+
+import math
+
+import pytest
+import torch
+
+import torchql
+from testmodels import Decay
+
+DT = torch.float64
+
+
+@pytest.fixture(scope="module")
+def decay_data():
+    t = torch.linspace(0, 2, 11, dtype=DT)
+    return torchql.Observations(t, (1.5 * torch.exp(-0.7 * t)).unsqueeze(-1), observe=["y"])
+
+
+def test_every_start_finds_the_single_optimum(decay_data):
+    ms = torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), starts=5, seed=1, grid=50)
+    assert len(ms.results) == 5 and ms.n_converged == 5
+    assert len(ms.optima) == 1 and ms.fraction_best == 1.0
+    assert abs(ms.best.params["k"].item() - 0.7) < 1e-8
+    g = ms.guesses[:, 0]
+    assert g[0].item() == pytest.approx(0.3)  # the model's own guess first
+    assert bool(((g >= 0.03) & (g <= 3.0)).all()) and len(set(g.tolist())) == 5
+    assert "5 starts, 5 converged, 1 distinct optima" in ms.summary()
+
+
+def test_draws_are_reproducible_and_respect_bounds(decay_data):
+    kwargs = dict(starts=4, seed=7, grid=50, bounds={"k": (0.5, 2.0)}, max_iter=0)
+    a = torchql.multistart(Decay(1.0), decay_data, torch.tensor([1.0], dtype=DT), **kwargs)
+    b = torchql.multistart(Decay(1.0), decay_data, torch.tensor([1.0], dtype=DT), **kwargs)
+    assert torch.equal(a.guesses, b.guesses)
+    assert bool(((a.guesses > 0.5) & (a.guesses < 2.0)).all())
+    assert a.n_converged == 0 and not a.best.success and a.optima == [] and a.fraction_best == 0.0
+
+
+def test_distinct_optima_are_separated_and_best_is_the_lowest():
+    """y = cos(w t) sampled coarsely: aliasing makes several frequencies fit locally."""
+    class Oscillator(torchql.ODEModel):
+        state_names = ("y", "v")
+
+        def __init__(self, w2=1.0):
+            super().__init__()
+            self.register_buffer("w2", torch.tensor(w2, dtype=DT))
+
+        def forward(self, t, x):
+            y, v = x.unbind(-1)
+            return torch.stack((v, -self.w2 * y), dim=-1)
+
+    t = torch.linspace(0, 10, 21, dtype=DT)
+    data = torchql.Observations(t, torch.cos(1.3 * t).unsqueeze(-1), observe=["y"])
+    ms = torchql.multistart(Oscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT), starts=8, spread=4.0,
+                            seed=0, fixed_x0=["y", "v"], grid=200)
+    sses = [r.sse for r in ms.results if r.success]
+    assert ms.best.sse == min(sses)
+    assert ms.best.params["w2"].item() == pytest.approx(1.69, rel=1e-8)
+    assert [o.sse for o in ms.optima] == sorted(o.sse for o in ms.optima)
+    assert sum(len(o.starts) for o in ms.optima) == ms.n_converged
+    if len(ms.optima) > 1:
+        assert ms.optima[1].sse > ms.optima[0].sse * (1 + 1e-6) or not math.isclose(
+            ms.optima[1].estimates[0].item(), ms.optima[0].estimates[0].item(), rel_tol=1e-4)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(starts=0), ValueError, "starts"),
+    (dict(spread=0.5), ValueError, "spread"),
+    (dict(throw=True), TypeError, "throw"),
+    (dict(callback=3), TypeError, "callback"),
+])
+def test_bad_arguments(decay_data, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), **kwargs)
+
+
+def test_callback_sees_every_fit(decay_data):
+    seen = []
+    torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT),
+                       starts=3, grid=50, callback=lambda k, r: seen.append((k, r.success)))
+    assert [k for k, _ in seen] == [0, 1, 2]

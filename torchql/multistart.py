@@ -1,0 +1,228 @@
+"""Multi-start: fit from many guesses and keep the best, reporting the spread of optima.
+
+A nonlinear least-squares problem may have several local optima, and any local method
+converges to the one whose basin holds its start. ``multistart`` draws ``starts`` guesses of
+the coefficients (log-uniform over a range around the model's own values, or within
+``bounds``), fits from each with :func:`torchql.fit`, and returns the best fit together with
+every fit and the distinct optima found, so that a user can see whether the best is likely
+global (most starts reach it) or fragile (few do).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from . import _checks
+from .fit import fit
+from .model import AugmentedSystem, _set_buffer, coefficient_names
+from .result import FitResult
+
+__all__ = ["multistart", "MultiStartResult", "Optimum"]
+
+
+@dataclass
+class Optimum:
+    """A distinct optimum reached by some of the starts.
+
+    Attributes
+    ----------
+    sse : float
+        Its weighted sum of squares (the smallest among the fits that reached it).
+    estimates : Tensor ``(m,)``
+        The unknowns there (``unknown_names`` order of the fits).
+    starts : list of int
+        Indices of the starts that converged to it.
+    """
+
+    sse: float
+    estimates: torch.Tensor
+    starts: list[int]
+
+
+@dataclass
+class MultiStartResult:
+    """What :func:`multistart` found.
+
+    Attributes
+    ----------
+    best : FitResult
+        The successful fit with the smallest SSE (if none succeeded, the fit with the smallest
+        finite SSE, whose ``success`` is False).
+    results : list of FitResult
+        Every start's fit, in the order of ``guesses``.
+    guesses : Tensor ``(N, P)``
+        The drawn coefficient guesses (columns ``param_names``).
+    param_names : list of str
+        Names of the drawn coefficients (vector/matrix buffers element-wise).
+    optima : list of Optimum
+        Distinct optima of the successful fits, best first.
+    """
+
+    best: FitResult
+    results: list[FitResult]
+    guesses: torch.Tensor
+    param_names: list[str]
+    optima: list[Optimum] = field(default_factory=list)
+
+    @property
+    def n_converged(self) -> int:
+        """Number of successful fits."""
+        return sum(r.success for r in self.results)
+
+    @property
+    def fraction_best(self) -> float:
+        """Fraction of all starts that reached the best optimum."""
+        return len(self.optima[0].starts) / len(self.results) if self.optima else 0.0
+
+    def summary(self) -> str:
+        """A short table of the optima: SSE, how many starts reached each, and the estimates."""
+        lines = [f"{len(self.results)} starts, {self.n_converged} converged, {len(self.optima)} distinct optima"]
+        names = self.best.unknown_names
+        for k, opt in enumerate(self.optima):
+            values = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, opt.estimates.tolist()))
+            lines.append(f"  #{k}: SSE {opt.sse:.6g} reached by {len(opt.starts)} start(s): {values}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"MultiStartResult(starts={len(self.results)}, converged={self.n_converged}, "
+                f"optima={len(self.optima)}, best_sse={self.best.sse:.6g})")
+
+
+def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, bounds: dict | None = None,
+               params=None, seed: int = 0, include_guess: bool = True, x_rtol: float = 1e-4,
+               x_atol: float = 1e-8, callback: Callable[[int, FitResult], None] | None = None,
+               **fit_kwargs) -> MultiStartResult:
+    """Fit ``model`` to ``data`` from ``starts`` guesses of the coefficients; keep the best.
+
+    Parameters
+    ----------
+    model : ODEModel
+        Its buffers are the central guesses (never modified).
+    data, x0, params, bounds
+        As in :func:`torchql.fit` (the same ``x0`` for every start; with
+        ``initial_trajectory="data"`` the first iterate comes from the data anyway).
+    starts : int
+        Number of fits.
+    spread : float
+        Each estimated coefficient ``c`` is drawn log-uniformly in ``[c / spread, c * spread]``
+        (its sign kept; a zero guess is drawn uniformly in ``[-1, 1]``). A coefficient with
+        both bounds finite is drawn within them instead (log-uniformly when they are positive),
+        one with one bound is drawn as above and clipped strictly inside it.
+    seed : int
+        Seed of the draws (reproducible).
+    include_guess : bool
+        Whether the first start is the model's own values.
+    x_rtol, x_atol : float
+        Two successful fits are the same optimum when every estimate agrees to within
+        ``x_rtol`` times its magnitude plus ``x_atol``.
+    callback : callable, optional
+        Called as ``callback(k, result)`` after each fit (progress reporting).
+    **fit_kwargs
+        Further arguments of :func:`torchql.fit` (``method``, ``initial_trajectory``, ...).
+
+    Returns
+    -------
+    MultiStartResult
+    """
+    _checks.model_class(model)
+    starts = _checks.positive_int("starts", starts)
+    spread = _checks.positive_number("spread", spread)
+    if spread < 1:
+        raise ValueError(f"`spread` must be >= 1 (a factor around the guesses); received {spread:g}")
+    if callback is not None and not callable(callback):
+        raise TypeError(f"`callback` must be callable as callback(k, result); received {callback!r}")
+    if "throw" in fit_kwargs:
+        raise TypeError("`throw` is not accepted by multistart: failed starts are part of the result")
+    if params is None:
+        params = [name for name in coefficient_names(model) if name not in tuple(model.constants)]
+    floats = [b for b in model.buffers() if b.is_floating_point()]
+    dtype = floats[0].dtype if floats else torch.float64
+    system = AugmentedSystem(model, list(params), dtype, floats[0].device if floats else torch.device("cpu"))
+    center = system.pack_params()
+    lower, upper = _element_bounds(bounds, system)
+    gen = torch.Generator().manual_seed(int(seed))
+    guesses = torch.stack([_draw(center, lower, upper, spread, gen) for _ in range(starts)])
+    if include_guess:
+        guesses[0] = center
+    results = []
+    for k in range(starts):
+        trial = copy.deepcopy(model)
+        for name, value in system.unpack_params(guesses[k]).items():
+            _set_buffer(trial, name, value)
+        r = fit(trial, data, x0, params=params, bounds=bounds, **fit_kwargs)
+        results.append(r)
+        if callback is not None:
+            callback(k, r)
+    optima = _cluster(results, x_rtol, x_atol)
+    if optima:
+        best = min((r for r in results if r.success), key=lambda r: r.sse)
+    else:
+        finite = [r for r in results if math.isfinite(r.sse)]
+        best = min(finite, key=lambda r: r.sse) if finite else results[0]
+    return MultiStartResult(best=best, results=results, guesses=guesses, param_names=list(system.element_names),
+                            optima=optima)
+
+
+def _element_bounds(bounds, system: AugmentedSystem) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-element ``(lower, upper)`` of the drawn coefficients (infinite where open)."""
+    P = system.P
+    lower = torch.full((P,), -math.inf, dtype=torch.float64)
+    upper = torch.full((P,), math.inf, dtype=torch.float64)
+    if bounds:
+        k = 0
+        for name, size in zip(system.param_names, system.param_sizes):
+            for j, element in enumerate(system.element_names[k:k + size]):
+                pair = bounds.get(element, bounds.get(name))
+                if isinstance(pair, (tuple, list)) and len(pair) == 2:
+                    if pair[0] is not None:
+                        lower[k + j] = float(pair[0])
+                    if pair[1] is not None:
+                        upper[k + j] = float(pair[1])
+            k += size
+    return lower, upper
+
+
+def _draw(center: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, spread: float,
+          gen: torch.Generator) -> torch.Tensor:
+    out = torch.empty_like(center)
+    u = torch.rand(center.shape[0], generator=gen, dtype=torch.float64)
+    for i, c in enumerate(center.tolist()):
+        lo, hi = lower[i].item(), upper[i].item()
+        if math.isfinite(lo) and math.isfinite(hi):
+            if lo > 0:
+                value = math.exp(math.log(lo) + u[i].item() * (math.log(hi) - math.log(lo)))
+            else:
+                value = lo + u[i].item() * (hi - lo)
+        elif c == 0:
+            value = 2 * u[i].item() - 1
+        else:
+            value = math.copysign(math.exp(math.log(abs(c)) + (2 * u[i].item() - 1) * math.log(spread)), c)
+        # outside a one-sided bound: between the bound and the (inside) central guess instead
+        if math.isfinite(lo) and value <= lo:
+            value = lo + (c - lo) * max(u[i].item(), 1e-3)
+        if math.isfinite(hi) and value >= hi:
+            value = hi - (hi - c) * max(u[i].item(), 1e-3)
+        out[i] = value
+    return out
+
+
+def _cluster(results: list[FitResult], x_rtol: float, x_atol: float) -> list[Optimum]:
+    """Group the successful fits into distinct optima, best first."""
+    ok = sorted((k for k, r in enumerate(results) if r.success and math.isfinite(r.sse)), key=lambda k: results[k].sse)
+    optima: list[Optimum] = []
+    if not ok:
+        return optima
+    for k in ok:
+        r = results[k]
+        for opt in optima:
+            if bool(((r.estimates - opt.estimates).abs() <= x_rtol * opt.estimates.abs() + x_atol).all()):
+                opt.starts.append(k)
+                break
+        else:
+            optima.append(Optimum(sse=r.sse, estimates=r.estimates.clone(), starts=[k]))
+    return optima
