@@ -131,7 +131,8 @@ def fit(
         Kantorovich's first reference: the nonlinear model integrated from the guesses, or
         the data (directly observed states interpolated linearly, others held at ``x0``).
     max_steps : int, optional
-        Step budget of adaptive solvers per integration.
+        Step budget of the adaptive solver integrating the nonlinear model, per interval between
+        grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.
     damping : {"lm", None}
         ``"lm"`` (default): globalized by Levenberg–Marquardt damping. The undamped
         quasilinearization step is always tried first and kept when it lowers the sum of
