@@ -326,3 +326,18 @@ def test_table_4_5_damped_kantorovich_reaches_the_least_squares_optimum(table_4_
     assert torch.allclose(damped.estimates, shooting.estimates, rtol=1e-7, atol=1e-8)
     assert damped.sse == pytest.approx(shooting.sse, rel=1e-9)
     assert abs(damped.params["B"].item() - 3.0) < 0.05  # not the thesis' B = .67
+
+
+def test_data_driven_first_trajectory_derives_unobserved_states(linear_data):
+    """Only y is observed; y' = v gives v from the smoothed data, far better than the guess."""
+    result = torchql.fit(LinearOscillator(0.5, 1.0), linear_data, x0=torch.tensor([0.5, 0.5], dtype=DT),
+                         initial_trajectory="data")
+    assert result.success, result.message
+    assert rel_error(result.estimates, LINEAR_TRUTH) < 1e-8
+    first = result.history[0]
+    truth = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), first.trajectory_t,
+                             rtol=1e-12, atol=1e-14)
+    v_error = (first.trajectory[:, 1] - truth[:, 1]).square().mean().sqrt()
+    guess_error = (0.5 - truth[:, 1]).square().mean().sqrt()
+    assert v_error < guess_error / 3
+    assert result.iterations <= 6

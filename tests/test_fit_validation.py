@@ -54,13 +54,13 @@ def test_model_with_bad_state_names():
 
 
 def test_data_not_observations():
-    with pytest.raises(TypeError, match="`data` must be a torchql.Observations; received dict"):
+    with pytest.raises(TypeError, match="`data` must be a torchql.Observations or a list of them; received dict"):
         torchql.fit(Decay(), {"t": T, "y": Y})
 
 
-def test_data_list_of_observations():
-    with pytest.raises(TypeError, match="`data` must be one torchql.Observations"):
-        torchql.fit(Decay(), [decay_data(), decay_data()])
+def test_data_list_of_observations_takes_x0_from_each_experiment():
+    result = torchql.fit(Decay(0.3), [decay_data(), decay_data()], grid=GRID)
+    assert result.success and result.x0.shape == (2, 1)
 
 
 def test_unknown_method_lists_valid_ones():
@@ -228,9 +228,9 @@ def test_convergence_tolerances_invalid(name):
         torchql.fit(Decay(), decay_data(), **{name: -1.0})
 
 
-def test_bounds_not_supported():
-    with pytest.raises(NotImplementedError, match="`bounds` are not supported yet"):
-        torchql.fit(Decay(), decay_data(), bounds={"k": (0.0, 1.0)})
+def test_bounds_must_be_a_dict():
+    with pytest.raises(TypeError, match="`bounds` must be a dict"):
+        torchql.fit(Decay(), decay_data(), bounds=[(0.0, 1.0)])
 
 
 def test_initial_trajectory_invalid():

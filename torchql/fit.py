@@ -23,6 +23,7 @@ import warnings
 from collections.abc import Callable, Sequence
 
 import torch
+from torch.func import jacrev, vmap
 
 from . import _checks
 from .bounds import Bounds
@@ -32,6 +33,7 @@ from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
+from .smoothing import smooth
 from .result import FitError, FitResult, IterationRecord, Status
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns, propagate_linear
 from .uncertainty import covariance
@@ -129,7 +131,12 @@ def fit(
         (default 1000), or extra times to include. Observation times and ``t0`` are always nodes.
     initial_trajectory : {"integrate", "data"}
         Kantorovich's first reference: the nonlinear model integrated from the guesses, or
-        the data (directly observed states interpolated linearly, others held at ``x0``).
+        built from the data, so that no integration from poor guesses is needed: directly
+        observed states smoothed (a discrete smoothing spline, its smoothing chosen by
+        generalized cross-validation; see :mod:`torchql.smoothing`) and interpolated;
+        unobserved states derived from the model where the observed states' equations
+        involve them (at each node, the values that best reproduce the smoothed observed
+        slopes), otherwise held at ``x0``.
     max_steps : int, optional
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
         grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.
@@ -262,6 +269,7 @@ class _Problem:
         self.exact = data.exact.to(device)[mask]
         self.y_rows = self.y[mask]
         self.sigma_known = data.sigma_given
+        self.sigma = data.sigma.to(dtype=dtype, device=device)  # (T, K)
 
         # --- times
         if t0 is None:
@@ -472,14 +480,56 @@ class _Problem:
             lin = linearize(system, grid, z_ref)
             return LinearizedReference(grid, z_ref, lin.f, lin)
         z_ref = self.z0.unsqueeze(0).repeat(grid.shape[0], 1)
+        observed = []
         for k, i in enumerate(self.operator.observed_states):
             if i is None:
                 continue
             ok = self.rows_mask[:, k]
             if int(ok.sum()) >= 1:
-                z_ref[:, i] = _interp_linear(grid, self.t_obs[ok], self.y[ok, k])
-        z_dot = torch.gradient(z_ref, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z_ref)
+                values = smooth(self.t_obs[ok], self.y[ok, k], self.sigma[ok, k] ** -2)
+                z_ref[:, i] = _interp_linear(grid, self.t_obs[ok], values)
+                observed.append(i)
+        z_dot = _slopes(grid, z_ref)
+        hidden = [i for i in range(system.n) if i not in observed]
+        if observed and hidden:
+            z_ref = self._derive_hidden(z_ref, z_dot, observed, hidden)
+            z_dot = _slopes(grid, z_ref)
         return LinearizedReference(grid, z_ref, z_dot, linearize(system, grid, z_ref, z_dot))
+
+    def _derive_hidden(self, z_ref, z_dot, observed: list[int], hidden: list[int]) -> torch.Tensor:
+        """Unobserved states at every node, from the model: ``min ||x_o' - f_o(x_o, x_h)||`` over ``x_h``.
+
+        Where the observed states' equations involve the hidden ones (``y' = v`` gives ``v``
+        from the smoothed ``y``), a few vectorized Gauss–Newton steps from the guess ``x0``
+        find them at each node; nodes where this does not lower the mismatch, or becomes
+        non-finite, keep the guess.
+        """
+        system = self.system
+        obs = torch.tensor(observed, device=self.device)
+        hid = torch.tensor(hidden, device=self.device)
+
+        def mismatch(xh, t, z, zd):
+            return system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
+
+        jac = vmap(jacrev(mismatch))
+        value = vmap(mismatch)
+        xh = z_ref[:, hid].clone()
+        with torch.no_grad():
+            r = value(xh, self.grid, z_ref, z_dot)
+            best = r.square().sum(-1)
+            for _ in range(_DERIVE_STEPS):
+                J = jac(xh, self.grid, z_ref, z_dot)
+                step = torch.linalg.pinv(J, rtol=1e-8) @ r.unsqueeze(-1)
+                trial = xh - step.squeeze(-1)
+                r_trial = value(trial, self.grid, z_ref, z_dot)
+                norm = r_trial.square().sum(-1)
+                better = torch.isfinite(norm) & (norm < best)
+                xh = torch.where(better.unsqueeze(-1), trial, xh)
+                r = torch.where(better.unsqueeze(-1), r_trial, r)
+                best = torch.where(better, norm, best)
+        out = z_ref.clone()
+        out[:, hid] = xh
+        return out
 
     # ------------------------------------------------------------------------------------
     def run(self, callback) -> FitResult:
@@ -637,10 +687,14 @@ class _Problem:
         return self._nonlinear_sse(trial) <= self._nonlinear_sse(current) * (1 + _MERIT_SLACK)
 
     def _nonlinear_sse(self, it: _Iterate) -> float:
-        """Sum of squares of the nonlinear model integrated from ``it.z0`` (inf if it fails); cached."""
+        """Sum of squares of the nonlinear model integrated from ``it.z0`` (inf if it fails); cached.
+
+        Integrated at the loose first-reference tolerance: it only has to rank two iterates far
+        from the optimum (near it, the particular solutions' sums of squares decide).
+        """
         if it.nonlinear_sse is None:
             try:
-                z_traj = self._forward(it.z0)
+                z_traj = self._forward(it.z0, loose=True)  # to compare two iterates far from the optimum
                 it.nonlinear_sse = self._merit(self._residual(z_traj[self.obs_in_grid]))
                 it.nonlinear_traj = z_traj
             except IntegrationError:
@@ -794,6 +848,8 @@ class _Problem:
         return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
 
 
+#: Gauss–Newton steps that derive unobserved states for a first trajectory from the data.
+_DERIVE_STEPS = 8
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
@@ -852,6 +908,11 @@ class _Counter:
     def __call__(self, t, y):
         self.n_evals += 1
         return self.func(t, y)
+
+
+def _slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """Node slopes of values ``z (G, M)`` on ``grid`` by finite differences (zeros on a one-node grid)."""
+    return torch.gradient(z, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z)
 
 
 def _interp_linear(tq: torch.Tensor, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

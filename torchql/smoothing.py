@@ -1,0 +1,87 @@
+"""Smoothing of measured values, for a first trajectory built from the data.
+
+A discrete smoothing spline (Whittaker–Henderson): the values ``z`` at the observation times
+minimize
+
+    sum_i w_i (y_i - z_i)^2 + lam * sum_i (second divided difference of z at t_i)^2 * h_i,
+
+with ``w_i = 1 / sigma_i^2`` and ``h_i`` the local spacing, and ``lam`` chosen by generalized
+cross-validation (GCV; Craven & Wahba 1979) over a logarithmic range. Exact data keep a tiny
+``lam`` (nearly interpolation); noisy data are smoothed just enough that their derivative,
+which a first linearization needs, is not dominated by the noise.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["smooth", "MAX_SMOOTHED_POINTS"]
+
+#: Longer series are not smoothed (the dense GCV would cost too much); they are used as given.
+MAX_SMOOTHED_POINTS = 2000
+
+
+def _second_differences(t: torch.Tensor) -> torch.Tensor:
+    """``D (T-2, T)``: second divided differences on the (possibly uneven) times ``t``, scaled by sqrt(h)."""
+    T = t.shape[0]
+    h = t[1:] - t[:-1]
+    D = torch.zeros(T - 2, T, dtype=t.dtype, device=t.device)
+    rows = torch.arange(T - 2, device=t.device)
+    a, b = h[:-1], h[1:]
+    width = (a + b) / 2
+    D[rows, rows] = 1 / (a * width)
+    D[rows, rows + 1] = -(1 / a + 1 / b) / width
+    D[rows, rows + 2] = 1 / (b * width)
+    return D * width.sqrt().unsqueeze(-1)
+
+
+def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None,
+           lams: torch.Tensor | None = None) -> torch.Tensor:
+    """Smoothed values of one series.
+
+    Parameters
+    ----------
+    t : Tensor ``(T,)``
+        Strictly increasing times.
+    y : Tensor ``(T,)``
+        Values (finite).
+    weights : Tensor ``(T,)``, optional
+        ``1 / sigma^2`` per value (default ones).
+    lams : Tensor, optional
+        Candidate smoothing parameters (default a logarithmic range scaled to the data's time
+        span); the GCV minimizer is used.
+
+    Returns
+    -------
+    Tensor ``(T,)``
+        The smoothed values (``y`` itself for fewer than 4 or more than
+        :data:`MAX_SMOOTHED_POINTS` points).
+    """
+    T = t.shape[0]
+    if T < 4 or T > MAX_SMOOTHED_POINTS:
+        return y.clone()
+    w = torch.ones_like(y) if weights is None else weights
+    D = _second_differences(t)
+    P = D.T @ D
+    span = float(t[-1] - t[0])
+    if lams is None:
+        # lam * span^-3-ish balances the roughness term against one squared residual per point
+        lams = torch.logspace(-12, 2, 29, dtype=t.dtype) * span ** 3 / T
+    # one eigendecomposition serves every lam: with u = sqrt(w) z the hat matrix is
+    # (I + lam Pw)^-1, Pw = W^-1/2 P W^-1/2, diagonal in Pw's eigenvectors
+    r = w.sqrt()
+    evals, Q = torch.linalg.eigh(P / r.unsqueeze(0) / r.unsqueeze(1))
+    evals = evals.clamp_min(0)
+    coeff = Q.T @ (r * y)
+    best, best_score = y.clone(), float("inf")
+    for lam in lams.tolist():
+        shrink = 1 / (1 + lam * evals)
+        dof = T - float(shrink.sum())
+        if dof <= 1e-9:
+            continue
+        z = (Q @ (shrink * coeff)) / r
+        rss = float((w * (y - z) ** 2).sum())
+        score = T * rss / dof**2
+        if score < best_score:
+            best, best_score = z, score
+    return best
