@@ -249,32 +249,15 @@ def garbage_calls(draw):
     return target, name, value
 
 
-def _known_bug(target, name, value) -> bool:
-    """Garbage that today escapes validation (see test_known_validation_gaps); excluded from the property."""
-    if target == "Observations" and name == "exact":
-        try:
-            torch.as_tensor(value)
-        except Exception:  # noqa: BLE001 - whatever torch raises is the bug
-            return True
-    if target == "fit" and name in ("params", "fixed_x0") and value is not None and not isinstance(value, str):
-        try:
-            iter(value)
-        except TypeError:
-            return True
-    if target == "fit" and name in ("method", "solver", "initial_trajectory"):
-        return isinstance(value, np.ndarray) and value.size > 1
-    return False
-
-
 def _message_names(exc, name):
-    return f"`{name}`" in str(exc) or (name == "model" and "`model." in str(exc))
+    return (f"`{name}`" in str(exc) or f"`{name}[" in str(exc)  # an element of a list argument
+            or (name == "model" and "`model." in str(exc)))
 
 
 @settings(max_examples=250, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(call=garbage_calls())
 def test_garbage_inputs_raise_only_type_or_value_errors_naming_the_argument(call):
     target, name, value = call
-    assume(not _known_bug(target, name, value))
     obs_kwargs = dict(OBSERVATIONS_ARGS)
     if target == "Observations":
         obs_kwargs[name] = value
@@ -296,7 +279,8 @@ def test_garbage_inputs_raise_only_type_or_value_errors_naming_the_argument(call
             assert _message_names(exc, name), f"{target}({name}={value!r}) raised {type(exc).__name__}: {exc}"
 
 
-KNOWN_GAPS = [
+#: Garbage that once escaped validation with an unnamed error; each must now name its argument.
+FORMER_GAPS = [
     ("Observations", "exact", "yes"),  # TypeError: new(): invalid data type 'str'
     ("Observations", "exact", {"a": 1}),  # RuntimeError: Could not infer dtype of dict
     ("Observations", "exact", [[1.0, 2.0], [3.0]]),  # ValueError: expected sequence of length 2 at dim 1
@@ -308,12 +292,10 @@ KNOWN_GAPS = [
 ]
 
 
-@pytest.mark.xfail(strict=True, reason="validation gaps: these raise an unnamed error (or RuntimeError) today")
-@pytest.mark.parametrize("target, name, value", KNOWN_GAPS,
-                         ids=[f"{t}-{n}-{type(v).__name__}" for t, n, v in KNOWN_GAPS])
-def test_known_validation_gaps(target, name, value):
-    """Each case must raise TypeError/ValueError naming the argument; they escape validation today."""
-    assert _known_bug(target, name, value)
+@pytest.mark.parametrize("target, name, value", FORMER_GAPS,
+                         ids=[f"{t}-{n}-{type(v).__name__}" for t, n, v in FORMER_GAPS])
+def test_former_validation_gaps(target, name, value):
+    """Each case raises TypeError/ValueError naming the argument."""
     obs_kwargs = dict(OBSERVATIONS_ARGS)
     if target == "Observations":
         obs_kwargs[name] = value

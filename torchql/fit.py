@@ -202,6 +202,12 @@ class _Problem:
         if not isinstance(data, Observations):
             raise TypeError(
                 f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
+        for arg, value, allowed in (("method", method, METHODS), ("initial_trajectory", initial_trajectory,
+                                                                   _INITIAL_TRAJECTORIES),
+                                    ("solver", solver, None), ("linear_solver", linear_solver, None)):
+            if not isinstance(value, str):
+                raise TypeError(f"`{arg}` must be a string" + (f", one of {allowed}" if allowed else "")
+                                + f"; received {type(value).__name__}")
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
         check_solver(solver)
@@ -209,7 +215,7 @@ class _Problem:
             raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
         if initial_trajectory == "data" and method != "kantorovich":
             raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
-        if damping not in _DAMPINGS:
+        if damping is not None and not isinstance(damping, str) or damping not in _DAMPINGS:
             raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
         self.damping = damping
         check_linear_solver(linear_solver)
@@ -243,7 +249,10 @@ class _Problem:
         else:
             if isinstance(params, str):
                 raise TypeError(f"`params` must be a sequence of buffer names, not a string; use [{params!r}]")
-            params = list(params)
+            try:
+                params = list(params)
+            except TypeError as exc:
+                raise TypeError(f"`params` must be a sequence of buffer names; received {type(params).__name__}") from exc
             for name in params:
                 if name not in available:
                     raise ValueError(f"`params` names unknown buffer {name!r}; the model's float buffers are {tuple(available)}")
@@ -302,6 +311,10 @@ class _Problem:
         fixed_x0 = [] if fixed_x0 is None else fixed_x0
         if isinstance(fixed_x0, str):
             raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
+        try:
+            fixed_x0 = list(fixed_x0)
+        except TypeError as exc:
+            raise TypeError(f"`fixed_x0` must be a sequence of state names; received {type(fixed_x0).__name__}") from exc
         for name in fixed_x0:
             if name not in names:
                 raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {names}")

@@ -122,7 +122,11 @@ class Observations:
         if exact is None:
             ex = torch.zeros(T, K, dtype=torch.bool)
         else:
-            ex = torch.as_tensor(exact)
+            try:
+                ex = torch.as_tensor(exact)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise TypeError(
+                    f"`exact` must be a boolean mask of shape (T,) or (T, K); received {type(exact).__name__}") from exc
             if ex.dtype != torch.bool:
                 raise TypeError(f"`exact` must be a boolean mask; received dtype {ex.dtype}")
             if ex.shape == (T,):
