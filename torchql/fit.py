@@ -816,6 +816,11 @@ class _Problem:
                     singular_values = sol.singular_values
                     if sol.rank_deficient and status.success:
                         status, detail = Status.NOT_IDENTIFIABLE, self._null_detail(sol.null_vectors)
+                    elif sol.rank_deficient and status in (Status.MAX_ITER, Status.STALLED):
+                        # the iteration wandered along directions the data do not determine
+                        status, detail = Status.NOT_IDENTIFIABLE, (
+                            self._null_detail(sol.null_vectors)
+                            + f" The iteration did not converge ({status.name}): it moved along them.")
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
             except IntegrationError as exc:
                 status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
@@ -857,7 +862,9 @@ class _Problem:
         for k in range(null_vectors.shape[1]):
             v = null_vectors[:, k]
             involved = [name for name, c in zip(self.unknown_names, v.tolist()) if abs(c) > 0.1]
-            parts.append("{" + ", ".join(involved) + "}")
+            group = "{" + ", ".join(involved) + "}"
+            if group not in parts:  # several null directions may involve the same unknowns
+                parts.append(group)
         return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
 
 
