@@ -148,7 +148,7 @@ def _run_fit(problem, t, rows, cols, k_true):
         K_known = K.index_put((rows, cols), torch.zeros(len(positions), dtype=DT))
         model = PartlyKnownLinear(K_known, positions, k_guess)
         names = [f"k[{j}]" for j in range(len(positions))]
-    result = torchql.fit(model, data, x0=x0_guess, method=problem["method"], grid=60, max_iter=20, max_steps=2000)
+    result = torchql.fit(model, data, x0=x0_guess, method=problem["method"], grid=60, max_iter=50, max_steps=2000)
     assert result.unknown_names == [f"x{i}(t0)" for i in range(n)] + names
     return result
 

@@ -136,7 +136,10 @@ def fit(
         generalized cross-validation; see :mod:`torchql.smoothing`) and interpolated;
         unobserved states derived from the model where the observed states' equations
         involve them (at each node, the values that best reproduce the smoothed observed
-        slopes), otherwise held at ``x0``.
+        slopes), otherwise held at ``x0``; and the first coefficients fitted to that
+        trajectory's slopes (gradient matching: a least-squares problem without integration,
+        solved from the guesses), so that the iteration starts near the optimum whatever
+        the guesses were.
     max_steps : int, optional
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
         grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.
@@ -507,7 +510,65 @@ class _Problem:
         if observed and hidden:
             z_ref = self._derive_hidden(z_ref, z_dot, observed, hidden)
             z_dot = _slopes(grid, z_ref)
+        if observed and system.P:
+            z_ref = self._match_slopes(z_ref, z_dot)
+            self.z0 = torch.cat([self.z0[: system.n], z_ref[0, system.n:]])
         return LinearizedReference(grid, z_ref, z_dot, linearize(system, grid, z_ref, z_dot))
+
+    def _match_slopes(self, z_ref, z_dot) -> torch.Tensor:
+        """First coefficients from the data's slopes: ``min_p sum_j ||(z'_j - f(t_j, z_j; p)) / s||^2``.
+
+        With the trajectory fixed at the smoothed data, the coefficients enter only the
+        right-hand side, so this small least-squares problem (gradient matching) needs no
+        integration and does not depend on how poor the guesses are; a few damped
+        Gauss–Newton steps from the guesses solve it (bounds honoured). ``s`` scales each
+        state's slopes to unit size. Returns ``z_ref`` with its coefficient columns replaced.
+        """
+        system, n = self.system, self.system.n
+        scale = z_dot[:, :n].abs().amax(dim=0)
+        scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+
+        def mismatch(p, t, z, zd):
+            return (system.f(t, torch.cat([z[:n], p]))[:n] - zd[:n]) / scale
+
+        value = vmap(mismatch, in_dims=(None, 0, 0, 0))
+        jac = vmap(jacrev(mismatch), in_dims=(None, 0, 0, 0))
+        m_states = self.unknown_index.numel() - system.P
+        u = self.z0[self.unknown_index].clone()
+        p = self.z0[n:].clone()
+        with torch.no_grad():
+            r = value(p, self.grid, z_ref, z_dot).reshape(-1)
+            cost = float(r.square().sum())
+            if not math.isfinite(cost):
+                return z_ref
+            damping = 0.0
+            rows = torch.ones_like(r)
+            none = torch.zeros_like(r, dtype=torch.bool)
+            for _ in range(_MATCH_STEPS):
+                J = jac(p, self.grid, z_ref, z_dot).reshape(-1, system.P)
+                if self.bounds.active:
+                    J = J * self.bounds.derivative(u)[m_states:]
+                accepted = False
+                while damping <= _DAMPING_MAX:
+                    sol = solve_update(J, -r, rows, none, self.rcond, damping)
+                    step = torch.cat([torch.zeros(m_states, dtype=u.dtype, device=u.device), sol.alpha])
+                    change, _ = self.bounds.step(u, step)
+                    p_new = p + change[m_states:]
+                    r_new = value(p_new, self.grid, z_ref, z_dot).reshape(-1)
+                    new_cost = float(r_new.square().sum())
+                    if math.isfinite(new_cost) and new_cost < cost:
+                        accepted = True
+                        break
+                    damping = _DAMPING_START if damping == 0.0 else 10 * damping
+                if not accepted:
+                    break
+                small = bool((change.abs() <= 1e-10 * (u.abs() + 1e-300)).all())
+                p, u, r, cost, damping = p_new, u + change, r_new, new_cost, damping / 10
+                if small:
+                    break
+        out = z_ref.clone()
+        out[:, n:] = p
+        return out
 
     def _derive_hidden(self, z_ref, z_dot, observed: list[int], hidden: list[int]) -> torch.Tensor:
         """Unobserved states at every node, from the model: ``min ||x_o' - f_o(x_o, x_h)||`` over ``x_h``.
@@ -549,7 +610,9 @@ class _Problem:
         state = _IterationState(self.z0.clone(), callback)
         try:
             if self.method == "kantorovich":
-                first = self._evaluate_kantorovich(self.z0, self._initial_reference())
+                reference = self._initial_reference()  # from the data, it may refine the first coefficients
+                state.z0 = self.z0.clone()
+                first = self._evaluate_kantorovich(self.z0, reference)
             else:
                 first = self._evaluate_shooting(self.z0)
             self._iterate(state, first)
@@ -868,6 +931,8 @@ class _Problem:
         return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
 
 
+#: Gauss–Newton steps of the gradient matching that gives the first coefficients from the data.
+_MATCH_STEPS = 30
 #: Gauss–Newton steps that derive unobserved states for a first trajectory from the data.
 _DERIVE_STEPS = 8
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
