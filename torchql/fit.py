@@ -30,7 +30,7 @@ from .bounds import Bounds
 from .integrate import IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
 from .lstsq import ExactRowsError, solve_update
-from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names
+from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
 from .smoothing import smooth
@@ -227,11 +227,7 @@ class _Problem:
         if max_steps is not None:
             max_steps = _checks.positive_int("max_steps", max_steps)
 
-        floats = [b for b in model.buffers() if b.is_floating_point()]
-        self.dtype = floats[0].dtype if floats else torch.float64
-        for b in floats[1:]:
-            self.dtype = torch.promote_types(self.dtype, b.dtype)
-        self.device = next((b.device for b in model.buffers()), torch.device("cpu"))
+        self.dtype, self.device = model_dtype_device(model)
         dtype, device = self.dtype, self.device
         rtol, atol = default_tolerances(dtype, rtol, atol)
         rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
@@ -1020,9 +1016,7 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
             raise TypeError(f"`data[{e}]` must be a torchql.Observations; received {type(d).__name__}")
     E, names = len(datasets), list(model.state_names)
     n = len(names)
-    floats = [b for b in model.buffers() if b.is_floating_point()]
-    dtype = floats[0].dtype if floats else torch.float64
-    device = next((b.device for b in model.buffers()), torch.device("cpu"))
+    dtype, device = model_dtype_device(model)
     first = torch.stack([d.t[0].to(dtype) for d in datasets]).to(device)
     last = torch.stack([d.t[-1].to(dtype) for d in datasets]).to(device)
     if t0 is None:

@@ -72,6 +72,15 @@ class ODEModel(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} must implement forward(t, x)")
 
 
+def model_dtype_device(model: nn.Module) -> tuple[torch.dtype, torch.device]:
+    """The dtype a fit computes in (the float buffers' promoted dtype, float64 if none) and the device."""
+    floats = [b for b in model.buffers() if b.is_floating_point()]
+    dtype = floats[0].dtype if floats else torch.float64
+    for b in floats[1:]:
+        dtype = torch.promote_types(dtype, b.dtype)
+    return dtype, next((b.device for b in model.buffers()), torch.device("cpu"))
+
+
 def coefficient_names(model: nn.Module) -> list[str]:
     """Names of all floating-point buffers of ``model`` (its coefficients), in registration order."""
     return [name for name, buf in model.named_buffers() if buf.is_floating_point()]

@@ -19,7 +19,7 @@ import torch
 
 from . import _checks
 from .fit import fit
-from .model import AugmentedSystem, _set_buffer, coefficient_names
+from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .result import FitResult
 
 __all__ = ["multistart", "MultiStartResult", "Optimum"]
@@ -140,9 +140,7 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         raise TypeError("`throw` is not accepted by multistart: failed starts are part of the result")
     if params is None:
         params = [name for name in coefficient_names(model) if name not in tuple(model.constants)]
-    floats = [b for b in model.buffers() if b.is_floating_point()]
-    dtype = floats[0].dtype if floats else torch.float64
-    system = AugmentedSystem(model, list(params), dtype, floats[0].device if floats else torch.device("cpu"))
+    system = AugmentedSystem(model, list(params), *model_dtype_device(model))
     center = system.pack_params()
     lower, upper = _element_bounds(bounds, system)
     gen = torch.Generator().manual_seed(int(seed))
