@@ -29,6 +29,7 @@ from . import _checks
 from .bounds import Bounds
 from .integrate import IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
+from .grid_solve import solve_on_grid
 from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
@@ -452,20 +453,35 @@ class _Problem:
             trajectory_t=trajectory_t,
         )
 
-    def _forward(self, z0: torch.Tensor, loose: bool = False) -> torch.Tensor:
+    def _forward(self, z0: torch.Tensor, loose: bool = False, guess: torch.Tensor | None = None) -> torch.Tensor:
         """The nonlinear model integrated from ``z0 (M,)`` over the grid: ``(G, M)``.
 
         Observation times are grid nodes the solver steps onto exactly. ``loose`` integrates
         at ``_LOOSE_RTOL`` (or ``rtol`` if looser): enough for a first reference trajectory,
         whose only role is to be linearized about.
+
+        ``guess (G, >= n)``, a prediction of the solution at the nodes (the iterate's linear
+        solution), lets the grid solver (:func:`~torchql.grid_solve.solve_on_grid`: every grid
+        interval integrated at once, the nodes matched by Newton's method) replace the adaptive
+        solver when ``linear_solver="rk4_doubling"``. If Newton does not settle within
+        ``_GRID_NEWTON`` iterations or an interval needs more than ``_GRID_SUBSTEPS`` steps, the
+        adaptive solver integrates as without a guess.
         """
         n = self.system.n
         counter = _Counter(self.system.model_with(z0[n:]))
         rtol = max(self.rtol, _LOOSE_RTOL) if loose else self.rtol
         atol = self.atol * rtol / self.rtol
+        x = None
         with torch.no_grad():
-            x = solve(counter, z0[:n], self.grid, solver=self.solver, rtol=rtol, atol=atol,
-                      hit=self.t_obs, max_steps=self.max_steps)
+            if guess is not None and self.linear_solver == "rk4_doubling" and bool(torch.isfinite(guess).all()):
+                try:
+                    x, _ = solve_on_grid(counter, z0[:n], self.grid, rtol=rtol, atol=atol, guess=guess[:, :n],
+                                         max_newton=_GRID_NEWTON, max_substeps=_GRID_SUBSTEPS)
+                except IntegrationError:
+                    x = None
+            if x is None:
+                x = solve(counter, z0[:n], self.grid, solver=self.solver, rtol=rtol, atol=atol,
+                          hit=self.t_obs, max_steps=self.max_steps)
         self.nfev += counter.n_evals
         return torch.cat([x, z0[n:].expand(x.shape[0], -1)], dim=1)
 
@@ -627,10 +643,13 @@ class _Problem:
         C, d, resid = self._rows(reference.z[obs], W[obs, :, 0], W[obs, :, 1:])
         return _Iterate(z0, reference.z[:, :n], W, C, d, self._sse(resid), self._merit(d), reference)
 
-    def _evaluate_shooting(self, z0: torch.Tensor) -> _Iterate:
-        """Integrate the nonlinear model from ``z0`` with its sensitivities; rows at the observations."""
+    def _evaluate_shooting(self, z0: torch.Tensor, guess: torch.Tensor | None = None) -> _Iterate:
+        """Integrate the nonlinear model from ``z0`` with its sensitivities; rows at the observations.
+
+        ``guess (G, M)``: the previous iterate's linear prediction of the trajectory (see :meth:`_forward`).
+        """
         n, obs = self.system.n, self.obs_in_grid
-        z_traj = self._forward(z0)
+        z_traj = self._forward(z0, guess=guess)
         W = self._about_nonlinear(z0, z_traj)
         C, d, _ = self._rows(z_traj[obs], z_traj[obs], W[obs, :, 1:])
         return _Iterate(z0, z_traj[:, :n], W, C, d, self._sse(d), self._merit(d), z_traj)
@@ -642,10 +661,10 @@ class _Problem:
         propagated. Shooting: the nonlinear model is integrated from the shifted initial state.
         """
         z0 = self._shifted(current.z0, alpha)
-        if self.method == "shooting":
-            return self._evaluate_shooting(z0)
         W = current.W
         z_new = W[:, :, 0] + W[:, :, 1:] @ alpha
+        if self.method == "shooting":
+            return self._evaluate_shooting(z0, guess=z_new)
         if not torch.isfinite(z_new).all():
             raise IntegrationError("the superposed trajectory became non-finite")
         reference = current.reference
@@ -688,6 +707,7 @@ class _Problem:
                     state.z0 = self._shifted(current.z0, alpha)
                     state.iterations += 1
                     state.final_traj = None  # the final pass integrates the shifted estimates
+                    state.final_guess = current.W[:, :, 0] + current.W[:, :, 1:] @ alpha
                     self._notify(state, record)
                     return
                 try:
@@ -723,6 +743,7 @@ class _Problem:
             if self.method == "shooting":
                 state.final_traj = trial.reference
             state.z0 = trial.z0
+            state.final_guess = trial.W[:, :, 0]
             current = trial
 
     def _anchored(self, current: _Iterate) -> _Iterate | None:
@@ -766,7 +787,9 @@ class _Problem:
         """
         if it.nonlinear_sse is None:
             try:
-                z_traj = self._forward(it.z0, loose=True)  # to compare two iterates far from the optimum
+                # to compare two iterates far from the optimum (where the grid solver, from a
+                # linear prediction, would often fail only to hand over to the adaptive one)
+                z_traj = self._forward(it.z0, loose=True)
                 it.nonlinear_sse = self._merit(self._residual(z_traj[self.obs_in_grid]))
                 it.nonlinear_traj = z_traj
             except IntegrationError:
@@ -854,7 +877,8 @@ class _Problem:
             history.append(self._record(iterations, z0, float("nan")))  # the estimate returned, unevaluated
         if final_ok:
             try:
-                z_traj = state.final_traj if state.final_traj is not None else self._forward(z0)
+                z_traj = (state.final_traj if state.final_traj is not None
+                          else self._forward(z0, guess=state.final_guess))
                 W = self._about_nonlinear(z0, z_traj)
                 obs = self.obs_in_grid
                 C, _, resid = self._rows(W[obs, :, 0], W[obs, :, 0], W[obs, :, 1:])
@@ -931,6 +955,12 @@ class _Problem:
 _MATCH_STEPS = 30
 #: Gauss–Newton steps that derive unobserved states for a first trajectory from the data.
 _DERIVE_STEPS = 8
+#: Newton iterations the grid solver gets from a trajectory's linear prediction before the
+#: adaptive solver takes over (from a good prediction it needs two or three).
+_GRID_NEWTON = 8
+#: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
+#: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
+_GRID_SUBSTEPS = 16
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
@@ -977,6 +1007,7 @@ class _IterationState:
         self.sse_prev: float | None = None
         self.iterations = 0
         self.final_traj: torch.Tensor | None = None  # nonlinear trajectory of z0, when already computed
+        self.final_guess: torch.Tensor | None = None  # a prediction of it (G, M), when there is one
 
 
 class _Counter:
