@@ -1,6 +1,8 @@
 """torchql: system identification by quasilinearization, in PyTorch."""
 
 from . import baselines, models
+from .batch import fit_many
+from .batch_result import BatchFitResult
 from .fit import METHODS, fit
 from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
@@ -8,6 +10,7 @@ from .multistart import MultiStartResult, multistart
 from .newton import NewtonResult, newton_raphson
 from .observations import Observations
 from .profile import ProfileResult, profile
+from .ray_backend import fit_many_ray  # imports Ray only when called (the extra torchql[ray])
 from .result import FitError, FitResult, IterationRecord, Status
 from .superposition import LINEAR_SOLVERS
 
@@ -17,6 +20,9 @@ __all__ = [
     "ODEModel",
     "Observations",
     "fit",
+    "fit_many",
+    "fit_many_ray",
+    "BatchFitResult",
     "profile",
     "multistart",
     "MultiStartResult",

@@ -1,0 +1,948 @@
+"""``fit_many``: many independent datasets fitted at once, each sample on its own iteration.
+
+A fleet of vehicles each with its coast-down log, a Monte Carlo study of noise, a multi-start,
+a parameter sweep: ``B`` datasets sharing the observation times, fitted with one model. The
+iteration is the one of :func:`torchql.fit` with ``method="kantorovich"`` (first reference
+integrated from the guesses, the undamped quasilinearization step tried first and kept when it
+lowers the sum of squares, re-anchoring and Levenberg–Marquardt damping otherwise, the same
+convergence tests and statuses), vectorized over the samples with per-sample masks:
+
+* every sample has its own coefficients as trailing components of its augmented state, so one
+  vmapped Jacobian linearizes all samples at every grid node at once
+  (:func:`torchql.linearize.linearize` over ``samples x nodes``);
+* the linear system is propagated with each grid interval of each sample under its own error
+  control (:mod:`torchql.batch_integrate`): no sample's error is diluted by another's;
+* the least-squares update is a batched SVD with each sample's own damping;
+* each sample stops when it converges or fails, with its own status and message, and drops out
+  of the work (the engine only computes on the samples still running).
+
+A converged sample's estimates equal those of ``torchql.fit`` on that dataset alone (same
+optimum, to the convergence tolerance). Values marked ``exact`` and ``bounds`` are not
+supported here (fit such datasets with :func:`torchql.fit`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+from collections.abc import Callable, Sequence
+
+import torch
+
+from . import _checks
+from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
+from .batch_result import BatchFitResult
+from .fit import (_DAMPING_MAX, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL, _MERIT_SLACK,
+                  _DAMPINGS)
+from .integrate import check_solver, default_tolerances
+from .linearize import Linearization, linearize
+from .lstsq import solve_update
+from .model import AugmentedSystem, ODEModel, coefficient_names, model_dtype_device
+from .observations import ObservationOperator, Observations
+from .result import Status
+from .uncertainty import covariance
+
+__all__ = ["fit_many"]
+
+#: Samples fitted together by default (bounds the memory: a chunk holds ``(chunk, G, M, 1 + m)``
+#: solutions and ``(chunk, G, M, M)`` Jacobians).
+DEFAULT_CHUNK = 4096
+#: Largest ``samples x intervals`` for which the final nonlinear solution is found by multiple
+#: shooting from the last linear prediction (all intervals at once, Newton on the node defects,
+#: with Jacobians); above it the batched Dormand–Prince integrator, whose rounds advance every
+#: sample at once, costs less.
+_SHOOTING_POINTS = 20_000
+_STATUSES = list(Status)
+_RUNNING = -1
+
+
+def fit_many(
+    model: ODEModel,
+    data: Sequence[Observations] | Observations,
+    x0=None,
+    *,
+    params: Sequence[str] | None = None,
+    guesses: dict | None = None,
+    fixed_x0: Sequence[str] | None = None,
+    t0: float | None = None,
+    max_iter: int = 50,
+    rtol: float | None = None,
+    atol: float | None = None,
+    xtol: float | None = None,
+    ftol: float | None = None,
+    rcond: float | None = None,
+    grid: int | torch.Tensor | None = None,
+    damping: str | None = "lm",
+    solver: str = "dopri5",
+    max_steps: int | None = None,
+    chunk_size: int = DEFAULT_CHUNK,
+    progress: bool | Callable[[int, int], None] = False,
+) -> BatchFitResult:
+    """Fit ``B`` independent datasets with one model, each to its own estimates.
+
+    Parameters
+    ----------
+    model : ODEModel
+        The model; its buffer values are the guesses (unless ``guesses`` gives per-sample
+        ones). Never modified.
+    data : list of Observations, or Observations with ``y (B, T, K)``
+        The ``B`` datasets. They must share the observation times ``t (T,)``, the ``observe``
+        specification and whether ``sigma`` was given; each has its own values, missing values
+        (NaN) and ``sigma``. An :class:`Observations` whose ``y`` is ``(B, T, K)`` is the same.
+    x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
+        Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
+        every state must be observed directly at ``t0`` in every sample.
+    params : sequence of str, optional
+        Buffers to estimate (default: every float buffer not in the model's ``constants``).
+    guesses : dict of str to Tensor, optional
+        Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
+        ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
+        sample's fixed value. Default: the model's buffers for every sample.
+    fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
+        As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``,
+        ``linear_solver="rk4_doubling"``). ``solver`` integrates a sample on its own only when
+        the batched integrators cannot (as ``fit`` falls back to it).
+    chunk_size : int
+        Samples fitted together (default 4096); larger batches are fitted chunk after chunk.
+        The results do not depend on it.
+    progress : bool or callable
+        ``True``: a progress bar (``tqdm``, from the extra ``torchql[progress]``) counting the
+        samples finished; a callable receives ``(finished, total)`` as samples finish.
+
+    Returns
+    -------
+    BatchFitResult
+        Per-sample estimates, statuses, messages, iterations, SSE and covariance.
+
+    Raises
+    ------
+    TypeError, ValueError
+        For invalid arguments (naming the argument, the sample, what was expected and received).
+    """
+    spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
+                 damping, solver, max_steps)
+    chunk_size = _checks.positive_int("chunk_size", chunk_size)
+    report = _progress(progress, spec.B)
+    B, m = spec.B, spec.m
+    out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
+    out = dict(sse=torch.empty(B, dtype=spec.dtype, device=spec.device),
+               cov=torch.empty(B, m, m, dtype=spec.dtype, device=spec.device),
+               iterations=torch.empty(B, dtype=torch.long, device=spec.device))
+    statuses: list[Status] = [Status.MAX_ITER] * B
+    messages: list[str] = [""] * B
+    nfev = 0
+    finished = 0
+    try:
+        for start in range(0, B, chunk_size):
+            index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
+            engine = _Engine(spec, index)
+
+            def step(count, offset=finished):
+                report(offset + count)
+
+            chunk = engine.run(step)
+            out_z0[index] = chunk["z0"]
+            out["sse"][index], out["cov"][index], out["iterations"][index] = chunk["sse"], chunk["cov"], \
+                chunk["iterations"]
+            for k, i in enumerate(index.tolist()):
+                statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
+            nfev += engine.nfev
+            finished += index.numel()
+            report(finished)
+    finally:
+        report(None)
+    return spec.result(out_z0, out, statuses, messages, nfev)
+
+
+def _progress(progress, total: int) -> Callable[[int | None], None]:
+    """A function of the number of samples finished (``None``: close)."""
+    if progress is False or progress is None:
+        return lambda done: None
+    if callable(progress) and not isinstance(progress, bool):
+        last = [-1]
+
+        def call(done):
+            if done is not None and done != last[0]:
+                last[0] = done
+                progress(done, total)
+        return call
+    if progress is not True:
+        raise TypeError(f"`progress` must be a bool or a callable (finished, total); received {progress!r}")
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        warnings.warn('`progress=True` needs tqdm: pip install "torchql[progress]"; continuing without a bar',
+                      UserWarning, stacklevel=3)
+        return lambda done: None
+    bar = tqdm(total=total, unit="fit", desc="fit_many")
+
+    def update(done):
+        if done is None:
+            bar.close()
+        elif done > bar.n:
+            bar.update(done - bar.n)
+    return update
+
+
+# ----------------------------------------------------------------------------------------------
+class _Spec:
+    """The validated problem shared by every chunk: model, data stacked ``(B, T, K)``, guesses, grid."""
+
+    def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
+                 grid, damping, solver, max_steps) -> None:
+        _checks.model_class(model)
+        names = tuple(model.state_names)
+        n = len(names)
+        if not isinstance(solver, str):
+            raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
+        check_solver(solver)
+        if damping is not None and not isinstance(damping, str) or damping not in _DAMPINGS:
+            raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
+        self.damping, self.solver = damping, solver
+        self.max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
+        self.max_steps = None if max_steps is None else _checks.positive_int("max_steps", max_steps)
+        self.dtype, self.device = dtype, device = model_dtype_device(model)
+        rtol, atol = default_tolerances(dtype, rtol, atol)
+        self.rtol, self.atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
+        eps = torch.finfo(dtype).eps
+        self.xtol = (_checks.positive_number("xtol", xtol) if xtol is not None
+                     else max(1e-8 if dtype == torch.float64 else 1e-4, 100 * self.rtol))
+        self.ftol = (_checks.positive_number("ftol", ftol) if ftol is not None
+                     else (1e-12 if dtype == torch.float64 else 1e-6))
+        self.rcond = (_checks.positive_number("rcond", rcond) if rcond is not None
+                      else max(1e3 * self.rtol, 1e3 * eps))
+
+        # --- data: (B, T, K)
+        self._stack(data, dtype, device)
+        B = self.B
+
+        # --- unknowns and per-sample buffers
+        available = coefficient_names(model)
+        if params is None:
+            params = [name for name in available if name not in tuple(model.constants)]
+        else:
+            if isinstance(params, str):
+                raise TypeError(f"`params` must be a sequence of buffer names, not a string; use [{params!r}]")
+            try:
+                params = list(params)
+            except TypeError as exc:
+                raise TypeError(f"`params` must be a sequence of buffer names; received {type(params).__name__}") from exc
+            for name in params:
+                if name not in available:
+                    raise ValueError(f"`params` names unknown buffer {name!r}; the model's float buffers are "
+                                     f"{tuple(available)}")
+            if len(set(params)) != len(params):
+                raise ValueError(f"`params` lists a buffer twice: {params!r}")
+        if guesses is None:
+            guesses = {}
+        if not isinstance(guesses, dict):
+            raise TypeError(f"`guesses` must be a dict {{buffer name: Tensor (B, ...)}}; received {type(guesses).__name__}")
+        for name in guesses:
+            if name not in available:
+                raise ValueError(f"`guesses` names unknown buffer {name!r}; the model's float buffers are {tuple(available)}")
+        per_sample = list(params) + [name for name in guesses if name not in params]
+        self.params = list(params)
+        self.system = AugmentedSystem(model, per_sample, dtype, device)
+        system = self.system
+        buffers = dict(system.model.named_buffers())
+        columns = []
+        for name, shape in zip(per_sample, system.param_shapes):
+            value = guesses.get(name, buffers[name])
+            try:
+                value = torch.as_tensor(value, dtype=dtype, device=device)
+            except (TypeError, ValueError) as exc:
+                raise TypeError(f"`guesses[{name!r}]` must be a tensor of shape (B, *{tuple(shape)}) = "
+                                f"{(B, *shape)}; received {type(value).__name__}") from exc
+            if value.shape == shape:
+                value = value.expand(B, *shape)
+            elif value.shape != (B, *shape):
+                raise ValueError(f"`guesses[{name!r}]` must have shape (B, *buffer shape) = {(B, *shape)} or the "
+                                 f"buffer's shape {tuple(shape)}; received shape {tuple(value.shape)}")
+            bad = ~torch.isfinite(value.reshape(B, -1)).all(dim=1)
+            if bool(bad.any()):
+                raise ValueError(f"`guesses[{name!r}]` must be finite; samples {bad.nonzero().flatten().tolist()[:10]} "
+                                 "hold NaN or inf")
+            columns.append(value.reshape(B, -1))
+        p0 = torch.cat(columns, dim=1) if columns else torch.zeros(B, 0, dtype=dtype, device=device)
+        if not bool(torch.isfinite(p0).all()):
+            raise ValueError(f"the guesses of {self.params} (the model's buffers) must be finite")
+
+        # --- times
+        self.t_obs = self.t
+        if t0 is None:
+            self.t0 = self.t_obs[0].clone()
+        else:
+            self.t0 = torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
+            if self.t0 > self.t_obs[0]:
+                raise ValueError(f"`t0` must not be later than the first observation time "
+                                 f"{self.t_obs[0].item():g}; received {float(t0):g}")
+
+        # --- initial states
+        self.operator = ObservationOperator(self.observe, names, self.K, dtype, device)
+        if x0 is None:
+            x0 = self._x0_from_data(names)
+        else:
+            try:
+                x0 = torch.as_tensor(x0, dtype=dtype, device=device)
+            except (TypeError, ValueError) as exc:
+                raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
+                                f"({n},); received {type(x0).__name__}") from exc
+            if x0.shape == (n,):
+                x0 = x0.expand(B, n)
+            elif x0.shape != (B, n):
+                raise ValueError(f"`x0` must have shape (B, n_states) = ({B}, {n}) or (n_states,) = ({n},); "
+                                 f"received shape {tuple(x0.shape)}")
+            bad = ~torch.isfinite(x0).all(dim=1)
+            if bool(bad.any()):
+                raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
+        self.z0 = torch.cat([x0, p0], dim=1).clone()
+
+        if fixed_x0 is None:
+            fixed_x0 = []
+        if isinstance(fixed_x0, str):
+            raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
+        try:
+            fixed_x0 = list(fixed_x0)
+        except TypeError as exc:
+            raise TypeError(f"`fixed_x0` must be a sequence of state names; received {type(fixed_x0).__name__}") from exc
+        for name in fixed_x0:
+            if name not in names:
+                raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {names}")
+        if len(set(fixed_x0)) != len(fixed_x0):
+            raise ValueError(f"`fixed_x0` lists a state twice: {fixed_x0!r}")
+        free = [i for i, s in enumerate(names) if s not in fixed_x0]
+        n_unknown_params = sum(size for name, size in zip(per_sample, system.param_sizes) if name in self.params)
+        self.unknown_index = torch.tensor(free + list(range(n, n + n_unknown_params)), dtype=torch.long,
+                                          device=device)
+        self.unknown_names = [f"{names[i]}(t0)" for i in free] + system.element_names[:n_unknown_params]
+        self.m = m = self.unknown_index.numel()
+        if m == 0:
+            raise ValueError("nothing to estimate: every initial state is in `fixed_x0` and `params` is empty")
+        short = (self.L < m).nonzero().flatten().tolist()
+        if short:
+            i = short[0]
+            raise ValueError(f"`data[{i}]` has {int(self.L[i])} usable values, fewer than the {m} unknowns "
+                             f"{self.unknown_names}" + (f" (samples {short[:10]} alike)" if len(short) > 1 else "")
+                             + "; remove it from the batch or fix some unknowns")
+        self._check_model(x0[0])
+
+        # --- grid
+        self.grid = _make_grid(grid, self.t0, self.t_obs)
+        self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
+        self.model = model
+
+    # ------------------------------------------------------------------------------------------
+    def _stack(self, data, dtype, device) -> None:
+        if isinstance(data, Observations):
+            if data.y.dim() != 3:
+                raise ValueError("`data` must be a list of torchql.Observations (one per dataset) or an "
+                                 f"Observations with values y of shape (B, T, K); received y of shape "
+                                 f"{tuple(data.y.shape)} (a single dataset: use torchql.fit)")
+            items = None
+        elif isinstance(data, (list, tuple)):
+            if len(data) == 0:
+                raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
+            for i, d in enumerate(data):
+                if not isinstance(d, Observations):
+                    raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
+            items = list(data)
+        else:
+            raise TypeError("`data` must be a list of torchql.Observations (one per dataset); received "
+                            f"{type(data).__name__}")
+        if items is None:
+            first = data
+            self.B = data.y.shape[0]
+            y, sigma, exact = data.y, data.sigma, data.exact
+            if self.B == 0:
+                raise ValueError("`data` holds no dataset (B = 0)")
+        else:
+            first = items[0]
+            for i, d in enumerate(items[1:], start=1):
+                if d.y.dim() != 2:
+                    raise ValueError(f"`data[{i}]` must hold one dataset, y of shape (T, K); received "
+                                     f"{tuple(d.y.shape)}")
+                if d.t.shape != first.t.shape or not torch.equal(d.t.to(first.t.dtype), first.t):
+                    raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs "
+                                     "shared times t (T,); fit datasets with other times separately (torchql.fit)")
+                if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
+                    raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
+                                     "fit_many needs one observation operator for all datasets")
+                if d.sigma_given != first.sigma_given:
+                    raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
+                                     f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
+            if first.y.dim() != 2:
+                raise ValueError(f"`data[0]` must hold one dataset, y of shape (T, K); received {tuple(first.y.shape)}")
+            self.B = len(items)
+            y = torch.stack([d.y.to(dtype) for d in items])
+            sigma = torch.stack([d.sigma.to(dtype) for d in items])
+            exact = torch.stack([d.exact for d in items])
+        if bool(exact.any()):
+            i = int(exact.flatten(1).any(dim=1).nonzero()[0, 0]) if exact.dim() == 3 else 0
+            raise ValueError(f"`data[{i}]` marks values `exact`: fit_many does not support exact values; fit such "
+                             "datasets with torchql.fit")
+        if torch.finfo(y.dtype).eps > torch.finfo(dtype).eps:
+            warnings.warn(f"`data` holds {y.dtype} values but the model computes in {dtype}: the data's own rounding "
+                          "limits the fit's accuracy; build the Observations from float64 tensors",
+                          UserWarning, stacklevel=4)
+        self.t = first.t.to(dtype=dtype, device=device)
+        self.observe = first.observe
+        self.K = y.shape[-1]
+        self.sigma_known = first.sigma_given
+        y = y.to(dtype=dtype, device=device)
+        self.mask = ~torch.isnan(y)  # (B, T, K)
+        self.y = torch.where(self.mask, y, torch.zeros_like(y))
+        self.weights = torch.where(self.mask, 1.0 / sigma.to(dtype=dtype, device=device), torch.zeros_like(y))
+        self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
+
+    def _x0_from_data(self, names) -> torch.Tensor:
+        if self.t0 != self.t_obs[0]:
+            raise ValueError("`x0` is required when `t0` precedes the first observation")
+        x0 = torch.full((self.B, len(names)), float("nan"), dtype=self.dtype, device=self.device)
+        for k, i in enumerate(self.operator.observed_states):
+            if i is not None:
+                x0[:, i] = torch.where(self.mask[:, 0, k], self.y[:, 0, k], x0[:, i])
+        missing = torch.isnan(x0)
+        if bool(missing.any()):
+            b = int(missing.any(dim=1).nonzero()[0, 0])
+            states = [names[i] for i in range(len(names)) if bool(missing[b, i])]
+            raise ValueError(f"`x0` is required: in `data[{b}]` the states {states} are not observed directly at t0")
+        return x0
+
+    def _check_model(self, x0: torch.Tensor) -> None:
+        n = self.system.n
+        try:
+            with torch.no_grad():
+                out = self.system.f(self.t0, self.z0[0])
+        except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
+            raise ValueError(f"`model` forward(t, x) failed for x of shape ({n},): {exc}") from exc
+        if out.shape != (self.system.M,):
+            raise ValueError(f"`model` forward must return dx/dt of the state's shape ({n},)")
+        try:
+            linearize(self.system, self.t0.reshape(1), self.z0[:1])
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError("`model` forward could not be differentiated with torch.func.jacrev/vmap: "
+                             f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
+                             "values.") from exc
+        self.operator.check(x0)
+
+    # ------------------------------------------------------------------------------------------
+    def result(self, z0, out, statuses, messages, nfev) -> BatchFitResult:
+        system, n, B = self.system, self.system.n, self.B
+        per_sample, start = {}, n
+        for name, shape, size in zip(system.param_names, system.param_shapes, system.param_sizes):
+            per_sample[name] = z0[:, start:start + size].reshape(B, *shape)
+            start += size
+        params = {}
+        for name, value in self.system.model.named_buffers():
+            if not value.is_floating_point():
+                continue
+            if name in per_sample:
+                params[name] = per_sample[name].clone()
+            else:
+                params[name] = value.expand(B, *value.shape).clone()
+        dof = self.L - self.m
+        if self.sigma_known:
+            variance = torch.ones(B, dtype=self.dtype, device=self.device)
+        else:
+            variance = torch.where(dof > 0, out["sse"] / dof.clamp(min=1).to(self.dtype),
+                                   torch.full_like(out["sse"], float("nan")))
+        return BatchFitResult(
+            success=torch.tensor([s.success for s in statuses], dtype=torch.bool, device=self.device),
+            status=statuses, message=messages, params=params, x0=z0[:, :n].clone(), t0=float(self.t0),
+            unknown_names=list(self.unknown_names), estimates=z0[:, self.unknown_index].clone(),
+            iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
+            dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
+            model=copy.deepcopy(system.model))
+
+
+def _same_observe(a, b) -> bool:
+    if a is b:
+        return True
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape == b.shape and torch.equal(a.to(torch.float64), b.to(torch.float64))
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return list(a) == list(b)
+    try:
+        import numpy as np
+
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            return bool(np.array_equal(np.asarray(a), np.asarray(b)))
+    except ImportError:  # pragma: no cover
+        pass
+    return False
+
+
+def _make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> torch.Tensor:
+    """Kantorovich's storage grid, as :func:`torchql.fit` builds it."""
+    dtype, device = t_obs.dtype, t_obs.device
+    t_end = t_obs[-1]
+    span = float(t_end - t0)
+    extra = torch.zeros(0, dtype=dtype, device=device)
+    intervals = 1000
+    if isinstance(grid, torch.Tensor):
+        extra = grid.to(dtype=dtype, device=device).reshape(-1)
+        if not torch.isfinite(extra).all():
+            raise ValueError("`grid` times must be finite")
+        extra = extra[(extra > t0) & (extra < t_end)]
+    elif grid is not None:
+        if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
+            raise ValueError(f"`grid` must be a positive number of intervals or a tensor of times; received {grid!r}")
+        intervals = int(grid)
+    if span <= 0:
+        return t0.reshape(1)
+    uniform = torch.linspace(float(t0), float(t_end), intervals + 1, dtype=dtype, device=device)
+    fixed = torch.cat([t0.reshape(1), t_obs])
+    gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
+    uniform = uniform[gap > 1e-6 * span / intervals]
+    return torch.unique(torch.cat([fixed, uniform, extra]))
+
+
+# ----------------------------------------------------------------------------------------------
+class _Engine:
+    """The iteration of one chunk of samples (indices ``index`` of the batch)."""
+
+    def __init__(self, spec: _Spec, index: torch.Tensor) -> None:
+        self.spec = spec
+        self.system = spec.system
+        self.y, self.w, self.mask = spec.y[index], spec.weights[index], spec.mask[index]
+        self.L = spec.L[index]
+        self.z0_guess = spec.z0[index].clone()
+        self.S = index.numel()
+        self.nfev = 0
+
+    # --- building blocks ----------------------------------------------------------------------
+    def _linearize(self, z: torch.Tensor, z_dot: torch.Tensor | None = None) -> Linearization:
+        S, G, M = z.shape
+        t = self.spec.grid.repeat(S)
+        lin = linearize(self.system, t, z.reshape(-1, M), None if z_dot is None else z_dot.reshape(-1, M))
+        self.nfev += S * G
+        return Linearization(*(v.reshape(S, G, *v.shape[1:]) for v in lin))
+
+    def _rows(self, idx, z_ref_obs, zp_obs, Z_obs):
+        """``C (S, R, m)``, ``d (S, R)``, residuals ``(S, R)`` at the observations (zero where missing)."""
+        n, K = self.system.n, self.spec.K
+        S, T = z_ref_obs.shape[:2]
+        x_ref = z_ref_obs[..., :n]
+        h_ref, H = self.spec.operator.value_and_jacobian(x_ref.reshape(-1, n))
+        h_ref, H = h_ref.reshape(S, T, K), H.reshape(S, T, K, n)
+        predicted = h_ref + torch.einsum("stkn,stn->stk", H, zp_obs[..., :n] - x_ref)
+        C = torch.einsum("stkn,stnm->stkm", H, Z_obs[:, :, :n, :])
+        mask, y = self.mask[idx], self.y[idx]
+        zero = torch.zeros((), dtype=y.dtype, device=y.device)
+        d = torch.where(mask, y - predicted, zero)
+        resid = torch.where(mask, y - h_ref, zero)
+        C = torch.where(mask.unsqueeze(-1), C, zero)
+        return C.reshape(S, T * K, -1), d.reshape(S, -1), resid.reshape(S, -1)
+
+    def _ssq(self, idx, residual):
+        r = residual * self.w[idx].reshape(residual.shape)
+        return (r ** 2).sum(dim=1)
+
+    def _evaluate(self, idx, z0, z, z_dot, lin, steps=None) -> dict:
+        """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
+
+        ``steps (S, G-1)``: RK4 steps to try first per interval (those of the iterate it comes from).
+        """
+        spec = self.spec
+        w0 = _initial_columns(z0, spec.unknown_index)
+        W, failed, steps, evals = propagate_linear_batch(spec.grid, z, z_dot, lin, w0, rtol=spec.rtol,
+                                                         atol=spec.atol, steps=steps)
+        self.nfev += evals
+        obs = spec.obs_in_grid
+        C, d, resid = self._rows(idx, z[:, obs], W[:, obs, :, 0], W[:, obs, :, 1:])
+        sse, merit = self._ssq(idx, resid), self._ssq(idx, d)
+        S = idx.numel()
+        return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed, steps=steps,
+                    anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
+                    nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
+
+    def _nonlinear(self, z0, loose: bool, guess=None):
+        """The model integrated from ``z0 (S, M)`` over the grid: ``traj (S, G, M)`` and error messages (None: ok).
+
+        With a ``guess (S, G, M)`` (the last linear prediction) and a small problem, by multiple
+        shooting (:func:`~torchql.batch_integrate.solve_on_grid_batch`); otherwise, or for the
+        samples where it does not settle, by :func:`~torchql.batch_integrate.dopri_batch`; a sample
+        that one cannot integrate either is integrated on its own by torchdiffeq with ``solver``
+        (as :func:`torchql.fit` does), whose message is kept when it fails too.
+        """
+        spec = self.spec
+        rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
+        atol = spec.atol * rtol / spec.rtol
+        S = z0.shape[0]
+        traj = torch.full((S, spec.grid.numel(), self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
+        ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
+        with torch.no_grad():
+            if guess is not None and S * (spec.grid.numel() - 1) <= _SHOOTING_POINTS:
+                usable = torch.isfinite(guess).flatten(1).all(dim=1)
+                sub = usable.nonzero().flatten()
+                if sub.numel():
+                    tr, good, evals = solve_on_grid_batch(self.system, z0[sub], spec.grid, rtol=rtol, atol=atol,
+                                                          guess=guess[sub], max_newton=_GRID_NEWTON,
+                                                          max_substeps=_GRID_SUBSTEPS)
+                    self.nfev += evals
+                    traj[sub[good]], ok[sub[good]] = tr[good], True
+            sub = (~ok).nonzero().flatten()
+            if sub.numel():
+                tr, good, evals = dopri_batch(self.system, z0[sub], spec.grid, rtol=rtol, atol=atol)
+                self.nfev += evals
+                traj[sub[good]], ok[sub[good]] = tr[good], True
+            errors: list = [None] * S
+            sub = (~ok).nonzero().flatten()
+            if sub.numel():
+                tr, errs, evals = integrate_each(self.system, z0[sub], spec.grid, solver=spec.solver, rtol=rtol,
+                                                 atol=atol, hit=spec.t_obs, max_steps=spec.max_steps)
+                self.nfev += evals
+                for k, s in enumerate(sub.tolist()):
+                    if errs[k] is None and bool(torch.isfinite(tr[k]).all()):
+                        traj[s], ok[s] = tr[k], True
+                    else:
+                        errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
+        return traj, errors
+
+    def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor) -> torch.Tensor:
+        """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable)."""
+        need = rows[torch.isnan(it["nl_sse"][rows])]
+        if need.numel():
+            traj, errors = self._nonlinear(it["z0"][need], loose=True)
+            obs = self.spec.obs_in_grid
+            n = self.system.n
+            value, _ = self.spec.operator.value_and_jacobian(traj[:, obs, :n].reshape(-1, n))
+            y, mask = self.y[idx[need]], self.mask[idx[need]]
+            resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
+            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1))
+            failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
+            sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
+            it["nl_sse"][need] = sse
+            it["nl_traj"][need] = traj
+        return it["nl_sse"][rows]
+
+    # --- the least-squares update -------------------------------------------------------------
+    def _solve(self, idx, cur, damping):
+        """Batched :func:`torchql.lstsq.solve_update` without exact rows: ``alpha (S, m)``."""
+        C, d, w = cur["C"][idx], cur["d"][idx], self.w[idx].reshape(idx.numel(), -1)
+        alpha, _, _ = _lstsq(C, d, w, self.spec.rcond, damping)
+        return alpha
+
+    # --- the iteration ------------------------------------------------------------------------
+    def run(self, report) -> dict:
+        spec, S = self.spec, self.S
+        dev, dtype = spec.device, spec.dtype
+        status = torch.full((S,), _RUNNING, dtype=torch.long, device=dev)
+        detail = [""] * S
+        iterations = torch.zeros(S, dtype=torch.long, device=dev)
+        damping = torch.zeros(S, dtype=dtype, device=dev)
+        last_damping = torch.zeros(S, dtype=dtype, device=dev)
+        fresh = torch.ones(S, dtype=torch.bool, device=dev)
+        sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        z0 = self.z0_guess.clone()
+        all_idx = torch.arange(S, device=dev)
+
+        def stop(rows, code, text=""):
+            status[rows] = _STATUSES.index(code)
+            for r in rows.tolist():
+                detail[r] = text
+            report(int((status != _RUNNING).sum()))
+
+        # first iterate: the model integrated (loosely) from the guesses
+        traj, errors = self._nonlinear(z0, loose=True)
+        bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
+        for r in bad.nonzero().flatten().tolist():
+            status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
+            detail[r] = f" The solver said: {errors[r]}."
+        lin = self._linearize(traj)
+        cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
+        self._fail_integration(cur["failed"] & ~bad, status, detail)
+        final_guess = cur["W"][:, :, :, 0].clone()
+        n = self.system.n
+        typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), self.z0_guess[:, n:].abs()], dim=1)
+        typical = torch.where(typical > 0, typical, torch.ones_like(typical))
+        scale = typical[:, spec.unknown_index]
+        report(int((status != _RUNNING).sum()))
+
+        while True:
+            running = status == _RUNNING
+            # the start of an iteration: the budget, then the iterate's rows
+            start = running & fresh
+            maxed = start & (iterations >= spec.max_iter)
+            if bool(maxed.any()):
+                stop(maxed.nonzero().flatten(), Status.MAX_ITER)
+            start &= ~maxed
+            finite = (torch.isfinite(cur["sse"]) & torch.isfinite(cur["C"]).flatten(1).all(dim=1)
+                      & torch.isfinite(cur["d"]).all(dim=1))
+            diverged = start & ~finite
+            if bool(diverged.any()):
+                stop(diverged.nonzero().flatten(), Status.DIVERGED, " The residuals became non-finite.")
+            fresh &= ~start
+            act = (status == _RUNNING).nonzero().flatten()
+            if not act.numel():
+                break
+            alpha = self._solve(act, cur, damping[act])
+            u = cur["z0"][act][:, spec.unknown_index]
+            scaled = (alpha.abs() / torch.maximum(u.abs(), scale[act])).amax(dim=1)
+            bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
+            if bool(bad.any()):
+                stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
+                keep = ~bad
+                act, alpha, scaled = act[keep], alpha[keep], scaled[keep]
+            # convergence, tested on undamped steps only
+            zero = damping[act] == 0
+            sse = cur["sse"][act]
+            conv = zero & (scaled <= spec.xtol)
+            conv_sse = (zero & ~conv & torch.isfinite(sse_prev[act]) & (sse > 0)
+                        & ((sse - sse_prev[act]).abs() <= spec.ftol * sse) & (scaled <= math.sqrt(spec.xtol)))
+            sse_prev[act[zero & ~conv & ~conv_sse]] = sse[zero & ~conv & ~conv_sse]
+            done = conv | conv_sse
+            if bool(done.any()):
+                rows = act[done]
+                W = cur["W"][rows]
+                z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
+                iterations[rows] += 1
+                final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
+                if bool(conv.any()):
+                    stop(act[conv], Status.CONVERGED)
+                if bool(conv_sse.any()):
+                    stop(act[conv_sse], Status.CONVERGED_SSE)
+                act, alpha = act[~done], alpha[~done]
+            if not act.numel():
+                continue
+            trial, ok = self._propose(act, cur, alpha)
+            if spec.damping is None:
+                accept = ok
+            else:
+                better = trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK)
+                check = ok & ~better
+                if bool(check.any()):
+                    rows = check.nonzero().flatten()
+                    t_sse = self._nonlinear_sse(act, trial, rows)
+                    c_sse = self._nonlinear_sse(all_idx, cur, act[rows])
+                    better[rows] = t_sse <= c_sse * (1 + _MERIT_SLACK)
+                accept = ok & better
+            if bool(accept.any()):
+                rows = accept.nonzero().flatten()
+                target = act[rows]
+                _put(cur, target, trial, rows)
+                last_damping[target] = damping[target]
+                damping[target] = 0.0
+                iterations[target] += 1
+                fresh[target] = True
+                z0[target] = trial["z0"][rows]
+                final_guess[target] = trial["W"][rows][..., 0]
+            rejected = act[~accept]
+            if not rejected.numel():
+                continue
+            if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
+                z0[rejected] = _shifted(cur["z0"][rejected], alpha[~accept], spec.unknown_index)
+                iterations[rejected] += 1
+                stop(rejected, Status.INTEGRATION_FAILED,
+                     " The undamped step led to a trajectory that cannot be integrated; the default "
+                     "damping=\"lm\" would have shortened it.")
+                continue
+            # Kantorovich re-anchors an undamped rejection about the model's own solution
+            candidates = rejected[(damping[rejected] == 0) & ~cur["anchored"][rejected]]
+            anchored_rows = candidates[:0]
+            if candidates.numel():
+                self._nonlinear_sse(all_idx, cur, candidates)
+                integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
+                anchored_rows = candidates[integrable]
+                if anchored_rows.numel():
+                    traj = cur["nl_traj"][anchored_rows]
+                    lin = self._linearize(traj)
+                    anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin,
+                                              cur["steps"][anchored_rows])
+                    anchored["anchored"][:] = True
+                    anchored["nl_sse"] = cur["nl_sse"][anchored_rows]
+                    anchored["nl_traj"] = traj
+                    failed = anchored["failed"]
+                    if bool(failed.any()):
+                        self._fail_integration_rows(anchored_rows[failed], status, detail)
+                    keep = (~failed).nonzero().flatten()
+                    _put(cur, anchored_rows[keep], anchored, keep)
+                    anchored_rows = anchored_rows
+            raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
+            if raise_rows.numel():
+                d = damping[raise_rows]
+                d = torch.where(d == 0, torch.clamp(last_damping[raise_rows] / 10, min=_DAMPING_START), 10 * d)
+                damping[raise_rows] = d
+                stalled = raise_rows[d > _DAMPING_MAX]
+                if stalled.numel():
+                    stop(stalled, Status.STALLED)
+        return self._finish(z0, status, detail, iterations, final_guess, cur["steps"])
+
+    def _fail_integration(self, failed, status, detail) -> None:
+        self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
+
+    def _fail_integration_rows(self, rows, status, detail) -> None:
+        for r in rows.tolist():
+            status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
+            detail[r] = (" The solver said: the transfer of a grid interval did not meet the tolerance or became "
+                         "non-finite.")
+
+    def _propose(self, act, cur, alpha):
+        """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where usable."""
+        spec = self.spec
+        W = cur["W"][act]
+        z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
+        z0_new = _shifted(cur["z0"][act], alpha, spec.unknown_index)
+        finite = torch.isfinite(z_new).flatten(1).all(dim=1)
+        z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, cur["rz"][act])
+        lin_ref = cur["lin"]
+        z_dot = lin_ref.f[act] + torch.einsum("sgij,sgj->sgi", lin_ref.jac[act], z_safe - cur["rz"][act])
+        lin = self._linearize(z_safe, z_dot)
+        trial = self._evaluate(act, z0_new, z_safe, z_dot, lin, cur["steps"][act])
+        ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
+              & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
+        return trial, ok
+
+    # --- the final pass -----------------------------------------------------------------------
+    def _finish(self, z0, status, detail, iterations, final_guess, steps) -> dict:
+        spec, S = self.spec, self.S
+        m = spec.m
+        dtype, dev = spec.dtype, spec.device
+        sse = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        cov = torch.full((S, m, m), float("nan"), dtype=dtype, device=dev)
+        codes = [_STATUSES[int(c)] for c in status.tolist()]
+        final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED) for c in codes],
+                             dtype=torch.bool, device=dev)
+        rows = final.nonzero().flatten()
+        if rows.numel():
+            guess = final_guess[rows]
+            traj, errors = self._nonlinear(z0[rows], loose=False, guess=guess)
+            for k, r in enumerate(rows.tolist()):
+                if errors[k] is not None:
+                    codes[r] = Status.INTEGRATION_FAILED
+                    detail[r] = f" The solver said, at the final estimates: {errors[k]}."
+            good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=dev)
+            rows, traj = rows[good], traj[good]
+        if rows.numel():
+            lin = self._linearize(traj)
+            w0 = _initial_columns(z0[rows], spec.unknown_index)
+            W, failed, _, evals = propagate_linear_batch(spec.grid, traj, lin.f, lin, w0, rtol=spec.rtol,
+                                                         atol=spec.atol, steps=steps[rows])
+            self.nfev += evals
+            for r in rows[failed].tolist():
+                codes[r] = Status.INTEGRATION_FAILED
+                detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "
+                             "meet the tolerance.")
+            rows, traj, W = rows[~failed], traj[~failed], W[~failed]
+        if rows.numel():
+            obs = spec.obs_in_grid
+            C, _, resid = self._rows(rows, traj[:, obs], traj[:, obs], W[:, obs, :, 1:])
+            w = self.w[rows].reshape(rows.numel(), -1)
+            J = C * w.unsqueeze(-1)
+            s = ((resid * w) ** 2).sum(dim=1)
+            sse[rows] = s
+            nonfinite = ~torch.isfinite(s)
+            for r in rows[nonfinite].tolist():
+                codes[r] = Status.DIVERGED
+                detail[r] = " The fitted trajectory is non-finite."
+            keep = ~nonfinite
+            rows, J, s = rows[keep], J[keep], s[keep]
+        if rows.numel():
+            L = self.L[rows]
+            _, deficient, _ = _lstsq(J, torch.zeros(J.shape[:2], dtype=dtype, device=dev),
+                                     torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
+            deficient |= L < m
+            for k in deficient.nonzero().flatten().tolist():
+                r = int(rows[k])
+                code = codes[r]
+                if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
+                    continue
+                used = self.mask[r].reshape(-1)
+                sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
+                                   torch.ones(int(L[k]), dtype=dtype, device=dev),
+                                   torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
+                text = _null_detail(sol.null_vectors, spec.unknown_names)
+                if not code.success:
+                    text += f" The iteration did not converge ({code.name}): it moved along them."
+                codes[r], detail[r] = Status.NOT_IDENTIFIABLE, text
+            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
+        messages = [c.value + d for c, d in zip(codes, detail)]
+        return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages)
+
+
+# ----------------------------------------------------------------------------------------------
+def _initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
+    """``W(t0) = [z0, e_{i_1}, ..., e_{i_m}]`` per sample: ``(S, M, 1 + m)``."""
+    S, M = z0.shape
+    m = unknown_index.numel()
+    E = torch.zeros(M, m, dtype=z0.dtype, device=z0.device)
+    E[unknown_index, torch.arange(m, device=z0.device)] = 1.0
+    return torch.cat([z0.unsqueeze(-1), E.expand(S, M, m)], dim=2)
+
+
+def _shifted(z0: torch.Tensor, alpha: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
+    z = z0.clone()
+    z[:, unknown_index] = z0[:, unknown_index] + alpha
+    return z
+
+
+def _put(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None:
+    """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur``."""
+    for key, value in new.items():
+        if key == "failed":
+            continue
+        if key == "lin":
+            for old, fresh in zip(cur["lin"], value):
+                old[target] = fresh[rows]
+        else:
+            cur[key][target] = value[rows]
+
+
+def _lstsq(C, d, w, rcond: float, damping):
+    """Batched weighted least squares by SVD with Levenberg–Marquardt filter factors.
+
+    ``C (S, R, m)``, ``d (S, R)``, weights ``w (S, R)`` (0 for missing values), ``damping (S,)``
+    relative to the largest squared singular value (or ``None``). Returns ``alpha (S, m)``,
+    ``deficient (S,)`` (a singular value below ``rcond`` times the largest, or a zero column)
+    and the singular values ``(S, m)``. Samples with non-finite rows get NaN.
+    """
+    Cw = C * w.unsqueeze(-1)
+    dw = d * w
+    finite = torch.isfinite(Cw).flatten(1).all(dim=1) & torch.isfinite(dw).all(dim=1)
+    Cw = torch.where(finite.reshape(-1, 1, 1), Cw, torch.zeros_like(Cw))
+    dw = torch.where(finite.reshape(-1, 1), dw, torch.zeros_like(dw))
+    scale = torch.linalg.vector_norm(Cw, dim=1)
+    zero_cols = scale == 0
+    scale = torch.where(zero_cols, torch.ones_like(scale), scale)
+    A = Cw / scale.unsqueeze(1)
+    U, Sv, Vh = torch.linalg.svd(A, full_matrices=False)
+    keep = Sv > rcond * Sv[:, :1]
+    safe = torch.where(keep, Sv, torch.ones_like(Sv))
+    if damping is not None:
+        safe = safe + damping.unsqueeze(-1) * Sv[:, :1] ** 2 / safe
+    coeff = torch.where(keep, (U.transpose(1, 2) @ dw.unsqueeze(-1)).squeeze(-1) / safe, torch.zeros_like(Sv))
+    alpha = (Vh.transpose(1, 2) @ coeff.unsqueeze(-1)).squeeze(-1) / scale
+    alpha = torch.where(finite.unsqueeze(-1), alpha, torch.full_like(alpha, float("nan")))
+    deficient = (~keep).any(dim=1) | zero_cols.any(dim=1)
+    return alpha, deficient, Sv
+
+
+def _covariance(J, used, sse, L, spec: _Spec, deficient) -> torch.Tensor:
+    """Per-sample covariance ``(S, m, m)`` as :func:`torchql.uncertainty.covariance` (no exact values)."""
+    S, _, m = J.shape
+    dof = (L - m).to(J.dtype)
+    s2 = (torch.ones_like(sse) if spec.sigma_known
+          else torch.where(dof > 0, sse / dof.clamp(min=1), torch.full_like(sse, float("nan"))))
+    scale = torch.linalg.vector_norm(J, dim=1)
+    safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    _, Sv, Vh = torch.linalg.svd(J / safe_scale.unsqueeze(1), full_matrices=False)
+    inner = (Vh.transpose(1, 2) / Sv.unsqueeze(1) ** 2) @ Vh
+    inner = inner / safe_scale.unsqueeze(-1) / safe_scale.unsqueeze(-2)
+    cov = s2.reshape(-1, 1, 1) * inner
+    cov = 0.5 * (cov + cov.transpose(1, 2))
+    for k in deficient.nonzero().flatten().tolist():  # rare: undetermined unknowns get NaN, as fit reports
+        rows = used[k]
+        cov[k] = covariance(J[k][rows], torch.zeros(int(rows.sum()), dtype=torch.bool, device=J.device),
+                            float(sse[k]), spec.sigma_known, spec.rcond).matrix
+    return cov
+
+
+def _null_detail(null_vectors: torch.Tensor, unknown_names: list[str]) -> str:
+    parts = []
+    for k in range(null_vectors.shape[1]):
+        involved = [name for name, c in zip(unknown_names, null_vectors[:, k].tolist()) if abs(c) > 0.1]
+        group = "{" + ", ".join(involved) + "}"
+        if group not in parts:
+            parts.append(group)
+    return " Unknowns the data cannot separate: " + "; ".join(parts) + "."

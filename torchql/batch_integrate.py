@@ -1,0 +1,409 @@
+"""Integration for a batch of independent samples on one time grid, each sample controlled on its own error.
+
+No sample's error is averaged with (diluted by) another's: every integrator below makes its
+step decisions per sample (or per sample and grid interval), and reports failures per sample
+(a boolean mask or a message), never raised for the whole batch.
+
+* :func:`propagate_linear_batch`: the particular and homogeneous solutions of each sample's
+  quasilinear system, by the RK4 step-doubling interval transfers of :mod:`torchql.transfer`
+  over ``samples x intervals`` flattened (each interval of each sample refined on its own),
+  composed per sample by the prefix scan.
+* :func:`dopri_batch`: the nonlinear (augmented) model by Dormand–Prince 5(4), every sample with
+  its own time, step size and accept/reject decision, steps landing on the grid nodes.
+* :func:`solve_on_grid_batch`: the nonlinear model by multiple shooting from a guess, as
+  :func:`torchql.grid_solve.solve_on_grid`, Newton converging per sample.
+* :func:`integrate_each`: one sample at a time by torchdiffeq, the last resort (as
+  :func:`torchql.fit` uses it).
+
+Each sample's coefficients are its trailing components of the augmented state ``z = (x, p)``,
+so one vmapped right-hand side serves every sample.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .grid_solve import _SAFETY as _GRID_SAFETY, _Field, _rk4_pair as _grid_rk4_pair
+from .integrate import IntegrationError, solve
+from .model import AugmentedSystem
+from .transfer import _SAFETY, _Coefficients, _rk4_pair, prefix_products
+
+__all__ = ["propagate_linear_batch", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
+
+
+def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) -> _Coefficients:
+    """The interval coefficients of ``S`` samples on one grid, as :class:`torchql.transfer._Coefficients` holds them.
+
+    Built from the node values directly (the intervals' arrays of
+    :class:`torchql.trajectory.IntervalSystem` are never formed): interval ``s (G-1) + j`` is
+    sample ``s``'s interval ``j``. Per interval and Hermite node: the reference values and
+    scaled slopes of every component, then for each active component (a nonzero row of ``f``
+    or ``A`` somewhere) its row ``h [f | A]`` and scaled slope ``h^2 [f' | A']``.
+    """
+    S, G, M = z.shape
+    h = (t[1:] - t[:-1]).reshape(1, G - 1, 1)
+    moving = ((lin.f != 0) | (lin.f_dot != 0) | (lin.jac != 0).any(dim=-1) | (lin.jac_dot != 0).any(dim=-1))
+    moving = moving.flatten(0, 1).any(dim=0)  # (M,); NaN counts as moving
+    index = torch.arange(M, device=z.device)
+    order = torch.cat([index[moving], index[~moving], torch.tensor([M], device=z.device)])
+    perm = order[:-1]
+    act = perm[:int(moving.sum())]
+    a = act.numel()
+    zp, zdp = z[..., perm], z_dot[..., perm]
+    fJ = torch.cat([lin.f[..., act].unsqueeze(-1), lin.jac[..., act, :][..., perm]], dim=-1).flatten(-2)
+    fJd = torch.cat([lin.f_dot[..., act].unsqueeze(-1), lin.jac_dot[..., act, :][..., perm]], dim=-1).flatten(-2)
+    blocks = []
+    for side in (slice(0, G - 1), slice(1, G)):
+        blocks.append(torch.cat([zp[:, side], fJ[:, side] * h], dim=-1))
+        blocks.append(torch.cat([zdp[:, side] * h, fJd[:, side] * (h * h)], dim=-1))
+    data = torch.stack(blocks)  # (4, S, G-1, Q): values and slopes at the start, then at the end
+    coefficients = object.__new__(_Coefficients)
+    coefficients.order, coefficients.a, coefficients.M = order, a, M
+    coefficients.data = data.permute(0, 3, 1, 2).reshape(4, M + a * (M + 1), S * (G - 1))
+    return coefficients
+
+
+def _transfers_each(coefficients: _Coefficients, rtol: float, atol: float, max_substeps: int,
+                    steps: torch.Tensor | None = None):
+    """As :func:`torchql.transfer.interval_transfers`, but an interval that fails is marked, not raised.
+
+    ``steps (N,)``: RK4 steps (of the finer of each pair, powers of two) to start each interval
+    with, e.g. what it needed at the previous iterate (default 2, as ``interval_transfers``).
+    Returns ``Y (a, M+1, N)``, the stored order ``(M+1,)``, ``failed (N,)`` bool, the steps to
+    start with next time (halved where the error was far below the tolerance) and the
+    evaluations (points).
+    """
+    N = coefficients.intervals
+    if steps is None:
+        Y, ratio, n_evals = _rk4_pair(coefficients, None, 1, rtol, atol)
+        n_evals *= N
+        steps = torch.full_like(ratio, 2, dtype=torch.long)
+    else:
+        steps = steps.clamp(2, max_substeps).clone()
+        Y = coefficients.data.new_empty(coefficients.a, coefficients.M + 1, N)
+        ratio = coefficients.data.new_empty(N)
+        n_evals = 0
+        for n_fine in steps.unique().tolist():
+            group = (steps == n_fine).nonzero().squeeze(-1)
+            Y[..., group], ratio[group], evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
+            n_evals += evals * group.numel()
+    failed = torch.zeros_like(ratio, dtype=torch.bool)
+    while True:
+        bad = ~(ratio <= 1.0) & ~failed
+        if not bool(bad.any()):
+            break
+        index = bad.nonzero().squeeze(-1)
+        current = steps[index]
+        capped = current >= max_substeps
+        if bool(capped.any()):
+            failed[index[capped]] = True
+            index, current = index[~capped], current[~capped]
+            if not index.numel():
+                break
+        r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
+        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
+        wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
+        for n_fine in wanted.unique().tolist():
+            group = index[wanted == n_fine]
+            Y_g, ratio_g, evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
+            Y[..., group], ratio[group], steps[group] = Y_g, ratio_g, n_fine
+            n_evals += evals * group.numel()
+    failed |= ~torch.isfinite(Y).flatten(0, 1).all(dim=0)
+    easy = ratio * 16 * _SAFETY < 1.0
+    next_steps = torch.where(easy, (steps // 2).clamp(min=2), steps)
+    return Y, coefficients.order, failed, next_steps, n_evals
+
+
+def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
+                           rtol: float, atol: float, max_substeps: int = 1024, steps: torch.Tensor | None = None
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """Particular and homogeneous solutions of ``S`` samples' quasilinear systems on the grid ``t``.
+
+    Parameters
+    ----------
+    t : Tensor ``(G,)``
+        The grid, shared by the samples.
+    z, z_dot : Tensor ``(S, G, M)``
+        Each sample's reference and its slopes at the nodes.
+    lin : Linearization
+        ``f (S, G, M)``, ``jac (S, G, M, M)``, ``f_dot``, ``jac_dot`` along each reference.
+    w0 : Tensor ``(S, M, 1 + m)``
+        Initial columns (particular first).
+    rtol, atol : float
+        Tolerances of a whole propagation, as :func:`torchql.superposition.propagate_linear`
+        (each interval gets them divided by ``sqrt(G - 1)``).
+    max_substeps : int
+        Most RK4 steps on one interval.
+    steps : Tensor ``(S, G - 1)`` of int, optional
+        RK4 steps to try first on each interval (what the previous propagation returned: the
+        reference changes little from one iterate to the next); default 2, then refined.
+
+    Returns
+    -------
+    W : Tensor ``(S, G, M, 1 + m)``
+        The columns at every node (NaN for failed samples).
+    failed : bool Tensor ``(S,)``
+        Samples with an interval that could not meet the tolerance or became non-finite.
+    steps : Tensor ``(S, G - 1)``
+        The steps to try first next time.
+    n_evals : int
+        Coefficient evaluations (points: one interval at one local time counts one).
+    """
+    S, G, M = z.shape
+    cols = w0.shape[-1]
+    if G == 1:
+        no = torch.zeros(S, 0, dtype=torch.long, device=z.device)
+        return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), no, 0
+    N = G - 1
+    tiny = 10 * torch.finfo(z.dtype).eps
+    rtol_j, atol_j = max(rtol / N**0.5, tiny), max(atol / N**0.5, tiny)
+    coefficients = _coefficients(t, z, z_dot, lin)
+    Y, order, failed_int, next_steps, n_evals = _transfers_each(
+        coefficients, rtol_j, atol_j, max_substeps, None if steps is None else steps.reshape(-1))
+    failed = failed_int.reshape(S, N).any(dim=1)
+    a, P = Y.shape[0], Y.shape[1]
+    Yb = Y.reshape(a, P, S, N).permute(2, 0, 1, 3)  # (S, a, M+1, N)
+    one = torch.zeros(S, 1, cols, dtype=w0.dtype, device=w0.device)
+    one[:, 0, 0] = 1.0
+    w = torch.cat([w0, one], dim=1)[:, order]  # (S, M+1, cols)
+    W = w0.unsqueeze(1).repeat(1, G, 1, 1)
+    if a:
+        Pr = prefix_products(Yb)  # (S, a, M+1, N)
+        W[:, 1:, order[:a]] = torch.einsum("sapn,spc->snac", Pr, w)
+    W[failed] = float("nan")
+    return W, failed, next_steps.reshape(S, N), n_evals
+
+
+def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
+    """``phi (N, M)``, ``S (N, M, M)`` of every interval and ``failed (N,)``; ``steps`` updated in place."""
+    N, M = x0.shape
+    phi = x0.new_empty(N, M)
+    S = x0.new_empty(N, M, M)
+    ratio = x0.new_empty(N)
+    failed = torch.zeros(N, dtype=torch.bool, device=x0.device)
+    n_evals = 0
+    todo = torch.arange(N, device=x0.device)
+    while todo.numel():
+        for n in steps[todo].unique().tolist():
+            group = todo[steps[todo] == n]
+            p, s, r, evals = _grid_rk4_pair(field, t0[group], h[group], x0[group], n, rtol, atol)
+            phi[group], S[group], ratio[group] = p, s, r
+            n_evals += evals * group.numel()
+        todo = todo[~(ratio[todo] <= 1.0)]
+        if not todo.numel():
+            break
+        current = steps[todo]
+        capped = 2 * current >= max_substeps
+        failed[todo[capped]] = True
+        todo, current = todo[~capped], current[~capped]
+        r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
+        factor = torch.ceil(torch.log2((_GRID_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
+        steps[todo] = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps // 2))
+    return phi, S, failed, n_evals
+
+
+def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
+                        guess: torch.Tensor | None = None, max_newton: int = 25, max_substeps: int = 1024
+                        ) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The augmented model ``z' = f(t, z)`` from ``z0 (S, M)`` at the nodes of ``grid``, by multiple shooting.
+
+    Each sample's coefficients are its trailing components of ``z``, so one vmapped right-hand
+    side serves every sample. Intervals of all samples are integrated at once, each with its
+    own step count and error test; Newton's correction is composed per sample by the prefix
+    scan, and a sample leaves the work when its correction falls below the tolerance.
+
+    Parameters
+    ----------
+    system : AugmentedSystem
+    z0 : Tensor ``(S, M)``
+    grid : Tensor ``(G,)``
+    rtol, atol : float
+        Tolerances of one sample's whole solution (per interval divided by ``sqrt(G - 1)``).
+    guess : Tensor ``(S, G, M)``, optional
+        Node values to start Newton from (default ``z0`` at every node).
+    max_newton, max_substeps : int
+        As in :func:`torchql.grid_solve.solve_on_grid`.
+
+    Returns
+    -------
+    traj : Tensor ``(S, G, M)``
+        The solutions (NaN where ``ok`` is false).
+    ok : bool Tensor ``(S,)``
+        Samples whose Newton iteration converged with every interval within tolerance.
+    n_evals : int
+        Evaluations of ``f`` (points of the batched calls).
+    """
+    S, M = z0.shape
+    G = grid.shape[0]
+    X = z0.unsqueeze(1).expand(S, G, M).clone() if guess is None else guess.detach().clone()
+    X[:, 0] = z0
+    ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
+    if G == 1:
+        return X, ~ok, 0
+    N = G - 1
+    tiny = 10 * torch.finfo(z0.dtype).eps
+    rtol_j, atol_j = max(rtol / N**0.5, tiny), max(atol / N**0.5, tiny)
+    field = _Field(system.f)
+    active = torch.arange(S, device=z0.device)
+    steps = torch.ones(S, N, dtype=torch.long, device=z0.device)
+    t0, h = grid[:-1], grid[1:] - grid[:-1]
+    n_evals = 0
+    for _ in range(max_newton):
+        if not active.numel():
+            break
+        A = active.numel()
+        Xa = X[active]
+        st = steps[active].reshape(-1)
+        phi, Sj, failed, evals = _integrate_each(field, t0.repeat(A), h.repeat(A), Xa[:, :-1].reshape(-1, M), st,
+                                                 rtol_j, atol_j, max_substeps)
+        steps[active] = st.reshape(A, N)
+        n_evals += evals
+        failed = failed.reshape(A, N).any(dim=1)
+        defect = phi.reshape(A, N, M) - Xa[:, 1:]
+        # delta_{j+1} = S_j delta_j + d_j, delta_0 = 0: the affine recurrence, by the prefix scan
+        Y = torch.cat([Sj.reshape(A, N, M, M), defect.unsqueeze(-1)], dim=-1).permute(0, 2, 3, 1)  # (A, M, M+1, N)
+        delta = prefix_products(Y)[:, :, M, :].transpose(1, 2)  # (A, N, M)
+        finite = torch.isfinite(delta).flatten(1).all(dim=1)
+        Xa = Xa.clone()
+        Xa[:, 1:] = Xa[:, 1:] + delta
+        small = (delta.abs() <= 0.1 * (atol + rtol * Xa[:, 1:].abs())).flatten(1).all(dim=1)
+        X[active] = Xa
+        done = small & finite & ~failed
+        ok[active[done]] = True
+        active = active[~done & finite & ~failed]
+    X[~ok] = float("nan")
+    return X, ok, n_evals
+
+
+def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, solver: str, rtol: float,
+                   atol: float, hit: torch.Tensor, max_steps: int | None = None) -> tuple[torch.Tensor, list, int]:
+    """Each sample's model integrated on its own by torchdiffeq (the fallback of :func:`solve_on_grid_batch`).
+
+    Returns ``traj (S, G, M)`` (NaN for failures), one error message or ``None`` per sample,
+    and the right-hand-side evaluations.
+    """
+    S, M = z0.shape
+    n = system.n
+    out = z0.new_full((S, grid.shape[0], M), float("nan"))
+    errors: list = [None] * S
+    n_evals = 0
+    for s in range(S):
+        model = system.model_with(z0[s, n:])
+        counter = _Counter(model)
+        try:
+            with torch.no_grad():
+                x = solve(counter, z0[s, :n], grid, solver=solver, rtol=rtol, atol=atol, hit=hit,
+                          max_steps=max_steps)
+            out[s, :, :n] = x
+            out[s, :, n:] = z0[s, n:]
+        except IntegrationError as exc:
+            errors[s] = str(exc)
+        n_evals += counter.n_evals
+    return out, errors, n_evals
+
+
+class _Counter:
+    def __init__(self, func) -> None:
+        self.func, self.n_evals = func, 0
+
+    def __call__(self, t, y):
+        self.n_evals += 1
+        return self.func(t, y)
+
+
+
+# Dormand–Prince 5(4) tableau (the dopri5 of torchdiffeq and scipy's RK45)
+_DP_C = (0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0)
+_DP_A = (
+    (),
+    (1 / 5,),
+    (3 / 40, 9 / 40),
+    (44 / 45, -56 / 15, 32 / 9),
+    (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
+    (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
+    (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
+)
+#: Fifth-order weights minus the embedded fourth-order ones: the local error estimate.
+_DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
+
+
+def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
+                max_steps: int = 100_000) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The augmented model from ``z0 (S, M)`` over ``grid`` by Dormand–Prince 5(4), each sample its own steps.
+
+    Every sample has its own time, step size and accept/reject decision (error in the RMS norm
+    of its own states, ``atol + rtol * max(|x|, |x_new|)``, as torchdiffeq's ``dopri5``); steps
+    are shortened to land on the grid nodes, so the values there are the solver's own, not
+    interpolated. A round advances every unfinished sample by one trial step; only those
+    samples are evaluated.
+
+    Returns ``traj (S, G, M)`` (NaN where it failed), ``ok (S,)`` (false when a sample's
+    solution became non-finite, its step size underflowed or it took more than ``max_steps``
+    steps) and the right-hand-side evaluations (points).
+    """
+    S, M = z0.shape
+    n = system.n
+    G = grid.shape[0]
+    dtype, device = z0.dtype, z0.device
+    out = z0.new_full((S, G, M), float("nan"))
+    out[:, 0] = z0
+    ok = torch.isfinite(z0).all(dim=1)
+    if G == 1:
+        return out, ok, 0
+    fv = torch.vmap(system.f)
+    x = z0.clone()
+    t = grid[0].expand(S).clone()
+    node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach
+    k1 = fv(t, x)
+    evals = S
+    # initial step (Hairer's heuristic, per sample)
+    scale = atol + rtol * x[:, :n].abs()
+    d0 = (x[:, :n] / scale).square().mean(dim=1).sqrt()
+    d1 = (k1[:, :n] / scale).square().mean(dim=1).sqrt()
+    span = grid[-1] - grid[0]
+    h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
+    h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
+    steps = torch.zeros(S, dtype=torch.long, device=device)
+    active = ok.nonzero().flatten()
+    while active.numel():
+        xa, ta, ka, ha = x[active], t[active], k1[active], h[active]
+        target = grid[node[active]]
+        gap = target - ta
+        clipped = ha >= gap
+        he = torch.where(clipped, gap, ha)
+        hc = he.unsqueeze(-1)
+        ks = [ka]
+        for i in range(1, 7):
+            xi = xa + hc * sum(a * k for a, k in zip(_DP_A[i], ks) if a != 0.0)
+            ks.append(fv(ta + _DP_C[i] * he, xi))
+        evals += 6 * active.numel()
+        x_new = xa + hc * sum(b * k for b, k in zip(_DP_A[6], ks[:6]) if b != 0.0)
+        err = hc * sum(e * k for e, k in zip(_DP_E, ks) if e != 0.0)
+        sc = atol + rtol * torch.maximum(xa[:, :n].abs(), x_new[:, :n].abs())
+        ratio = (err[:, :n] / sc).square().mean(dim=1).sqrt()
+        finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
+        accept = finite & (ratio <= 1.0)
+        factor = torch.where(ratio > 0, 0.9 * ratio.clamp(min=1e-10) ** -0.2, torch.full_like(ratio, 10.0))
+        factor = factor.nan_to_num(nan=0.2).clamp(0.2, 10.0)
+        factor = torch.where(accept, factor, factor.clamp(max=1.0))
+        h_next = he * factor
+        h_next = torch.where(accept & clipped, torch.maximum(h_next, ha), h_next)
+        # accepted steps advance; those landing on a node record it
+        t_new = torch.where(clipped, target, ta + he)
+        x[active] = torch.where(accept.unsqueeze(-1), x_new, xa)
+        t[active] = torch.where(accept, t_new, ta)
+        k1[active] = torch.where(accept.unsqueeze(-1), ks[6], ka)
+        h[active] = h_next
+        steps[active] += 1
+        landed = accept & clipped
+        if bool(landed.any()):
+            rows = active[landed]
+            out[rows, node[rows]] = x_new[landed]
+            node[rows] += 1
+        finished = node[active] >= G
+        underflow = h_next <= 10 * torch.finfo(dtype).eps * ta.abs().clamp(min=1.0)
+        bad = (underflow | (steps[active] >= max_steps)) & ~finished
+        ok[active[bad]] = False
+        active = active[ok[active] & ~finished]
+    out[~ok] = float("nan")
+    return out, ok, evals
