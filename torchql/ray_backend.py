@@ -1,0 +1,196 @@
+"""``fit_many_ray``: a very large collection of datasets fitted on a Ray cluster, in batches.
+
+The datasets are split into consecutive batches of ``batch_size``; each batch is one Ray task
+running :func:`torchql.fit_many` on a worker, and the results are gathered in input order
+into one :class:`~torchql.BatchFitResult`. Each sample's result is the one ``fit_many``
+gives it (the samples are independent), so the split changes nothing but the wall time.
+
+Ray is an optional dependency: ``pip install "torchql[ray]"``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+
+from . import _checks
+from .batch import fit_many
+from .batch_result import BatchFitResult
+from .model import ODEModel
+from .observations import Observations
+
+__all__ = ["fit_many_ray"]
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as exc:  # pragma: no cover - exercised only without ray installed
+        raise ImportError('torchql.fit_many_ray needs Ray: pip install "torchql[ray]"') from exc
+    return ray
+
+
+def fit_many_ray(
+    model: ODEModel,
+    data: Sequence[Observations],
+    x0=None,
+    *,
+    guesses: dict | None = None,
+    batch_size: int = 1024,
+    address: str | None = None,
+    num_cpus: int | None = None,
+    num_cpus_per_task: float = 1,
+    torch_threads: int = 1,
+    progress: bool | Callable[[int, int], None] = False,
+    **options,
+) -> BatchFitResult:
+    """Fit ``B`` independent datasets on a Ray cluster: :func:`torchql.fit_many` per batch, results in input order.
+
+    Parameters
+    ----------
+    model, data, x0, guesses
+        As in :func:`torchql.fit_many` (``data`` a list of ``B`` Observations; ``x0``
+        ``(B, n_states)`` or ``(n_states,)``; ``guesses`` values ``(B, ...)`` or shared).
+    batch_size : int
+        Datasets per Ray task (default 1024). Larger batches vectorize better; more batches
+        than workers keep every worker busy.
+    address : str, optional
+        Ray cluster to connect to (``"auto"``, ``"ray://host:10001"``). Without it, and if Ray is
+        not initialized yet, a local instance is started with ``num_cpus`` CPUs (and shut down
+        at the end); an already initialized Ray is used as it is.
+    num_cpus : int, optional
+        CPUs of the local instance started here (default: all).
+    num_cpus_per_task : float
+        CPUs Ray reserves per task (default 1).
+    torch_threads : int
+        ``torch.set_num_threads`` in each task (default 1: one task per reserved CPU).
+    progress : bool or callable
+        As in ``fit_many``, counting the datasets of the batches finished.
+    **options
+        Any other keyword of :func:`torchql.fit_many` (``params``, ``fixed_x0``, ``t0``,
+        ``max_iter``, tolerances, ``grid``, ...), the same for every batch.
+
+    Returns
+    -------
+    BatchFitResult
+        One result for all ``B`` datasets, in input order (``nfev`` summed over the batches).
+
+    Raises
+    ------
+    ImportError
+        When Ray is not installed (``pip install "torchql[ray]"``).
+    TypeError, ValueError
+        For invalid arguments, before any task is submitted.
+    """
+    ray = _import_ray()
+    batch_size = _checks.positive_int("batch_size", batch_size)
+    torch_threads = _checks.positive_int("torch_threads", torch_threads)
+    if isinstance(data, Observations):
+        raise TypeError("`data` must be a list of torchql.Observations (one per dataset) for fit_many_ray; "
+                        "received a single Observations")
+    if not isinstance(data, (list, tuple)):
+        raise TypeError(f"`data` must be a list of torchql.Observations (one per dataset); received {type(data).__name__}")
+    datasets = list(data)
+    B = len(datasets)
+    if B == 0:
+        raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
+    for i, d in enumerate(datasets):
+        if not isinstance(d, Observations):
+            raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
+        if d.t.shape != datasets[0].t.shape or not torch.equal(d.t.to(datasets[0].t.dtype), datasets[0].t):
+            raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs shared "
+                             "times t (T,)")
+    if "progress" in options or "chunk_size" in options and not isinstance(options["chunk_size"], int):
+        raise TypeError("`progress` of fit_many_ray counts finished batches; pass it as `progress=`")
+    # validate the other arguments once, here, so that a bad one fails before the cluster is used
+    fit_many(model, datasets[:1], _rows(x0, B, 0, 1), guesses=_rows_dict(guesses, B, 0, 1),
+             **{**options, "max_iter": 0})
+
+    started = False
+    if not ray.is_initialized():
+        if address is None:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+        started = True
+    try:
+        task = ray.remote(num_cpus=num_cpus_per_task)(_fit_batch)
+        model_ref = ray.put(model)
+        pending = {}
+        for start in range(0, B, batch_size):
+            stop = min(B, start + batch_size)
+            ref = task.remote(model_ref, datasets[start:stop], _rows(x0, B, start, stop),
+                              _rows_dict(guesses, B, start, stop), options, torch_threads)
+            pending[ref] = (start, stop)
+        report = _reporter(progress, B)
+        parts: dict[int, BatchFitResult] = {}
+        done = 0
+        waiting = list(pending)
+        while waiting:
+            ready, waiting = ray.wait(waiting, num_returns=1)
+            for ref in ready:
+                start, stop = pending[ref]
+                parts[start] = ray.get(ref)
+                done += stop - start
+                report(done)
+        report(None)
+    finally:
+        if started:
+            ray.shutdown()
+    return concatenate([parts[k] for k in sorted(parts)])
+
+
+def _fit_batch(model, datasets, x0, guesses, options, torch_threads) -> BatchFitResult:
+    """One Ray task: ``fit_many`` on one batch (runs on a worker)."""
+    torch.set_num_threads(torch_threads)
+    return fit_many(model, datasets, x0, guesses=guesses, **options)
+
+
+def _rows(x0, B: int, start: int, stop: int):
+    """Rows ``start:stop`` of a per-sample ``x0 (B, n)``; a shared ``(n,)`` or ``None`` as it is."""
+    if x0 is None:
+        return None
+    x = torch.as_tensor(x0)
+    return x[start:stop] if x.dim() == 2 and x.shape[0] == B else x
+
+
+def _rows_dict(guesses, B: int, start: int, stop: int):
+    if guesses is None or not isinstance(guesses, dict):
+        return guesses
+    out = {}
+    for name, value in guesses.items():
+        v = torch.as_tensor(value)
+        out[name] = v[start:stop] if v.dim() >= 1 and v.shape[0] == B else v
+    return out
+
+
+def _reporter(progress, total: int):
+    from .batch import _progress
+
+    return _progress(progress, total)
+
+
+def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
+    """One :class:`BatchFitResult` from consecutive parts (same model, unknowns and settings), in order."""
+    first = parts[0]
+    return BatchFitResult(
+        success=torch.cat([p.success for p in parts]),
+        status=[s for p in parts for s in p.status],
+        message=[m for p in parts for m in p.message],
+        params={name: torch.cat([p.params[name] for p in parts]) for name in first.params},
+        x0=torch.cat([p.x0 for p in parts]),
+        t0=first.t0,
+        unknown_names=list(first.unknown_names),
+        estimates=torch.cat([p.estimates for p in parts]),
+        iterations=torch.cat([p.iterations for p in parts]),
+        sse=torch.cat([p.sse for p in parts]),
+        covariance=torch.cat([p.covariance for p in parts]),
+        n_observations=torch.cat([p.n_observations for p in parts]),
+        dof=torch.cat([p.dof for p in parts]),
+        residual_variance=torch.cat([p.residual_variance for p in parts]),
+        sigma_known=first.sigma_known,
+        nfev=int(math.fsum(p.nfev for p in parts)),
+        model=first.model,
+    )
