@@ -29,7 +29,7 @@ from . import _checks
 from .bounds import Bounds
 from .integrate import IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
-from .grid_solve import solve_on_grid
+from .grid_solve import IntervalBudgetError, solve_on_grid
 from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
@@ -144,6 +144,7 @@ def fit(
     max_steps : int, optional
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
         grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.
+        It caps the grid solver's RK4 steps per interval too (see ``linear_solver``).
     damping : {"lm", None}
         ``"lm"`` (default): globalized by Levenberg–Marquardt damping. The undamped
         quasilinearization step is always tried first and kept when it lowers the sum of
@@ -154,8 +155,11 @@ def fit(
         How the linear (particular and homogeneous) system is propagated over the grid: one of
         ``torchql.LINEAR_SOLVERS``. ``"rk4_doubling"`` (default): every grid interval's transfer
         matrix at once by RK4 with step-doubling error control, composed by a parallel prefix
-        scan; ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with ``solver``.
-        ``solver`` integrates the nonlinear model in either case.
+        scan; the nonlinear model too is then solved on the grid (every interval at once by RK4,
+        the nodes matched by Newton's method, :mod:`torchql.grid_solve`) wherever a prediction of
+        its trajectory is at hand (the first reference, trial steps, the final pass), falling back
+        to ``solver``. ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with
+        ``solver``, which integrates the nonlinear model too.
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
 
@@ -453,7 +457,8 @@ class _Problem:
             trajectory_t=trajectory_t,
         )
 
-    def _forward(self, z0: torch.Tensor, loose: bool = False, guess: torch.Tensor | None = None) -> torch.Tensor:
+    def _forward(self, z0: torch.Tensor, loose: bool = False, guess: torch.Tensor | None = None,
+                 budget_is_final: bool = False) -> torch.Tensor:
         """The nonlinear model integrated from ``z0 (M,)`` over the grid: ``(G, M)``.
 
         Observation times are grid nodes the solver steps onto exactly. ``loose`` integrates
@@ -464,19 +469,31 @@ class _Problem:
         solution), lets the grid solver (:func:`~torchql.grid_solve.solve_on_grid`: every grid
         interval integrated at once, the nodes matched by Newton's method) replace the adaptive
         solver when ``linear_solver="rk4_doubling"``. If Newton does not settle within
-        ``_GRID_NEWTON`` iterations or an interval needs more than ``_GRID_SUBSTEPS`` steps, the
-        adaptive solver integrates as without a guess.
+        ``_GRID_NEWTON`` iterations or an interval needs more than ``_GRID_SUBSTEPS`` steps
+        (``_GRID_SUBSTEPS_LOOSE`` when ``loose``), the
+        adaptive solver integrates as without a guess; with ``budget_is_final`` the latter is
+        taken as the blow-up it nearly always is, and raised (a trial step's second opinion:
+        the adaptive solver would only crawl to the same failure).
         """
         n = self.system.n
         counter = _Counter(self.system.model_with(z0[n:]))
         rtol = max(self.rtol, _LOOSE_RTOL) if loose else self.rtol
         atol = self.atol * rtol / self.rtol
         x = None
+        substeps = _GRID_SUBSTEPS_LOOSE if loose else _GRID_SUBSTEPS
+        if self.max_steps is not None:  # the user's step budget per grid interval binds this solver too
+            substeps = min(substeps, 1 << (self.max_steps.bit_length() - 1))
         with torch.no_grad():
-            if guess is not None and self.linear_solver == "rk4_doubling" and bool(torch.isfinite(guess).all()):
+            if (guess is not None and self.linear_solver == "rk4_doubling" and substeps >= 2
+                    and bool(torch.isfinite(guess).all())):
                 try:
                     x, _ = solve_on_grid(counter, z0[:n], self.grid, rtol=rtol, atol=atol, guess=guess[:, :n],
-                                         max_newton=_GRID_NEWTON, max_substeps=_GRID_SUBSTEPS)
+                                         max_newton=_GRID_NEWTON, max_substeps=substeps)
+                except IntervalBudgetError:
+                    if budget_is_final:
+                        self.nfev += counter.n_evals
+                        raise
+                    x = None
                 except IntegrationError:
                     x = None
             if x is None:
@@ -504,7 +521,8 @@ class _Problem:
     def _initial_reference(self) -> LinearizedReference:
         system, grid = self.system, self.grid
         if self.initial_trajectory == "integrate":
-            z_ref = self._forward(self.z0, loose=True)
+            # from a constant guess: one Newton step when the states enter linearly, else a few
+            z_ref = self._forward(self.z0, loose=True, guess=self.z0.expand(grid.shape[0], -1))
             lin = linearize(system, grid, z_ref)
             return LinearizedReference(grid, z_ref, lin.f, lin)
         z_ref = self.z0.unsqueeze(0).repeat(grid.shape[0], 1)
@@ -787,9 +805,8 @@ class _Problem:
         """
         if it.nonlinear_sse is None:
             try:
-                # to compare two iterates far from the optimum (where the grid solver, from a
-                # linear prediction, would often fail only to hand over to the adaptive one)
-                z_traj = self._forward(it.z0, loose=True)
+                # to rank two iterates far from the optimum; the particular solution predicts it
+                z_traj = self._forward(it.z0, loose=True, guess=it.W[:, :, 0], budget_is_final=True)
                 it.nonlinear_sse = self._merit(self._residual(z_traj[self.obs_in_grid]))
                 it.nonlinear_traj = z_traj
             except IntegrationError:
@@ -960,7 +977,7 @@ _DERIVE_STEPS = 8
 _GRID_NEWTON = 8
 #: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
 #: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
-_GRID_SUBSTEPS = 16
+_GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the

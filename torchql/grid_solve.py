@@ -25,10 +25,19 @@ from torch.func import jacrev, vmap
 from .integrate import IntegrationError
 from .transfer import Transfers, compose_transfers
 
-__all__ = ["GridSolveInfo", "solve_on_grid"]
+__all__ = ["GridSolveInfo", "IntervalBudgetError", "solve_on_grid"]
 
 #: Safety factor on the predicted number of steps.
 _SAFETY = 2.0
+
+
+class IntervalBudgetError(IntegrationError):
+    """An interval of the grid cannot be integrated to the tolerance within ``max_substeps`` steps.
+
+    From node values that Newton has already matched, this usually means the solution grows
+    without bound (or is too stiff for the grid); a caller that must tell a blow-up from a
+    poor guess catches it apart from the other :class:`IntegrationError`.
+    """
 
 
 class GridSolveInfo(NamedTuple):
@@ -87,7 +96,8 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     Raises
     ------
     IntegrationError
-        When Newton does not converge in ``max_newton`` iterations, an interval cannot meet the
+        When Newton does not converge in ``max_newton`` iterations (or its correction grows
+        again from the third iteration on: the guess is outside its basin), an interval cannot meet the
         tolerance with ``max_substeps`` steps, or the solution becomes non-finite.
     """
     if max_substeps < 2 or max_substeps & (max_substeps - 1):
@@ -104,6 +114,7 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     t0, h = grid[:-1], grid[1:] - grid[:-1]
     steps = torch.full((intervals,), 1, dtype=torch.long, device=grid.device)  # coarse steps per interval
     n_evals = 0
+    previous = float("inf")  # the last Newton correction's size
     for iteration in range(1, max_newton + 1):
         phi, S, evals = _integrate_controlled(field, t0, h, X[:-1], steps, rtol_j, atol_j, max_substeps, grid)
         n_evals += evals
@@ -117,6 +128,11 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
         if not torch.isfinite(delta).all():
             raise IntegrationError("the solution on the grid became non-finite (NaN or inf)")
         X = X + delta
+        size = float(delta.abs().max())
+        if iteration >= 3 and size > previous:
+            raise IntegrationError(f"Newton on the node defects is not converging (correction {size:.3g} after "
+                                   f"{previous:.3g}); pass a closer `guess`")
+        previous = size
         small = (delta.abs() <= 0.1 * (atol + rtol * X.abs())).all()
         if bool(small):
             max_defect = float(defect.abs().max())
@@ -164,7 +180,7 @@ def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, gri
         current = steps[todo]
         if bool((2 * current >= max_substeps).any()):
             worst = todo[ratio[todo].nan_to_num(nan=float("inf")).argmax()]
-            raise IntegrationError(
+            raise IntervalBudgetError(
                 f"the nonlinear model could not be integrated to the tolerance over the grid interval starting "
                 f"at t = {float(grid[worst]):.6g} with {max_substeps} RK4 steps; refine the grid or loosen `rtol`/`atol`")
         r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
