@@ -179,7 +179,7 @@ def test_bad_data_is_named():
         torchql.fit_many(model, [], x0)
     with pytest.raises(TypeError, match="list of torchql.Observations"):
         torchql.fit_many(model, data[0].y, x0)
-    with pytest.raises(ValueError, match="single dataset: use torchql.fit"):
+    with pytest.raises(TypeError, match="single dataset: use torchql.fit"):
         torchql.fit_many(model, data[0], x0[0])
     with pytest.raises(TypeError, match=r"`data\[1\]` must be a torchql.Observations"):
         torchql.fit_many(model, [data[0], "log"], x0)

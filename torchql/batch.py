@@ -59,7 +59,7 @@ _RUNNING = -1
 
 def fit_many(
     model: ODEModel,
-    data: Sequence[Observations] | Observations,
+    data: Sequence[Observations],
     x0=None,
     *,
     params: Sequence[str] | None = None,
@@ -86,10 +86,11 @@ def fit_many(
     model : ODEModel
         The model; its buffer values are the guesses (unless ``guesses`` gives per-sample
         ones). Never modified.
-    data : list of Observations, or Observations with ``y (B, T, K)``
-        The ``B`` datasets. They must share the observation times ``t (T,)``, the ``observe``
-        specification and whether ``sigma`` was given; each has its own values, missing values
-        (NaN) and ``sigma``. An :class:`Observations` whose ``y`` is ``(B, T, K)`` is the same.
+    data : list of Observations
+        The ``B`` datasets, stacked to values ``(B, T, K)``. They must share the observation
+        times ``t (T,)``, the ``observe`` specification (the same names, matrix, or callable
+        object) and whether ``sigma`` was given; each has its own values, missing values (NaN)
+        and ``sigma``. Values marked ``exact`` are not supported (use :func:`torchql.fit`).
     x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
         Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
         every state must be observed directly at ``t0`` in every sample.
@@ -335,56 +336,42 @@ class _Spec:
     # ------------------------------------------------------------------------------------------
     def _stack(self, data, dtype, device) -> None:
         if isinstance(data, Observations):
-            if data.y.dim() != 3:
-                raise ValueError("`data` must be a list of torchql.Observations (one per dataset) or an "
-                                 f"Observations with values y of shape (B, T, K); received y of shape "
-                                 f"{tuple(data.y.shape)} (a single dataset: use torchql.fit)")
-            items = None
-        elif isinstance(data, (list, tuple)):
-            if len(data) == 0:
-                raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
-            for i, d in enumerate(data):
-                if not isinstance(d, Observations):
-                    raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
-            items = list(data)
-        else:
+            raise TypeError("`data` must be a list of torchql.Observations (one per dataset); received a single "
+                            "Observations (a single dataset: use torchql.fit, or pass [data])")
+        if not isinstance(data, (list, tuple)):
             raise TypeError("`data` must be a list of torchql.Observations (one per dataset); received "
                             f"{type(data).__name__}")
-        if items is None:
-            first = data
-            self.B = data.y.shape[0]
-            y, sigma, exact = data.y, data.sigma, data.exact
-            if self.B == 0:
-                raise ValueError("`data` holds no dataset (B = 0)")
-        else:
-            first = items[0]
-            for i, d in enumerate(items[1:], start=1):
-                if d.y.dim() != 2:
-                    raise ValueError(f"`data[{i}]` must hold one dataset, y of shape (T, K); received "
-                                     f"{tuple(d.y.shape)}")
-                if d.t.shape != first.t.shape or not torch.equal(d.t.to(first.t.dtype), first.t):
-                    raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs "
-                                     "shared times t (T,); fit datasets with other times separately (torchql.fit)")
-                if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
-                    raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
-                                     "fit_many needs one observation operator for all datasets")
-                if d.sigma_given != first.sigma_given:
-                    raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
-                                     f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
-            if first.y.dim() != 2:
-                raise ValueError(f"`data[0]` must hold one dataset, y of shape (T, K); received {tuple(first.y.shape)}")
-            self.B = len(items)
-            y = torch.stack([d.y.to(dtype) for d in items])
-            sigma = torch.stack([d.sigma.to(dtype) for d in items])
-            exact = torch.stack([d.exact for d in items])
+        if len(data) == 0:
+            raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
+        for i, d in enumerate(data):
+            if not isinstance(d, Observations):
+                raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
+        items = list(data)
+        first = items[0]
+        for i, d in enumerate(items[1:], start=1):
+            if d.t.shape != first.t.shape or not torch.equal(d.t.to(first.t.dtype), first.t):
+                raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs "
+                                 "shared times t (T,); fit datasets with other times separately (torchql.fit)")
+            if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
+                raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
+                                 "fit_many needs one observation operator for all datasets (the same names, matrix "
+                                 "or callable object)")
+            if d.sigma_given != first.sigma_given:
+                raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
+                                 f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
+        self.B = len(items)
+        exact = torch.stack([d.exact for d in items])
         if bool(exact.any()):
-            i = int(exact.flatten(1).any(dim=1).nonzero()[0, 0]) if exact.dim() == 3 else 0
+            i = int(exact.flatten(1).any(dim=1).nonzero()[0, 0])
             raise ValueError(f"`data[{i}]` marks values `exact`: fit_many does not support exact values; fit such "
                              "datasets with torchql.fit")
-        if torch.finfo(y.dtype).eps > torch.finfo(dtype).eps:
-            warnings.warn(f"`data` holds {y.dtype} values but the model computes in {dtype}: the data's own rounding "
-                          "limits the fit's accuracy; build the Observations from float64 tensors",
-                          UserWarning, stacklevel=4)
+        coarse = [i for i, d in enumerate(items) if torch.finfo(d.y.dtype).eps > torch.finfo(dtype).eps]
+        y = torch.stack([d.y.to(dtype) for d in items])
+        sigma = torch.stack([d.sigma.to(dtype) for d in items])
+        if coarse:
+            warnings.warn(f"`data[{coarse[0]}]` holds {items[coarse[0]].y.dtype} values but the model computes in "
+                          f"{dtype}: the data's own rounding limits the fit's accuracy; build the Observations from "
+                          "float64 tensors", UserWarning, stacklevel=4)
         self.t = first.t.to(dtype=dtype, device=device)
         self.observe = first.observe
         self.K = y.shape[-1]

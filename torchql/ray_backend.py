@@ -102,8 +102,6 @@ def fit_many_ray(
         if d.t.shape != datasets[0].t.shape or not torch.equal(d.t.to(datasets[0].t.dtype), datasets[0].t):
             raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs shared "
                              "times t (T,)")
-    if "progress" in options or "chunk_size" in options and not isinstance(options["chunk_size"], int):
-        raise TypeError("`progress` of fit_many_ray counts finished batches; pass it as `progress=`")
     # validate the other arguments once, here, so that a bad one fails before the cluster is used
     fit_many(model, datasets[:1], _rows(x0, B, 0, 1), guesses=_rows_dict(guesses, B, 0, 1),
              **{**options, "max_iter": 0})
