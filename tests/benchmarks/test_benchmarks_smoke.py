@@ -41,8 +41,9 @@ def test_batch_quick_writes_table_and_plot(tmp_path):
     header = next(line for line in table.splitlines() if line.startswith("| method"))
     for column in ("fits / s", "/ scipy loop", "/ torchql loop", "converged", "peak RSS"):
         assert column in header
-    rows = [line for line in table.splitlines() if line.startswith("| torchql fit_many")]
+    rows = [line for line in table.splitlines() if line.startswith("| torchql fit_many |")]
     assert [row.split("|")[2].strip() for row in rows] == ["4", "16"]
+    assert any(line.startswith("| torchql fit_many, rtol=1e-08 | 16 |") for line in table.splitlines())
     for row in rows:  # every dataset converged
         cells = [c.strip() for c in row.split("|")[1:-1]]
         done, total = cells[6].split("/")
