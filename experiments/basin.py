@@ -21,8 +21,9 @@ integrated from the guesses) and ``method="shooting"``; ``scipy.optimize.least_s
 sensitivity equations integrated alongside: "lm", or "trf" with the same positivity bounds as
 torchql when torchql accepts ``bounds``); ``torchql.baselines.adjoint_fit`` with Adam. Shooting (one
 integration of the variational equations per update and per step halving, stepping onto all 401
-FitzHugh-Nagumo observation times) and Adam are expensive: they run on the first 15 and 5 starts
-only, Adam within a step and time budget. Every fit also has a wall-time budget
+FitzHugh-Nagumo observation times), Adam, and Kantorovich from an integrated first trajectory
+(from a poor guess it integrates a stiff or exploding model first) are expensive: they run on the
+first 10, 5 and 30 starts only, Adam within a step and time budget. Every fit also has a wall-time budget
 (``FIT_BUDGET_S``; a fit stopped by it is recorded as ``TIME_BUDGET``).
 
 Reaching the global optimum: each final estimate's weighted SSE is re-evaluated with one common
@@ -36,7 +37,7 @@ Run (from the repository root)::
     python experiments/basin.py                # writes experiments/output/basin.{md,png,csv}
     python experiments/basin.py --quick        # a handful of starts, small budgets (< 1 minute)
     python experiments/basin.py --workers 4    # fits in parallel processes (single-threaded each)
-    python experiments/basin.py --out DIR --starts 100 --shooting-starts 15 --adam-starts 5
+    python experiments/basin.py --out DIR --starts 100 --integrate-starts 30 --shooting-starts 10 --adam-starts 5
 
 Only torchql's public API is used (plus scipy for the reference method).
 """
@@ -78,8 +79,11 @@ TORCHQL_MAX_ITER, TORCHQL_MAX_STEPS = 30, 5000
 METHODS = ("kantorovich-data", "kantorovich-integrate", "shooting", "scipy", "adam")
 LABELS = {"kantorovich-data": "torchql kantorovich (data)", "kantorovich-integrate": "torchql kantorovich (integrate)",
           "shooting": "torchql shooting", "scipy": "scipy least_squares + solve_ivp", "adam": "adjoint + Adam"}
-FULL = dict(starts=100, shooting_starts=15, adam_starts=5, budget=120.0, adam_steps=2000, adam_time=10.0)
-QUICK = dict(starts=1, shooting_starts=1, adam_starts=1, budget=4.0, adam_steps=3, adam_time=1.0)
+FULL = dict(starts=100, integrate_starts=30, shooting_starts=10, adam_starts=5, budget=120.0, adam_steps=2000,
+            adam_time=10.0)
+QUICK = dict(starts=1, integrate_starts=1, shooting_starts=1, adam_starts=1, budget=4.0, adam_steps=3, adam_time=1.0)
+#: The methods that run on the first starts only, and their key in FULL/QUICK.
+FEWER_STARTS = {"kantorovich-integrate": "integrate_starts", "shooting": "shooting_starts", "adam": "adam_starts"}
 
 
 class _OverBudget(Exception):
@@ -400,8 +404,8 @@ def write_markdown(path: Path, settings, rows, refs, cfg, bounds, quick: bool, t
         f" ({library_version()}; total wall time {total / 60:.1f} min with {workers} worker process(es),"
         " each single-threaded; wall times are per fit on a shared 2-core machine).", "",
         "Starts: coefficients drawn log-uniform in [0.1x, 10x] of the truth (seed "
-        f"{START_SEED}, the same draws for every method; the expensive ones on the first starts only: shooting "
-        f"{cfg['shooting_starts']}, Adam {cfg['adam_starts']}). Initial states "
+        f"{START_SEED}, the same draws for every method; the expensive ones on the first starts only: kantorovich "
+        f"(integrate) {cfg['integrate_starts']}, shooting {cfg['shooting_starts']}, Adam {cfg['adam_starts']}). Initial states "
         "from the first observation (the oscillator's unobserved velocity from the first divided difference); "
         "`kantorovich (data)` takes its first trajectory from the data (`initial_trajectory=\"data\"`).", "",
         "**Reaching the global optimum**: the run's final estimate, re-evaluated with one accurate integrator "
@@ -507,8 +511,10 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output")
     parser.add_argument("--quick", action="store_true", help="a handful of starts and small budgets (< 1 minute)")
     parser.add_argument("--starts", type=int, default=None, help="starts per setting (default 100; --quick 1)")
+    parser.add_argument("--integrate-starts", type=int, default=None,
+                        help="starts for torchql kantorovich (integrate) (default 30; --quick 1)")
     parser.add_argument("--shooting-starts", type=int, default=None,
-                        help="starts for torchql shooting (default 15; --quick 1)")
+                        help="starts for torchql shooting (default 10; --quick 1)")
     parser.add_argument("--adam-starts", type=int, default=None, help="starts for Adam (default 5; --quick 1)")
     parser.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
@@ -519,7 +525,7 @@ def main(argv=None) -> None:
     cfg = dict(QUICK if args.quick else FULL)
     if args.starts is not None:
         cfg["starts"] = args.starts
-    for key in ("shooting_starts", "adam_starts"):
+    for key in FEWER_STARTS.values():
         if getattr(args, key) is not None:
             cfg[key] = getattr(args, key)
         cfg[key] = min(cfg[key], cfg["starts"])
@@ -534,7 +540,7 @@ def main(argv=None) -> None:
         for index, factors in enumerate(draw_starts(setting, cfg["starts"])):
             coefs = setting.truth_coefs * factors
             for method in args.methods:
-                if method in ("shooting", "adam") and index >= cfg[f"{method}_starts"]:
+                if method in FEWER_STARTS and index >= cfg[FEWER_STARTS[method]]:
                     continue
                 jobs.append((setting.key, index, coefs, method, bounds, cfg))
     rows = []
