@@ -7,7 +7,7 @@ import numbers
 
 import torch
 
-__all__ = ["positive_number", "finite_number", "positive_int", "model_class"]
+__all__ = ["positive_number", "finite_number", "positive_int", "model_class", "distinct_names"]
 
 
 def _is_real_number(value) -> bool:
@@ -49,3 +49,23 @@ def model_class(model) -> None:
     names = tuple(model.state_names)
     if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
         raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {names!r}")
+
+
+def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> list[str]:
+    """``value`` as a list of distinct names from ``allowed``; errors name the argument ``name``.
+
+    ``kind`` is what one name denotes (``"buffer"``, ``"state"``); ``allowed_text`` completes
+    the error for an unknown name, e.g. ``"the model's states are ['y', 'v']"``.
+    """
+    if isinstance(value, str):
+        raise TypeError(f"`{name}` must be a sequence of {kind} names, not a string; use [{value!r}]")
+    try:
+        names = list(value)
+    except TypeError as exc:
+        raise TypeError(f"`{name}` must be a sequence of {kind} names; received {type(value).__name__}") from exc
+    for item in names:
+        if item not in allowed:
+            raise ValueError(f"`{name}` names unknown {kind} {item!r}; {allowed_text}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"`{name}` lists a {kind} twice: {names!r}")
+    return names

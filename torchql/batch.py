@@ -223,18 +223,8 @@ class _Spec:
         if params is None:
             params = [name for name in available if name not in tuple(model.constants)]
         else:
-            if isinstance(params, str):
-                raise TypeError(f"`params` must be a sequence of buffer names, not a string; use [{params!r}]")
-            try:
-                params = list(params)
-            except TypeError as exc:
-                raise TypeError(f"`params` must be a sequence of buffer names; received {type(params).__name__}") from exc
-            for name in params:
-                if name not in available:
-                    raise ValueError(f"`params` names unknown buffer {name!r}; the model's float buffers are "
-                                     f"{tuple(available)}")
-            if len(set(params)) != len(params):
-                raise ValueError(f"`params` lists a buffer twice: {params!r}")
+            params = _checks.distinct_names("params", params, available, "buffer",
+                                            f"the model's float buffers are {tuple(available)}")
         if guesses is None:
             guesses = {}
         if not isinstance(guesses, dict):
@@ -299,19 +289,8 @@ class _Spec:
                 raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
         self.z0 = torch.cat([x0, p0], dim=1).clone()
 
-        if fixed_x0 is None:
-            fixed_x0 = []
-        if isinstance(fixed_x0, str):
-            raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
-        try:
-            fixed_x0 = list(fixed_x0)
-        except TypeError as exc:
-            raise TypeError(f"`fixed_x0` must be a sequence of state names; received {type(fixed_x0).__name__}") from exc
-        for name in fixed_x0:
-            if name not in names:
-                raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {names}")
-        if len(set(fixed_x0)) != len(fixed_x0):
-            raise ValueError(f"`fixed_x0` lists a state twice: {fixed_x0!r}")
+        fixed_x0 = _checks.distinct_names("fixed_x0", [] if fixed_x0 is None else fixed_x0, names, "state",
+                                          f"the model's states are {names}")
         free = [i for i, s in enumerate(names) if s not in fixed_x0]
         n_unknown_params = sum(size for name, size in zip(per_sample, system.param_sizes) if name in self.params)
         self.unknown_index = torch.tensor(free + list(range(n, n + n_unknown_params)), dtype=torch.long,
