@@ -339,5 +339,30 @@ def test_data_driven_first_trajectory_derives_unobserved_states(linear_data):
                              rtol=1e-12, atol=1e-14)
     v_error = (first.trajectory[:, 1] - truth[:, 1]).square().mean().sqrt()
     guess_error = (0.5 - truth[:, 1]).square().mean().sqrt()
-    assert v_error < guess_error / 3
+    # the not-a-knot spline through 14 samples (7 per period) gives v to about 1.5% of its amplitude
+    assert v_error < guess_error / 20
+    assert result.iterations <= 4
+
+
+@pytest.mark.parametrize("A, B", [(0.0153, 0.447), (1.0, 30.0), (0.01, 30.0), (1.0, 0.3)])
+def test_data_driven_first_trajectory_on_sparse_two_digit_data(A, B):
+    """Thesis Table 4.1's 14 samples rounded to 2 digits, y only, coefficients 10x off either way.
+
+    Gradient matching on the spline through the samples puts the first coefficients within 5%
+    of the truth, so every start converges in a few undamped steps to the least-squares
+    optimum (the one shooting reaches from the truth). Straight lines between the samples gave
+    piecewise-constant slopes there, first coefficients like B = 7, and 30 iterations.
+    """
+    times = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)[:, :1]
+    data = torchql.Observations(times, torch.tensor([[float(f"{v:.1e}")] for v in y[:, 0].tolist()], dtype=DT),
+                                observe=["y"])
+    x0 = torch.tensor([data.y[0, 0].item(), ((data.y[1, 0] - data.y[0, 0]) / 0.5).item()], dtype=DT)
+    result = torchql.fit(LinearOscillator(A, B), data, x0=x0, initial_trajectory="data")
+    optimum = torchql.fit(LinearOscillator(), data, x0=torch.tensor([0.0, 1.0], dtype=DT), method="shooting")
+    assert result.success and optimum.success, (result.message, optimum.message)
     assert result.iterations <= 6
+    first = result.history[0].params
+    assert abs(first["A"].item() / 0.1 - 1) < 0.5 and abs(first["B"].item() / 3.0 - 1) < 0.05
+    assert torch.allclose(result.estimates, optimum.estimates, rtol=1e-7, atol=1e-9)
+    assert result.sse == pytest.approx(optimum.sse, rel=1e-9)

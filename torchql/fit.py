@@ -34,7 +34,7 @@ from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
-from .smoothing import smooth
+from .smoothing import interpolate, smooth
 from .result import FitError, FitResult, IterationRecord, Status
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns, propagate_linear
 from .uncertainty import covariance
@@ -514,7 +514,7 @@ class _Problem:
             ok = self.rows_mask[:, k]
             if int(ok.sum()) >= 1:
                 values = smooth(self.t_obs[ok], self.y[ok, k], self.sigma[ok, k] ** -2)
-                z_ref[:, i] = _interp_linear(grid, self.t_obs[ok], values)
+                z_ref[:, i] = interpolate(self.t_obs[ok], values, grid)
                 observed.append(i)
         z_dot = _slopes(grid, z_ref)
         hidden = [i for i in range(system.n) if i not in observed]
@@ -1023,15 +1023,6 @@ class _Counter:
 def _slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     """Node slopes of values ``z (G, M)`` on ``grid`` by finite differences (zeros on a one-node grid)."""
     return torch.gradient(z, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z)
-
-
-def _interp_linear(tq: torch.Tensor, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Piecewise-linear interpolation of ``(t, y)`` at ``tq``, constant beyond the ends."""
-    if t.numel() == 1:
-        return y.expand(tq.shape[0]).clone()
-    idx = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
-    w = ((tq - t[idx]) / (t[idx + 1] - t[idx])).clamp(0.0, 1.0)
-    return y[idx] + w * (y[idx + 1] - y[idx])
 
 
 def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, grid, throw, callback,
