@@ -1,6 +1,7 @@
 """Validation and conversion of ``torchql.Observations``."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -256,3 +257,192 @@ def test_sigma_per_time_for_a_single_output():
     data = torchql.Observations(t, torch.ones(3, dtype=torch.float64), observe=["y"],
                                 sigma=torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64))
     assert data.sigma.shape == (3, 1) and data.sigma[2, 0].item() == pytest.approx(0.3)
+
+
+# ------------------------------------------------------------------ a batch of datasets, values (B, T, K)
+YB = torch.stack([Y3, 2.0 * Y3, -Y3, Y3 + 1.0])  # (B, T, K) = (4, 3, 2)
+
+
+def test_batch_shapes_and_defaults():
+    obs = torchql.Observations(T3, YB, ["x", "u"])
+    assert obs.batch_size == 4 and len(obs) == 4
+    assert obs.n_times == 3 and obs.n_outputs == 2
+    assert obs.y.shape == obs.sigma.shape == obs.exact.shape == obs.mask.shape == (4, 3, 2)
+    assert torch.equal(obs.sigma, torch.ones(4, 3, 2, dtype=torch.float64)) and not obs.sigma_given
+    assert not obs.exact.any() and obs.t.shape == (3,)
+    assert repr(obs) == "Observations(B=4, T=3, K=2, t=[0, 1])"
+    assert torchql.Observations(T3, Y3, ["x", "u"]).batch_size is None
+
+
+@pytest.mark.parametrize("sigma", [
+    0.5, torch.tensor([0.5, 2.0]), torch.full((3, 2), 0.5), torch.full((4, 1, 2), 0.5), torch.full((4, 3, 2), 0.5),
+    torch.full((4, 1, 1), 0.5), torch.full((1, 3, 2), 0.5),
+])
+def test_batch_sigma_broadcasts_to_b_t_k(sigma):
+    obs = torchql.Observations(T3, YB, ["x", "u"], sigma=sigma)
+    expected = torch.broadcast_to(torch.as_tensor(sigma, dtype=torch.float64), (4, 3, 2))
+    assert obs.sigma_given and obs.sigma.is_contiguous()
+    torch.testing.assert_close(obs.sigma, expected, rtol=0, atol=0)
+
+
+def test_batch_sigma_per_sample_and_per_time_for_one_output():
+    y = YB[..., :1]  # K = 1
+    per_time = torchql.Observations(T3, y, ["x"], sigma=torch.tensor([0.1, 0.2, 0.3]))
+    assert per_time.sigma.shape == (4, 3, 1) and per_time.sigma[2, :, 0].tolist() == pytest.approx([0.1, 0.2, 0.3])
+    per_sample = torchql.Observations(T3, y, ["x"], sigma=torch.arange(1.0, 5.0).reshape(4, 1, 1))
+    assert per_sample.sigma[:, 1, 0].tolist() == [1.0, 2.0, 3.0, 4.0]
+
+
+@pytest.mark.parametrize("sigma", [torch.ones(3), torch.ones(4, 3), torch.ones(5, 3, 2), torch.ones(4, 2, 2),
+                                   torch.ones(2, 4, 3, 2)])
+def test_batch_sigma_wrong_shape_names_expected_and_received(sigma):
+    expected = r"`sigma` must be .* or broadcast to \(B, T, K\) = \(4, 3, 2\); received shape "
+    with pytest.raises(ValueError, match=expected + re.escape(str(tuple(sigma.shape)))):
+        torchql.Observations(T3, YB, ["x", "u"], sigma=sigma)
+
+
+def test_batch_sigma_checked_in_every_sample():
+    sigma = torch.ones(4, 3, 2)
+    sigma[3, 2, 1] = 0.0
+    with pytest.raises(ValueError, match="`sigma` must be finite and strictly positive"):
+        torchql.Observations(T3, YB, ["x", "u"], sigma=sigma)
+
+
+def test_batch_exact_shapes():
+    per_time = torchql.Observations(T3, YB, ["x", "u"], exact=torch.tensor([True, False, False]))
+    assert per_time.exact.shape == (4, 3, 2) and per_time.exact[:, 0].all() and not per_time.exact[:, 1:].any()
+    own = torch.zeros(4, 3, 2, dtype=torch.bool)
+    own[2, 1, 0] = True
+    assert torch.equal(torchql.Observations(T3, YB, ["x", "u"], exact=own).exact, own)
+    with pytest.raises(ValueError, match=r"`exact` must have shape \(T,\) = \(3,\) or \(T, K\) = \(3, 2\), or "
+                                         r"broadcast to \(B, T, K\) = \(4, 3, 2\); received shape \(5, 3, 2\)"):
+        torchql.Observations(T3, YB, ["x", "u"], exact=torch.zeros(5, 3, 2, dtype=torch.bool))
+
+
+def test_batch_per_sample_times_rejected_clearly():
+    with pytest.raises(ValueError, match=r"`t` must be one-dimensional, shape \(T,\), shared by every sample of the "
+                                         r"batch; received shape \(4, 3\). Per-sample times are not supported"):
+        torchql.Observations(T3.expand(4, 3), YB, ["x", "u"])
+
+
+@pytest.mark.parametrize("y, match", [
+    (torch.zeros(4, 2, 2), r"`y` must have shape \(T, K\) = \(3, K\) to match `t`, or \(B, T, K\) = \(B, 3, K\) "
+                           r"for a batch of B datasets; received shape \(4, 2, 2\)"),
+    (torch.zeros(2, 4, 3, 2), r"received shape \(2, 4, 3, 2\)"),
+    (torch.zeros(0, 3, 2), r"`y` must hold at least one dataset: shape \(B, T, K\) with B >= 1; received shape "
+                           r"\(0, 3, 2\)"),
+])
+def test_batch_y_wrong_shape(y, match):
+    with pytest.raises(ValueError, match=match):
+        torchql.Observations(T3, y, ["x", "u"])
+
+
+def test_batch_y_inf_and_empty_sample_named():
+    y = YB.clone()
+    y[2, 1, 0] = math.inf
+    with pytest.raises(ValueError, match=r"`y` must not contain inf \(y\[2\] does\)"):
+        torchql.Observations(T3, y, ["x", "u"])
+    y = YB.clone()
+    y[1] = math.nan
+    y[3] = math.nan
+    with pytest.raises(ValueError, match=r"`y\[1\]` holds no value: every entry of that sample is NaN \(samples "
+                                         r"\[1, 3\] alike\); remove it from the batch"):
+        torchql.Observations(T3, y, ["x", "u"])
+
+
+def test_batch_observe_checked_once_against_k():
+    with pytest.raises(ValueError, match=r"`observe` names 1 states but `y` has K = 2 columns"):
+        torchql.Observations(T3, YB, ["x"])
+
+
+def test_batch_missing_values_per_sample():
+    """Each sample keeps its own NaNs: sample b's mask is the one of its own Observations."""
+    y = YB.clone()
+    y[0, 1, 0] = math.nan
+    y[3, :2, 1] = math.nan
+    obs = torchql.Observations(T3, y, ["x", "u"])
+    assert obs.mask.flatten(1).sum(dim=1).tolist() == [5, 6, 6, 4]
+    for b in range(4):
+        single = torchql.Observations(T3, y[b], ["x", "u"])
+        assert torch.equal(obs[b].mask, single.mask)
+
+
+def test_batch_indexing_gives_the_single_dataset():
+    sigma = torch.arange(1.0, 25.0).reshape(4, 3, 2)
+    exact = torch.zeros(4, 3, 2, dtype=torch.bool)
+    exact[1, 0] = True
+    observe = ["x", "u"]
+    obs = torchql.Observations(T3, YB, observe, sigma=sigma, exact=exact)
+    for b in (1, -3):
+        sample = obs[b]
+        single = torchql.Observations(T3, YB[b], observe, sigma=sigma[b], exact=exact[b])
+        assert sample.batch_size is None and sample.observe is observe and sample.sigma_given
+        for name in ("t", "y", "sigma", "exact"):
+            assert torch.equal(getattr(sample, name), getattr(single, name)), name
+    assert [s.y[0, 0].item() for s in obs] == [1.0, 2.0, -1.0, 2.0]  # iteration: the samples in order
+
+
+def test_batch_slices_are_batches():
+    obs = torchql.Observations(T3, YB, ["x", "u"], sigma=torch.arange(1.0, 5.0).reshape(4, 1, 1))
+    part = obs[1:3]
+    assert part.batch_size == 2 and torch.equal(part.y, YB[1:3]) and part.sigma[:, 0, 0].tolist() == [2.0, 3.0]
+    backwards = obs[::-2]
+    assert torch.equal(backwards.y, YB[[3, 1]]) and backwards.sigma[:, 0, 0].tolist() == [4.0, 2.0]
+    with pytest.raises(IndexError, match=r"selects no sample of a batch of 4"):
+        obs[3:1]
+
+
+@pytest.mark.parametrize("index, error, match", [
+    (4, IndexError, "sample index 4 is out of range for a batch of 4"),
+    (-5, IndexError, "sample index -5 is out of range for a batch of 4"),
+    (1.0, TypeError, "a sample index must be an int or a slice; received float"),
+    (True, TypeError, "received bool"),
+    ([0, 1], TypeError, "received list"),
+])
+def test_batch_bad_index(index, error, match):
+    with pytest.raises(error, match=match):
+        torchql.Observations(T3, YB, ["x", "u"])[index]
+
+
+def test_one_dataset_has_no_len_index_or_iteration():
+    single = torchql.Observations(T3, Y3, ["x", "u"])
+    for operation in (len, lambda o: o[0], iter):
+        with pytest.raises(TypeError, match=r"applies to a batch of datasets \(values \(B, T, K\)\); this "
+                                            r"Observations holds one dataset, values of shape \(3, 2\)"):
+            operation(single)
+    assert bool(single)
+
+
+def test_batch_inputs_and_batch_not_mutated():
+    y, sigma = YB.clone(), torch.full((4, 1, 2), 0.5, dtype=torch.float64)
+    y[2, 0, 1] = math.nan
+    inputs = (T3.clone(), y.clone(), sigma.clone())
+    obs = torchql.Observations(T3, y, ["x", "u"], sigma=sigma)
+    stored = [v.clone() for v in (obs.t, obs.y, obs.sigma, obs.exact)]
+    sample, part = obs[2], obs[1:3]
+    for view in (sample, part):  # editing what indexing returned leaves the batch as it was
+        view.t[0] = 9.0
+        view.y.fill_(7.0)
+        view.sigma.fill_(3.0)
+        view.exact.fill_(True)
+    y[0, 0, 0] = math.inf  # editing the caller's tensors afterwards cannot bypass validation
+    for now, before in zip((obs.t, obs.y, obs.sigma, obs.exact), stored):
+        torch.testing.assert_close(now, before, rtol=0, atol=0, equal_nan=True)
+    y[0, 0, 0] = inputs[1][0, 0, 0]
+    for now, before in zip((T3, y, sigma), inputs):
+        torch.testing.assert_close(now, before, rtol=0, atol=0, equal_nan=True)
+
+
+def test_single_observations_check_points_to_fit_many():
+    from torchql import _checks
+
+    batch = torchql.Observations(T3, YB, ["x", "u"])
+    single = torchql.Observations(T3, Y3, ["x", "u"])
+    _checks.single_observations("data", single)
+    _checks.single_observations("data", [single, single])
+    with pytest.raises(ValueError, match=r"`data` holds a batch of 4 independent datasets \(values of shape "
+                                         r"\(B, T, K\) = \(4, 3, 2\)\), but torchql.fit fits one dataset.*"
+                                         r"torchql.fit_many\(model, data, x0, ...\), or one sample with `data\[b\]`"):
+        _checks.single_observations("data", batch)
+    with pytest.raises(ValueError, match=r"`data\[1\]` holds a batch of 4"):
+        _checks.single_observations("data", [single, batch])

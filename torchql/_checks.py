@@ -7,7 +7,8 @@ import numbers
 
 import torch
 
-__all__ = ["positive_number", "finite_number", "positive_int", "model_class", "distinct_names"]
+__all__ = ["positive_number", "finite_number", "positive_int", "model_class", "distinct_names",
+           "single_observations"]
 
 
 def _is_real_number(value) -> bool:
@@ -69,3 +70,23 @@ def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> l
     if len(set(names)) != len(names):
         raise ValueError(f"`{name}` lists a {kind} twice: {names!r}")
     return names
+
+
+def single_observations(name: str, data) -> None:
+    """``ValueError`` naming ``name`` when ``data`` holds a batch of datasets.
+
+    ``data`` is what :func:`torchql.fit` received: an :class:`~torchql.Observations` or a list
+    of them (experiments sharing coefficients). A batched one (values ``(B, T, K)``) is a set of
+    independent datasets, which :func:`torchql.fit_many` fits; anything else passes unchanged
+    (its type is the caller's to check).
+    """
+    from .observations import Observations
+
+    items = list(enumerate(data)) if isinstance(data, (list, tuple)) else [(None, data)]
+    for i, item in items:
+        if isinstance(item, Observations) and item.batch_size is not None:
+            arg = name if i is None else f"{name}[{i}]"
+            raise ValueError(
+                f"`{arg}` holds a batch of {item.batch_size} independent datasets (values of shape (B, T, K) = "
+                f"{tuple(item.y.shape)}), but torchql.fit fits one dataset, values (T, K): fit the batch with "
+                f"torchql.fit_many(model, {arg}, x0, ...), or one sample with `{arg}[b]`")

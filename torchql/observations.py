@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import operator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Union
 
 import numpy as np
@@ -12,6 +13,26 @@ from torch.func import jacrev, vmap
 __all__ = ["Observations", "ObservationOperator"]
 
 ObserveSpec = Union[Sequence[str], torch.Tensor, np.ndarray, Callable[[torch.Tensor], torch.Tensor]]
+
+
+#: Dimensions of the values of a batch of datasets, ``(B, T, K)``.
+_BATCH_DIMS = 3
+
+
+def _fits(shape: tuple[int, ...], target: tuple[int, ...], shared: tuple[tuple[int, ...], ...]) -> bool:
+    """Whether ``sigma`` or ``exact`` of ``shape`` suits values of shape ``target``.
+
+    Accepted: one of the ``shared`` shapes (those of one dataset), or, for a batch
+    ``target = (B, T, K)``, any shape that broadcasts to it.
+    """
+    if shape in shared:
+        return True
+    if len(target) != _BATCH_DIMS:
+        return False
+    try:
+        return tuple(torch.broadcast_shapes(shape, target)) == target
+    except RuntimeError:
+        return False
 
 
 def _as_float_tensor(value, name: str, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -33,28 +54,43 @@ def _as_float_tensor(value, name: str, dtype: torch.dtype | None = None) -> torc
 
 
 class Observations:
-    """Measured values of (functions of) the states at discrete times.
+    """Measured values of (functions of) the states at discrete times: one dataset, or a batch.
+
+    One dataset has values ``y (T, K)``. A batch of ``B`` independent datasets (for
+    :func:`torchql.fit_many`) has values ``y (B, T, K)`` sharing the times ``t (T,)`` and the
+    ``observe`` specification, and is validated once, vectorized, for the whole batch:
+    ``obs[b]`` is sample ``b`` as a one-dataset ``Observations`` and ``obs[i:j]`` the batch of
+    samples ``i .. j - 1`` (both copies: editing them leaves the batch as it is), ``len(obs)``
+    is ``B``, and iterating gives the samples in order.
 
     Parameters
     ----------
     t : Tensor or array, shape ``(T,)``
-        Observation times, finite and strictly increasing (same unit as the model's time).
-    y : Tensor or array, shape ``(T, K)`` or ``(T,)`` when ``K == 1``
-        Measured values. ``NaN`` marks a missing value, which is skipped; ``inf`` is rejected.
+        Observation times, finite and strictly increasing (same unit as the model's time). A
+        batch shares them: per-sample times ``(B, T)`` are not supported (group the samples by
+        their times, one batch per group).
+    y : Tensor or array, shape ``(T, K)``, ``(T,)`` when ``K == 1``, or ``(B, T, K)`` for a batch
+        Measured values. ``NaN`` marks a missing value, which is skipped (each sample of a batch
+        has its own missing values, and at least one value); ``inf`` is rejected.
     observe : sequence of str, Tensor of shape ``(K, n_states)``, or callable
         What each of the ``K`` columns of ``y`` measures: state names; a matrix ``Q`` so that
         ``y = Q x``; or a differentiable function ``h(x) -> (..., K)`` of the state
-        ``x (..., n_states)``, linearized like the right-hand side.
-    sigma : float, Tensor of shape ``(K,)`` or ``(T, K)``, optional
+        ``x (..., n_states)``, linearized like the right-hand side. The same for every sample.
+    sigma : float or Tensor, optional
         Standard deviation of each value (same unit as ``y``). Residuals are divided by it.
-        Default 1 for every value. With ``K == 1``, shape ``(T,)`` is accepted too.
-    exact : bool Tensor of shape ``(T,)`` or ``(T, K)``, optional
+        Default 1 for every value. One dataset: a scalar, shape ``(K,)`` or ``(T, K)``, and with
+        ``K == 1`` shape ``(T,)`` too. A batch: those shapes (shared by the samples) or any
+        shape that broadcasts to ``(B, T, K)``, such as ``(B, 1, K)`` or ``(B, T, K)``.
+    exact : bool Tensor, optional
         Values to be met exactly (equality-constrained least squares) rather than in the
-        least-squares sense. A ``(T,)`` mask marks every value at those times.
+        least-squares sense. One dataset: shape ``(T, K)``, or ``(T,)`` marking every value at
+        those times. A batch: those shapes (shared) or any shape that broadcasts to ``(B, T, K)``.
 
     Attributes
     ----------
-    t : Tensor ``(T,)``; y : Tensor ``(T, K)``; sigma : Tensor ``(T, K)``; exact : bool Tensor ``(T, K)``
+    t : Tensor ``(T,)``
+    y, sigma : Tensor ``(T, K)``, or ``(B, T, K)`` for a batch (``y``'s dtype is ``t``'s)
+    exact : bool Tensor of ``y``'s shape
     observe : the ``observe`` argument as given.
     sigma_given : bool
         Whether ``sigma`` was given (then it is taken as the known standard deviation of the
@@ -70,7 +106,14 @@ class Observations:
         exact=None,
     ) -> None:
         t = _as_float_tensor(t, "t")
+        y = _as_float_tensor(y, "y")
+        batched = y.dim() == _BATCH_DIMS
         if t.dim() != 1:
+            if batched:
+                raise ValueError(
+                    "`t` must be one-dimensional, shape (T,), shared by every sample of the batch; received shape "
+                    f"{tuple(t.shape)}. Per-sample times are not supported: group the samples by their times, "
+                    "one batched Observations per group")
             raise ValueError(f"`t` must be one-dimensional, shape (T,); received shape {tuple(t.shape)}")
         if t.numel() == 0:
             raise ValueError("`t` must contain at least one observation time; received an empty tensor")
@@ -82,45 +125,56 @@ class Observations:
                 "`t` must be strictly increasing (no duplicates); received "
                 f"t[{bad}] = {t[bad].item():g} followed by t[{bad + 1}] = {t[bad + 1].item():g}"
             )
-        y = _as_float_tensor(y, "y")
+        T = t.shape[0]
         if y.dim() == 1:
             y = y.unsqueeze(-1)
-        if y.dim() != 2 or y.shape[0] != t.shape[0]:
+        if y.dim() not in (2, _BATCH_DIMS) or y.shape[-2] != T:
             raise ValueError(
-                f"`y` must have shape (T, K) = ({t.shape[0]}, K) to match `t`; received shape {tuple(y.shape)}"
+                f"`y` must have shape (T, K) = ({T}, K) to match `t`, or (B, T, K) = (B, {T}, K) for a batch of "
+                f"B datasets; received shape {tuple(y.shape)}"
             )
-        if torch.isinf(y).any():
-            raise ValueError("`y` must not contain inf; mark missing values with NaN instead")
-        if torch.isnan(y).all():
+        if batched and y.shape[0] == 0:
+            raise ValueError(f"`y` must hold at least one dataset: shape (B, T, K) with B >= 1; received shape "
+                             f"{tuple(y.shape)}")
+        infinite = torch.isinf(y)
+        if infinite.any():
+            where = f" (y[{int(infinite.flatten(1).any(dim=1).nonzero()[0, 0])}] does)" if batched else ""
+            raise ValueError(f"`y` must not contain inf{where}; mark missing values with NaN instead")
+        if batched:
+            empty = torch.isnan(y).flatten(1).all(dim=1).nonzero().flatten().tolist()
+            if empty:
+                alike = f" (samples {empty[:10]} alike)" if len(empty) > 1 else ""
+                raise ValueError(f"`y[{empty[0]}]` holds no value: every entry of that sample is NaN{alike}; "
+                                 "remove it from the batch")
+        elif torch.isnan(y).all():
             raise ValueError("`y` holds no value: every entry is NaN")
-        T, K = y.shape
+        K = y.shape[-1]
+        shape = tuple(y.shape)
         self.t = t.clone()
         self.y = y.to(t.dtype) if y.dtype != t.dtype else y.clone()
         self.observe = observe
         self._check_observe_spec(observe, K)
 
         if sigma is None:
-            sig = torch.ones(T, K, dtype=self.y.dtype)
+            sig = torch.ones(shape, dtype=self.y.dtype)
         else:
             sig = _as_float_tensor(sigma, "sigma", self.y.dtype)
-            if sig.dim() == 0:
-                sig = sig.expand(T, K)
-            elif K == 1 and sig.shape == (T,):
-                sig = sig.unsqueeze(-1)
-            elif sig.shape == (K,):
-                sig = sig.unsqueeze(0).expand(T, K)
-            elif sig.shape != (T, K):
+            per_time = ((T,),) if K == 1 else ()  # one output: (T,) is (T, 1)
+            if not _fits(tuple(sig.shape), shape, ((), (K,), (T, K)) + per_time):
                 raise ValueError(
-                    f"`sigma` must be a scalar, shape (K,) = ({K},) or shape (T, K) = ({T}, {K}); "
-                    f"received shape {tuple(sig.shape)}"
+                    f"`sigma` must be a scalar, shape (K,) = ({K},) or shape (T, K) = ({T}, {K})"
+                    + (f", or broadcast to (B, T, K) = {shape}" if batched else "")
+                    + f"; received shape {tuple(sig.shape)}"
                 )
+            if per_time and sig.shape == per_time[0]:
+                sig = sig.unsqueeze(-1)
             if not torch.isfinite(sig).all() or (sig <= 0).any():
                 raise ValueError("`sigma` must be finite and strictly positive; received a value <= 0, NaN or inf")
-        self.sigma = sig.clone()
+        self.sigma = sig.expand(shape).clone(memory_format=torch.contiguous_format)
         self.sigma_given = sigma is not None
 
         if exact is None:
-            ex = torch.zeros(T, K, dtype=torch.bool)
+            ex = torch.zeros(shape, dtype=torch.bool)
         else:
             try:
                 ex = torch.as_tensor(exact)
@@ -129,13 +183,23 @@ class Observations:
                     f"`exact` must be a boolean mask of shape (T,) or (T, K); received {type(exact).__name__}") from exc
             if ex.dtype != torch.bool:
                 raise TypeError(f"`exact` must be a boolean mask; received dtype {ex.dtype}")
-            if ex.shape == (T,):
-                ex = ex.unsqueeze(-1).expand(T, K)
-            elif ex.shape != (T, K):
+            if not _fits(tuple(ex.shape), shape, ((T,), (T, K))):
                 raise ValueError(
-                    f"`exact` must have shape (T,) = ({T},) or (T, K) = ({T}, {K}); received shape {tuple(ex.shape)}"
+                    f"`exact` must have shape (T,) = ({T},) or (T, K) = ({T}, {K})"
+                    + (f", or broadcast to (B, T, K) = {shape}" if batched else "")
+                    + f"; received shape {tuple(ex.shape)}"
                 )
-        self.exact = ex.clone()
+            if ex.shape == (T,):  # every value at those times
+                ex = ex.unsqueeze(-1)
+        self.exact = ex.expand(shape).clone(memory_format=torch.contiguous_format)
+
+    @classmethod
+    def _validated(cls, t: torch.Tensor, y: torch.Tensor, observe, sigma: torch.Tensor, exact: torch.Tensor,
+                   sigma_given: bool) -> "Observations":
+        """An instance from tensors already validated (a sample or slice of a batch): no checks, no copies."""
+        obs = cls.__new__(cls)
+        obs.t, obs.y, obs.observe, obs.sigma, obs.exact, obs.sigma_given = t, y, observe, sigma, exact, sigma_given
+        return obs
 
     @staticmethod
     def _check_observe_spec(observe, K: int) -> None:
@@ -169,15 +233,61 @@ class Observations:
     @property
     def n_outputs(self) -> int:
         """Number of observed quantities ``K``."""
-        return self.y.shape[1]
+        return self.y.shape[-1]
+
+    @property
+    def batch_size(self) -> int | None:
+        """Number of datasets ``B`` of a batch (values ``(B, T, K)``); ``None`` for one dataset."""
+        return self.y.shape[0] if self.y.dim() == _BATCH_DIMS else None
 
     @property
     def mask(self) -> torch.Tensor:
-        """Bool ``(T, K)``: values that are present (not NaN)."""
+        """Bool of ``y``'s shape, ``(T, K)`` or ``(B, T, K)``: values that are present (not NaN)."""
         return ~torch.isnan(self.y)
 
+    def _require_batch(self, operation: str) -> int:
+        B = self.batch_size
+        if B is None:
+            raise TypeError(f"{operation} applies to a batch of datasets (values (B, T, K)); this Observations "
+                            f"holds one dataset, values of shape {tuple(self.y.shape)}")
+        return B
+
+    def __len__(self) -> int:
+        """``B``, the number of datasets of a batch (``TypeError`` for one dataset)."""
+        return self._require_batch("len()")
+
+    def __bool__(self) -> bool:
+        return True  # every Observations holds at least one value (not a container that can be empty)
+
+    def __getitem__(self, index: int | slice) -> "Observations":
+        """Sample ``index`` of a batch as one dataset, or a slice of samples as a batch (copies)."""
+        B = self._require_batch("indexing")
+        if isinstance(index, slice):
+            rows = torch.tensor(range(B)[index], dtype=torch.long)  # any step, negative too
+            if rows.numel() == 0:
+                raise IndexError(f"the slice {index} selects no sample of a batch of {B}")
+        else:
+            if isinstance(index, bool):
+                raise TypeError("a sample index must be an int or a slice; received bool")
+            try:
+                i = operator.index(index)
+            except TypeError as exc:
+                raise TypeError(f"a sample index must be an int or a slice; received {type(index).__name__}") from exc
+            if not -B <= i < B:
+                raise IndexError(f"sample index {i} is out of range for a batch of {B}")
+            rows = i % B
+        return Observations._validated(self.t.clone(), self.y[rows].clone(), self.observe, self.sigma[rows].clone(),
+                                       self.exact[rows].clone(), self.sigma_given)
+
+    def __iter__(self) -> Iterator["Observations"]:
+        """The samples of a batch in order, each one dataset (``TypeError`` for one dataset)."""
+        B = self._require_batch("iteration")
+        return (self[b] for b in range(B))
+
     def __repr__(self) -> str:
-        return f"Observations(T={self.n_times}, K={self.n_outputs}, t=[{self.t[0].item():g}, {self.t[-1].item():g}])"
+        batch = "" if self.batch_size is None else f"B={self.batch_size}, "
+        return (f"Observations({batch}T={self.n_times}, K={self.n_outputs}, "
+                f"t=[{self.t[0].item():g}, {self.t[-1].item():g}])")
 
 
 class ObservationOperator:
