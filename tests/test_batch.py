@@ -150,6 +150,47 @@ def test_missing_values_per_sample():
     assert abs(float(batch.residual_variance[1]) - single.residual_variance) <= 1e-8 * single.residual_variance
 
 
+def as_batch(data: list) -> torchql.Observations:
+    """The datasets of a list as one batched Observations, values ``(B, T, K)``."""
+    return torchql.Observations(data[0].t, torch.stack([d.y for d in data]), observe=data[0].observe)
+
+
+def assert_identical(a, b):
+    """Two fit_many results of the same data: equal to 1e-12 (the same computation)."""
+    assert [s.name for s in a.status] == [s.name for s in b.status] and a.message == b.message
+    assert torch.equal(a.iterations, b.iterations) and torch.equal(a.n_observations, b.n_observations)
+    for name in ("estimates", "x0", "sse", "covariance", "residual_variance"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-12, atol=0, equal_nan=True)
+
+
+def test_batched_observations_fit_as_the_list():
+    """One Observations holding the batch gives the list's fits, and neither is modified."""
+    data, x0 = car_data(4, seed=11)
+    batch = as_batch(data)
+    stored = batch.y.clone()
+    listed = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20)
+    batched = torchql.fit_many(CoastingCar(AREA, MASS), batch, x0, grid=20)
+    assert batched.success.all()
+    assert_identical(batched, listed)
+    assert torch.equal(batch.y, stored)
+
+
+def test_batched_observations_with_missing_values_and_sigma_per_sample():
+    """A sample with NaNs and per-sample ``sigma``: the batch fits it as the list does, and as
+    ``torchql.fit`` fits that sample alone (``batch[1]``)."""
+    data, x0 = car_data(3, seed=6)
+    y = torch.stack([d.y for d in data])
+    y[1, 3:5] = float("nan")
+    sigma = torch.tensor([0.3, 0.5, 0.2], dtype=DT).reshape(3, 1, 1)
+    batch = torchql.Observations(CAR_T, y, observe=["v"], sigma=sigma)
+    listed = [torchql.Observations(CAR_T, y[b], observe=["v"], sigma=sigma[b, 0]) for b in range(3)]
+    batched = torchql.fit_many(CoastingCar(AREA, MASS), batch, x0, grid=20)
+    assert batched.n_observations.tolist() == [9, 7, 9] and batched.sigma_known
+    assert_identical(batched, torchql.fit_many(CoastingCar(AREA, MASS), listed, x0, grid=20))
+    single = torchql.fit(CoastingCar(AREA, MASS), batch[1], x0[1], grid=20)
+    assert single.success and torch.allclose(batched.estimates[1], single.estimates, rtol=1e-8, atol=0)
+
+
 @pytest.mark.parametrize("kwargs, error, match", [
     (dict(x0=torch.zeros(3, 2)), ValueError, r"`x0` must have shape \(B, n_states\) = \(2, 1\)"),
     (dict(x0=torch.tensor([[float("nan")], [1.0]])), ValueError, r"`x0` must be finite; rows \[0\]"),
@@ -183,6 +224,9 @@ def test_bad_data_is_named():
         torchql.fit_many(model, data[0], x0[0])
     with pytest.raises(TypeError, match=r"`data\[1\]` must be a torchql.Observations"):
         torchql.fit_many(model, [data[0], "log"], x0)
+    with pytest.raises(ValueError, match=r"`data\[1\]` holds a batch of 2 datasets, values \(2, 9, 1\): pass a "
+                                         "batched Observations alone"):
+        torchql.fit_many(model, [data[0], as_batch(data)], x0)
     shifted = torchql.Observations(CAR_T + 1.0, data[1].y, observe=["v"])
     with pytest.raises(ValueError, match=r"`data\[1\]` has observation times different"):
         torchql.fit_many(model, [data[0], shifted], x0)
@@ -192,6 +236,10 @@ def test_bad_data_is_named():
     exact = torchql.Observations(CAR_T, data[1].y, observe=["v"], exact=torch.arange(9) == 0)
     with pytest.raises(ValueError, match=r"`data\[1\]` marks values `exact`"):
         torchql.fit_many(model, [data[0], exact], x0)
+    marked = torch.zeros(2, 9, 1, dtype=torch.bool)
+    marked[1, 0] = True
+    with pytest.raises(ValueError, match=r"`data\[1\]` marks values `exact`"):
+        torchql.fit_many(model, torchql.Observations(CAR_T, as_batch(data).y, observe=["v"], exact=marked), x0)
     sparse = data[1].y.clone()
     sparse[2:] = float("nan")  # two values left for three unknowns
     with pytest.raises(ValueError, match=r"`data\[1\]` has 2 usable values, fewer than the 3 unknowns"):

@@ -36,6 +36,8 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     try:
         remote = torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2, grid=20,
                                       progress=lambda done, total: seen.append((done, total)))
+        batch = torchql.Observations(T, torch.stack([d.y for d in data]), observe=["v"])  # sliced into tasks
+        remote_batch = torchql.fit_many_ray(model, batch, x0, guesses={"C_D": C_D}, batch_size=2, grid=20)
     finally:
         ray.shutdown()
     local = torchql.fit_many(model, data, x0, guesses={"C_D": C_D}, grid=20)
@@ -45,6 +47,8 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     assert torch.allclose(remote.estimates, local.estimates, rtol=1e-12, atol=0)
     assert torch.equal(remote.iterations, local.iterations)
     assert torch.allclose(remote.params["C_D"][[0, 1, 3, 4]], local.params["C_D"][[0, 1, 3, 4]], rtol=1e-12)
+    assert [s.name for s in remote_batch.status] == [s.name for s in local.status]
+    assert torch.allclose(remote_batch.estimates, local.estimates, rtol=1e-12, atol=0)
 
 
 def test_bad_arguments_fail_before_ray_is_used():
@@ -55,4 +59,8 @@ def test_bad_arguments_fail_before_ray_is_used():
         torchql.fit_many_ray(CoastingCar(17.3, 80.43), data, torch.zeros(2, 3))
     with pytest.raises(ValueError, match="empty list"):
         torchql.fit_many_ray(CoastingCar(17.3, 80.43), [], x0)
+    with pytest.raises(TypeError, match="a single dataset: use torchql.fit"):
+        torchql.fit_many_ray(CoastingCar(17.3, 80.43), data[0], x0[0])
+    with pytest.raises(ValueError, match=r"`data\[1\]` has observation times different"):
+        torchql.fit_many_ray(CoastingCar(17.3, 80.43), [data[0], torchql.Observations(T + 1, data[1].y, ["v"])], x0)
     assert not ray.is_initialized()

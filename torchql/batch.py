@@ -1,11 +1,13 @@
 """``fit_many``: many independent datasets fitted at once, each sample on its own iteration.
 
 A fleet of vehicles each with its coast-down log, a Monte Carlo study of noise, a multi-start,
-a parameter sweep: ``B`` datasets sharing the observation times, fitted with one model. The
-iteration is the one of :func:`torchql.fit` with ``method="kantorovich"`` (first reference
-integrated from the guesses, the undamped quasilinearization step tried first and kept when it
-lowers the sum of squares, re-anchoring and Levenberg–Marquardt damping otherwise, the same
-convergence tests and statuses), vectorized over the samples with per-sample masks:
+a parameter sweep: ``B`` datasets sharing the observation times (one batched
+:class:`~torchql.Observations`, values ``(B, T, K)``, or a list of them), fitted with one
+model. The iteration is the one of :func:`torchql.fit` with ``method="kantorovich"`` (first
+reference integrated from the guesses, the undamped quasilinearization step tried first and
+kept when it lowers the sum of squares, re-anchoring and Levenberg–Marquardt damping
+otherwise, the same convergence tests and statuses), vectorized over the samples with
+per-sample masks:
 
 * every sample has its own coefficients as trailing components of its augmented state, so one
   vmapped Jacobian linearizes all samples at every grid node at once
@@ -59,7 +61,7 @@ _RUNNING = -1
 
 def fit_many(
     model: ODEModel,
-    data: Sequence[Observations],
+    data: Observations | Sequence[Observations],
     x0=None,
     *,
     params: Sequence[str] | None = None,
@@ -86,11 +88,14 @@ def fit_many(
     model : ODEModel
         The model; its buffer values are the guesses (unless ``guesses`` gives per-sample
         ones). Never modified.
-    data : list of Observations
-        The ``B`` datasets, stacked to values ``(B, T, K)``. They must share the observation
-        times ``t (T,)``, the ``observe`` specification (the same names, matrix, or callable
-        object) and whether ``sigma`` was given; each has its own values, missing values (NaN)
-        and ``sigma``. Values marked ``exact`` are not supported (use :func:`torchql.fit`).
+    data : Observations holding a batch, or list of Observations
+        The ``B`` datasets: one :class:`~torchql.Observations` with values ``(B, T, K)``
+        (validated once, the fast way to build many), or a list of ``B`` one-dataset
+        Observations, stacked to values ``(B, T, K)``; both give the same fits. A list's datasets
+        must share the observation times ``t (T,)``, the ``observe`` specification (the same
+        names, matrix, or callable object) and whether ``sigma`` was given, as a batch's do.
+        Each sample has its own values, missing values (NaN) and ``sigma``. Values marked
+        ``exact`` are not supported (use :func:`torchql.fit`).
     x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
         Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
         every state must be observed directly at ``t0`` in every sample.
@@ -314,43 +319,25 @@ class _Spec:
 
     # ------------------------------------------------------------------------------------------
     def _stack(self, data, dtype, device) -> None:
+        data = check_data(data)
         if isinstance(data, Observations):
-            raise TypeError("`data` must be a list of torchql.Observations (one per dataset); received a single "
-                            "Observations (a single dataset: use torchql.fit, or pass [data])")
-        if not isinstance(data, (list, tuple)):
-            raise TypeError("`data` must be a list of torchql.Observations (one per dataset); received "
-                            f"{type(data).__name__}")
-        if len(data) == 0:
-            raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
-        for i, d in enumerate(data):
-            if not isinstance(d, Observations):
-                raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
-        items = list(data)
-        first = items[0]
-        for i, d in enumerate(items[1:], start=1):
-            if d.t.shape != first.t.shape or not torch.equal(d.t.to(first.t.dtype), first.t):
-                raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs "
-                                 "shared times t (T,); fit datasets with other times separately (torchql.fit)")
-            if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
-                raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
-                                 "fit_many needs one observation operator for all datasets (the same names, matrix "
-                                 "or callable object)")
-            if d.sigma_given != first.sigma_given:
-                raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
-                                 f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
-        self.B = len(items)
-        exact = torch.stack([d.exact for d in items])
+            first, y, sigma, exact = data, data.y, data.sigma, data.exact
+            low = [("data", data.y.dtype)] if _coarser(data.y.dtype, dtype) else []
+        else:
+            first = data[0]
+            exact = torch.stack([d.exact for d in data])
+            y = torch.stack([d.y.to(dtype) for d in data])
+            sigma = torch.stack([d.sigma.to(dtype) for d in data])
+            low = [(f"data[{i}]", d.y.dtype) for i, d in enumerate(data) if _coarser(d.y.dtype, dtype)]
+        self.B = y.shape[0]
         if bool(exact.any()):
             i = int(exact.flatten(1).any(dim=1).nonzero()[0, 0])
             raise ValueError(f"`data[{i}]` marks values `exact`: fit_many does not support exact values; fit such "
                              "datasets with torchql.fit")
-        coarse = [i for i, d in enumerate(items) if torch.finfo(d.y.dtype).eps > torch.finfo(dtype).eps]
-        y = torch.stack([d.y.to(dtype) for d in items])
-        sigma = torch.stack([d.sigma.to(dtype) for d in items])
-        if coarse:
-            warnings.warn(f"`data[{coarse[0]}]` holds {items[coarse[0]].y.dtype} values but the model computes in "
-                          f"{dtype}: the data's own rounding limits the fit's accuracy; build the Observations from "
-                          "float64 tensors", UserWarning, stacklevel=4)
+        if low:
+            warnings.warn(f"`{low[0][0]}` holds {low[0][1]} values but the model computes in {dtype}: the data's own "
+                          "rounding limits the fit's accuracy; build the Observations from float64 tensors",
+                          UserWarning, stacklevel=4)
         self.t = first.t.to(dtype=dtype, device=device)
         self.observe = first.observe
         self.K = y.shape[-1]
@@ -420,6 +407,51 @@ class _Spec:
             iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
             dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
             model=copy.deepcopy(system.model))
+
+
+def check_data(data) -> Observations | list[Observations]:
+    """``fit_many``'s ``data`` validated: one batched Observations as it is, or a list of datasets.
+
+    A list must hold one-dataset Observations that share the observation times, the
+    ``observe`` specification and whether ``sigma`` was given (a batched Observations has them
+    in common by construction). Errors name the argument and the dataset.
+    """
+    if isinstance(data, Observations):
+        if data.batch_size is None:
+            raise TypeError("`data` must be a list of torchql.Observations (one per dataset) or one Observations "
+                            "holding a batch, values (B, T, K); received a single dataset, values "
+                            f"{tuple(data.y.shape)} (a single dataset: use torchql.fit, or pass [data])")
+        return data
+    if not isinstance(data, (list, tuple)):
+        raise TypeError("`data` must be a list of torchql.Observations (one per dataset) or one Observations "
+                        f"holding a batch, values (B, T, K); received {type(data).__name__}")
+    if len(data) == 0:
+        raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
+    for i, d in enumerate(data):
+        if not isinstance(d, Observations):
+            raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
+        if d.batch_size is not None:
+            raise ValueError(f"`data[{i}]` holds a batch of {d.batch_size} datasets, values {tuple(d.y.shape)}: "
+                             "pass a batched Observations alone as `data`, not in a list")
+    items = list(data)
+    first = items[0]
+    for i, d in enumerate(items[1:], start=1):
+        if d.t.shape != first.t.shape or not torch.equal(d.t.to(first.t.dtype), first.t):
+            raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs "
+                             "shared times t (T,); fit datasets with other times separately (torchql.fit)")
+        if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
+            raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
+                             "fit_many needs one observation operator for all datasets (the same names, matrix "
+                             "or callable object)")
+        if d.sigma_given != first.sigma_given:
+            raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
+                             f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
+    return items
+
+
+def _coarser(data_dtype: torch.dtype, dtype: torch.dtype) -> bool:
+    """Whether data of ``data_dtype`` are rounded more coarsely than the computation's ``dtype``."""
+    return torch.finfo(data_dtype).eps > torch.finfo(dtype).eps
 
 
 def _same_observe(a, b) -> bool:

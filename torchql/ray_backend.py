@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
-from .batch import fit_many
+from .batch import check_data, fit_many
 from .batch_result import BatchFitResult
 from .model import ODEModel
 from .observations import Observations
@@ -34,7 +34,7 @@ def _import_ray():
 
 def fit_many_ray(
     model: ODEModel,
-    data: Sequence[Observations],
+    data: Observations | Sequence[Observations],
     x0=None,
     *,
     guesses: dict | None = None,
@@ -51,7 +51,8 @@ def fit_many_ray(
     Parameters
     ----------
     model, data, x0, guesses
-        As in :func:`torchql.fit_many` (``data`` a list of ``B`` Observations; ``x0``
+        As in :func:`torchql.fit_many` (``data`` one Observations holding a batch, values
+        ``(B, T, K)``, sliced into batches, or a list of ``B`` Observations; ``x0``
         ``(B, n_states)`` or ``(n_states,)``; ``guesses`` values ``(B, ...)`` or shared).
     batch_size : int
         Datasets per Ray task (default 1024). Larger batches vectorize better; more batches
@@ -87,21 +88,8 @@ def fit_many_ray(
     ray = _import_ray()
     batch_size = _checks.positive_int("batch_size", batch_size)
     torch_threads = _checks.positive_int("torch_threads", torch_threads)
-    if isinstance(data, Observations):
-        raise TypeError("`data` must be a list of torchql.Observations (one per dataset) for fit_many_ray; "
-                        "received a single Observations")
-    if not isinstance(data, (list, tuple)):
-        raise TypeError(f"`data` must be a list of torchql.Observations (one per dataset); received {type(data).__name__}")
-    datasets = list(data)
+    datasets = check_data(data)  # a batched Observations or a list: both are sliced into batches below
     B = len(datasets)
-    if B == 0:
-        raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
-    for i, d in enumerate(datasets):
-        if not isinstance(d, Observations):
-            raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
-        if d.t.shape != datasets[0].t.shape or not torch.equal(d.t.to(datasets[0].t.dtype), datasets[0].t):
-            raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs shared "
-                             "times t (T,)")
     # validate the other arguments once, here, so that a bad one fails before the cluster is used
     fit_many(model, datasets[:1], _rows(x0, B, 0, 1), guesses=_rows_dict(guesses, B, 0, 1),
              **{**options, "max_iter": 0})
