@@ -10,10 +10,12 @@ from the model's closed-form solution. Unknowns per car: ``v(t0)``, ``C_D``, ``m
 Compared, in the same process:
 
 * ``torchql.fit_many`` on ``B`` datasets for every ``B`` in ``--sizes`` (after one untimed
-  warm-up on a small batch), timed with the building of the ``Observations``; once more at the
-  largest ``B`` with ``rtol=1e-8`` (every other row: the default ``rtol=1e-10``), a faster
-  setting whose accuracy is reported beside the others';
-* a Python loop of ``torchql.fit`` on the first ``--subset`` datasets (same settings);
+  warm-up on a small batch), given as one batched ``Observations`` (values ``(B, 9, 1)``,
+  validated once) and timed with its building; once more at the largest ``B`` with
+  ``rtol=1e-8`` (every other row: the default ``rtol=1e-10``), a faster setting whose accuracy
+  is reported beside the others';
+* a Python loop of ``torchql.fit`` on the first ``--subset`` datasets (same settings), timed
+  with the building of one ``Observations`` per dataset;
 * a Python loop of ``scipy.optimize.least_squares`` over ``scipy.integrate.solve_ivp`` on the
   same subset, with the settings of ``benchmarks/fit_speed.py`` (``trf``, 2-point differences,
   ``rtol=1e-10``, ``atol=1e-12``), with ``DOP853`` and with ``RK45``; the faster of the two is the
@@ -92,27 +94,30 @@ def make_data(B: int, seed: int = 0):
     return t, v, np.stack([v0, C_D, mu], axis=1)
 
 
-def observations(t: np.ndarray, v: np.ndarray) -> list[torchql.Observations]:
-    tt = torch.tensor(t, dtype=DTYPE)
-    return [torchql.Observations(tt, torch.tensor(row, dtype=DTYPE).unsqueeze(-1), observe=["v"]) for row in v]
+def batch_observations(t: np.ndarray, v: np.ndarray) -> torchql.Observations:
+    """The datasets ``v (B, T)`` at times ``t (T,)`` as one batched Observations, values ``(B, T, 1)``."""
+    return torchql.Observations(torch.tensor(t, dtype=DTYPE), torch.tensor(v, dtype=DTYPE).unsqueeze(-1),
+                                observe=["v"])
 
 
 def run_fit_many(t, v, grid=GRID, rtol=None) -> tuple[torchql.BatchFitResult, float]:
-    """``fit_many`` on the datasets ``v (B, T)``, timed with the building of the Observations."""
+    """``fit_many`` on the datasets ``v (B, T)``, timed with the building of their batched Observations."""
     start = time.perf_counter()
-    data = observations(t, v)
+    data = batch_observations(t, v)
     x0 = torch.tensor(v[:, :1], dtype=DTYPE)
     result = torchql.fit_many(CoastingCar(AREA, MASS, **GUESS), data, x0, grid=grid, rtol=rtol)
     return result, time.perf_counter() - start
 
 
 def run_single_loop(t, v, grid=GRID) -> tuple[np.ndarray, np.ndarray, list[str], float]:
+    """A loop of ``torchql.fit`` on the datasets ``v (B, T)``, timed with the building of their Observations."""
     start = time.perf_counter()
-    data = observations(t, v)
+    tt = torch.tensor(t, dtype=DTYPE)
     estimates, sse, status = [], [], []
     model = CoastingCar(AREA, MASS, **GUESS)
-    for b, d in enumerate(data):
-        r = torchql.fit(model, d, torch.tensor(v[b, :1], dtype=DTYPE), grid=grid)
+    for row in v:
+        d = torchql.Observations(tt, torch.tensor(row, dtype=DTYPE).unsqueeze(-1), observe=["v"])
+        r = torchql.fit(model, d, torch.tensor(row[:1], dtype=DTYPE), grid=grid)
         estimates.append(r.estimates.numpy())
         sse.append(r.sse)
         status.append(r.status.name)
