@@ -24,7 +24,11 @@ integration of the variational equations per update and per step halving, steppi
 FitzHugh-Nagumo observation times), Adam, and Kantorovich from an integrated first trajectory
 (from a poor guess it integrates a stiff or exploding model first) are expensive: they run on the
 first 10, 5 and 30 starts only, Adam within a step and time budget. Every fit also has a wall-time budget
-(``FIT_BUDGET_S``; a fit stopped by it is recorded as ``TIME_BUDGET``).
+(``budget`` in ``FULL``/``QUICK``, 120 s in the full study; a fit stopped by it is recorded as ``TIME_BUDGET``).
+The fits check it between iterations, so one long integration can overrun it: the limit is made hard by
+running every fit in a worker process (``run_supervised``, for any ``--workers``) that is killed when the fit
+has run ``FIT_GRACE_S`` past its budget (Adam: past its time budget); that fit is recorded as ``TIME_BUDGET``
+too, with its wall time up to the kill, and a worker that dies on its own (a crash) as ``WORKER_DIED``.
 
 Reaching the global optimum: each final estimate's weighted SSE is re-evaluated with one common
 accurate integrator (DOP853, rtol 1e-12); the reference optimum is the lowest SSE over every
@@ -36,7 +40,7 @@ Run (from the repository root)::
 
     python experiments/basin.py                # writes experiments/output/basin.{md,png,csv}
     python experiments/basin.py --quick        # a handful of starts, small budgets (< 1 minute)
-    python experiments/basin.py --workers 4    # fits in parallel processes (single-threaded each)
+    python experiments/basin.py --workers 4    # 4 worker processes (single-threaded each; default 1)
     python experiments/basin.py --out DIR --starts 100 --integrate-starts 30 --shooting-starts 10 --adam-starts 5
 
 Only torchql's public API is used (plus scipy for the reference method).
@@ -48,10 +52,14 @@ import argparse
 import csv
 import math
 import multiprocessing
+import multiprocessing.connection
+import signal
 import subprocess
 import sys
 import time
-from collections import Counter
+import traceback
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,6 +93,11 @@ FULL = dict(starts=100, integrate_starts=30, shooting_starts=10, adam_starts=5, 
 QUICK = dict(starts=1, integrate_starts=1, shooting_starts=1, adam_starts=1, budget=4.0, adam_steps=3, adam_time=1.0)
 #: The methods that run on the first starts only, and their key in FULL/QUICK.
 FEWER_STARTS = {"kantorovich-integrate": "integrate_starts", "shooting": "shooting_starts", "adam": "adam_starts"}
+#: Seconds a fit may run past its wall-time budget before its worker process is killed: the in-fit
+#: watchdogs stop most fits at the budget, the kill is the backstop for one long integration.
+FIT_GRACE_S = 10.0
+#: Seconds a terminated worker process gets to exit before it is killed.
+TERMINATE_WAIT_S = 5.0
 
 
 class _OverBudget(Exception):
@@ -302,6 +315,146 @@ def sse_at(setting: Setting, u) -> float:
 
 
 # ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class JobFailure:
+    """A job without a result: ``TIME_BUDGET`` (its worker was killed past the job's limit) or
+    ``WORKER_DIED`` (its worker exited on its own, e.g. a crash); ``wall``: seconds it ran."""
+
+    status: str
+    wall: float
+
+
+@dataclass
+class _Worker:
+    """A persistent worker process, the parent's end of its pipe, and the job it runs (if ``busy``)."""
+
+    process: multiprocessing.process.BaseProcess
+    conn: multiprocessing.connection.Connection
+    ready: bool = False
+    busy: bool = False
+    job: object = None
+    started: float = 0.0
+    limit: float = 0.0
+
+
+def _worker_main(conn: multiprocessing.connection.Connection, func: Callable,
+                 initializer: Callable[[], None] | None) -> None:
+    """Worker process: run each job received on ``conn`` and send back ``("ok", result)`` or
+    ``("error", traceback)``, until the parent closes its end. Ctrl-C is left to the parent, which
+    stops the workers."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if initializer is not None:
+        initializer()
+    conn.send(("ready", None))
+    while True:
+        try:
+            job = conn.recv()
+        except EOFError:
+            return
+        try:
+            reply = ("ok", func(job))
+        except Exception:
+            reply = ("error", traceback.format_exc())
+        conn.send(reply)
+
+
+def _start_worker(ctx: multiprocessing.context.BaseContext, func: Callable,
+                  initializer: Callable[[], None] | None) -> _Worker:
+    """Start a worker process; it is not ``ready`` for jobs until it says so (after its imports)."""
+    parent, child = ctx.Pipe()
+    process = ctx.Process(target=_worker_main, args=(child, func, initializer), daemon=True)
+    process.start()
+    child.close()
+    return _Worker(process, parent)
+
+
+def _stop_worker(worker: _Worker) -> None:
+    """Terminate the worker's process, kill it if it does not exit, and close its pipe."""
+    worker.conn.close()
+    worker.process.terminate()
+    worker.process.join(TERMINATE_WAIT_S)
+    if worker.process.exitcode is None:
+        worker.process.kill()
+        worker.process.join()
+
+
+def _receive(worker: _Worker) -> tuple[str, object] | None:
+    """The worker's next message, ``("died", None)`` when its process is gone, None when neither."""
+    try:
+        if not worker.conn.poll():
+            return None if worker.process.exitcode is None else ("died", None)
+        return worker.conn.recv()
+    except (EOFError, OSError):
+        return "died", None
+
+
+def run_supervised(jobs: Sequence, func: Callable, workers: int, limit_of: Callable[[object], float],
+                   on_result: Callable[[object, object], None],
+                   initializer: Callable[[], None] | None = None) -> None:
+    """Run ``func(job)`` for every job in ``workers`` persistent spawned processes, with a hard
+    wall-time limit per job.
+
+    ``on_result(job, result)`` is called here as each job ends (in completion order) with
+    ``func(job)``'s return value, or with a :class:`JobFailure` when the job ran ``limit_of(job)``
+    seconds (its worker is killed: a check inside the job cannot interrupt, e.g., one long
+    integration) or its worker died. Only such a worker is replaced (while jobs remain), so imports
+    and per-process caches are paid once per worker; the clock of a job starts when a ready worker
+    receives it. An exception raised by ``func`` is raised here as RuntimeError. No worker outlives
+    the call (normal return, exception, Ctrl-C). ``func`` and ``initializer`` must be top-level
+    functions that the spawned processes can import.
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    ctx = multiprocessing.get_context("spawn")
+    pending = deque(jobs)
+    pool: list[_Worker] = []
+    try:
+        for _ in range(min(workers, len(pending))):
+            pool.append(_start_worker(ctx, func, initializer))
+        while pending or any(w.busy for w in pool):
+            for w in pool:
+                if w.ready and not w.busy and pending:
+                    w.job = pending.popleft()
+                    w.busy, w.started, w.limit = True, time.perf_counter(), limit_of(w.job)
+                    try:
+                        w.conn.send(w.job)
+                    except OSError:
+                        pass  # the worker is gone: its job is recorded as WORKER_DIED below
+            deadlines = [w.started + w.limit for w in pool if w.busy]
+            timeout = max(0.0, min(deadlines) - time.perf_counter()) if deadlines else None
+            multiprocessing.connection.wait([w.conn for w in pool] + [w.process.sentinel for w in pool], timeout)
+            for w in list(pool):
+                message = _receive(w)
+                elapsed = time.perf_counter() - w.started
+                if message is None:
+                    if not (w.busy and elapsed >= w.limit):
+                        continue
+                    failure = JobFailure("TIME_BUDGET", elapsed)
+                elif message[0] == "ready":
+                    w.ready = True
+                    continue
+                elif message[0] == "ok":
+                    w.busy = False
+                    on_result(w.job, message[1])
+                    continue
+                elif message[0] == "error":
+                    raise RuntimeError(f"a job raised in a worker process:\n{message[1]}")
+                elif not w.ready:
+                    raise RuntimeError(f"a worker process exited while starting (exit code {w.process.exitcode})")
+                else:
+                    failure = JobFailure("WORKER_DIED", elapsed)
+                _stop_worker(w)
+                pool.remove(w)
+                if pending:
+                    pool.append(_start_worker(ctx, func, initializer))
+                if w.busy:
+                    on_result(w.job, failure)
+    finally:
+        for w in pool:
+            _stop_worker(w)
+
+
+# ----------------------------------------------------------------------------------------------
 _WORKER_SETTINGS: dict = {}
 
 
@@ -323,6 +476,19 @@ def _job(args) -> dict:
     out.update(setting=key, start=index, method=method, factors=coefs / setting.truth_coefs,
                sse=sse_at(setting, out["estimates"]))
     return out
+
+
+def _job_limit(job) -> float:
+    """Hard wall-time limit of a ``_job``: its budget (Adam's time budget) plus ``FIT_GRACE_S``."""
+    method, cfg = job[3], job[5]
+    return (cfg["adam_time"] if method == "adam" else cfg["budget"]) + FIT_GRACE_S
+
+
+def failed_row(setting: Setting, job, failure: JobFailure) -> dict:
+    """The row of a ``_job`` that the supervisor stopped or lost: ``_job``'s fields, without estimates."""
+    key, index, coefs, method, _, _ = job
+    return dict(status=failure.status, iterations=-1, wall=failure.wall, estimates=None, setting=key, start=index,
+                method=method, factors=coefs / setting.truth_coefs, sse=math.nan)
 
 
 def reference(setting: Setting, rows: list[dict]) -> tuple[np.ndarray, float, np.ndarray]:
@@ -416,16 +582,19 @@ def write_markdown(path: Path, settings, rows, refs, cfg, bounds, quick: bool, t
         f"coefficients) lies within {SE_TOL:g} standard errors of the best estimate.", "",
         "Budgets: torchql `max_iter={}`, `max_steps={}` (solver steps per integration), kantorovich storage grid = "
         "the observation times for FitzHugh-Nagumo (400 intervals), default (1000) for the oscillator; scipy "
-        "`max_nfev=200`; every torchql and scipy fit is stopped after {:g} s of wall time (`TIME_BUDGET`). "
-        "Adam: `adjoint_fit(optimizer=\"adam\")`, default learning rate, at most {} steps or {:g} s, on the first "
-        "{} starts.".format(TORCHQL_MAX_ITER, TORCHQL_MAX_STEPS, cfg["budget"], cfg["adam_steps"], cfg["adam_time"],
-                            cfg["adam_starts"]), "",
+        "`max_nfev=200`; every torchql and scipy fit is stopped after {:g} s of wall time (`TIME_BUDGET`), "
+        "checked between iterations. Adam: `adjoint_fit(optimizer=\"adam\")`, default learning rate, at most {} "
+        "steps or {:g} s, on the first {} starts. The limit is hard: each fit runs in a worker process, killed "
+        "{:g} s past the fit's budget (Adam: its time budget) when, e.g., one long integration overruns it; such "
+        "a fit is `TIME_BUDGET` too, with its wall time up to the kill.".format(
+            TORCHQL_MAX_ITER, TORCHQL_MAX_STEPS, cfg["budget"], cfg["adam_steps"], cfg["adam_time"],
+            cfg["adam_starts"], FIT_GRACE_S), "",
         "Bounds: " + ("`torchql.fit` accepts `bounds`: the torchql runs use positivity bounds (0, None) on every "
                       "coefficient, and scipy uses method \"trf\" with the same bounds."
                       if bounds else "`torchql.fit(..., bounds=...)` raised NotImplementedError: every torchql run is "
                       "unbounded, and scipy uses method \"lm\" (unbounded)."), "",
         "Iterations: torchql updates; scipy Jacobian evaluations (`njev`); Adam steps. Medians over every "
-        "start of the method (failed ones included, except those stopped by the time budget), and over those "
+        "start of the method (failed ones included, except `TIME_BUDGET` and `WORKER_DIED`), and over those "
         "that reached the optimum.", "",
     ]
     for setting in settings:
@@ -446,7 +615,8 @@ def write_markdown(path: Path, settings, rows, refs, cfg, bounds, quick: bool, t
                          f"{_fmt(s['med_wall'], '.2f')} / {_fmt(s['med_wall_reached'], '.2f')} | {modes} |")
         lines.append("")
     lines += ["Failure modes: a torchql `Status` name (its message says what it means), `TIME_BUDGET` "
-              "(stopped by the wall-time budget), `converged elsewhere` (the method reported convergence, but "
+              "(stopped by the wall-time budget), `WORKER_DIED` (the fit's worker process exited during the fit: "
+              "a crash), `converged elsewhere` (the method reported convergence, but "
               "to another stationary point than the optimum), scipy's `MAX_NFEV`; Adam's `MAX_ITER` is the end "
               "of its step or time budget.", "",
               "Every start and outcome: `basin.csv`. Figure: `basin.png` (each start's coefficient factors, "
@@ -518,7 +688,8 @@ def main(argv=None) -> None:
     parser.add_argument("--shooting-starts", type=int, default=None,
                         help="starts for torchql shooting (default 10; --quick 1)")
     parser.add_argument("--adam-starts", type=int, default=None, help="starts for Adam (default 5; --quick 1)")
-    parser.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="worker processes, each killing fits past their budget (default 1)")
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),
                         help="methods to run (default all)")
@@ -545,16 +716,16 @@ def main(argv=None) -> None:
                 if method in FEWER_STARTS and index >= cfg[FEWER_STARTS[method]]:
                     continue
                 jobs.append((setting.key, index, coefs, method, bounds, cfg))
+    by_key = {setting.key: setting for setting in settings}
     rows = []
-    if args.workers > 1:
-        with multiprocessing.get_context("spawn").Pool(args.workers, initializer=_init_worker) as pool:
-            for k, row in enumerate(pool.imap_unordered(_job, jobs)):
-                rows.append(row)
-                _progress(k, len(jobs), row, t_start)
-    else:
-        for k, job in enumerate(jobs):
-            rows.append(_job(job))
-            _progress(k, len(jobs), rows[-1], t_start)
+
+    def collect(job, result) -> None:
+        if isinstance(result, JobFailure):
+            result = failed_row(by_key[job[0]], job, result)
+        rows.append(result)
+        _progress(len(rows) - 1, len(jobs), result, t_start)
+
+    run_supervised(jobs, _job, args.workers, _job_limit, collect, initializer=_init_worker)
     rows.sort(key=lambda r: (args.settings.index(r["setting"]), METHODS.index(r["method"]), r["start"]))
 
     refs = {}
