@@ -148,6 +148,9 @@ def test_missing_values_per_sample():
     assert batch.n_observations.tolist() == [9, 7, 9]
     assert torch.allclose(batch.estimates[1], single.estimates, rtol=1e-8, atol=0)
     assert abs(float(batch.residual_variance[1]) - single.residual_variance) <= 1e-8 * single.residual_variance
+    assert_same_intervals(batch[1], single)  # residual variance estimated: Student's t with 7 - 3 dof
+    with pytest.raises(ValueError, match="`level` must be a float strictly between 0 and 1"):
+        batch[1].confidence_intervals(95)
 
 
 def as_batch(data: list) -> torchql.Observations:
@@ -189,6 +192,15 @@ def test_batched_observations_with_missing_values_and_sigma_per_sample():
     assert_identical(batched, torchql.fit_many(CoastingCar(AREA, MASS), listed, x0, grid=20))
     single = torchql.fit(CoastingCar(AREA, MASS), batch[1], x0[1], grid=20)
     assert single.success and torch.allclose(batched.estimates[1], single.estimates, rtol=1e-8, atol=0)
+    assert_same_intervals(batched[1], single)  # sigma known: normal quantile
+
+
+def assert_same_intervals(sample, single, level=0.9):
+    """A sample's Wald intervals are the single fit's (same quantile, estimates and standard errors)."""
+    ours, theirs = sample.confidence_intervals(level), single.confidence_intervals(level)
+    assert list(ours) == single.unknown_names
+    for name, (lo, hi) in theirs.items():
+        assert ours[name] == pytest.approx((lo, hi), rel=1e-6)
 
 
 @pytest.mark.parametrize("kwargs, error, match", [

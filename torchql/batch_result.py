@@ -26,7 +26,7 @@ class SampleResult:
     index : int
         The sample's position in the batch.
     success, status, message, params, x0, estimates, iterations, sse, covariance,
-    n_observations, dof, residual_variance, unknown_names, t0
+    n_observations, dof, residual_variance, unknown_names, t0, sigma_known
         As in :class:`BatchFitResult`, for this sample (``params`` values of the buffers' own
         shapes, ``x0 (n_states,)``, ``estimates (m,)``, ``covariance (m, m)``).
     """
@@ -46,12 +46,33 @@ class SampleResult:
     residual_variance: float
     unknown_names: list[str]
     t0: float
+    sigma_known: bool
 
     @property
     def stderr(self) -> dict[str, float]:
         """Standard error of every unknown, by name."""
         diag = torch.diagonal(self.covariance).clamp_min(0).sqrt()
         return {name: float(v) for name, v in zip(self.unknown_names, diag)}
+
+    def confidence_intervals(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """Wald intervals ``estimate -/+ q * stderr`` at confidence ``level``, by name.
+
+        As :meth:`torchql.FitResult.confidence_intervals`: ``q`` is Student's t quantile with
+        ``dof`` degrees of freedom when the residual variance was estimated, the normal
+        quantile when ``sigma`` was known.
+        """
+        from .uncertainty import normal_quantile, student_t_quantile
+
+        if not (isinstance(level, float) and 0.0 < level < 1.0):
+            raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
+        p = 0.5 + 0.5 * level
+        if self.sigma_known:
+            q = normal_quantile(p)
+        else:
+            q = student_t_quantile(p, self.dof) if self.dof > 0 else float("nan")
+        se = self.stderr
+        return {name: (float(v) - q * se[name], float(v) + q * se[name])
+                for name, v in zip(self.unknown_names, self.estimates)}
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))
@@ -139,7 +160,8 @@ class BatchFitResult:
             params={k: v[i].clone() for k, v in self.params.items()}, x0=self.x0[i].clone(),
             estimates=self.estimates[i].clone(), iterations=int(self.iterations[i]), sse=float(self.sse[i]),
             covariance=self.covariance[i].clone(), n_observations=int(self.n_observations[i]), dof=int(self.dof[i]),
-            residual_variance=float(self.residual_variance[i]), unknown_names=list(self.unknown_names), t0=self.t0)
+            residual_variance=float(self.residual_variance[i]), unknown_names=list(self.unknown_names), t0=self.t0,
+            sigma_known=self.sigma_known)
 
     def __getitem__(self, i: int) -> SampleResult:
         return self.sample(i)
