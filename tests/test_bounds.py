@@ -52,6 +52,39 @@ def test_step_stays_strictly_inside_and_reports_blocked():
     assert change[1] == 0.5
 
 
+def test_step_near_a_bound_is_capped_not_overflowed():
+    """Next to its bound ``du/dq`` is tiny, and a linearized step to a far ``u`` is huge in ``q``."""
+    b = make([0.0, 1.0, 0.0, None], [None, None, 1.0, None])
+    u = torch.tensor([3e-9, 1.0 + 1e-12, 0.5, 2.0], dtype=DT)
+    change, blocked = b.step(u, torch.tensor([3e7, 5.0, -1e300, 1e3], dtype=DT))
+    new = u + change
+    assert torch.isfinite(new).all()
+    assert new[0] == pytest.approx(3e-9 * 1000, rel=1e-12)  # a factor 1000 farther from the bound
+    assert new[1] - 1.0 == pytest.approx(1e-12 * math.exp(5.0), rel=1e-3)  # within the cap: as asked
+    assert new[2] == pytest.approx(1 / 1001, rel=1e-12)  # both bounds: q from 0 to -log(1000)
+    assert change[3] == 1e3  # unbounded: never capped
+    assert blocked.tolist() == [True, False, True, False]
+
+
+def test_rate_pulled_far_from_its_bound_gives_a_status_not_nan():
+    """2-digit oscillator data (y only), guesses A = 0.015, B = 0.45, both bounded below by 0.
+
+    The first step drives A to 3e-9; the next asked for A ~ 0.1, a step of 3e7 in log A, whose
+    ``exp`` overflowed to a non-finite update (DIVERGED). Capped, the fit ends at the optimum on
+    the bounds that this start leads to, and says that the estimates lie at their bounds.
+    """
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-13, atol=1e-15)[:, 0]
+    data = torchql.Observations(t, torch.tensor([[float(f"{v:.1e}")] for v in y.tolist()], dtype=DT), observe=["y"])
+    x0 = torch.tensor([0.0, 0.86], dtype=DT)
+    for method in torchql.METHODS:
+        r = torchql.fit(LinearOscillator(A=0.01526, B=0.4475), data, x0=x0, method=method,
+                        bounds={"A": (0.0, None), "B": (0.0, None)})
+        assert r.status is not torchql.Status.DIVERGED, (method, r.message)
+        assert torch.isfinite(r.estimates).all() and r.success, (method, r.message)
+        assert "lie at their bounds" in r.message
+
+
 @pytest.mark.parametrize("method", torchql.METHODS)
 def test_bounds_containing_the_truth_recover_it(data, method):
     r = torchql.fit(LinearOscillator(**GUESS), data, x0=X0, method=method,

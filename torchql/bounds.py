@@ -9,7 +9,11 @@ Each bounded unknown ``u`` is written through an unbounded internal variable ``q
 
 The least-squares update is solved for ``q`` (the sensitivity columns multiplied by
 ``du/dq``) and mapped back, so every iterate lies strictly inside its bounds and the stored
-trajectory is updated by the actual change of ``u``. Everything a user sees (estimates,
+trajectory is updated by the actual change of ``u``. One step moves ``q`` by at most
+:data:`MAX_INTERNAL_STEP` (``log 1000``): near a bound ``du/dq`` is tiny, and the linearized
+step in ``q`` that a far-away ``u`` asks for is huge (``exp`` of it overflows); capped, the
+distance to a bound changes by at most a factor 1000 per step, and the unknowns whose step
+was capped are held at their capped move while the others are re-solved. Everything a user sees (estimates,
 covariance, reports) is in ``u``, the user's units.
 """
 
@@ -20,7 +24,11 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-__all__ = ["Bounds"]
+__all__ = ["Bounds", "MAX_INTERNAL_STEP"]
+
+#: Largest move of a bounded unknown's internal variable ``q`` in one step (a factor 1000 in
+#: its distance to a bound).
+MAX_INTERNAL_STEP = math.log(1000.0)
 
 
 class Bounds:
@@ -125,17 +133,21 @@ class Bounds:
         change : Tensor ``(m,)``
         blocked : bool Tensor ``(m,)``
             Unknowns that the step pushed onto their bound (already at it in all but
-            rounding): the caller re-solves with them held, so the others' step is consistent.
+            rounding), or whose step was capped at :data:`MAX_INTERNAL_STEP`: the caller
+            re-solves with them held at their move, so the others' step is consistent.
         """
         if not self.active:
             return alpha_q, torch.zeros_like(alpha_q, dtype=torch.bool)
+        bounded = self.has_lower | self.has_upper
+        capped = bounded & ~(alpha_q.abs() <= MAX_INTERNAL_STEP)  # NaN counts as capped
+        alpha_q = torch.where(capped, alpha_q.nan_to_num(0.0).clamp(-MAX_INTERNAL_STEP, MAX_INTERNAL_STEP), alpha_q)
         u_new = self.external(self.internal(u) + alpha_q)
         inf = torch.full_like(u, math.inf)
         low = self.has_lower & (u_new <= self.lower)
         high = self.has_upper & (u_new >= self.upper)
         u_new = torch.where(low, torch.nextafter(self.lower, inf), u_new)
         u_new = torch.where(high, torch.nextafter(self.upper, -inf), u_new)
-        return torch.where(self.has_lower | self.has_upper, u_new - u, alpha_q), low | high
+        return torch.where(bounded, u_new - u, alpha_q), low | high | capped
 
     def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
         """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""
