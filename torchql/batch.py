@@ -599,10 +599,14 @@ class _Engine:
         return traj, errors
 
     def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor) -> torch.Tensor:
-        """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable)."""
+        """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable).
+
+        As ``torchql.fit``'s second opinion: integrated at the loose tolerance, on the grid from
+        the iterate's particular solution (its prediction of the trajectory) where that settles.
+        """
         need = rows[torch.isnan(it["nl_sse"][rows])]
         if need.numel():
-            traj, errors = self._nonlinear(it["z0"][need], loose=True)
+            traj, errors = self._nonlinear(it["z0"][need], loose=True, guess=it["W"][need][..., 0])
             obs = self.spec.obs_in_grid
             n = self.system.n
             value, _ = self.spec.operator.value_and_jacobian(traj[:, obs, :n].reshape(-1, n))
