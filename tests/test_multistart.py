@@ -1,5 +1,6 @@
 """Multi-start: reproducible draws within the range or bounds, the best fit, distinct optima."""
 
+import importlib
 import math
 
 import pytest
@@ -7,6 +8,9 @@ import torch
 
 import torchql
 from testmodels import Decay
+
+#: The module (``torchql.multistart`` the attribute is the function of the same name).
+multistart_module = importlib.import_module("torchql.multistart")
 
 DT = torch.float64
 
@@ -55,7 +59,9 @@ def test_distinct_optima_are_separated_and_best_is_the_lowest():
     ms = torchql.multistart(Oscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT), starts=8, spread=4.0,
                             seed=0, fixed_x0=["y", "v"], grid=200)
     sses = [r.sse for r in ms.results if r.success]
-    assert ms.best.sse == min(sses)
+    first = ms.optima[0].starts[0]  # the start with the smallest SSE; best is its fit
+    assert ms.results[first].sse == min(sses)
+    assert torch.allclose(ms.best.estimates, ms.results[first].estimates, rtol=1e-8, atol=0)
     assert ms.best.params["w2"].item() == pytest.approx(1.69, rel=1e-8)
     assert [o.sse for o in ms.optima] == sorted(o.sse for o in ms.optima)
     assert sum(len(o.starts) for o in ms.optima) == ms.n_converged
@@ -80,3 +86,65 @@ def test_callback_sees_every_fit(decay_data):
     torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT),
                        starts=3, grid=50, callback=lambda k, r: seen.append((k, r.success)))
     assert [k for k, _ in seen] == [0, 1, 2]
+
+
+def test_batched_path_gives_the_loop_best_and_optima(monkeypatch):
+    """Kantorovich fits with options fit_many supports: all starts in one fit_many call, and the
+    result is the loop's (best estimates to 1e-8, the same optima reached by the same starts);
+    the best is a full FitResult, fitted once more with torchql.fit from its start."""
+    class Oscillator(torchql.ODEModel):
+        state_names = ("y", "v")
+
+        def __init__(self, w2=1.0):
+            super().__init__()
+            self.register_buffer("w2", torch.tensor(w2, dtype=DT))
+
+        def forward(self, t, x):
+            y, v = x.unbind(-1)
+            return torch.stack((v, -self.w2 * y), dim=-1)
+
+    t = torch.linspace(0, 10, 21, dtype=DT)
+    noise = 0.01 * torch.randn(21, generator=torch.Generator().manual_seed(2), dtype=DT)
+    data = torchql.Observations(t, (torch.cos(1.3 * t) + noise).unsqueeze(-1), observe=["y"])
+    args = (Oscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT))
+    kwargs = dict(starts=6, spread=4.0, seed=3, grid=100, max_iter=12, method="kantorovich")  # 2 starts: MAX_ITER
+
+    calls = {"fit_many": 0, "fit": 0}
+
+    def counted(name, function):
+        def wrapper(*a, **k):
+            calls[name] += 1
+            return function(*a, **k)
+        return wrapper
+
+    monkeypatch.setattr(multistart_module, "fit_many", counted("fit_many", multistart_module.fit_many))
+    monkeypatch.setattr(multistart_module, "fit", counted("fit", multistart_module.fit))
+    batched = torchql.multistart(*args, **kwargs)
+    assert batched.batched and calls == {"fit_many": 1, "fit": 1}  # one batch, then the best's full fit
+    assert isinstance(batched.best, torchql.FitResult) and batched.best.success
+
+    monkeypatch.setattr(multistart_module, "_fit_many_serves", lambda *a: False)
+    loop = torchql.multistart(*args, **kwargs)
+    assert not loop.batched and calls == {"fit_many": 1, "fit": 7}
+
+    assert torch.allclose(batched.best.estimates, loop.best.estimates, rtol=1e-8, atol=0)
+    assert batched.best.sse == pytest.approx(loop.best.sse, rel=1e-8)
+    assert batched.best.iterations == loop.best.iterations
+    assert [s.name for s in (r.status for r in batched.results)] == [r.status.name for r in loop.results]
+    assert [sorted(o.starts) for o in batched.optima] == [sorted(o.starts) for o in loop.optima]
+    for ours, theirs in zip(batched.optima, loop.optima):
+        assert torch.allclose(ours.estimates, theirs.estimates, rtol=1e-8, atol=0)
+
+
+@pytest.mark.parametrize("kwargs", [dict(bounds={"k": (0.01, 5.0)}), dict(method="shooting"),
+                                    dict(initial_trajectory="data"), dict(linear_solver="torchdiffeq")])
+def test_options_fit_many_lacks_keep_the_loop(decay_data, kwargs):
+    ms = torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), starts=2, grid=50, max_iter=2,
+                            **kwargs)
+    assert not ms.batched and all(isinstance(r, torchql.FitResult) for r in ms.results)
+
+
+def test_a_batch_of_datasets_is_rejected(decay_data):
+    batch = torchql.Observations(decay_data.t, torch.stack([decay_data.y, decay_data.y]), observe=["y"])
+    with pytest.raises(ValueError, match=r"`data` holds a batch of 2 independent datasets.*torchql.fit_many"):
+        torchql.multistart(Decay(0.3), batch, torch.tensor([1.0], dtype=DT), starts=2)

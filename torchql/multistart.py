@@ -3,9 +3,17 @@
 A nonlinear least-squares problem may have several local optima, and any local method
 converges to the one whose basin holds its start. ``multistart`` draws ``starts`` guesses of
 the coefficients (log-uniform over a range around the model's own values, or within
-``bounds``), fits from each with :func:`torchql.fit`, and returns the best fit together with
-every fit and the distinct optima found, so that a user can see whether the best is likely
-global (most starts reach it) or fragile (few do).
+``bounds``), fits from each, and returns the best fit together with every fit and the
+distinct optima found, so that a user can see whether the best is likely global (most starts
+reach it) or fragile (few do).
+
+When the fits are Kantorovich fits of one dataset with options that :func:`torchql.fit_many`
+supports (no ``bounds``, no values marked ``exact``, the default ``initial_trajectory`` and
+``linear_solver``), every start is fitted in one ``fit_many`` call, each sample from its own
+guesses on ``torchql.fit``'s iteration; the best start is then fitted once more with
+:func:`torchql.fit`, so that ``best`` is the full :class:`~torchql.FitResult` a loop would
+give. Otherwise (shooting, bounds, exact values, several experiments, ...) each start is one
+``torchql.fit``.
 """
 
 from __future__ import annotations
@@ -18,11 +26,21 @@ from dataclasses import dataclass, field
 import torch
 
 from . import _checks
+from .batch import fit_many
+from .batch_result import SampleResult
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
+from .observations import Observations
 from .result import FitResult
+from .superposition import DEFAULT_LINEAR_SOLVER
 
 __all__ = ["multistart", "MultiStartResult", "Optimum"]
+
+#: Options of :func:`torchql.fit` that :func:`torchql.fit_many` takes as they are.
+_FIT_MANY_OPTIONS = frozenset({"fixed_x0", "t0", "max_iter", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
+                               "damping", "solver", "max_steps"})
+#: Options of :func:`torchql.fit` that ``fit_many`` always runs with these values.
+_FIT_MANY_FIXED = {"method": "kantorovich", "initial_trajectory": "integrate", "linear_solver": DEFAULT_LINEAR_SOLVER}
 
 
 @dataclass
@@ -53,21 +71,26 @@ class MultiStartResult:
     best : FitResult
         The successful fit with the smallest SSE (if none succeeded, the fit with the smallest
         finite SSE, whose ``success`` is False).
-    results : list of FitResult
-        Every start's fit, in the order of ``guesses``.
+    results : list of FitResult, or of SampleResult when ``batched``
+        Every start's fit, in the order of ``guesses``. Batched, each is one sample of the
+        ``fit_many`` result (status, message, estimates, SSE, covariance, ...; no trajectory).
     guesses : Tensor ``(N, P)``
         The drawn coefficient guesses (columns ``param_names``).
     param_names : list of str
         Names of the drawn coefficients (vector/matrix buffers element-wise).
     optima : list of Optimum
         Distinct optima of the successful fits, best first.
+    batched : bool
+        Whether the starts were fitted in one :func:`torchql.fit_many` call (and ``best`` by
+        one more :func:`torchql.fit` from its start) rather than by one ``fit`` each.
     """
 
     best: FitResult
-    results: list[FitResult]
+    results: list[FitResult | SampleResult]
     guesses: torch.Tensor
     param_names: list[str]
     optima: list[Optimum] = field(default_factory=list)
+    batched: bool = False
 
     @property
     def n_converged(self) -> int:
@@ -121,15 +144,19 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         Two successful fits are the same optimum when every estimate agrees to within
         ``x_rtol`` times its magnitude plus ``x_atol``.
     callback : callable, optional
-        Called as ``callback(k, result)`` after each fit (progress reporting).
+        Called as ``callback(k, result)`` after each fit (progress reporting); when the starts
+        are fitted in one batch, for every start once the batch is done.
     **fit_kwargs
         Further arguments of :func:`torchql.fit` (``method``, ``initial_trajectory``, ...).
+        With the options ``fit_many`` supports, the starts are fitted in one batch (see the
+        module's description and ``MultiStartResult.batched``).
 
     Returns
     -------
     MultiStartResult
     """
     _checks.model_class(model)
+    _checks.single_observations("data", data)
     starts = _checks.positive_int("starts", starts)
     spread = _checks.positive_number("spread", spread)
     if spread < 1:
@@ -147,23 +174,49 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     guesses = torch.stack([_draw(center, lower, upper, spread, gen) for _ in range(starts)])
     if include_guess:
         guesses[0] = center
-    results = []
-    for k in range(starts):
+
+    def fit_start(k: int) -> FitResult:
         trial = copy.deepcopy(model)
         for name, value in system.unpack_params(guesses[k]).items():
             _set_buffer(trial, name, value)
-        r = fit(trial, data, x0, params=params, bounds=bounds, **fit_kwargs)
-        results.append(r)
+        return fit(trial, data, x0, params=params, bounds=bounds, **fit_kwargs)
+
+    batched = _fit_many_serves(data, bounds, fit_kwargs)
+    results: list[FitResult | SampleResult] = []
+    if batched:
+        rows = [system.unpack_params(g) for g in guesses]
+        per_start = {name: torch.stack([row[name] for row in rows]) for name in system.param_names}
+        options = {key: value for key, value in fit_kwargs.items() if key in _FIT_MANY_OPTIONS}
+        results += fit_many(model, [data] * starts, x0, params=params, guesses=per_start, **options)
         if callback is not None:
-            callback(k, r)
+            for k, r in enumerate(results):
+                callback(k, r)
+    else:
+        for k in range(starts):
+            results.append(fit_start(k))
+            if callback is not None:
+                callback(k, results[-1])
     optima = _cluster(results, x_rtol, x_atol)
     if optima:
-        best = min((r for r in results if r.success), key=lambda r: r.sse)
+        k_best = min((k for k, r in enumerate(results) if r.success), key=lambda k: results[k].sse)
     else:
-        finite = [r for r in results if math.isfinite(r.sse)]
-        best = min(finite, key=lambda r: r.sse) if finite else results[0]
+        finite = [k for k, r in enumerate(results) if math.isfinite(r.sse)]
+        k_best = min(finite, key=lambda k: results[k].sse) if finite else 0
+    best = fit_start(k_best) if batched else results[k_best]  # the full FitResult a loop gives that start
     return MultiStartResult(best=best, results=results, guesses=guesses, param_names=list(system.element_names),
-                            optima=optima)
+                            optima=optima, batched=batched)
+
+
+def _fit_many_serves(data, bounds, fit_kwargs: dict) -> bool:
+    """Whether :func:`torchql.fit_many` fits every start as ``torchql.fit(..., **fit_kwargs)`` would.
+
+    True for one dataset (not a list of experiments) without ``exact`` values, no ``bounds``,
+    and options all among :data:`_FIT_MANY_OPTIONS` or at the values of :data:`_FIT_MANY_FIXED`.
+    """
+    if not isinstance(data, Observations) or bool(data.exact.any()) or bounds:
+        return False
+    return all(key in _FIT_MANY_OPTIONS or (key in _FIT_MANY_FIXED and value == _FIT_MANY_FIXED[key])
+               for key, value in fit_kwargs.items())
 
 
 def _element_bounds(bounds, system: AugmentedSystem) -> tuple[torch.Tensor, torch.Tensor]:
