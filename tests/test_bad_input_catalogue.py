@@ -12,6 +12,7 @@ import torch
 
 import torchql
 from testmodels import Decay
+from torchql.baselines import adjoint_fit
 
 DT = torch.float64
 T = torch.linspace(0, 2, 11, dtype=DT)
@@ -67,6 +68,15 @@ RAISES = [
      r"`linear_solver`"),
     ("unknown damping", lambda: torchql.fit(Decay(0.3), data(), X0, damping="trust"), ValueError, r"`damping`"),
     ("empty list of experiments", lambda: torchql.fit(Decay(0.3), [], X0), ValueError, r"`data`"),
+    ("a batch of datasets given to fit",
+     lambda: torchql.fit(Decay(0.3), torchql.Observations(T, Y.expand(3, -1, -1), observe=["y"]), X0), ValueError,
+     r"`data` holds a batch of 3 .*torchql.fit_many"),
+    ("a batch among experiments",
+     lambda: torchql.fit(Decay(0.3), [data(), torchql.Observations(T, Y.expand(2, -1, -1), observe=["y"])], X0),
+     ValueError, r"`data\[1\]` holds a batch"),
+    ("a batch of datasets given to adjoint_fit",
+     lambda: adjoint_fit(Decay(0.3), torchql.Observations(T, Y.expand(3, -1, -1), observe=["y"]), x0=X0), ValueError,
+     r"`data` holds a batch.*torchql.fit_many"),
 ]
 
 

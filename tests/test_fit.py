@@ -344,6 +344,25 @@ def test_data_driven_first_trajectory_derives_unobserved_states(linear_data):
     assert result.iterations <= 4
 
 
+def test_shooting_rejects_stiff_trials_instead_of_crawling_through_them():
+    """2-digit oscillator data, bounded rates from A = 0.61, B = 1.14: one trial asks for A ~ 350.
+
+    That trial's trajectory needs far more than the grid solver's step budget; it is rejected
+    (the damping shortens the step) rather than integrated by the adaptive solver, which took
+    more than 500,000 right-hand-side evaluations (over a minute) on the rejected trials alone.
+    """
+    times = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)[:, 0]
+    data = torchql.Observations(times, torch.tensor([[float(f"{v:.1e}")] for v in y.tolist()], dtype=DT),
+                                observe=["y"])
+    result = torchql.fit(LinearOscillator(A=0.6138, B=1.1418), data, x0=torch.tensor([0.0, 0.86], dtype=DT),
+                         method="shooting", bounds={"A": (0.0, None), "B": (0.0, None)})
+    assert result.success, result.message
+    assert sum(rec.rejected for rec in result.history) > 0
+    assert result.nfev < 50_000
+    assert abs(result.params["A"].item() - 0.102) < 1e-3 and abs(result.params["B"].item() - 3.0009) < 1e-3
+
+
 @pytest.mark.parametrize("A, B", [(0.0153, 0.447), (1.0, 30.0), (0.01, 30.0), (1.0, 0.3)])
 def test_data_driven_first_trajectory_on_sparse_two_digit_data(A, B):
     """Thesis Table 4.1's 14 samples rounded to 2 digits, y only, coefficients 10x off either way.

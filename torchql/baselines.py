@@ -162,6 +162,7 @@ def adjoint_fit(
     window = defaults["window"] if window is None else _checks.positive_int("window", window)
 
     # the same validation (and the same prepared problem) as torchql.fit
+    _checks.single_observations("data", data)
     if isinstance(data, Observations) and bool(data.exact.any()):
         raise ValueError(
             "adjoint_fit does not support values marked `exact` (a gradient method has no equality "

@@ -176,6 +176,7 @@ def fit(
     """
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
+    _checks.single_observations("data", data)
     if isinstance(data, (list, tuple)):
         return _fit_experiments(
             model, list(data), x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
@@ -453,8 +454,11 @@ class _Problem:
         ``_GRID_NEWTON`` iterations or an interval needs more than ``_GRID_SUBSTEPS`` steps
         (``_GRID_SUBSTEPS_LOOSE`` when ``loose``), the
         adaptive solver integrates as without a guess; with ``budget_is_final`` the latter is
-        taken as the blow-up it nearly always is, and raised (a trial step's second opinion:
-        the adaptive solver would only crawl to the same failure).
+        taken as the blow-up it nearly always is, and raised (a trial step: the adaptive solver
+        would only crawl to the same failure, or through a stiff stretch that a step far from
+        the current iterate led into; the damping shortens the step instead). Then an interval
+        may take ``_BLOWUP_STEPS / (G - 1)`` steps if that is more, so that a coarse grid does
+        not turn a smooth trial into a blow-up.
         """
         n = self.system.n
         counter = _Counter(self.system.model_with(z0[n:]))
@@ -462,6 +466,9 @@ class _Problem:
         atol = self.atol * rtol / self.rtol
         x = None
         substeps = _GRID_SUBSTEPS_LOOSE if loose else _GRID_SUBSTEPS
+        intervals = self.grid.shape[0] - 1
+        if budget_is_final and intervals > 0:
+            substeps = max(substeps, 1 << max(0, (_BLOWUP_STEPS // intervals).bit_length() - 1))
         if self.max_steps is not None:  # the user's step budget per grid interval binds this solver too
             substeps = min(substeps, 1 << (self.max_steps.bit_length() - 1))
         with torch.no_grad():
@@ -645,10 +652,12 @@ class _Problem:
     def _evaluate_shooting(self, z0: torch.Tensor, guess: torch.Tensor | None = None) -> _Iterate:
         """Integrate the nonlinear model from ``z0`` with its sensitivities; rows at the observations.
 
-        ``guess (G, M)``: the previous iterate's linear prediction of the trajectory (see :meth:`_forward`).
+        ``guess (G, M)``: the previous iterate's linear prediction of the trajectory, given for
+        trial steps (see :meth:`_forward`; a trial that exceeds the grid solver's step budget is
+        rejected as a blow-up).
         """
         n, obs = self.system.n, self.obs_in_grid
-        z_traj = self._forward(z0, guess=guess)
+        z_traj = self._forward(z0, guess=guess, budget_is_final=guess is not None)
         W = self._about_nonlinear(z0, z_traj)
         C, d, _ = self._rows(z_traj[obs], z_traj[obs], W[obs, :, 1:])
         return _Iterate(z0, z_traj[:, :n], W, C, d, self._sse(d), self._merit(d), z_traj)
@@ -959,6 +968,9 @@ _GRID_NEWTON = 8
 #: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
 #: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
 _GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
+#: RK4 steps over the whole span beyond which a trial step's trajectory counts as a blow-up
+#: (spread over the grid's intervals; on the default grid the per-interval caps above bind).
+_BLOWUP_STEPS = 16384
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
