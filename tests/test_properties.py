@@ -148,16 +148,15 @@ def _run_fit(problem, t, rows, cols, k_true):
         K_known = K.index_put((rows, cols), torch.zeros(len(positions), dtype=DT))
         model = PartlyKnownLinear(K_known, positions, k_guess)
         names = [f"k[{j}]" for j in range(len(positions))]
-    result = torchql.fit(model, data, x0=x0_guess, method=problem["method"], grid=60, max_iter=50, max_steps=2000)
+    # max_iter: one derandomized draw (4 states, 6 entries unknown, 2 observed, ratio 3e-4, shooting)
+    # follows a curved valley where the undamped steps fail and the damped ones gain ~20% a step:
+    # it converges to the truth in 57 iterations
+    result = torchql.fit(model, data, x0=x0_guess, method=problem["method"], grid=60, max_iter=100, max_steps=2000)
     assert result.unknown_names == [f"x{i}(t0)" for i in range(n)] + names
     return result
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "one derandomized draw (4 states, 5 entries unknown, 2 observed, condition ~5e3, shooting) "
-    "stagnates at SSE ~3e-7: its undamped Gauss-Newton steps are rejected and the damping "
-    "suppresses the small-singular-value directions; every other draw is recovered"))
 @settings(max_examples=15, deadline=None, derandomize=True, phases=[Phase.explicit, Phase.generate],
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 @given(problem=linear_problems())

@@ -35,8 +35,8 @@ import torch
 from . import _checks
 from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
-from .fit import (_DAMPING_MAX, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL, _MERIT_SLACK,
-                  _DAMPINGS)
+from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _DAMPINGS, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
+                  _MERIT_SLACK)
 from .integrate import check_solver, default_tolerances
 from .linearize import Linearization, linearize
 from .lstsq import solve_update
@@ -764,7 +764,9 @@ class _Engine:
             raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
             if raise_rows.numel():
                 d = damping[raise_rows]
-                d = torch.where(d == 0, torch.clamp(last_damping[raise_rows] / 10, min=_DAMPING_START), 10 * d)
+                last = last_damping[raise_rows]
+                first = torch.where(last > 0, torch.clamp(last / 10, min=_DAMPING_MIN), _DAMPING_START)
+                d = torch.where(d == 0, first, 10 * d)  # as fit's _first_damping, per sample
                 damping[raise_rows] = d
                 stalled = raise_rows[d > _DAMPING_MAX]
                 if stalled.numel():

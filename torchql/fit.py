@@ -691,9 +691,13 @@ class _Problem:
         solution from the current estimates (integrated for that test anyway), so that the
         linear problem is the true one's linearization, and the undamped step is retried from
         there. Then the step is re-solved with the damping raised: first to a tenth of what the
-        previous iterate needed (at least ``_DAMPING_START``), then tenfold each time, which
-        shortens it and turns it toward steepest descent, until a step lowers the sum of
-        squares or the damping exceeds ``_DAMPING_MAX`` (the iteration has stalled).
+        previous iterate needed (``_DAMPING_START`` when it needed none; at least
+        ``_DAMPING_MIN``), then tenfold each time, which shortens it and turns it toward
+        steepest descent, until a step lowers the sum of squares or the damping exceeds
+        ``_DAMPING_MAX`` (the iteration has stalled). The tenth lets the damping fall from one
+        iterate to the next, as Levenberg–Marquardt's does after a success: on an
+        ill-conditioned problem whose undamped steps keep failing, a damping held at
+        ``_DAMPING_START`` would all but freeze the directions of small singular values.
         """
         damping = last_damping = 0.0
         while True:
@@ -739,7 +743,7 @@ class _Problem:
                     current = anchored
                     record.sse, record.trajectory = current.sse, current.traj.detach().clone()
                     continue
-                damping = max(_DAMPING_START, last_damping / 10) if damping == 0.0 else 10 * damping
+                damping = _first_damping(last_damping) if damping == 0.0 else 10 * damping
                 if damping > _DAMPING_MAX:
                     record.rejected = rejected
                     state.status = Status.STALLED
@@ -974,9 +978,15 @@ _BLOWUP_STEPS = 16384
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
-#: largest squared singular value of the scaled least-squares matrix).
+#: largest squared singular value of the scaled least-squares matrix; see :func:`_first_damping`).
 _DAMPING_START = 1e-3
+_DAMPING_MIN = 1e-10
 _DAMPING_MAX = 1e12
+
+
+def _first_damping(last: float) -> float:
+    """The first damping tried after a rejected undamped step: a tenth of ``last``, the previous iterate's."""
+    return max(_DAMPING_MIN, last / 10) if last > 0 else _DAMPING_START
 #: A trial step is accepted when its merit is at most ``(1 + _MERIT_SLACK)`` times the current one
 #: (rounding of the sums of squares must not reject a converging step).
 _MERIT_SLACK = 1e-10
