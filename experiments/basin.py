@@ -494,6 +494,9 @@ def failed_row(setting: Setting, job, failure: JobFailure) -> dict:
 def reference(setting: Setting, rows: list[dict]) -> tuple[np.ndarray, float, np.ndarray]:
     """The best estimate of any run, polished by torchql shooting: estimates, SSE, standard errors."""
     finite = [r for r in rows if np.isfinite(r["sse"])]
+    if not finite:
+        raise RuntimeError(f"no fit of the {setting.title} setting ended with a finite SSE: there is no optimum "
+                           "to compare the starts with (give the fits more time: --starts, budgets)")
     best = min(finite, key=lambda r: r["sse"])
     u = best["estimates"]
     n = len(setting.truth_x0)
