@@ -61,18 +61,9 @@ class SampleResult:
         ``dof`` degrees of freedom when the residual variance was estimated, the normal
         quantile when ``sigma`` was known.
         """
-        from .uncertainty import normal_quantile, student_t_quantile
+        from .uncertainty import wald_intervals
 
-        if not (isinstance(level, float) and 0.0 < level < 1.0):
-            raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
-        p = 0.5 + 0.5 * level
-        if self.sigma_known:
-            q = normal_quantile(p)
-        else:
-            q = student_t_quantile(p, self.dof) if self.dof > 0 else float("nan")
-        se = self.stderr
-        return {name: (float(v) - q * se[name], float(v) + q * se[name])
-                for name, v in zip(self.unknown_names, self.estimates)}
+        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level)
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))

@@ -225,18 +225,9 @@ class FitResult:
         variance was estimated, the normal quantile when ``sigma`` was known. Wald intervals
         rely on the model being close to linear in the unknowns over the interval.
         """
-        from .uncertainty import normal_quantile, student_t_quantile
+        from .uncertainty import wald_intervals
 
-        if not (isinstance(level, float) and 0.0 < level < 1.0):
-            raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
-        p = 0.5 + 0.5 * level
-        if self.sigma_known:
-            q = normal_quantile(p)
-        else:
-            q = student_t_quantile(p, self.dof) if self.dof > 0 else float("nan")
-        se = self.stderr
-        return {name: (float(v) - q * se[name], float(v) + q * se[name])
-                for name, v in zip(self.unknown_names, self.estimates)}
+        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level)
 
     @property
     def condition_number(self) -> float:

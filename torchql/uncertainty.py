@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["Covariance", "covariance", "normal_quantile", "student_t_quantile"]
+__all__ = ["Covariance", "covariance", "normal_quantile", "student_t_quantile", "wald_intervals"]
 
 
 class Covariance(NamedTuple):
@@ -162,3 +162,21 @@ def student_t_quantile(p: float, dof: float) -> float:
         if hi - lo <= 1e-13 * max(1.0, abs(mid)):
             break
     return 0.5 * (lo + hi)
+
+
+def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool,
+                   level: float) -> dict[str, tuple[float, float]]:
+    """Wald intervals ``estimate -/+ q * stderr`` at confidence ``level``, by name.
+
+    ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual variance
+    was estimated (NaN without degrees of freedom), the normal quantile when ``sigma`` was
+    known. ``estimates`` is in the order of ``names``; ``stderr`` maps a name to its standard error.
+    """
+    if not (isinstance(level, float) and 0.0 < level < 1.0):
+        raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
+    p = 0.5 + 0.5 * level
+    if sigma_known:
+        q = normal_quantile(p)
+    else:
+        q = student_t_quantile(p, dof) if dof > 0 else float("nan")
+    return {name: (float(v) - q * stderr[name], float(v) + q * stderr[name]) for name, v in zip(names, estimates)}
