@@ -13,7 +13,8 @@ Compared, in the same process:
   warm-up on a small batch), given as one batched ``Observations`` (values ``(B, 9, 1)``,
   validated once) and timed with its building; once more at the largest ``B`` with
   ``rtol=1e-8`` (every other row: the default ``rtol=1e-10``), a faster setting whose accuracy
-  is reported beside the others';
+  is reported beside the others', and once with torch on every core (the other rows and the
+  loops run on one thread);
 * a Python loop of ``torchql.fit`` on the first ``--subset`` datasets (same settings), timed
   with the building of one ``Observations`` per dataset;
 * a Python loop of ``scipy.optimize.least_squares`` over ``scipy.integrate.solve_ivp`` on the
@@ -169,6 +170,17 @@ def benchmark(sizes: list[int], subset: int, seed: int = 0) -> dict:
     fast, seconds = run_fit_many(t, v[:B], rtol=FAST_RTOL)
     fast_row = dict(B=B, seconds=seconds, rate=B / seconds, converged=int(fast.success.sum()),
                     iterations=float(fast.iterations.double().mean()))
+    threads = os.cpu_count() or 1
+    print(f"... fit_many B = {B}, {threads} threads", file=sys.stderr, flush=True)
+    torch.set_num_threads(threads)
+    try:
+        wide, seconds = run_fit_many(t, v[:B])
+    finally:
+        torch.set_num_threads(1)
+    wide_row = dict(B=B, seconds=seconds, rate=B / seconds, converged=int(wide.success.sum()),
+                    iterations=float(wide.iterations.double().mean()), threads=threads,
+                    diff=float(((wide.estimates - batched[B]["result"].estimates).abs()
+                                / batched[B]["result"].estimates.abs()).nan_to_num(0.0).max()))
     print(f"... loops on the subset of {subset}", file=sys.stderr, flush=True)
     ts, vs = t, v[:subset]
     single_est, single_sse, single_status, single_seconds = run_single_loop(ts, vs)
@@ -191,7 +203,7 @@ def benchmark(sizes: list[int], subset: int, seed: int = 0) -> dict:
               zip(("fit_many", f"fit_many rtol={FAST_RTOL:g}", "fit (default grid)", "scipy DOP853", "scipy RK45"),
                   candidates)}
     statuses_agree = all(largest.status[i].name == single_status[i] for i in range(n_cmp))
-    return dict(batched=batched, fast=fast_row, single=dict(seconds=single_seconds, rate=subset / single_seconds),
+    return dict(batched=batched, fast=fast_row, wide=wide_row, single=dict(seconds=single_seconds, rate=subset / single_seconds),
                 peers=peers,
                 subset=subset, n_cmp=n_cmp, max_diff=float(diff.max()), max_sse_diff=float(sse_diff.max()),
                 grid_cost=float(grid_cost.max()), excess=excess, statuses_agree=statuses_agree,
@@ -216,6 +228,10 @@ def markdown(res: dict, load) -> str:
     lines.append(f"| torchql fit_many, rtol={FAST_RTOL:g} | {f['B']} | {f['seconds']:.2f} s | {f['rate']:.0f} | "
                  f"{_ratio(f['rate'] / peer_rate)} | {_ratio(f['rate'] / single_rate)} | {f['converged']}/{f['B']} | "
                  f"{f['iterations']:.2f} | |")
+    w = res["wide"]
+    lines.append(f"| torchql fit_many, {w['threads']} threads | {w['B']} | {w['seconds']:.2f} s | {w['rate']:.0f} | "
+                 f"{_ratio(w['rate'] / peer_rate)} | {_ratio(w['rate'] / single_rate)} | {w['converged']}/{w['B']} | "
+                 f"{w['iterations']:.2f} | |")
     S = res["subset"]
     lines.append(f"| torchql fit, loop | {S} | {res['single']['seconds']:.2f} s | {single_rate:.1f} | "
                  f"{single_rate / peer_rate:.2f}x | 1x | | | |")
@@ -228,6 +244,9 @@ def markdown(res: dict, load) -> str:
     acc = res["excess"]
     notes = [
         f"Ratios are against the faster scipy loop ({peer_name}); loops are timed on the first {S} datasets.",
+        f"Every row runs torch on 1 thread except `{w['threads']} threads` (torch's default on this machine: "
+        f"every core; the loops use one); its estimates differ from the 1-thread row's by at most "
+        f"{w['diff']:.1e} (relative).",
         f"Batched vs single torchql fits (same grid, first {res['n_cmp']} datasets of the largest batch): largest "
         f"relative difference of the estimates {res['max_diff']:.1e}, of the SSE {res['max_sse_diff']:.1e}; "
         f"statuses identical: {'yes' if res['statuses_agree'] else 'NO'}.",
