@@ -774,9 +774,10 @@ def main(argv=None) -> None:
         refs[setting.key] = global_optima(setting, rs)
         classify(rs, refs[setting.key])
     total = time.perf_counter() - t_start
-    command = " ".join(["python experiments/basin.py"] + [a for a in (sys.argv[1:] if argv is None else argv)
-                                                         if a != str(args.out)])
-    command = command.replace("--out ", "")
+    given = list(sys.argv[1:] if argv is None else argv)
+    kept = [a for k, a in enumerate(given)  # without --out DIR / --out=DIR (the place, not the experiment)
+            if a != "--out" and not a.startswith("--out=") and not (k and given[k - 1] == "--out")]
+    command = " ".join(["python experiments/basin.py", *kept])
     write_markdown(args.out / "basin.md", settings, rows, refs, cfg, bounds, args.quick, total, args.workers, command)
     write_csv(args.out / "basin.csv", settings, rows)
     plot(args.out / "basin.png", settings, rows)
