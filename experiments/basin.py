@@ -1,4 +1,4 @@
-"""Basin of attraction: how often each method reaches the global optimum from poor guesses (issue 5).
+"""Basin of attraction: how often each method reaches the global optimum from poor guesses.
 
 Settings (all float64):
 

@@ -1,4 +1,4 @@
-"""Monte Carlo study of noise and observation density for the thesis' oscillators (issue 4).
+"""Monte Carlo study of noise and observation density for the thesis' oscillators.
 
 G. A. Zupp's thesis (1968), chapters IV and V, fits the linear oscillator ``y'' + A y' + B y = 0``
 and the nonlinear one ``y'' + A y' + B y + C y'^3 + D y^3 = 0`` to one dataset per setting: the
@@ -36,8 +36,8 @@ statuses and standard errors). Single ``torchql.fit`` calls remain where no batc
 independent-noise theory (it needs ``FitResult.jacobian``, which a batch result does not keep).
 
 Only torchql's public API is used; everything is float64 and single-threaded. Runtime of the
-full study: about 7 minutes on one free CPU core with one ``torchql.fit`` per dataset, less
-with the batched fits (longer on a busy machine); ``--quick``: ~15 s.
+full study: about 70 s on one free CPU core with the batched fits (350 s with one
+``torchql.fit`` per dataset; longer on a busy machine); ``--quick``: ~15 s.
 """
 
 from __future__ import annotations
@@ -813,7 +813,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     report = Report()
     report.add("# Noise and observation density: a Monte Carlo study of the thesis' oscillators\n")
     report.add("Written by `experiments/noise_study.py`" + (" (`--quick`: a smoke-test setting, not results)"
-                                                           if args.quick else "") + ". Issue 4.\n")
+                                                           if args.quick else "") + ".\n")
     report.add(DESIGN)
     if checks:
         report.add("**Numerical settings checked** (one dataset each, against the `torchql.fit` defaults grid 1000, "
