@@ -8,6 +8,7 @@ import torch
 
 import torchql
 from testmodels import Decay
+from torchql.models import HarmonicOscillator
 
 #: The module (``torchql.multistart`` the attribute is the function of the same name).
 multistart_module = importlib.import_module("torchql.multistart")
@@ -42,27 +43,16 @@ def test_draws_are_reproducible_and_respect_bounds(decay_data):
 
 
 def test_distinct_optima_are_separated_and_best_is_the_lowest():
-    """y = cos(w t) sampled coarsely: aliasing makes several frequencies fit locally."""
-    class Oscillator(torchql.ODEModel):
-        state_names = ("y", "v")
-
-        def __init__(self, w2=1.0):
-            super().__init__()
-            self.register_buffer("w2", torch.tensor(w2, dtype=DT))
-
-        def forward(self, t, x):
-            y, v = x.unbind(-1)
-            return torch.stack((v, -self.w2 * y), dim=-1)
-
+    """x = cos(w t) sampled coarsely: aliasing makes several frequencies fit locally."""
     t = torch.linspace(0, 10, 21, dtype=DT)
-    data = torchql.Observations(t, torch.cos(1.3 * t).unsqueeze(-1), observe=["y"])
-    ms = torchql.multistart(Oscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT), starts=8, spread=4.0,
-                            seed=0, fixed_x0=["y", "v"], grid=200)
+    data = torchql.Observations(t, torch.cos(1.3 * t).unsqueeze(-1), observe=["x"])
+    ms = torchql.multistart(HarmonicOscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT), starts=8, spread=4.0,
+                            seed=0, fixed_x0=["x", "u"], grid=200)
     sses = [r.sse for r in ms.results if r.success]
     first = ms.optima[0].starts[0]  # the start with the smallest SSE; best is its fit
     assert ms.results[first].sse == min(sses)
     assert torch.allclose(ms.best.estimates, ms.results[first].estimates, rtol=1e-8, atol=0)
-    assert ms.best.params["w2"].item() == pytest.approx(1.69, rel=1e-8)
+    assert ms.best.params["xi"].item() == pytest.approx(1.69, rel=1e-8)
     assert [o.sse for o in ms.optima] == sorted(o.sse for o in ms.optima)
     assert sum(len(o.starts) for o in ms.optima) == ms.n_converged
     if len(ms.optima) > 1:
@@ -92,21 +82,10 @@ def test_batched_path_gives_the_loop_best_and_optima(monkeypatch):
     """Kantorovich fits with options fit_many supports: all starts in one fit_many call, and the
     result is the loop's (best estimates to 1e-8, the same optima reached by the same starts);
     the best is a full FitResult, fitted once more with torchql.fit from its start."""
-    class Oscillator(torchql.ODEModel):
-        state_names = ("y", "v")
-
-        def __init__(self, w2=1.0):
-            super().__init__()
-            self.register_buffer("w2", torch.tensor(w2, dtype=DT))
-
-        def forward(self, t, x):
-            y, v = x.unbind(-1)
-            return torch.stack((v, -self.w2 * y), dim=-1)
-
     t = torch.linspace(0, 10, 21, dtype=DT)
     noise = 0.01 * torch.randn(21, generator=torch.Generator().manual_seed(2), dtype=DT)
-    data = torchql.Observations(t, (torch.cos(1.3 * t) + noise).unsqueeze(-1), observe=["y"])
-    args = (Oscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT))
+    data = torchql.Observations(t, (torch.cos(1.3 * t) + noise).unsqueeze(-1), observe=["x"])
+    args = (HarmonicOscillator(1.0), data, torch.tensor([1.0, 0.0], dtype=DT))
     kwargs = dict(starts=6, spread=4.0, seed=3, grid=100, max_iter=12, method="kantorovich")  # 2 starts: MAX_ITER
 
     calls = {"fit_many": 0, "fit": 0}
