@@ -107,7 +107,7 @@ def fit_many(
         sample's fixed value. Default: the model's buffers for every sample.
     fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
         As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``,
-        ``linear_solver="rk4_doubling"``). ``solver`` integrates a sample on its own only when
+        ``linear_solver="taylor"``). ``solver`` integrates a sample on its own only when
         the batched integrators cannot (as ``fit`` falls back to it).
     chunk_size : int
         Samples fitted together (default 4096); larger batches are fitted chunk after chunk.
@@ -537,21 +537,17 @@ class _Engine:
         r = residual * self.w[idx].reshape(residual.shape)
         return (r ** 2).sum(dim=1)
 
-    def _evaluate(self, idx, z0, z, z_dot, lin, steps=None) -> dict:
-        """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
-
-        ``steps (S, G-1)``: RK4 steps to try first per interval (those of the iterate it comes from).
-        """
+    def _evaluate(self, idx, z0, z, z_dot, lin) -> dict:
+        """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations."""
         spec = self.spec
         w0 = _initial_columns(z0, spec.unknown_index)
-        W, failed, steps, evals = propagate_linear_batch(spec.grid, z, z_dot, lin, w0, rtol=spec.rtol,
-                                                         atol=spec.atol, steps=steps)
+        W, failed, evals = propagate_linear_batch(spec.grid, z, z_dot, lin, w0, rtol=spec.rtol, atol=spec.atol)
         self.nfev += evals
         obs = spec.obs_in_grid
         C, d, resid = self._rows(idx, z[:, obs], W[:, obs, :, 0], W[:, obs, :, 1:])
         sse, merit = self._ssq(idx, resid), self._ssq(idx, d)
         S = idx.numel()
-        return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed, steps=steps,
+        return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed,
                     anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
                     nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
 
@@ -750,8 +746,7 @@ class _Engine:
                 if anchored_rows.numel():
                     traj = cur["nl_traj"][anchored_rows]
                     lin = self._linearize(traj)
-                    anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin,
-                                              cur["steps"][anchored_rows])
+                    anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin)
                     anchored["anchored"][:] = True
                     anchored["nl_sse"] = cur["nl_sse"][anchored_rows]
                     anchored["nl_traj"] = traj
@@ -760,7 +755,6 @@ class _Engine:
                         self._fail_integration_rows(anchored_rows[failed], status, detail)
                     keep = (~failed).nonzero().flatten()
                     _put(cur, anchored_rows[keep], anchored, keep)
-                    anchored_rows = anchored_rows
             raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
             if raise_rows.numel():
                 d = damping[raise_rows]
@@ -771,7 +765,7 @@ class _Engine:
                 stalled = raise_rows[d > _DAMPING_MAX]
                 if stalled.numel():
                     stop(stalled, Status.STALLED)
-        return self._finish(z0, status, detail, iterations, final_guess, cur["steps"])
+        return self._finish(z0, status, detail, iterations, final_guess)
 
     def _fail_integration(self, failed, status, detail) -> None:
         self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
@@ -793,13 +787,13 @@ class _Engine:
         lin_ref = cur["lin"]
         z_dot = lin_ref.f[act] + torch.einsum("sgij,sgj->sgi", lin_ref.jac[act], z_safe - cur["rz"][act])
         lin = self._linearize(z_safe, z_dot)
-        trial = self._evaluate(act, z0_new, z_safe, z_dot, lin, cur["steps"][act])
+        trial = self._evaluate(act, z0_new, z_safe, z_dot, lin)
         ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
         return trial, ok
 
     # --- the final pass -----------------------------------------------------------------------
-    def _finish(self, z0, status, detail, iterations, final_guess, steps) -> dict:
+    def _finish(self, z0, status, detail, iterations, final_guess) -> dict:
         spec, S = self.spec, self.S
         m = spec.m
         dtype, dev = spec.dtype, spec.device
@@ -821,8 +815,7 @@ class _Engine:
         if rows.numel():
             lin = self._linearize(traj)
             w0 = _initial_columns(z0[rows], spec.unknown_index)
-            W, failed, _, evals = propagate_linear_batch(spec.grid, traj, lin.f, lin, w0, rtol=spec.rtol,
-                                                         atol=spec.atol, steps=steps[rows])
+            W, failed, evals = propagate_linear_batch(spec.grid, traj, lin.f, lin, w0, rtol=spec.rtol, atol=spec.atol)
             self.nfev += evals
             for r in rows[failed].tolist():
                 codes[r] = Status.INTEGRATION_FAILED

@@ -5,9 +5,9 @@ step decisions per sample (or per sample and grid interval), and reports failure
 (a boolean mask or a message), never raised for the whole batch.
 
 * :func:`propagate_linear_batch`: the particular and homogeneous solutions of each sample's
-  quasilinear system, by the RK4 step-doubling interval transfers of :mod:`torchql.transfer`
-  over ``samples x intervals`` flattened (each interval of each sample refined on its own),
-  composed per sample by the prefix scan.
+  quasilinear system, by the Taylor-series interval transfers of :mod:`torchql.taylor` over
+  ``samples x intervals`` flattened (each interval of each sample with its own substeps and
+  truncation bound), composed per sample by the prefix scan.
 * :func:`dopri_batch`: the nonlinear (augmented) model by Dormand–Prince 5(4), every sample with
   its own time, step size and accept/reject decision, steps landing on the grid nodes.
 * :func:`solve_on_grid_batch`: the nonlinear model by multiple shooting from a guess, as
@@ -26,7 +26,8 @@ import torch
 from .grid_solve import _SAFETY as _GRID_SAFETY, _Field, _rk4_pair as _grid_rk4_pair
 from .integrate import IntegrationError, solve
 from .model import AugmentedSystem
-from .transfer import _SAFETY, _Coefficients, _rk4_pair, prefix_products
+from .taylor import series_transfers
+from .transfer import _Coefficients, prefix_products
 
 __all__ = ["propagate_linear_batch", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
 
@@ -49,74 +50,32 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
     perm = order[:-1]
     act = perm[:int(moving.sum())]
     a = act.numel()
-    zp, zdp = z[..., perm], z_dot[..., perm]
-    fJ = torch.cat([lin.f[..., act].unsqueeze(-1), lin.jac[..., act, :][..., perm]], dim=-1).flatten(-2)
-    fJd = torch.cat([lin.f_dot[..., act].unsqueeze(-1), lin.jac_dot[..., act, :][..., perm]], dim=-1).flatten(-2)
-    blocks = []
-    for side in (slice(0, G - 1), slice(1, G)):
-        blocks.append(torch.cat([zp[:, side], fJ[:, side] * h], dim=-1))
-        blocks.append(torch.cat([zdp[:, side] * h, fJd[:, side] * (h * h)], dim=-1))
-    data = torch.stack(blocks)  # (4, S, G-1, Q): values and slopes at the start, then at the end
+    Q = M + a * (M + 1)
+    # node values and slopes, component-major: (Q, S, G)
+    values, slopes = z.new_empty(Q, S, G), z.new_empty(Q, S, G)
+    values[:M], slopes[:M] = z[..., perm].permute(2, 0, 1), z_dot[..., perm].permute(2, 0, 1)
+    rows = values[M:].unflatten(0, (a, M + 1))
+    rows[:, 0], rows[:, 1:] = lin.f[..., act].permute(2, 0, 1), lin.jac[..., act, :][..., perm].permute(2, 3, 0, 1)
+    rows = slopes[M:].unflatten(0, (a, M + 1))
+    rows[:, 0], rows[:, 1:] = lin.f_dot[..., act].permute(2, 0, 1), lin.jac_dot[..., act, :][..., perm].permute(2, 3, 0, 1)
+    # per interval: values at the start, scaled slopes there, then the same at the end; the rows of
+    # f and A scaled by h (values) and h^2 (slopes), those of z by 1 and h
+    h = (t[1:] - t[:-1]).reshape(1, 1, G - 1)
+    value_scale = torch.cat([torch.ones_like(h).expand(M, 1, G - 1), h.expand(Q - M, 1, G - 1)])
+    slope_scale = torch.cat([h.expand(M, 1, G - 1), (h * h).expand(Q - M, 1, G - 1)])
+    data = z.new_empty(4, Q, S, G - 1)
+    for b, (source, side, scale) in enumerate(((values, slice(0, G - 1), value_scale), (slopes, slice(0, G - 1), slope_scale),
+                                               (values, slice(1, G), value_scale), (slopes, slice(1, G), slope_scale))):
+        torch.mul(source[..., side], scale, out=data[b])
     coefficients = object.__new__(_Coefficients)
     coefficients.order, coefficients.a, coefficients.M = order, a, M
-    coefficients.data = data.permute(0, 3, 1, 2).reshape(4, M + a * (M + 1), S * (G - 1))
+    coefficients.data = data.reshape(4, Q, S * (G - 1))
     return coefficients
 
 
-def _transfers_each(coefficients: _Coefficients, rtol: float, atol: float, max_substeps: int,
-                    steps: torch.Tensor | None = None):
-    """As :func:`torchql.transfer.interval_transfers`, but an interval that fails is marked, not raised.
-
-    ``steps (N,)``: RK4 steps (of the finer of each pair, powers of two) to start each interval
-    with, e.g. what it needed at the previous iterate (default 2, as ``interval_transfers``).
-    Returns ``Y (a, M+1, N)``, the stored order ``(M+1,)``, ``failed (N,)`` bool, the steps to
-    start with next time (halved where the error was far below the tolerance) and the
-    evaluations (points).
-    """
-    N = coefficients.intervals
-    if steps is None:
-        Y, ratio, n_evals = _rk4_pair(coefficients, None, 1, rtol, atol)
-        n_evals *= N
-        steps = torch.full_like(ratio, 2, dtype=torch.long)
-    else:
-        steps = steps.clamp(2, max_substeps).clone()
-        Y = coefficients.data.new_empty(coefficients.a, coefficients.M + 1, N)
-        ratio = coefficients.data.new_empty(N)
-        n_evals = 0
-        for n_fine in steps.unique().tolist():
-            group = (steps == n_fine).nonzero().squeeze(-1)
-            Y[..., group], ratio[group], evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
-            n_evals += evals * group.numel()
-    failed = torch.zeros_like(ratio, dtype=torch.bool)
-    while True:
-        bad = ~(ratio <= 1.0) & ~failed
-        if not bool(bad.any()):
-            break
-        index = bad.nonzero().squeeze(-1)
-        current = steps[index]
-        capped = current >= max_substeps
-        if bool(capped.any()):
-            failed[index[capped]] = True
-            index, current = index[~capped], current[~capped]
-            if not index.numel():
-                break
-        r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
-        wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
-        for n_fine in wanted.unique().tolist():
-            group = index[wanted == n_fine]
-            Y_g, ratio_g, evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
-            Y[..., group], ratio[group], steps[group] = Y_g, ratio_g, n_fine
-            n_evals += evals * group.numel()
-    failed |= ~torch.isfinite(Y).flatten(0, 1).all(dim=0)
-    easy = ratio * 16 * _SAFETY < 1.0
-    next_steps = torch.where(easy, (steps // 2).clamp(min=2), steps)
-    return Y, coefficients.order, failed, next_steps, n_evals
-
-
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
-                           rtol: float, atol: float, max_substeps: int = 1024, steps: torch.Tensor | None = None
-                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+                           rtol: float, atol: float, max_substeps: int = 1024
+                           ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Particular and homogeneous solutions of ``S`` samples' quasilinear systems on the grid ``t``.
 
     Parameters
@@ -133,10 +92,7 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         Tolerances of a whole propagation, as :func:`torchql.superposition.propagate_linear`
         (each interval gets them divided by ``sqrt(G - 1)``).
     max_substeps : int
-        Most RK4 steps on one interval.
-    steps : Tensor ``(S, G - 1)`` of int, optional
-        RK4 steps to try first on each interval (what the previous propagation returned: the
-        reference changes little from one iterate to the next); default 2, then refined.
+        Most Taylor substeps on one interval (see :func:`torchql.taylor.series_transfers`).
 
     Returns
     -------
@@ -144,25 +100,22 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         The columns at every node (NaN for failed samples).
     failed : bool Tensor ``(S,)``
         Samples with an interval that could not meet the tolerance or became non-finite.
-    steps : Tensor ``(S, G - 1)``
-        The steps to try first next time.
     n_evals : int
-        Coefficient evaluations (points: one interval at one local time counts one).
+        Series terms computed, one interval-substep's term counting one.
     """
     S, G, M = z.shape
     cols = w0.shape[-1]
     if G == 1:
-        no = torch.zeros(S, 0, dtype=torch.long, device=z.device)
-        return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), no, 0
+        return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), 0
     N = G - 1
     tiny = 10 * torch.finfo(z.dtype).eps
     rtol_j, atol_j = max(rtol / N**0.5, tiny), max(atol / N**0.5, tiny)
     coefficients = _coefficients(t, z, z_dot, lin)
-    Y, order, failed_int, next_steps, n_evals = _transfers_each(
-        coefficients, rtol_j, atol_j, max_substeps, None if steps is None else steps.reshape(-1))
-    failed = failed_int.reshape(S, N).any(dim=1)
-    a, P = Y.shape[0], Y.shape[1]
-    Yb = Y.reshape(a, P, S, N).permute(2, 0, 1, 3)  # (S, a, M+1, N)
+    out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
+    order = coefficients.order
+    failed = out.failed.reshape(S, N).any(dim=1)
+    a, P = out.Y.shape[0], out.Y.shape[1]
+    Yb = out.Y.reshape(a, P, S, N).permute(2, 0, 1, 3)  # (S, a, M+1, N)
     one = torch.zeros(S, 1, cols, dtype=w0.dtype, device=w0.device)
     one[:, 0, 0] = 1.0
     w = torch.cat([w0, one], dim=1)[:, order]  # (S, M+1, cols)
@@ -171,7 +124,7 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         Pr = prefix_products(Yb)  # (S, a, M+1, N)
         W[:, 1:, order[:a]] = torch.einsum("sapn,spc->snac", Pr, w)
     W[failed] = float("nan")
-    return W, failed, next_steps.reshape(S, N), n_evals
+    return W, failed, out.points
 
 
 def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):

@@ -153,13 +153,15 @@ def fit(
         damped until it does. ``None``: the undamped iteration of the thesis, step for step.
     linear_solver : str
         How the linear (particular and homogeneous) system is propagated over the grid: one of
-        ``torchql.LINEAR_SOLVERS``. ``"rk4_doubling"`` (default): every grid interval's transfer
-        matrix at once by RK4 with step-doubling error control, composed by a parallel prefix
-        scan; the nonlinear model too is then solved on the grid (every interval at once by RK4,
-        the nodes matched by Newton's method, :mod:`torchql.grid_solve`) wherever a prediction of
-        its trajectory is at hand (the first reference, trial steps, the final pass), falling back
-        to ``solver``. ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with
-        ``solver``, which integrates the nonlinear model too.
+        ``torchql.LINEAR_SOLVERS``. ``"taylor"`` (default): every grid interval's transfer
+        matrix at once from its Taylor series (exact for the interpolated coefficients, summed
+        to a bounded truncation error), composed by a parallel prefix scan; ``"rk4_doubling"``:
+        the same transfers by RK4 with step-doubling error control. With either, the nonlinear
+        model too is solved on the grid (every interval at once by RK4, the nodes matched by
+        Newton's method, :mod:`torchql.grid_solve`) wherever a prediction of its trajectory is at
+        hand (the first reference, trial steps, the final pass), falling back to ``solver``.
+        ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with ``solver``,
+        which integrates the nonlinear model too.
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
 
@@ -450,7 +452,7 @@ class _Problem:
         ``guess (G, >= n)``, a prediction of the solution at the nodes (the iterate's linear
         solution), lets the grid solver (:func:`~torchql.grid_solve.solve_on_grid`: every grid
         interval integrated at once, the nodes matched by Newton's method) replace the adaptive
-        solver when ``linear_solver="rk4_doubling"``. If Newton does not settle within
+        solver unless ``linear_solver="torchdiffeq"``. If Newton does not settle within
         ``_GRID_NEWTON`` iterations or an interval needs more than ``_GRID_SUBSTEPS`` steps
         (``_GRID_SUBSTEPS_LOOSE`` when ``loose``), the
         adaptive solver integrates as without a guess; with ``budget_is_final`` the latter is
@@ -472,7 +474,7 @@ class _Problem:
         if self.max_steps is not None:  # the user's step budget per grid interval binds this solver too
             substeps = min(substeps, 1 << (self.max_steps.bit_length() - 1))
         with torch.no_grad():
-            if (guess is not None and self.linear_solver == "rk4_doubling" and substeps >= 2
+            if (guess is not None and self.linear_solver != "torchdiffeq" and substeps >= 2
                     and bool(torch.isfinite(guess).all())):
                 try:
                     x, _ = solve_on_grid(counter, z0[:n], self.grid, rtol=rtol, atol=atol, guess=guess[:, :n],

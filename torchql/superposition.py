@@ -18,15 +18,18 @@ import torch
 
 from .integrate import solve
 from .trajectory import IntervalSystem, LinearizedReference
+from .taylor import taylor_transfers
 from .transfer import Transfers, compose_transfers, interval_transfers
 
 __all__ = ["LINEAR_SOLVERS", "DEFAULT_LINEAR_SOLVER", "check_linear_solver", "initial_columns", "propagate_linear"]
 
-#: Integrators of the interval transfers: ``"rk4_doubling"`` (fixed RK4 steps with step doubling
-#: and refinement of the intervals that need it, :mod:`torchql.transfer`) or ``"torchdiffeq"``
-#: (one adaptive torchdiffeq call over all intervals, with the solver named by ``solver``).
-LINEAR_SOLVERS: tuple[str, ...] = ("rk4_doubling", "torchdiffeq")
-DEFAULT_LINEAR_SOLVER: str = "rk4_doubling"
+#: Integrators of the interval transfers: ``"taylor"`` (each interval's Taylor series, exact for
+#: its polynomial coefficients, summed to a bounded truncation error, :mod:`torchql.taylor`),
+#: ``"rk4_doubling"`` (fixed RK4 steps with step doubling and refinement of the intervals that
+#: need it, :mod:`torchql.transfer`) or ``"torchdiffeq"`` (one adaptive torchdiffeq call over all
+#: intervals, with the solver named by ``solver``).
+LINEAR_SOLVERS: tuple[str, ...] = ("taylor", "rk4_doubling", "torchdiffeq")
+DEFAULT_LINEAR_SOLVER: str = "taylor"
 
 
 def check_linear_solver(linear_solver: str) -> None:
@@ -64,11 +67,13 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
     rtol, atol : float
         Tolerances of the whole propagation.
     max_steps : int, optional
-        Step budget of the torchdiffeq call (unused by ``"rk4_doubling"``, which caps the steps
-        per interval instead; see :func:`torchql.transfer.interval_transfers`).
+        Step budget of the torchdiffeq call (unused by ``"taylor"`` and ``"rk4_doubling"``, which
+        cap the substeps per interval instead; see :func:`torchql.taylor.taylor_transfers`).
     linear_solver : str
-        One of :data:`LINEAR_SOLVERS`: ``"rk4_doubling"`` (default) integrates with fixed RK4
-        steps and step doubling, refining only the intervals that need it; ``"torchdiffeq"``
+        One of :data:`LINEAR_SOLVERS`: ``"taylor"`` (default) sums each interval's Taylor series
+        (exact for the interpolated coefficients) to a bounded truncation error, in substeps
+        where the interval is long against the dynamics; ``"rk4_doubling"`` integrates with fixed
+        RK4 steps and step doubling, refining only the intervals that need it; ``"torchdiffeq"``
         with one adaptive torchdiffeq call (first step the whole interval, since the intervals
         are short against the dynamics).
 
@@ -78,7 +83,8 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
         Particular (column 0) and homogeneous solutions at every grid node.
     n_evals : int
         Evaluations of the interval system's coefficients, each one at one local time on all
-        intervals being integrated at once (for ``"torchdiffeq"`` one call of the batched
+        intervals being integrated at once (for ``"taylor"`` one series term of all intervals of
+        a batch; for ``"torchdiffeq"`` one call of the batched
         :class:`~torchql.trajectory.IntervalSystem`).
 
     Raises
@@ -95,7 +101,9 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
     tiny = 10 * torch.finfo(w0.dtype).eps
     rtol_j, atol_j = max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
     M = w0.shape[0]
-    if linear_solver == "rk4_doubling":
+    if linear_solver == "taylor":
+        transfers, n_evals = taylor_transfers(system, rtol=rtol_j, atol=atol_j)
+    elif linear_solver == "rk4_doubling":
         transfers, n_evals = interval_transfers(system, rtol=rtol_j, atol=atol_j)
     else:
         s = torch.tensor([0.0, 1.0], dtype=w0.dtype, device=w0.device)
