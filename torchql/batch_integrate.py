@@ -317,21 +317,26 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
     h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
     steps = torch.zeros(S, dtype=torch.long, device=device)
+    # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
+    rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
+    row_e = torch.tensor(_DP_E, dtype=dtype, device=device)
     active = ok.nonzero().flatten()
     while active.numel():
-        xa, ta, ka, ha = x[active], t[active], k1[active], h[active]
-        target = grid[node[active]]
+        everyone = active.numel() == S  # no gathering while no sample has finished or failed
+        xa, ta, ka, ha = (x, t, k1, h) if everyone else (x[active], t[active], k1[active], h[active])
+        target = grid[node if everyone else node[active]]
         gap = target - ta
         clipped = ha >= gap
         he = torch.where(clipped, gap, ha)
         hc = he.unsqueeze(-1)
-        ks = [ka]
+        K = xa.new_empty(7, *xa.shape)
+        K[0] = ka
         for i in range(1, 7):
-            xi = xa + hc * sum(a * k for a, k in zip(_DP_A[i], ks) if a != 0.0)
-            ks.append(fv(ta + _DP_C[i] * he, xi))
+            xi = torch.addcmul(xa, hc, torch.tensordot(rows_a[i], K[:i], dims=1))
+            K[i] = fv(ta + _DP_C[i] * he, xi)
         evals += 6 * active.numel()
-        x_new = xa + hc * sum(b * k for b, k in zip(_DP_A[6], ks[:6]) if b != 0.0)
-        err = hc * sum(e * k for e, k in zip(_DP_E, ks) if e != 0.0)
+        x_new = xi  # the last stage is evaluated at the fifth-order solution (first same as last)
+        err = hc * torch.tensordot(row_e, K, dims=1)
         sc = atol + rtol * torch.maximum(xa[:, :n].abs(), x_new[:, :n].abs())
         ratio = (err[:, :n] / sc).square().mean(dim=1).sqrt()
         finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
@@ -343,11 +348,16 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         h_next = torch.where(accept & clipped, torch.maximum(h_next, ha), h_next)
         # accepted steps advance; those landing on a node record it
         t_new = torch.where(clipped, target, ta + he)
-        x[active] = torch.where(accept.unsqueeze(-1), x_new, xa)
-        t[active] = torch.where(accept, t_new, ta)
-        k1[active] = torch.where(accept.unsqueeze(-1), ks[6], ka)
-        h[active] = h_next
-        steps[active] += 1
+        take = accept.unsqueeze(-1)
+        if everyone:
+            x, t, k1, h = torch.where(take, x_new, xa), torch.where(accept, t_new, ta), torch.where(take, K[6], ka), h_next
+            steps += 1
+        else:
+            x[active] = torch.where(take, x_new, xa)
+            t[active] = torch.where(accept, t_new, ta)
+            k1[active] = torch.where(take, K[6], ka)
+            h[active] = h_next
+            steps[active] += 1
         landed = accept & clipped
         if bool(landed.any()):
             rows = active[landed]

@@ -38,6 +38,7 @@ products over all intervals at once, and its error is bounded.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -106,6 +107,12 @@ def _substep_matrices(n: int, dtype: torch.dtype, device: torch.device) -> torch
     return (_hermite_monomials(torch.float64, torch.device("cpu")) @ shift).to(dtype=dtype, device=device)
 
 
+@functools.lru_cache(maxsize=32)
+def _substep_weights(n: int) -> list:
+    """:func:`_substep_matrices` as nested lists of floats (small rationals), computed once per ``n``."""
+    return _substep_matrices(n, torch.float64, torch.device("cpu")).tolist()
+
+
 def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
     """Power-basis coefficients ``(4, Q, n I)`` of the ``n`` substeps of every interval, substep-major.
 
@@ -115,7 +122,7 @@ def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
     below the memory bandwidth.
     """
     Q, I = data.shape[1:]
-    W = _substep_matrices(n, torch.float64, torch.device("cpu")).tolist()  # exact small rationals
+    W = _substep_weights(n)
     out = data.new_empty(4, Q, n * I)
     for m in range(n):
         for k in range(4):
@@ -209,11 +216,17 @@ def _tail_weights(K: int, r: torch.Tensor) -> torch.Tensor:
     ``||A_aa(s)|| <= rho`` gives ``||R(1)|| <= e^rho sum_j ||g_{K+j}|| / (K+j+1)``, column by column,
     so ``T_{K-d}`` weighs ``sum_{j<=3-d} ||A_{j+d}|| / (K+j+1)``.
     """
-    C = torch.zeros(4, 4, dtype=r.dtype)
+    return _tail_matrix(K, r.dtype, r.device) @ r
+
+
+@functools.lru_cache(maxsize=256)
+def _tail_matrix(K: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``C (4, 4)``: the weights of :func:`_tail_weights` are ``C @ r``."""
+    C = torch.zeros(4, 4, dtype=torch.float64)
     for d in range(4):
         for j in range(4 - d):
             C[3 - d, j + d] = 1.0 / (K + j + 1)
-    return C.to(r.device) @ r
+    return C.to(dtype=dtype, device=device)
 
 
 def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
