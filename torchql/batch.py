@@ -578,7 +578,11 @@ class _Engine:
                     traj[sub[good]], ok[sub[good]] = tr[good], True
             sub = (~ok).nonzero().flatten()
             if sub.numel():
-                tr, good, evals = dopri_batch(self.system, z0[sub], spec.grid, rtol=rtol, atol=atol)
+                land = None
+                if loose:  # as fit's adaptive solver: onto the observation times, the rest interpolated
+                    land = torch.zeros(spec.grid.numel(), dtype=torch.bool, device=z0.device)
+                    land[spec.obs_in_grid] = True
+                tr, good, evals = dopri_batch(self.system, z0[sub], spec.grid, rtol=rtol, atol=atol, land=land)
                 self.nfev += evals
                 traj[sub[good]], ok[sub[good]] = tr[good], True
             errors: list = [None] * S

@@ -276,19 +276,23 @@ _DP_A = (
     (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
     (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
 )
+#: Weights of the dense output at the step's midpoint (Shampine's), over the seven slopes.
+_DP_MID = (6025192743 / 30085553152 / 2, 0.0, 51252292925 / 65400821598 / 2, -2691868925 / 45128329728 / 2,
+           187940372067 / 1594534317056 / 2, -1776094331 / 19743644256 / 2, 11237099 / 235043384 / 2)
 #: Fifth-order weights minus the embedded fourth-order ones: the local error estimate.
 _DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
 
 
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
-                max_steps: int = 100_000) -> tuple[torch.Tensor, torch.Tensor, int]:
+                max_steps: int = 100_000, land: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` by Dormand–Prince 5(4), each sample its own steps.
 
     Every sample has its own time, step size and accept/reject decision (error in the RMS norm
     of its own states, ``atol + rtol * max(|x|, |x_new|)``, as torchdiffeq's ``dopri5``); steps
-    are shortened to land on the grid nodes, so the values there are the solver's own, not
-    interpolated. A round advances every unfinished sample by one trial step; only those
-    samples are evaluated.
+    are shortened to land on the grid nodes in ``land`` (bool ``(G,)``, default every node; the
+    last node always), so the values there are the solver's own; any other node is filled by
+    the step's fourth-order dense output (Shampine's, as torchdiffeq interpolates). A round
+    advances every unfinished sample by one trial step; only those samples are evaluated.
 
     Returns ``traj (S, G, M)`` (NaN where it failed), ``ok (S,)`` (false when a sample's
     solution became non-finite, its step size underflowed or it took more than ``max_steps``
@@ -320,11 +324,19 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
     rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
     row_e = torch.tensor(_DP_E, dtype=dtype, device=device)
+    row_mid = torch.tensor(_DP_MID, dtype=dtype, device=device)
+    # next_land[j]: the first node at or after j that steps land on
+    landing = torch.ones(G, dtype=torch.bool, device=device) if land is None else land.to(device).clone()
+    landing[-1] = True
+    dense = not bool(landing[1:].all())
+    node_index = torch.arange(G, device=device)
+    next_land = torch.where(landing, node_index, G).flip(0).cummin(dim=0).values.flip(0)
     active = ok.nonzero().flatten()
     while active.numel():
         everyone = active.numel() == S  # no gathering while no sample has finished or failed
         xa, ta, ka, ha = (x, t, k1, h) if everyone else (x[active], t[active], k1[active], h[active])
-        target = grid[node if everyone else node[active]]
+        node_a = node if everyone else node[active]
+        target = grid[next_land[node_a]]
         gap = target - ta
         clipped = ha >= gap
         he = torch.where(clipped, gap, ha)
@@ -358,6 +370,22 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
             k1[active] = torch.where(take, K[6], ka)
             h[active] = h_next
             steps[active] += 1
+        if dense:  # nodes passed inside accepted steps, from the dense output
+            passed = accept & (grid[node_a.clamp(max=G - 1)] < t_new) & ~landing[node_a.clamp(max=G - 1)]
+            if bool(passed.any()):
+                y_mid = torch.addcmul(xa, hc, torch.tensordot(row_mid, K, dims=1))
+                quartic = _quartic(xa, x_new, y_mid, K[0], K[6], hc)
+                while bool(passed.any()):
+                    rows = passed.nonzero().flatten()
+                    theta = ((grid[node_a[rows]] - ta[rows]) / he[rows]).unsqueeze(-1)
+                    value = quartic[4][rows]
+                    for coefficient in quartic[3::-1]:
+                        value = value * theta + coefficient[rows]
+                    out[active[rows], node_a[rows]] = value
+                    node_a = node_a.clone()
+                    node_a[rows] += 1
+                    node[active[rows]] += 1
+                    passed = passed & (grid[node_a.clamp(max=G - 1)] < t_new) & ~landing[node_a.clamp(max=G - 1)]
         landed = accept & clipped
         if bool(landed.any()):
             rows = active[landed]
@@ -370,3 +398,11 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         active = active[ok[active] & ~finished]
     out[~ok] = float("nan")
     return out, ok, evals
+
+
+def _quartic(y0, y1, y_mid, f0, f1, h):
+    """Power-basis coefficients ``(c0, .., c4)`` in ``theta = (t - t0) / h`` of the quartic through
+    ``y0``, ``y_mid`` and ``y1`` with slopes ``f0``, ``f1`` at the ends (the dense output of a step)."""
+    return (y0, h * f0, h * (f1 - 4 * f0) - 11 * y0 - 5 * y1 + 16 * y_mid,
+            h * (5 * f0 - 3 * f1) + 18 * y0 + 14 * y1 - 32 * y_mid,
+            2 * h * (f1 - f0) - 8 * (y1 + y0) + 16 * y_mid)
