@@ -374,7 +374,7 @@ class _Spec:
         try:
             linearize(self.system, self.t0.reshape(1), self.z0[:1])
         except Exception as exc:  # noqa: BLE001
-            raise ValueError("`model` forward could not be differentiated with torch.func.jacrev/vmap: "
+            raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
                              f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
                              "values.") from exc
         self.operator.check(x0)
@@ -526,7 +526,7 @@ class _Engine:
         h_ref, H = h_ref.reshape(S, T, K), H.reshape(S, T, K, n)
         predicted = h_ref + torch.einsum("stkn,stn->stk", H, zp_obs[..., :n] - x_ref)
         C = torch.einsum("stkn,stnm->stkm", H, Z_obs[:, :, :n, :])
-        mask, y = self.mask[idx], self.y[idx]
+        mask, y = _pick(self.mask, idx), _pick(self.y, idx)
         zero = torch.zeros((), dtype=y.dtype, device=y.device)
         d = torch.where(mask, y - predicted, zero)
         resid = torch.where(mask, y - h_ref, zero)
@@ -534,7 +534,7 @@ class _Engine:
         return C.reshape(S, T * K, -1), d.reshape(S, -1), resid.reshape(S, -1)
 
     def _ssq(self, idx, residual):
-        r = residual * self.w[idx].reshape(residual.shape)
+        r = residual * _pick(self.w, idx).reshape(residual.shape)
         return (r ** 2).sum(dim=1)
 
     def _evaluate(self, idx, z0, z, z_dot, lin) -> dict:
@@ -622,7 +622,7 @@ class _Engine:
     # --- the least-squares update -------------------------------------------------------------
     def _solve(self, idx, cur, damping):
         """Batched :func:`torchql.lstsq.solve_update` without exact rows: ``alpha (S, m)``."""
-        C, d, w = cur["C"][idx], cur["d"][idx], self.w[idx].reshape(idx.numel(), -1)
+        C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(self.w, idx).reshape(idx.numel(), -1)
         alpha, _, _ = _lstsq(C, d, w, self.spec.rcond, damping)
         return alpha
 
@@ -729,7 +729,7 @@ class _Engine:
                 iterations[target] += 1
                 fresh[target] = True
                 z0[target] = trial["z0"][rows]
-                final_guess[target] = trial["W"][rows][..., 0]
+                final_guess[target] = _pick(trial["W"], rows)[..., 0]
             rejected = act[~accept]
             if not rejected.numel():
                 continue
@@ -783,13 +783,14 @@ class _Engine:
     def _propose(self, act, cur, alpha):
         """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where usable."""
         spec = self.spec
-        W = cur["W"][act]
+        W = _pick(cur["W"], act)
         z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
-        z0_new = _shifted(cur["z0"][act], alpha, spec.unknown_index)
+        z0_new = _shifted(_pick(cur["z0"], act), alpha, spec.unknown_index)
         finite = torch.isfinite(z_new).flatten(1).all(dim=1)
-        z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, cur["rz"][act])
+        z_ref = _pick(cur["rz"], act)
+        z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, z_ref)
         lin_ref = cur["lin"]
-        z_dot = lin_ref.f[act] + torch.einsum("sgij,sgj->sgi", lin_ref.jac[act], z_safe - cur["rz"][act])
+        z_dot = _pick(lin_ref.f, act) + torch.einsum("sgij,sgj->sgi", _pick(lin_ref.jac, act), z_safe - z_ref)
         lin = self._linearize(z_safe, z_dot)
         trial = self._evaluate(act, z0_new, z_safe, z_dot, lin)
         ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
@@ -878,8 +879,27 @@ def _shifted(z0: torch.Tensor, alpha: torch.Tensor, unknown_index: torch.Tensor)
     return z
 
 
+def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``x[index]`` for sorted, distinct sample indices; ``x`` itself (no copy) when they are all of them.
+
+    Most iterations keep every sample of a chunk running, and the gathers of its largest arrays
+    (the propagated columns, the linearization) would copy them whole. The result may be ``x``:
+    callers only read it.
+    """
+    return x if index.numel() == x.shape[0] else x[index]
+
+
 def _put(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None:
-    """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur``."""
+    """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur`` (sorted, distinct indices).
+
+    When ``target`` is every sample of ``cur`` and ``rows`` every sample of ``new``, ``cur`` takes
+    ``new``'s arrays instead of copying them (``new`` is not used after).
+    """
+    if target.numel() == cur["z0"].shape[0] and rows.numel() == new["z0"].shape[0]:
+        for key, value in new.items():
+            if key != "failed":
+                cur[key] = value
+        return
     for key, value in new.items():
         if key == "failed":
             continue

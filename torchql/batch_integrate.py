@@ -57,15 +57,18 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
     rows = values[M:].unflatten(0, (a, M + 1))
     rows[:, 0], rows[:, 1:] = lin.f[..., act].permute(2, 0, 1), lin.jac[..., act, :][..., perm].permute(2, 3, 0, 1)
     rows = slopes[M:].unflatten(0, (a, M + 1))
-    rows[:, 0], rows[:, 1:] = lin.f_dot[..., act].permute(2, 0, 1), lin.jac_dot[..., act, :][..., perm].permute(2, 3, 0, 1)
+    rows[:, 0] = lin.f_dot[..., act].permute(2, 0, 1)
+    rows[:, 1:] = lin.jac_dot[..., act, :][..., perm].permute(2, 3, 0, 1)
     # per interval: values at the start, scaled slopes there, then the same at the end; the rows of
     # f and A scaled by h (values) and h^2 (slopes), those of z by 1 and h
     h = (t[1:] - t[:-1]).reshape(1, 1, G - 1)
     value_scale = torch.cat([torch.ones_like(h).expand(M, 1, G - 1), h.expand(Q - M, 1, G - 1)])
     slope_scale = torch.cat([h.expand(M, 1, G - 1), (h * h).expand(Q - M, 1, G - 1)])
     data = z.new_empty(4, Q, S, G - 1)
-    for b, (source, side, scale) in enumerate(((values, slice(0, G - 1), value_scale), (slopes, slice(0, G - 1), slope_scale),
-                                               (values, slice(1, G), value_scale), (slopes, slice(1, G), slope_scale))):
+    start, end = slice(0, G - 1), slice(1, G)
+    blocks = ((values, start, value_scale), (slopes, start, slope_scale), (values, end, value_scale),
+              (slopes, end, slope_scale))
+    for b, (source, side, scale) in enumerate(blocks):
         torch.mul(source[..., side], scale, out=data[b])
     coefficients = object.__new__(_Coefficients)
     coefficients.order, coefficients.a, coefficients.M = order, a, M
@@ -362,7 +365,8 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         t_new = torch.where(clipped, target, ta + he)
         take = accept.unsqueeze(-1)
         if everyone:
-            x, t, k1, h = torch.where(take, x_new, xa), torch.where(accept, t_new, ta), torch.where(take, K[6], ka), h_next
+            x, t, k1, h = (torch.where(take, x_new, xa), torch.where(accept, t_new, ta), torch.where(take, K[6], ka),
+                           h_next)
             steps += 1
         else:
             x[active] = torch.where(take, x_new, xa)

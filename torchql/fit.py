@@ -380,7 +380,7 @@ class _Problem:
             linearize(self.system, self.t0.reshape(1), self.z0.unsqueeze(0))
         except Exception as exc:  # noqa: BLE001
             raise ValueError(
-                "`model` forward could not be differentiated with torch.func.jacrev/vmap: "
+                "`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
                 f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor values."
             ) from exc
 
