@@ -118,19 +118,24 @@ def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
 
     ``data (4, Q, I)`` holds the Hermite node data (values and scaled slopes); the rows of
     ``h f`` and ``h A`` (all but the first ``M``) are divided by ``n``, the substep's length.
-    Written as sums of scaled rows: a matrix product with an inner dimension of 4 runs far
-    below the memory bandwidth.
+    Up to two substeps as sums of scaled rows (a matrix product with an inner dimension of 4
+    runs far below the memory bandwidth), beyond that as one matrix product.
     """
     Q, I = data.shape[1:]
-    W = _substep_weights(n)
-    out = data.new_empty(4, Q, n * I)
-    for m in range(n):
-        for k in range(4):
-            target = out[k, :, m * I:(m + 1) * I]
-            terms = [(W[m][b][k], data[b]) for b in range(4) if W[m][b][k] != 0.0]
-            torch.mul(terms[0][1], terms[0][0], out=target)
-            for weight, row in terms[1:]:
-                target.add_(row, alpha=weight)
+    if n > 2:  # many substeps: one matrix product, whatever its speed per entry
+        W = _substep_matrices(n, data.dtype, data.device)  # (n, 4, 4)
+        mono = (W.permute(0, 2, 1).reshape(4 * n, 4) @ data.reshape(4, Q * I)).reshape(n, 4, Q, I)
+        out = mono.permute(1, 2, 0, 3).reshape(4, Q, n * I)
+    else:
+        W = _substep_weights(n)
+        out = data.new_empty(4, Q, n * I)
+        for m in range(n):
+            for k in range(4):
+                target = out[k, :, m * I:(m + 1) * I]
+                terms = [(W[m][b][k], data[b]) for b in range(4) if W[m][b][k] != 0.0]
+                torch.mul(terms[0][1], terms[0][0], out=target)
+                for weight, row in terms[1:]:
+                    target.add_(row, alpha=weight)
     if n > 1:
         out[:, M:] /= n
     return out
