@@ -2,7 +2,7 @@
 
 import torch
 
-from torchql.batch_integrate import dopri_batch, propagate_linear_batch
+from torchql.batch_integrate import dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from torchql.linearize import linearize
 from torchql.model import AugmentedSystem
 from torchql.models import CoastingCar
@@ -87,3 +87,91 @@ def test_single_node_grid():
     grid = torch.zeros(1, dtype=DT)
     traj, ok, evals = dopri_batch(system, z0, grid, rtol=1e-8, atol=1e-10)
     assert ok.all() and evals == 0 and torch.equal(traj[:, 0], z0)
+
+
+# ------------------------------------------------------------------ per-sample grids (S, G)
+def _own_grids(S):
+    """Each sample's grid of its own span and length, padded at the end by repeating its last node:
+    ``(S, G)`` and the number of real nodes of each."""
+    lengths = [41 - 6 * s for s in range(S)]
+    G = max(lengths)
+    rows = []
+    for s, count in enumerate(lengths):
+        own = torch.linspace(0.5 * s, 40 - 3 * s, count, dtype=DT)
+        rows.append(torch.cat([own, own[-1:].expand(G - count)]))
+    return torch.stack(rows), lengths
+
+
+def test_dopri_on_per_sample_grids_with_padding():
+    """Every sample on its own grid (its own start, end and length): within tolerance of the closed form
+    at its nodes, its padding (zero-length intervals) repeating its last value, and the same values as
+    the sample integrated alone on its unpadded grid."""
+    system, z0 = _cars(4)
+    grid, lengths = _own_grids(4)
+    traj, ok, evals = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12)
+    assert ok.all() and evals > 0
+    for s, count in enumerate(lengths):
+        own = grid[s, :count]
+        exact = _exact_speed(own - own[0], z0[s:s + 1])[0]
+        assert float(((traj[s, :count, 0] - exact) / exact).abs().max()) < 1e-9
+        assert torch.equal(traj[s, count:], traj[s, count - 1].expand(grid.shape[1] - count, -1))
+        alone, _, _ = dopri_batch(system, z0[s:s + 1], own, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(traj[s, :count], alone[0], rtol=1e-14, atol=0)
+    # landing on a few nodes per sample, the others from the dense output
+    land = torch.zeros_like(grid, dtype=torch.bool)
+    land[:, ::8] = True
+    dense, ok, _ = dopri_batch(system, z0, grid, rtol=1e-9, atol=1e-11, land=land)
+    assert ok.all()
+    for s, count in enumerate(lengths):
+        own = grid[s, :count]
+        exact = _exact_speed(own - own[0], z0[s:s + 1])[0]
+        assert float(((dense[s, :count, 0] - exact) / exact).abs().max()) < 1e-8
+        assert torch.equal(dense[s, count:, 0], dense[s, count - 1, 0].expand(grid.shape[1] - count))
+
+
+def test_dopri_zero_length_interval_inside_a_grid():
+    """A repeated node inside a grid is a step of length zero: the same value at both nodes."""
+    system, z0 = _cars(2)
+    grid = torch.tensor([[0.0, 5.0, 5.0, 10.0, 20.0], [0.0, 2.0, 4.0, 8.0, 8.0]], dtype=DT)
+    traj, ok, _ = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12)
+    assert ok.all()
+    assert torch.equal(traj[0, 1], traj[0, 2]) and torch.equal(traj[1, 3], traj[1, 4])
+    for s in range(2):
+        exact = _exact_speed(grid[s], z0[s:s + 1])[0]
+        assert float(((traj[s, :, 0] - exact) / exact).abs().max()) < 1e-9
+
+
+def test_one_node_sample_among_longer_ones():
+    system, z0 = _cars(2)
+    grid = torch.tensor([[3.0, 3.0, 3.0], [0.0, 1.0, 2.0]], dtype=DT)
+    traj, ok, _ = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12)
+    assert ok.all() and torch.equal(traj[0], z0[0].expand(3, -1))
+    exact = _exact_speed(grid[1], z0[1:])[0]
+    assert float(((traj[1, :, 0] - exact) / exact).abs().max()) < 1e-9
+
+
+def test_linear_propagation_and_shooting_on_per_sample_grids_equal_each_grid_alone():
+    """Per-sample grids of different lengths: the Taylor propagation and the multiple shooting give each
+    sample what its own grid alone gives (its tolerance spread over its own intervals, the padding
+    transferring by the identity)."""
+    system, z0 = _cars(3)
+    grid, lengths = _own_grids(3)
+    traj, ok, _ = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12)
+    S, G, M = traj.shape
+    lin = linearize(system, grid.reshape(-1), traj.reshape(-1, M))
+    lin = type(lin)(*(v.reshape(S, G, *v.shape[1:]) for v in lin))
+    w0 = torch.stack([initial_columns(z0[s] + 0.5, torch.arange(M)) for s in range(S)])
+    W, failed, _ = propagate_linear_batch(grid, traj, lin.f, lin, w0, rtol=1e-8, atol=1e-10)
+    shot, good, _ = solve_on_grid_batch(system, z0, grid, rtol=1e-8, atol=1e-10, guess=traj * 1.001)
+    assert not failed.any() and good.all()
+    for s, count in enumerate(lengths):
+        sub = type(lin)(*(v[s:s + 1, :count] for v in lin))
+        W_alone, _, _ = propagate_linear_batch(grid[s, :count], traj[s:s + 1, :count], sub.f, sub, w0[s:s + 1],
+                                               rtol=1e-8, atol=1e-10)
+        torch.testing.assert_close(W[s, :count], W_alone[0], rtol=1e-13, atol=1e-13)
+        # the identity transfers of the padding (composed by the scan: equal up to rounding)
+        torch.testing.assert_close(W[s, count:], W[s, count - 1].expand(G - count, -1, -1), rtol=1e-13, atol=1e-13)
+        alone, _, _ = solve_on_grid_batch(system, z0[s:s + 1], grid[s, :count], rtol=1e-8, atol=1e-10,
+                                          guess=traj[s:s + 1, :count] * 1.001)
+        torch.testing.assert_close(shot[s, :count], alone[0], rtol=1e-13, atol=0)
+        torch.testing.assert_close(shot[s, count:], shot[s, count - 1].expand(G - count, -1), rtol=1e-13, atol=0)

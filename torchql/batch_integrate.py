@@ -1,4 +1,10 @@
-"""Integration for a batch of independent samples on one time grid, each sample controlled on its own error.
+"""Integration for a batch of independent samples, each on its own error control.
+
+The samples share one time grid ``(G,)`` or each has its own, ``(S, G)``: a row of a
+per-sample grid is non-decreasing, and a sample whose grid is shorter than ``G`` nodes repeats
+its last node up to ``G`` (zero-length intervals, whose transfer is the identity). Every
+tolerance that is spread over a grid's intervals is spread over the sample's own intervals of
+positive length, so a sample's solution is the one its grid alone would give.
 
 No sample's error is averaged with (diluted by) another's: every integrator below makes its
 step decisions per sample (or per sample and grid interval), and reports failures per sample
@@ -33,7 +39,9 @@ __all__ = ["propagate_linear_batch", "solve_on_grid_batch", "dopri_batch", "inte
 
 
 def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) -> _Coefficients:
-    """The interval coefficients of ``S`` samples on one grid, as :class:`torchql.transfer._Coefficients` holds them.
+    """The interval coefficients of ``S`` samples, as :class:`torchql.transfer._Coefficients` holds them.
+
+    ``t``: the shared grid ``(G,)`` or per-sample grids ``(S, G)``.
 
     Built from the node values directly (the intervals' arrays of
     :class:`torchql.trajectory.IntervalSystem` are never formed): interval ``s (G-1) + j`` is
@@ -42,7 +50,6 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
     or ``A`` somewhere) its row ``h [f | A]`` and scaled slope ``h^2 [f' | A']``.
     """
     S, G, M = z.shape
-    h = (t[1:] - t[:-1]).reshape(1, G - 1, 1)
     moving = ((lin.f != 0) | (lin.f_dot != 0) | (lin.jac != 0).any(dim=-1) | (lin.jac_dot != 0).any(dim=-1))
     moving = moving.flatten(0, 1).any(dim=0)  # (M,); NaN counts as moving
     index = torch.arange(M, device=z.device)
@@ -61,9 +68,9 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
     rows[:, 1:] = lin.jac_dot[..., act, :][..., perm].permute(2, 3, 0, 1)
     # per interval: values at the start, scaled slopes there, then the same at the end; the rows of
     # f and A scaled by h (values) and h^2 (slopes), those of z by 1 and h
-    h = (t[1:] - t[:-1]).reshape(1, 1, G - 1)
-    value_scale = torch.cat([torch.ones_like(h).expand(M, 1, G - 1), h.expand(Q - M, 1, G - 1)])
-    slope_scale = torch.cat([h.expand(M, 1, G - 1), (h * h).expand(Q - M, 1, G - 1)])
+    h = (t[..., 1:] - t[..., :-1]).reshape(1, -1, G - 1)  # (1, 1 or S, G - 1)
+    value_scale = torch.cat([torch.ones_like(h).expand(M, -1, -1), h.expand(Q - M, -1, -1)])
+    slope_scale = torch.cat([h.expand(M, -1, -1), (h * h).expand(Q - M, -1, -1)])
     data = z.new_empty(4, Q, S, G - 1)
     start, end = slice(0, G - 1), slice(1, G)
     blocks = ((values, start, value_scale), (slopes, start, slope_scale), (values, end, value_scale),
@@ -83,8 +90,9 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
 
     Parameters
     ----------
-    t : Tensor ``(G,)``
-        The grid, shared by the samples.
+    t : Tensor ``(G,)`` or ``(S, G)``
+        The grid, shared by the samples, or each sample's own (padded at the end by repeating
+        its last node).
     z, z_dot : Tensor ``(S, G, M)``
         Each sample's reference and its slopes at the nodes.
     lin : Linearization
@@ -93,7 +101,8 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         Initial columns (particular first).
     rtol, atol : float
         Tolerances of a whole propagation, as :func:`torchql.superposition.propagate_linear`
-        (each interval gets them divided by ``sqrt(G - 1)``).
+        (each interval gets them divided by the square root of the number of intervals: ``G - 1``
+        on a shared grid, the sample's intervals of positive length on per-sample grids).
     max_substeps : int
         Most Taylor substeps on one interval (see :func:`torchql.taylor.series_transfers`).
 
@@ -111,14 +120,17 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
     if G == 1:
         return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), 0
     N = G - 1
-    tiny = 10 * torch.finfo(z.dtype).eps
-    rtol_j, atol_j = max(rtol / N**0.5, tiny), max(atol / N**0.5, tiny)
     coefficients = _coefficients(t, z, z_dot, lin)
-    out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
+    if t.dim() == 1:
+        rtol_j, atol_j = _interval_tolerances(rtol, atol, N, z.dtype)
+        out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
+        Y, failed, points = out.Y, out.failed, out.points
+    else:
+        Y, failed, points = _series_per_sample(coefficients, _interval_counts(t), rtol, atol, max_substeps)
     order = coefficients.order
-    failed = out.failed.reshape(S, N).any(dim=1)
-    a, P = out.Y.shape[0], out.Y.shape[1]
-    Yb = out.Y.reshape(a, P, S, N).permute(2, 0, 1, 3)  # (S, a, M+1, N)
+    failed = failed.reshape(S, N).any(dim=1)
+    a, P = Y.shape[0], Y.shape[1]
+    Yb = Y.reshape(a, P, S, N).permute(2, 0, 1, 3)  # (S, a, M+1, N)
     one = torch.zeros(S, 1, cols, dtype=w0.dtype, device=w0.device)
     one[:, 0, 0] = 1.0
     w = torch.cat([w0, one], dim=1)[:, order]  # (S, M+1, cols)
@@ -127,11 +139,65 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         Pr = prefix_products(Yb)  # (S, a, M+1, N)
         W[:, 1:, order[:a]] = torch.einsum("sapn,spc->snac", Pr, w)
     W[failed] = float("nan")
-    return W, failed, out.points
+    return W, failed, points
+
+
+def _interval_tolerances(rtol: float, atol: float, intervals: int, dtype: torch.dtype) -> tuple[float, float]:
+    """Tolerances of one interval of a grid of ``intervals``: the whole one's over ``sqrt(intervals)``."""
+    tiny = 10 * torch.finfo(dtype).eps
+    intervals = max(intervals, 1)
+    return max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
+
+
+def _interval_counts(grid: torch.Tensor) -> torch.Tensor:
+    """Intervals of positive length of each sample's grid ``(S, G)``: ``(S,)`` (padding excluded)."""
+    return (grid[:, 1:] > grid[:, :-1]).sum(dim=1)
+
+
+def _last_nodes(grid: torch.Tensor) -> torch.Tensor:
+    """Index of the first node at each sample's final time, ``(S,)``, of grids ``(S, G)`` (its padding follows)."""
+    return (grid < grid[:, -1:]).sum(dim=1)
+
+
+def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: float, atol: float,
+                       max_substeps: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """:func:`torchql.taylor.series_transfers` of ``S`` samples' ``N`` intervals each, per-sample tolerances.
+
+    ``counts (S,)``: each sample's intervals of positive length, over whose square root its
+    tolerances are divided. Samples with the same count are summed in one call (an interval's
+    series does not depend on the intervals summed with it). Returns ``Y (a, M+1, S N)``,
+    ``failed (S N,)`` and the points computed.
+    """
+    S = counts.shape[0]
+    data = coefficients.data
+    N = data.shape[-1] // S
+    dtype = data.dtype
+    values = counts.unique().tolist()
+    if len(values) == 1:
+        rtol_j, atol_j = _interval_tolerances(rtol, atol, values[0], dtype)
+        out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
+        return out.Y, out.failed, out.points
+    Y = data.new_zeros(coefficients.a, coefficients.M + 1, S * N)
+    failed = torch.zeros(S * N, dtype=torch.bool, device=data.device)
+    points = 0
+    for value in values:
+        samples = (counts == value).nonzero().flatten()
+        columns = (samples.unsqueeze(1) * N + torch.arange(N, device=data.device)).flatten()
+        part = object.__new__(_Coefficients)
+        part.order, part.a, part.M = coefficients.order, coefficients.a, coefficients.M
+        part.data = data[..., columns]
+        rtol_j, atol_j = _interval_tolerances(rtol, atol, value, dtype)
+        out = series_transfers(part, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
+        Y[..., columns], failed[columns] = out.Y, out.failed
+        points += out.points
+    return Y, failed, points
 
 
 def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
-    """``phi (N, M)``, ``S (N, M, M)`` of every interval and ``failed (N,)``; ``steps`` updated in place."""
+    """``phi (N, M)``, ``S (N, M, M)`` of every interval and ``failed (N,)``; ``steps`` updated in place.
+
+    ``rtol``, ``atol``: floats, or Tensors ``(N, 1)`` (each interval its own).
+    """
     N, M = x0.shape
     phi = x0.new_empty(N, M)
     S = x0.new_empty(N, M, M)
@@ -142,7 +208,9 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
     while todo.numel():
         for n in steps[todo].unique().tolist():
             group = todo[steps[todo] == n]
-            p, s, r, evals = _grid_rk4_pair(field, t0[group], h[group], x0[group], n, rtol, atol)
+            rt = rtol[group] if isinstance(rtol, torch.Tensor) else rtol
+            at = atol[group] if isinstance(atol, torch.Tensor) else atol
+            p, s, r, evals = _grid_rk4_pair(field, t0[group], h[group], x0[group], n, rt, at)
             phi[group], S[group], ratio[group] = p, s, r
             n_evals += evals * group.numel()
         todo = todo[~(ratio[todo] <= 1.0)]
@@ -172,9 +240,11 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
     ----------
     system : AugmentedSystem
     z0 : Tensor ``(S, M)``
-    grid : Tensor ``(G,)``
+    grid : Tensor ``(G,)`` or ``(S, G)``
+        The shared grid, or each sample's own (padded at the end by repeating its last node).
     rtol, atol : float
-        Tolerances of one sample's whole solution (per interval divided by ``sqrt(G - 1)``).
+        Tolerances of one sample's whole solution (per interval divided by the square root of
+        its number of intervals: ``G - 1``, or those of positive length of its own grid).
     guess : Tensor ``(S, G, M)``, optional
         Node values to start Newton from (default ``z0`` at every node).
     max_newton, max_substeps : int
@@ -190,19 +260,23 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         Evaluations of ``f`` (points of the batched calls).
     """
     S, M = z0.shape
-    G = grid.shape[0]
+    G = grid.shape[-1]
     X = z0.unsqueeze(1).expand(S, G, M).clone() if guess is None else guess.detach().clone()
     X[:, 0] = z0
     ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
     if G == 1:
         return X, ~ok, 0
     N = G - 1
-    tiny = 10 * torch.finfo(z0.dtype).eps
-    rtol_j, atol_j = max(rtol / N**0.5, tiny), max(atol / N**0.5, tiny)
+    per_sample = grid.dim() == 2
+    if per_sample:  # each sample's tolerances over its own intervals: (S, 1) per interval below
+        tolerances = [_interval_tolerances(rtol, atol, c, z0.dtype) for c in _interval_counts(grid).tolist()]
+        rtol_j, atol_j = (torch.tensor(v, dtype=z0.dtype, device=z0.device).unsqueeze(-1) for v in zip(*tolerances))
+    else:
+        rtol_j, atol_j = _interval_tolerances(rtol, atol, N, z0.dtype)
     field = _Field(system.f)
     active = torch.arange(S, device=z0.device)
     steps = torch.ones(S, N, dtype=torch.long, device=z0.device)
-    t0, h = grid[:-1], grid[1:] - grid[:-1]
+    t0, h = grid[..., :-1], grid[..., 1:] - grid[..., :-1]
     n_evals = 0
     for _ in range(max_newton):
         if not active.numel():
@@ -210,8 +284,13 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         A = active.numel()
         Xa = X[active]
         st = steps[active].reshape(-1)
-        phi, Sj, failed, evals = _integrate_each(field, t0.repeat(A), h.repeat(A), Xa[:, :-1].reshape(-1, M), st,
-                                                 rtol_j, atol_j, max_substeps)
+        if per_sample:
+            ta, hs = t0[active].reshape(-1), h[active].reshape(-1)
+            rt, at = rtol_j[active].repeat_interleave(N, dim=0), atol_j[active].repeat_interleave(N, dim=0)
+        else:
+            ta, hs, rt, at = t0.repeat(A), h.repeat(A), rtol_j, atol_j
+        phi, Sj, failed, evals = _integrate_each(field, ta, hs, Xa[:, :-1].reshape(-1, M), st, rt, at,
+                                                 max_substeps)
         steps[active] = st.reshape(A, N)
         n_evals += evals
         failed = failed.reshape(A, N).any(dim=1)
@@ -235,22 +314,32 @@ def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor
                    atol: float, hit: torch.Tensor, max_steps: int | None = None) -> tuple[torch.Tensor, list, int]:
     """Each sample's model integrated on its own by torchdiffeq (the fallback of :func:`solve_on_grid_batch`).
 
+    ``grid``: the shared grid ``(G,)`` or each sample's own ``(S, G)`` (padded at the end by
+    repeating its last node: a sample is integrated on its grid up to its final time, and the
+    padding repeats its last value). ``hit``: times the solver steps onto, shared ``(T,)`` or
+    per sample ``(S, T)``.
+
     Returns ``traj (S, G, M)`` (NaN for failures), one error message or ``None`` per sample,
     and the right-hand-side evaluations.
     """
     S, M = z0.shape
     n = system.n
-    out = z0.new_full((S, grid.shape[0], M), float("nan"))
+    G = grid.shape[-1]
+    out = z0.new_full((S, G, M), float("nan"))
     errors: list = [None] * S
     n_evals = 0
+    ends = (_last_nodes(grid) + 1).tolist() if grid.dim() == 2 else [G] * S
     for s in range(S):
         model = system.model_with(z0[s, n:])
         counter = _Counter(model)
+        end = ends[s]
+        own = grid[s, :end] if grid.dim() == 2 else grid
         try:
             with torch.no_grad():
-                x = solve(counter, z0[s, :n], grid, solver=solver, rtol=rtol, atol=atol, hit=hit,
-                          max_steps=max_steps)
-            out[s, :, :n] = x
+                x = solve(counter, z0[s, :n], own, solver=solver, rtol=rtol, atol=atol,
+                          hit=hit[s] if hit.dim() == 2 else hit, max_steps=max_steps)
+            out[s, :end, :n] = x
+            out[s, end:, :n] = x[-1]
             out[s, :, n:] = z0[s, n:]
         except IntegrationError as exc:
             errors[s] = str(exc)
@@ -292,10 +381,15 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
 
     Every sample has its own time, step size and accept/reject decision (error in the RMS norm
     of its own states, ``atol + rtol * max(|x|, |x_new|)``, as torchdiffeq's ``dopri5``); steps
-    are shortened to land on the grid nodes in ``land`` (bool ``(G,)``, default every node; the
-    last node always), so the values there are the solver's own; any other node is filled by
-    the step's fourth-order dense output (Shampine's, as torchdiffeq interpolates). A round
-    advances every unfinished sample by one trial step; only those samples are evaluated.
+    are shortened to land on the grid nodes in ``land`` (bool ``(G,)`` or ``(S, G)``, default
+    every node; the last node always), so the values there are the solver's own; any other node
+    is filled by the step's fourth-order dense output (Shampine's, as torchdiffeq interpolates).
+    A round advances every unfinished sample by one trial step; only those samples are evaluated.
+
+    ``grid`` is shared, ``(G,)``, or each sample's own, ``(S, G)``: a sample stops at the first
+    node of its final time (always landed on), and the nodes after it, the padding that repeats
+    it, take its value. A zero-length interval inside a grid is a step of length zero (its end
+    value is its start value).
 
     Returns ``traj (S, G, M)`` (NaN where it failed), ``ok (S,)`` (false when a sample's
     solution became non-finite, its step size underflowed or it took more than ``max_steps``
@@ -303,16 +397,17 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     """
     S, M = z0.shape
     n = system.n
-    G = grid.shape[0]
+    G = grid.shape[-1]
     dtype, device = z0.dtype, z0.device
     out = z0.new_full((S, G, M), float("nan"))
     out[:, 0] = z0
     ok = torch.isfinite(z0).all(dim=1)
     if G == 1:
         return out, ok, 0
+    per_sample = grid.dim() == 2
     fv = torch.vmap(system.f)
     x = z0.clone()
-    t = grid[0].expand(S).clone()
+    t = grid[:, 0].clone() if per_sample else grid[0].expand(S).clone()
     node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach
     k1 = fv(t, x)
     evals = S
@@ -320,7 +415,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     scale = atol + rtol * x[:, :n].abs()
     d0 = (x[:, :n] / scale).square().mean(dim=1).sqrt()
     d1 = (k1[:, :n] / scale).square().mean(dim=1).sqrt()
-    span = grid[-1] - grid[0]
+    span = grid[..., -1] - grid[..., 0]
     h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
     h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
     steps = torch.zeros(S, dtype=torch.long, device=device)
@@ -329,17 +424,42 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     row_e = torch.tensor(_DP_E, dtype=dtype, device=device)
     row_mid = torch.tensor(_DP_MID, dtype=dtype, device=device)
     # next_land[j]: the first node at or after j that steps land on
-    landing = torch.ones(G, dtype=torch.bool, device=device) if land is None else land.to(device).clone()
-    landing[-1] = True
-    dense = not bool(landing[1:].all())
     node_index = torch.arange(G, device=device)
-    next_land = torch.where(landing, node_index, G).flip(0).cummin(dim=0).values.flip(0)
-    active = ok.nonzero().flatten()
+    if per_sample:  # flat tables, read at base + node (base: the sample's first entry)
+        end = _last_nodes(grid) + 1  # nodes each sample reaches
+        base = torch.arange(S, device=device) * G
+        landing = (torch.ones(S, G, dtype=torch.bool, device=device) if land is None
+                   else land.to(device).expand(S, G).clone())
+        landing[torch.arange(S, device=device), end - 1] = True
+        landing[:, -1] = True
+        next_land = torch.where(landing, node_index, G).flip(-1).cummin(dim=-1).values.flip(-1)
+        grid_flat, landing_flat, next_flat = grid.reshape(-1), landing.reshape(-1), next_land.reshape(-1)
+    else:
+        end = base = None
+        landing = torch.ones(G, dtype=torch.bool, device=device) if land is None else land.to(device).clone()
+        landing[-1] = True
+        next_land = torch.where(landing, node_index, G).flip(0).cummin(dim=0).values.flip(0)
+    dense = not bool(landing[..., 1:].all())
+
+    def node_time(offset, nodes):
+        """Times of ``nodes`` (next to reach) of the samples whose table offsets are ``offset``."""
+        return grid[nodes] if offset is None else grid_flat[offset + nodes]
+
+    def node_lands(offset, nodes):
+        return landing[nodes] if offset is None else landing_flat[offset + nodes]
+
+    # a sample with one node (then padding) is done: its padding is filled below
+    active = (ok if end is None else ok & (end > 1)).nonzero().flatten()
     while active.numel():
         everyone = active.numel() == S  # no gathering while no sample has finished or failed
         xa, ta, ka, ha = (x, t, k1, h) if everyone else (x[active], t[active], k1[active], h[active])
         node_a = node if everyone else node[active]
-        target = grid[next_land[node_a]]
+        if per_sample:
+            base_a = base if everyone else base[active]
+            target = grid_flat[base_a + next_flat[base_a + node_a]]
+        else:
+            base_a = None
+            target = grid[next_land[node_a]]
         gap = target - ta
         clipped = ha >= gap
         he = torch.where(clipped, gap, ha)
@@ -375,13 +495,15 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
             h[active] = h_next
             steps[active] += 1
         if dense:  # nodes passed inside accepted steps, from the dense output
-            passed = accept & (grid[node_a.clamp(max=G - 1)] < t_new) & ~landing[node_a.clamp(max=G - 1)]
+            clamped = node_a.clamp(max=G - 1)
+            passed = accept & (node_time(base_a, clamped) < t_new) & ~node_lands(base_a, clamped)
             if bool(passed.any()):
                 y_mid = torch.addcmul(xa, hc, torch.tensordot(row_mid, K, dims=1))
                 quartic = _quartic(xa, x_new, y_mid, K[0], K[6], hc)
                 while bool(passed.any()):
                     rows = passed.nonzero().flatten()
-                    theta = ((grid[node_a[rows]] - ta[rows]) / he[rows]).unsqueeze(-1)
+                    offset = None if base_a is None else base_a[rows]
+                    theta = ((node_time(offset, node_a[rows]) - ta[rows]) / he[rows]).unsqueeze(-1)
                     value = quartic[4][rows]
                     for coefficient in quartic[3::-1]:
                         value = value * theta + coefficient[rows]
@@ -389,17 +511,21 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
                     node_a = node_a.clone()
                     node_a[rows] += 1
                     node[active[rows]] += 1
-                    passed = passed & (grid[node_a.clamp(max=G - 1)] < t_new) & ~landing[node_a.clamp(max=G - 1)]
+                    clamped = node_a.clamp(max=G - 1)
+                    passed = passed & (node_time(base_a, clamped) < t_new) & ~node_lands(base_a, clamped)
         landed = accept & clipped
         if bool(landed.any()):
             rows = active[landed]
             out[rows, node[rows]] = x_new[landed]
             node[rows] += 1
-        finished = node[active] >= G
+        finished = node[active] >= (G if end is None else end[active])
         underflow = h_next <= 10 * torch.finfo(dtype).eps * ta.abs().clamp(min=1.0)
         bad = (underflow | (steps[active] >= max_steps)) & ~finished
         ok[active[bad]] = False
         active = active[ok[active] & ~finished]
+    if per_sample and bool((end < G).any()):  # the padding repeats each sample's last value
+        last = torch.minimum(node_index, (end - 1).unsqueeze(1))  # (S, G)
+        out = out.gather(1, last.unsqueeze(-1).expand(S, G, M))
     out[~ok] = float("nan")
     return out, ok, evals
 
