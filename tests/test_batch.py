@@ -239,9 +239,10 @@ def test_bad_data_is_named():
     with pytest.raises(ValueError, match=r"`data\[1\]` holds a batch of 2 datasets, values \(2, 9, 1\): pass a "
                                          "batched Observations alone"):
         torchql.fit_many(model, [data[0], as_batch(data)], x0)
-    shifted = torchql.Observations(CAR_T + 1.0, data[1].y, observe=["v"])
-    with pytest.raises(ValueError, match=r"`data\[1\]` has observation times different"):
-        torchql.fit_many(model, [data[0], shifted], x0)
+    shorter = torchql.Observations(CAR_T[:7], data[1].y[:7], observe=["v"])
+    with pytest.raises(ValueError, match=r"`data\[1\]` has T = 7 observation times but `data\[0\]` has 9: fit_many "
+                                         "needs the same number of times in every dataset"):
+        torchql.fit_many(model, [data[0], shorter], x0)
     other = torchql.Observations(CAR_T, data[1].y, observe=["v"], sigma=0.3)
     with pytest.raises(ValueError, match=r"`data\[1\]` gives `sigma` but `data\[0\]` does not"):
         torchql.fit_many(model, [data[0], other], x0)
@@ -275,3 +276,102 @@ def test_cuda_follows_the_model_and_matches_cpu():
     assert torch.allclose(gpu.estimates.cpu(), cpu.estimates, rtol=1e-8, atol=0)
     assert [s.name for s in gpu.status] == [s.name for s in cpu.status]
     assert Status.CONVERGED in gpu.status
+
+
+# ------------------------------------------------------------------ per-sample observation times (B, T)
+def own_time_cars(B: int, seed: int = 12) -> tuple[list, torch.Tensor]:
+    """``B`` coast-down logs each recorded at its own 9 times (sample 0 at ``CAR_T``, the others at random
+    times with their own start), and each log's first speed ``(B, 1)``."""
+    g = torch.Generator().manual_seed(seed)
+    data = []
+    for b in range(B):
+        C_D = 0.45 + 0.05 * torch.randn((), generator=g, dtype=DT)
+        t = CAR_T if b == 0 else torch.sort(torch.rand(9, generator=g, dtype=DT)).values * 40 + b
+        v = torchql.simulate(CoastingCar(AREA, MASS, float(C_D), 0.015), torch.tensor([117.3], dtype=DT), t,
+                             rtol=1e-12, atol=1e-12)
+        data.append(torchql.Observations(t, v + 0.3 * torch.randn(9, 1, generator=g, dtype=DT), observe=["v"]))
+    return data, torch.stack([d.y[0] for d in data])
+
+
+def test_cars_at_their_own_times_equal_single_fits_with_a_failure():
+    """Each car observed at its own times (its own t0, its own grid: different lengths, padded in the
+    batch): each status, message, estimate, SSE and covariance is the single fit's, a car whose guess
+    blows up fails alone, and the batched Observations ``(B, T)`` gives the list's fits."""
+    data, x0 = own_time_cars(5)
+    from torchql.batch import _make_grid
+    sizes = {_make_grid(40, d.t[0], d.t).numel() for d in data}
+    assert len(sizes) > 1  # the samples' grids differ in length: the batch pads them
+    C_D = torch.tensor([0.4, 0.4, -40.0, 0.4, 0.35], dtype=DT)
+    model = CoastingCar(AREA, MASS)
+    batch = torchql.fit_many(model, data, x0, guesses={"C_D": C_D}, grid=40)
+    singles = [torchql.fit(CoastingCar(AREA, MASS, C_D=float(C_D[b])), data[b], x0[b], grid=40) for b in range(5)]
+    assert [s.name for s in batch.status] == ["CONVERGED", "CONVERGED", "INTEGRATION_FAILED", "CONVERGED",
+                                             "CONVERGED"]
+    assert_same_as_single(batch, singles)
+    # t0 not given: each sample's own first time, as each single fit's
+    assert torch.equal(batch.t0, torch.stack([d.t[0] for d in data]))
+    assert [s.t0 for s in singles] == batch.t0.tolist() and batch[3].t0 == singles[3].t0
+    times = torch.stack([d.t for d in data])
+    stored = times.clone()
+    own = torchql.Observations(times, torch.stack([d.y for d in data]), observe=["v"])
+    batched = torchql.fit_many(model, own, x0, guesses={"C_D": C_D}, grid=40)
+    assert_identical(batched, batch)
+    assert torch.equal(own.t, stored)  # not modified
+    chunked = torchql.fit_many(model, own, x0, guesses={"C_D": C_D}, grid=40, chunk_size=2)
+    assert_identical(chunked, batch)
+
+
+def test_oscillators_at_their_own_times_from_a_shared_t0():
+    """Oscillators sampled at their own times, every one from x0 at the shared ``t0 = -0.5`` (before any
+    observation): each sample is the single fit with that ``t0``; the default grid (1000 intervals)."""
+    g = torch.Generator().manual_seed(2)
+    truths = [(0.1, 3.0), (0.2, 2.5), (0.05, 3.5)]
+    data = []
+    x_start = torch.tensor([0.0, 1.0], dtype=DT)
+    for b, (A, B) in enumerate(truths):
+        t = torch.sort(torch.rand(14, generator=g, dtype=DT)).values * 6.5 + 0.1 * b
+        y = torchql.simulate(LinearOscillator(A, B), x_start, torch.cat([torch.tensor([-0.5], dtype=DT), t]),
+                             rtol=1e-13, atol=1e-15)[1:, :1]
+        data.append(torchql.Observations(t, y + 0.01 * torch.randn(14, 1, generator=g, dtype=DT), observe=["y"]))
+    guesses = {"A": torch.tensor([0.12, 0.25, 0.06], dtype=DT), "B": torch.tensor([2.8, 2.6, 3.3], dtype=DT)}
+    batch = torchql.fit_many(LinearOscillator(), data, x_start, guesses=guesses, t0=-0.5)
+    singles = [torchql.fit(LinearOscillator(float(guesses["A"][b]), float(guesses["B"][b])), data[b], x_start,
+                           t0=-0.5) for b in range(3)]
+    assert batch.success.all() and batch.t0 == -0.5
+    assert_same_as_single(batch, singles)
+
+
+def test_per_sample_times_all_alike_fit_as_shared_times():
+    data, x0 = car_data(3, seed=13)
+    shared = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20)
+    rows = torchql.Observations(CAR_T.expand(3, 9), torch.stack([d.y for d in data]), observe=["v"])
+    assert rows.per_sample_times
+    assert_identical(torchql.fit_many(CoastingCar(AREA, MASS), rows, x0, grid=20), shared)
+    assert shared.t0 == 0.0
+
+
+def test_per_sample_times_t0_and_x0_errors_name_the_sample():
+    data, x0 = own_time_cars(3, seed=14)
+    model = CoastingCar(AREA, MASS)
+    assert float(data[0].t[0]) == 0.0 and all(float(d.t[0]) >= 1.0 for d in data[1:])
+    with pytest.raises(ValueError, match=r"`t0` must not be later than the first observation time of any sample; "
+                                         r"`data\[0\]` starts at 0, received t0 = 0.5"):
+        torchql.fit_many(model, data, x0, t0=0.5, grid=10)
+    with pytest.raises(ValueError, match=r"`x0` is required when `t0` precedes the first observation \(as in "
+                                         r"`data\[0\]`\)"):
+        torchql.fit_many(model, data, t0=-1.0, grid=10)
+    # with t0 not given, x0 comes from each sample's own first value
+    result = torchql.fit_many(model, data, grid=10, max_iter=0)
+    assert torch.equal(result.x0, x0)
+
+
+def test_fit_and_adjoint_fit_refuse_a_batch_with_per_sample_times():
+    data, x0 = own_time_cars(2, seed=15)
+    own = torchql.Observations(torch.stack([d.t for d in data]), torch.stack([d.y for d in data]), observe=["v"])
+    from torchql.baselines import adjoint_fit
+
+    for fit in (torchql.fit, adjoint_fit):
+        with pytest.raises(ValueError, match=r"`data` holds a batch of 2 independent datasets \(values of shape "
+                                             r"\(B, T, K\) = \(2, 9, 1\)\), but torchql.fit fits one dataset.*"
+                                             r"torchql.fit_many\(model, data, x0, ...\)"):
+            fit(CoastingCar(AREA, MASS), own, x0=x0[0])

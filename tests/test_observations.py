@@ -319,10 +319,73 @@ def test_batch_exact_shapes():
         torchql.Observations(T3, YB, ["x", "u"], exact=torch.zeros(5, 3, 2, dtype=torch.bool))
 
 
-def test_batch_per_sample_times_rejected_clearly():
-    with pytest.raises(ValueError, match=r"`t` must be one-dimensional, shape \(T,\), shared by every sample of the "
-                                         r"batch; received shape \(4, 3\). Per-sample times are not supported"):
-        torchql.Observations(T3.expand(4, 3), YB, ["x", "u"])
+TB = torch.stack([T3, T3 + 0.25, 2.0 * T3, T3 - 1.0])  # per-sample times (B, T) = (4, 3)
+
+
+def test_batch_per_sample_times_shapes_indexing_and_repr():
+    sigma = torch.arange(1.0, 5.0).reshape(4, 1, 1)
+    obs = torchql.Observations(TB, YB, ["x", "u"], sigma=sigma)
+    assert obs.per_sample_times and obs.t.shape == (4, 3) and obs.n_times == 3 and len(obs) == 4
+    assert not torchql.Observations(T3, YB, ["x", "u"]).per_sample_times
+    assert repr(obs) == "Observations(B=4, T=3, K=2, t per sample in [-1, 2])"
+    for b in (2, -1):
+        sample = obs[b]
+        single = torchql.Observations(TB[b], YB[b], ["x", "u"], sigma=sigma[b, 0, 0])
+        assert sample.batch_size is None and not sample.per_sample_times
+        for name in ("t", "y", "sigma", "exact"):
+            assert torch.equal(getattr(sample, name), getattr(single, name)), name
+    assert repr(obs[1]) == "Observations(T=3, K=2, t=[0.25, 1.25])"
+    assert [s.t[0].item() for s in obs] == [0.0, 0.25, 0.0, -1.0]  # iteration: each sample with its own times
+    part = obs[::-2]  # a slice keeps its samples' times
+    assert part.per_sample_times and torch.equal(part.t, TB[[3, 1]]) and torch.equal(part.y, YB[[3, 1]])
+    assert part.sigma[:, 0, 0].tolist() == [4.0, 2.0]
+
+
+def test_batch_per_sample_times_copied_and_missing_values_per_sample():
+    t, y = TB.clone(), YB.clone()
+    y[1, 0, 0] = math.nan
+    obs = torchql.Observations(t, y, ["x", "u"])
+    t[0, 0] = 5.0  # the caller's tensor edited afterwards: the Observations kept its own copy
+    assert obs.t[0, 0].item() == 0.0 and torch.equal(TB[1:], t[1:])
+    obs[0].t[1] = 9.0  # editing a sample leaves the batch as it was
+    assert obs.t[0, 1].item() == 0.5
+    assert obs.mask.flatten(1).sum(dim=1).tolist() == [6, 5, 6, 6]
+    assert torch.equal(obs[1].mask, torchql.Observations(TB[1], y[1], ["x", "u"]).mask)
+    assert torchql.Observations(TB.numpy(), YB.numpy(), ["x", "u"]).t.dtype == torch.float64  # arrays converted
+
+
+@pytest.mark.parametrize("t, y, match", [
+    (TB, Y3, r"`t` must be one-dimensional, shape \(T,\), for one dataset; per-sample times \(B, T\) need values "
+             r"`y` of shape \(B, T, K\); received `t` of shape \(4, 3\) and `y` of shape \(3, 2\)"),
+    (TB[:2], YB, r"`t` of shape \(B, T\) must give the times of each of the B = 4 samples of `y` \(4, 3, 2\): "
+                 r"expected shape \(4, 3\) or \(3,\) \(shared\); received shape \(2, 3\)"),
+    (torch.zeros(4, 3, 1), YB, r"`t` must be one-dimensional, shape \(T,\), or for a batch two-dimensional, "
+                               r"shape \(B, T\) \(each sample's own times\); received shape \(4, 3, 1\)"),
+    (torch.zeros(4, 2), YB, r"`y` must have shape \(T, K\) = \(2, K\) to match `t`, or \(B, T, K\) = "
+                            r"\(B, 2, K\) for a batch of B datasets; received shape \(4, 3, 2\)"),
+    (torch.zeros(4, 0), torch.zeros(4, 0, 2), "`t` must contain at least one observation time"),
+])
+def test_batch_per_sample_times_bad_shapes(t, y, match):
+    with pytest.raises(ValueError, match=match):
+        torchql.Observations(t, y, ["x", "u"])
+
+
+def test_batch_per_sample_times_checked_row_by_row():
+    t = TB.clone()
+    t[2, 1] = math.nan
+    with pytest.raises(ValueError, match=r"`t` must be finite in every row; received NaN or inf times in row t\[2\] "
+                                         r"\(the times of sample 2\)"):
+        torchql.Observations(t, YB, ["x", "u"])
+    t = TB.clone()
+    t[3, 2] = t[3, 1]
+    with pytest.raises(ValueError, match=r"`t` must be strictly increasing \(no duplicates\) in every row; received "
+                                         r"t\[3, 1\] = -0.5 followed by t\[3, 2\] = -0.5 \(the times of sample 3\)"):
+        torchql.Observations(t, YB, ["x", "u"])
+    t = TB.clone()
+    t[1] = t[1].flip(0)
+    with pytest.raises(ValueError, match=r"received t\[1, 0\] = 1.25 followed by t\[1, 1\] = 0.75 \(the times of "
+                                         r"sample 1\)"):
+        torchql.Observations(t, YB, ["x", "u"])
 
 
 @pytest.mark.parametrize("y, match", [

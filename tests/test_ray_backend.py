@@ -27,6 +27,7 @@ def fleet(B: int):
 def test_local_ray_run_equals_fit_many_in_input_order():
     data, x0 = fleet(5)
     C_D = torch.tensor([0.4, 0.4, -40.0, 0.4, 0.35], dtype=DT)  # sample 2 blows up: a failure per sample
+    times = torch.stack([T + 0.5 * b for b in range(5)])  # the same logs recorded at other clock times
     model = CoastingCar(17.3, 80.43)
     seen = []
     try:
@@ -38,6 +39,8 @@ def test_local_ray_run_equals_fit_many_in_input_order():
                                       progress=lambda done, total: seen.append((done, total)))
         batch = torchql.Observations(T, torch.stack([d.y for d in data]), observe=["v"])  # sliced into tasks
         remote_batch = torchql.fit_many_ray(model, batch, x0, guesses={"C_D": C_D}, batch_size=2, grid=20)
+        own = torchql.Observations(times, batch.y, observe=["v"])  # per-sample times: each task gets its samples'
+        remote_own = torchql.fit_many_ray(model, own, x0, guesses={"C_D": C_D}, batch_size=2, grid=20)
     finally:
         ray.shutdown()
     local = torchql.fit_many(model, data, x0, guesses={"C_D": C_D}, grid=20)
@@ -49,6 +52,24 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     assert torch.allclose(remote.params["C_D"][[0, 1, 3, 4]], local.params["C_D"][[0, 1, 3, 4]], rtol=1e-12)
     assert [s.name for s in remote_batch.status] == [s.name for s in local.status]
     assert torch.allclose(remote_batch.estimates, local.estimates, rtol=1e-12, atol=0)
+    local_own = torchql.fit_many(model, own, x0, guesses={"C_D": C_D}, grid=20)
+    assert [s.name for s in remote_own.status] == [s.name for s in local_own.status]
+    assert torch.allclose(remote_own.estimates, local_own.estimates, rtol=1e-12, atol=0)
+    assert torch.equal(remote_own.t0, times[:, 0]) and torch.equal(local_own.t0, times[:, 0])
+
+
+def test_parts_with_their_own_t0_concatenate_to_per_sample_t0():
+    """A batch split into parts whose samples share t0 within a part but not across parts."""
+    from torchql.ray_backend import concatenate
+
+    data, x0 = fleet(3)
+    model = CoastingCar(17.3, 80.43)
+    early = torchql.fit_many(model, data[:2], x0[:2], grid=10, max_iter=0)
+    late = torchql.fit_many(model, [torchql.Observations(T + 2.0, data[2].y, ["v"])], x0[2:], grid=10, max_iter=0)
+    assert early.t0 == 0.0 and late.t0 == 2.0
+    whole = concatenate([early, late])
+    assert torch.equal(whole.t0, torch.tensor([0.0, 0.0, 2.0], dtype=DT)) and whole[2].t0 == 2.0
+    assert concatenate([early, early]).t0 == 0.0
 
 
 def test_bad_arguments_fail_before_ray_is_used():
@@ -61,6 +82,7 @@ def test_bad_arguments_fail_before_ray_is_used():
         torchql.fit_many_ray(CoastingCar(17.3, 80.43), [], x0)
     with pytest.raises(TypeError, match="a single dataset: use torchql.fit"):
         torchql.fit_many_ray(CoastingCar(17.3, 80.43), data[0], x0[0])
-    with pytest.raises(ValueError, match=r"`data\[1\]` has observation times different"):
-        torchql.fit_many_ray(CoastingCar(17.3, 80.43), [data[0], torchql.Observations(T + 1, data[1].y, ["v"])], x0)
+    with pytest.raises(ValueError, match=r"`data\[1\]` has T = 8 observation times but `data\[0\]` has 9"):
+        torchql.fit_many_ray(CoastingCar(17.3, 80.43), [data[0], torchql.Observations(T[:8], data[1].y[:8], ["v"])],
+                             x0)
     assert not ray.is_initialized()

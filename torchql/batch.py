@@ -1,9 +1,9 @@
 """``fit_many``: many independent datasets fitted at once, each sample on its own iteration.
 
 A fleet of vehicles each with its coast-down log, a Monte Carlo study of noise, a multi-start,
-a parameter sweep: ``B`` datasets sharing the observation times (one batched
-:class:`~torchql.Observations`, values ``(B, T, K)``, or a list of them), fitted with one
-model. The iteration is the one of :func:`torchql.fit` with ``method="kantorovich"`` (first
+a parameter sweep: ``B`` datasets with the same number ``T`` of observation times, shared or
+each its own (one batched :class:`~torchql.Observations`, values ``(B, T, K)`` and times
+``(T,)`` or ``(B, T)``, or a list of them), fitted with one model. The iteration is the one of :func:`torchql.fit` with ``method="kantorovich"`` (first
 reference integrated from the guesses, the undamped quasilinearization step tried first and
 kept when it lowers the sum of squares, re-anchoring and Levenberg–Marquardt damping
 otherwise, the same convergence tests and statuses), vectorized over the samples with
@@ -12,6 +12,10 @@ per-sample masks:
 * every sample has its own coefficients as trailing components of its augmented state, so one
   vmapped Jacobian linearizes all samples at every grid node at once
   (:func:`torchql.linearize.linearize` over ``samples x nodes``);
+* samples sharing their times share one storage grid ``(G,)``; samples with their own times
+  each have the grid :func:`torchql.fit` builds for that dataset, stacked ``(S, G)`` and padded
+  at the end by repeating the last node (zero-length intervals, transferred by the identity),
+  with the observation nodes per sample ``(S, T)``;
 * the linear system is propagated with each grid interval of each sample under its own error
   control (:mod:`torchql.batch_integrate`): no sample's error is diluted by another's;
 * the least-squares update is a batched SVD with each sample's own damping;
@@ -89,23 +93,29 @@ def fit_many(
         The model; its buffer values are the guesses (unless ``guesses`` gives per-sample
         ones). Never modified.
     data : Observations holding a batch, or list of Observations
-        The ``B`` datasets: one :class:`~torchql.Observations` with values ``(B, T, K)``
-        (validated once, the fast way to build many), or a list of ``B`` one-dataset
-        Observations, stacked to values ``(B, T, K)``; both give the same fits. A list's datasets
-        must share the observation times ``t (T,)``, the ``observe`` specification (the same
-        names, matrix, or callable object) and whether ``sigma`` was given, as a batch's do.
-        Each sample has its own values, missing values (NaN) and ``sigma``. Values marked
-        ``exact`` are not supported (use :func:`torchql.fit`).
+        The ``B`` datasets: one :class:`~torchql.Observations` with values ``(B, T, K)`` and
+        times ``t (T,)`` shared or ``(B, T)`` per sample (validated once, the fast way to build
+        many), or a list of ``B`` one-dataset Observations, stacked to values ``(B, T, K)``;
+        both give the same fits. A list's datasets may have their own times ``t (T,)`` but must
+        have the same number ``T`` of them, the same ``observe`` specification (the same names,
+        matrix, or callable object) and all or none give ``sigma``, as a batch's do. Each sample
+        has its own values, missing values (NaN) and ``sigma``; with its own times it is fitted
+        on the grid ``torchql.fit`` builds for it alone. Values marked ``exact`` are not
+        supported (use :func:`torchql.fit`).
     x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
         Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
         every state must be observed directly at ``t0`` in every sample.
+    t0 : float, optional
+        Time of ``x0`` (the model's time unit), shared by every sample and not later than any
+        sample's first observation time. Default: each sample's own first observation time
+        (the shared first time when the samples share their times).
     params : sequence of str, optional
         Buffers to estimate (default: every float buffer not in the model's ``constants``).
     guesses : dict of str to Tensor, optional
         Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
         ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
         sample's fixed value. Default: the model's buffers for every sample.
-    fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
+    fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
         As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``,
         ``linear_solver="taylor"``). ``solver`` integrates a sample on its own only when
         the batched integrators cannot (as ``fit`` falls back to it).
@@ -119,7 +129,8 @@ def fit_many(
     Returns
     -------
     BatchFitResult
-        Per-sample estimates, statuses, messages, iterations, SSE and covariance.
+        Per-sample estimates, statuses, messages, iterations, SSE and covariance; its ``t0`` is
+        a float when the samples share it, else each sample's ``(B,)``.
 
     Raises
     ------
@@ -193,7 +204,12 @@ def _progress(progress, total: int) -> Callable[[int | None], None]:
 
 # ----------------------------------------------------------------------------------------------
 class _Spec:
-    """The validated problem shared by every chunk: model, data stacked ``(B, T, K)``, guesses, grid."""
+    """The validated problem shared by every chunk: model, data stacked ``(B, T, K)``, guesses, grid.
+
+    Times: ``t_obs (T,)``, ``t0 ()``, ``grid (G,)`` and ``obs_in_grid (T,)`` when the samples share
+    them (``grid_size`` is ``None``); else ``t_obs (B, T)``, ``t0 ()`` or ``(B,)``, each sample's
+    grid padded ``grid (B, G)`` with its own number of nodes ``grid_size (B,)``, ``obs_in_grid (B, T)``.
+    """
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
                  grid, damping, solver, max_steps) -> None:
@@ -264,15 +280,9 @@ class _Spec:
         if not bool(torch.isfinite(p0).all()):
             raise ValueError(f"the guesses of {self.params} (the model's buffers) must be finite")
 
-        # --- times
+        # --- times: t_obs (T,) shared or (B, T) per sample, t0 () shared or (B,) per sample
         self.t_obs = self.t
-        if t0 is None:
-            self.t0 = self.t_obs[0].clone()
-        else:
-            self.t0 = torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
-            if self.t0 > self.t_obs[0]:
-                raise ValueError(f"`t0` must not be later than the first observation time "
-                                 f"{self.t_obs[0].item():g}; received {float(t0):g}")
+        self.t0 = self._initial_time(t0)
 
         # --- initial states
         self.operator = ObservationOperator(self.observe, names, self.K, dtype, device)
@@ -312,19 +322,44 @@ class _Spec:
                              + "; remove it from the batch or fix some unknowns")
         self._check_model(x0[0])
 
-        # --- grid
-        self.grid = _make_grid(grid, self.t0, self.t_obs)
+        # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
+        if self.t_obs.dim() == 1:
+            self.grid = _make_grid(grid, self.t0, self.t_obs)
+            self.grid_size = None
+        else:
+            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.model = model
+
+    def _initial_time(self, t0) -> torch.Tensor:
+        """``t0``: the first observation time (each sample's own, ``(B,)``, when times are per sample)
+        or the given time, shared ``()``, not later than any sample's first observation."""
+        first = self.t_obs[..., 0]
+        if t0 is None:
+            if first.dim() == 1 and bool((first == first[0]).all()):
+                first = first[0]  # the samples' times differ, not their first: t0 shared
+            return first.clone()
+        value = torch.as_tensor(_checks.finite_number("t0", t0), dtype=self.dtype, device=self.device)
+        late = (value > first).reshape(-1).nonzero().flatten().tolist()
+        if late:
+            if self.t_obs.dim() == 1:
+                raise ValueError(f"`t0` must not be later than the first observation time "
+                                 f"{self.t_obs[0].item():g}; received {float(t0):g}")
+            alike = f" (samples {late[:10]} alike)" if len(late) > 1 else ""
+            raise ValueError(f"`t0` must not be later than the first observation time of any sample; `data[{late[0]}]` "
+                             f"starts at {first[late[0]].item():g}{alike}, received t0 = {float(t0):g}")
+        return value
 
     # ------------------------------------------------------------------------------------------
     def _stack(self, data, dtype, device) -> None:
         data = check_data(data)
         if isinstance(data, Observations):
             first, y, sigma, exact = data, data.y, data.sigma, data.exact
+            t = data.t.to(dtype=dtype, device=device)
             low = [("data", data.y.dtype)] if _coarser(data.y.dtype, dtype) else []
         else:
             first = data[0]
+            t = torch.stack([d.t.to(dtype=dtype, device=device) for d in data])
             exact = torch.stack([d.exact for d in data])
             y = torch.stack([d.y.to(dtype) for d in data])
             sigma = torch.stack([d.sigma.to(dtype) for d in data])
@@ -338,7 +373,9 @@ class _Spec:
             warnings.warn(f"`{low[0][0]}` holds {low[0][1]} values but the model computes in {dtype}: the data's own "
                           "rounding limits the fit's accuracy; build the Observations from float64 tensors",
                           UserWarning, stacklevel=4)
-        self.t = first.t.to(dtype=dtype, device=device)
+        if t.dim() == 2 and bool((t == t[:1]).all()):
+            t = t[0]  # every sample at the same times: the shared grid serves them all
+        self.t = t  # (T,) or (B, T)
         self.observe = first.observe
         self.K = y.shape[-1]
         self.sigma_known = first.sigma_given
@@ -349,8 +386,10 @@ class _Spec:
         self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
 
     def _x0_from_data(self, names) -> torch.Tensor:
-        if self.t0 != self.t_obs[0]:
-            raise ValueError("`x0` is required when `t0` precedes the first observation")
+        early = (self.t0 != self.t_obs[..., 0]).reshape(-1)
+        if bool(early.any()):
+            where = "" if self.t_obs.dim() == 1 else f" (as in `data[{int(early.nonzero()[0, 0])}]`)"
+            raise ValueError(f"`x0` is required when `t0` precedes the first observation{where}")
         x0 = torch.full((self.B, len(names)), float("nan"), dtype=self.dtype, device=self.device)
         for k, i in enumerate(self.operator.observed_states):
             if i is not None:
@@ -364,15 +403,16 @@ class _Spec:
 
     def _check_model(self, x0: torch.Tensor) -> None:
         n = self.system.n
+        t0 = self.t0.reshape(-1)[0]  # sample 0's
         try:
             with torch.no_grad():
-                out = self.system.f(self.t0, self.z0[0])
+                out = self.system.f(t0, self.z0[0])
         except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
             raise ValueError(f"`model` forward(t, x) failed for x of shape ({n},): {exc}") from exc
         if out.shape != (self.system.M,):
             raise ValueError(f"`model` forward must return dx/dt of the state's shape ({n},)")
         try:
-            linearize(self.system, self.t0.reshape(1), self.z0[:1])
+            linearize(self.system, t0.reshape(1), self.z0[:1])
         except Exception as exc:  # noqa: BLE001
             raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
                              f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
@@ -402,7 +442,8 @@ class _Spec:
                                    torch.full_like(out["sse"], float("nan")))
         return BatchFitResult(
             success=torch.tensor([s.success for s in statuses], dtype=torch.bool, device=self.device),
-            status=statuses, message=messages, params=params, x0=z0[:, :n].clone(), t0=float(self.t0),
+            status=statuses, message=messages, params=params, x0=z0[:, :n].clone(),
+            t0=float(self.t0) if self.t0.dim() == 0 else self.t0.clone(),
             unknown_names=list(self.unknown_names), estimates=z0[:, self.unknown_index].clone(),
             iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
             dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
@@ -412,9 +453,10 @@ class _Spec:
 def check_data(data) -> Observations | list[Observations]:
     """``fit_many``'s ``data`` validated: one batched Observations as it is, or a list of datasets.
 
-    A list must hold one-dataset Observations that share the observation times, the
-    ``observe`` specification and whether ``sigma`` was given (a batched Observations has them
-    in common by construction). Errors name the argument and the dataset.
+    A list must hold one-dataset Observations with the same number ``T`` of observation times
+    (each its own times), the same ``observe`` specification and all or none giving ``sigma``
+    (a batched Observations has them in common by construction). Errors name the argument and
+    the dataset.
     """
     if isinstance(data, Observations):
         if data.batch_size is None:
@@ -436,9 +478,10 @@ def check_data(data) -> Observations | list[Observations]:
     items = list(data)
     first = items[0]
     for i, d in enumerate(items[1:], start=1):
-        if d.t.shape != first.t.shape or not torch.equal(d.t.to(first.t.dtype), first.t):
-            raise ValueError(f"`data[{i}]` has observation times different from `data[0]`'s: fit_many needs "
-                             "shared times t (T,); fit datasets with other times separately (torchql.fit)")
+        if d.n_times != first.n_times:
+            raise ValueError(f"`data[{i}]` has T = {d.n_times} observation times but `data[0]` has "
+                             f"{first.n_times}: fit_many needs the same number of times in every dataset (each "
+                             "may have its own times); fit datasets with other numbers of times in another batch")
         if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
             raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
                              "fit_many needs one observation operator for all datasets (the same names, matrix "
@@ -496,6 +539,24 @@ def _make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> torch.Tensor:
     return torch.unique(torch.cat([fixed, uniform, extra]))
 
 
+def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each sample's own grid, as :func:`torchql.fit` builds it for that dataset alone.
+
+    ``t0``: shared ``()`` or per sample ``(B,)``; ``t_obs (B, T)``. Returns the grids ``(B, G)``,
+    each padded at the end by repeating its last node up to the longest one's ``G`` nodes
+    (zero-length intervals), and each grid's own number of nodes ``(B,)``. Samples with the
+    same ``t0`` and times share one construction.
+    """
+    B = t_obs.shape[0]
+    starts = t0.expand(B) if t0.dim() == 0 else t0
+    keys, inverse = torch.unique(torch.cat([starts.unsqueeze(1), t_obs], dim=1), dim=0, return_inverse=True)
+    grids = [_make_grid(grid, key[0], key[1:]) for key in keys]
+    sizes = torch.tensor([g.numel() for g in grids], dtype=torch.long, device=t_obs.device)
+    G = int(sizes.max())
+    padded = torch.stack([torch.cat([g, g[-1:].expand(G - g.numel())]) for g in grids])
+    return padded[inverse], sizes[inverse]
+
+
 # ----------------------------------------------------------------------------------------------
 class _Engine:
     """The iteration of one chunk of samples (indices ``index`` of the batch)."""
@@ -508,11 +569,30 @@ class _Engine:
         self.z0_guess = spec.z0[index].clone()
         self.S = index.numel()
         self.nfev = 0
+        if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)
+            self.grid, self.obs, self.t_obs = spec.grid, spec.obs_in_grid, spec.t_obs
+        else:  # per sample: grids (S, G), trimmed to the chunk's longest, nodes (S, T)
+            G = int(spec.grid_size[index].max())
+            self.grid, self.obs, self.t_obs = spec.grid[index, :G], spec.obs_in_grid[index], spec.t_obs[index]
+        self.G = self.grid.shape[-1]
+
+    # --- per-sample grids ---------------------------------------------------------------------
+    def _grid_of(self, idx: torch.Tensor) -> torch.Tensor:
+        """The grid of the chunk's samples ``idx``: the shared one ``(G,)``, or theirs ``(S, G)``."""
+        return self.grid if self.grid.dim() == 1 else _pick(self.grid, idx)
+
+    def _at_obs(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """Values ``x (S, G, ...)`` of the chunk's samples ``idx`` at their observation nodes: ``(S, T, ...)``."""
+        if self.obs.dim() == 1:
+            return x[:, self.obs]
+        rows = torch.arange(x.shape[0], device=x.device).unsqueeze(1)
+        return x[rows, _pick(self.obs, idx)]
 
     # --- building blocks ----------------------------------------------------------------------
-    def _linearize(self, z: torch.Tensor, z_dot: torch.Tensor | None = None) -> Linearization:
+    def _linearize(self, idx: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor | None = None) -> Linearization:
+        """The linearization about ``z (S, G, M)`` (slopes ``z_dot``) of the chunk's samples ``idx``, at their nodes."""
         S, G, M = z.shape
-        t = self.spec.grid.repeat(S)
+        t = self.grid.repeat(S) if self.grid.dim() == 1 else _pick(self.grid, idx).reshape(-1)
         lin = linearize(self.system, t, z.reshape(-1, M), None if z_dot is None else z_dot.reshape(-1, M))
         self.nfev += S * G
         return Linearization(*(v.reshape(S, G, *v.shape[1:]) for v in lin))
@@ -541,18 +621,24 @@ class _Engine:
         """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations."""
         spec = self.spec
         w0 = _initial_columns(z0, spec.unknown_index)
-        W, failed, evals = propagate_linear_batch(spec.grid, z, z_dot, lin, w0, rtol=spec.rtol, atol=spec.atol)
+        W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
+                                                  atol=spec.atol)
         self.nfev += evals
-        obs = spec.obs_in_grid
-        C, d, resid = self._rows(idx, z[:, obs], W[:, obs, :, 0], W[:, obs, :, 1:])
+        if self.obs.dim() == 1:
+            obs = self.obs
+            C, d, resid = self._rows(idx, z[:, obs], W[:, obs, :, 0], W[:, obs, :, 1:])
+        else:
+            W_obs = self._at_obs(W, idx)
+            C, d, resid = self._rows(idx, self._at_obs(z, idx), W_obs[..., 0], W_obs[..., 1:])
         sse, merit = self._ssq(idx, resid), self._ssq(idx, d)
         S = idx.numel()
         return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed,
                     anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
                     nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
 
-    def _nonlinear(self, z0, loose: bool, guess=None):
-        """The model integrated from ``z0 (S, M)`` over the grid: ``traj (S, G, M)`` and error messages (None: ok).
+    def _nonlinear(self, idx, z0, loose: bool, guess=None):
+        """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
+        and error messages (None: ok).
 
         With a ``guess (S, G, M)`` (the last linear prediction) and a small problem, by multiple
         shooting (:func:`~torchql.batch_integrate.solve_on_grid_batch`); otherwise, or for the
@@ -563,15 +649,20 @@ class _Engine:
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
         atol = spec.atol * rtol / spec.rtol
-        S = z0.shape[0]
-        traj = torch.full((S, spec.grid.numel(), self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
+        S, G = z0.shape[0], self.G
+        grid = self._grid_of(idx)
+        shared = grid.dim() == 1
+
+        def grid_of(sub):
+            return grid if shared else grid[sub]
+        traj = torch.full((S, G, self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
         ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
         with torch.no_grad():
-            if guess is not None and S * (spec.grid.numel() - 1) <= _SHOOTING_POINTS:
+            if guess is not None and S * (G - 1) <= _SHOOTING_POINTS:
                 usable = torch.isfinite(guess).flatten(1).all(dim=1)
                 sub = usable.nonzero().flatten()
                 if sub.numel():
-                    tr, good, evals = solve_on_grid_batch(self.system, z0[sub], spec.grid, rtol=rtol, atol=atol,
+                    tr, good, evals = solve_on_grid_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
                                                           guess=guess[sub], max_newton=_GRID_NEWTON,
                                                           max_substeps=_GRID_SUBSTEPS)
                     self.nfev += evals
@@ -579,17 +670,21 @@ class _Engine:
             sub = (~ok).nonzero().flatten()
             if sub.numel():
                 land = None
-                if loose:  # as fit's adaptive solver: onto the observation times, the rest interpolated
-                    land = torch.zeros(spec.grid.numel(), dtype=torch.bool, device=z0.device)
-                    land[spec.obs_in_grid] = True
-                tr, good, evals = dopri_batch(self.system, z0[sub], spec.grid, rtol=rtol, atol=atol, land=land)
+                if loose and shared:  # as fit's adaptive solver: onto the observation times, the rest interpolated
+                    land = torch.zeros(G, dtype=torch.bool, device=z0.device)
+                    land[self.obs] = True
+                elif loose:
+                    land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
+                    land.scatter_(1, self.obs[idx[sub]], True)
+                tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
                 self.nfev += evals
                 traj[sub[good]], ok[sub[good]] = tr[good], True
             errors: list = [None] * S
             sub = (~ok).nonzero().flatten()
             if sub.numel():
-                tr, errs, evals = integrate_each(self.system, z0[sub], spec.grid, solver=spec.solver, rtol=rtol,
-                                                 atol=atol, hit=spec.t_obs, max_steps=spec.max_steps)
+                hit = self.t_obs if shared else self.t_obs[idx[sub]]
+                tr, errs, evals = integrate_each(self.system, z0[sub], grid_of(sub), solver=spec.solver, rtol=rtol,
+                                                 atol=atol, hit=hit, max_steps=spec.max_steps)
                 self.nfev += evals
                 for k, s in enumerate(sub.tolist()):
                     if errs[k] is None and bool(torch.isfinite(tr[k]).all()):
@@ -606,10 +701,9 @@ class _Engine:
         """
         need = rows[torch.isnan(it["nl_sse"][rows])]
         if need.numel():
-            traj, errors = self._nonlinear(it["z0"][need], loose=True, guess=it["W"][need][..., 0])
-            obs = self.spec.obs_in_grid
+            traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0])
             n = self.system.n
-            value, _ = self.spec.operator.value_and_jacobian(traj[:, obs, :n].reshape(-1, n))
+            value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
             y, mask = self.y[idx[need]], self.mask[idx[need]]
             resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
             sse = self._ssq(idx[need], resid.reshape(need.numel(), -1))
@@ -647,12 +741,12 @@ class _Engine:
             report(int((status != _RUNNING).sum()))
 
         # first iterate: the model integrated (loosely) from the guesses
-        traj, errors = self._nonlinear(z0, loose=True)
+        traj, errors = self._nonlinear(all_idx, z0, loose=True)
         bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
         for r in bad.nonzero().flatten().tolist():
             status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
             detail[r] = f" The solver said: {errors[r]}."
-        lin = self._linearize(traj)
+        lin = self._linearize(all_idx, traj)
         cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
         self._fail_integration(cur["failed"] & ~bad, status, detail)
         final_guess = cur["W"][:, :, :, 0].clone()
@@ -749,7 +843,7 @@ class _Engine:
                 anchored_rows = candidates[integrable]
                 if anchored_rows.numel():
                     traj = cur["nl_traj"][anchored_rows]
-                    lin = self._linearize(traj)
+                    lin = self._linearize(anchored_rows, traj)
                     anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin)
                     anchored["anchored"][:] = True
                     anchored["nl_sse"] = cur["nl_sse"][anchored_rows]
@@ -791,7 +885,7 @@ class _Engine:
         z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, z_ref)
         lin_ref = cur["lin"]
         z_dot = _pick(lin_ref.f, act) + torch.einsum("sgij,sgj->sgi", _pick(lin_ref.jac, act), z_safe - z_ref)
-        lin = self._linearize(z_safe, z_dot)
+        lin = self._linearize(act, z_safe, z_dot)
         trial = self._evaluate(act, z0_new, z_safe, z_dot, lin)
         ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
@@ -810,7 +904,7 @@ class _Engine:
         rows = final.nonzero().flatten()
         if rows.numel():
             guess = final_guess[rows]
-            traj, errors = self._nonlinear(z0[rows], loose=False, guess=guess)
+            traj, errors = self._nonlinear(rows, z0[rows], loose=False, guess=guess)
             for k, r in enumerate(rows.tolist()):
                 if errors[k] is not None:
                     codes[r] = Status.INTEGRATION_FAILED
@@ -818,9 +912,10 @@ class _Engine:
             good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=dev)
             rows, traj = rows[good], traj[good]
         if rows.numel():
-            lin = self._linearize(traj)
+            lin = self._linearize(rows, traj)
             w0 = _initial_columns(z0[rows], spec.unknown_index)
-            W, failed, evals = propagate_linear_batch(spec.grid, traj, lin.f, lin, w0, rtol=spec.rtol, atol=spec.atol)
+            W, failed, evals = propagate_linear_batch(self._grid_of(rows), traj, lin.f, lin, w0, rtol=spec.rtol,
+                                                      atol=spec.atol)
             self.nfev += evals
             for r in rows[failed].tolist():
                 codes[r] = Status.INTEGRATION_FAILED
@@ -828,8 +923,8 @@ class _Engine:
                              "meet the tolerance.")
             rows, traj, W = rows[~failed], traj[~failed], W[~failed]
         if rows.numel():
-            obs = spec.obs_in_grid
-            C, _, resid = self._rows(rows, traj[:, obs], traj[:, obs], W[:, obs, :, 1:])
+            traj_obs = self._at_obs(traj, rows)
+            C, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
             w = self.w[rows].reshape(rows.numel(), -1)
             J = C * w.unsqueeze(-1)
             s = ((resid * w) ** 2).sum(dim=1)

@@ -87,8 +87,9 @@ class BatchFitResult:
         Every floating-point buffer per sample (estimated ones at their estimates).
     x0 : Tensor ``(B, n_states)``
         Estimated (or fixed) initial states at ``t0``.
-    t0 : float
-        Time of ``x0`` (shared).
+    t0 : float or Tensor ``(B,)``
+        Time of ``x0``: a float when the samples share it, else each sample's own (with
+        per-sample observation times and ``t0`` not given, each sample's first time).
     unknown_names : list of str
         Names of the ``m`` unknowns, in the order of ``estimates``' last axis.
     estimates : Tensor ``(B, m)``
@@ -119,7 +120,7 @@ class BatchFitResult:
     message: list[str]
     params: dict[str, torch.Tensor]
     x0: torch.Tensor
-    t0: float
+    t0: float | torch.Tensor
     unknown_names: list[str]
     estimates: torch.Tensor
     iterations: torch.Tensor
@@ -151,7 +152,8 @@ class BatchFitResult:
             params={k: v[i].clone() for k, v in self.params.items()}, x0=self.x0[i].clone(),
             estimates=self.estimates[i].clone(), iterations=int(self.iterations[i]), sse=float(self.sse[i]),
             covariance=self.covariance[i].clone(), n_observations=int(self.n_observations[i]), dof=int(self.dof[i]),
-            residual_variance=float(self.residual_variance[i]), unknown_names=list(self.unknown_names), t0=self.t0,
+            residual_variance=float(self.residual_variance[i]), unknown_names=list(self.unknown_names),
+            t0=float(self.t0[i]) if isinstance(self.t0, torch.Tensor) else self.t0,
             sigma_known=self.sigma_known)
 
     def __getitem__(self, i: int) -> SampleResult:

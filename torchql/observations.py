@@ -53,22 +53,77 @@ def _as_float_tensor(value, name: str, dtype: torch.dtype | None = None) -> torc
     return tensor if dtype is None else tensor.to(dtype)
 
 
+def _check_shapes(t: torch.Tensor, y: torch.Tensor) -> None:
+    """Shapes of the times and values: ``t (T,)`` with ``y (T, K)`` or ``(B, T, K)``, or ``t (B, T)`` with ``y (B, T, K)``."""
+    if t.dim() == 2 and y.dim() != _BATCH_DIMS:
+        raise ValueError("`t` must be one-dimensional, shape (T,), for one dataset; per-sample times (B, T) need "
+                         f"values `y` of shape (B, T, K); received `t` of shape {tuple(t.shape)} and `y` of shape "
+                         f"{tuple(y.shape)}")
+    if t.dim() not in (1, 2):
+        raise ValueError("`t` must be one-dimensional, shape (T,), or for a batch two-dimensional, shape (B, T) "
+                         f"(each sample's own times); received shape {tuple(t.shape)}")
+    T = t.shape[-1]
+    if T == 0:
+        raise ValueError("`t` must contain at least one observation time; received an empty tensor")
+    if y.dim() not in (2, _BATCH_DIMS) or y.shape[-2] != T:
+        raise ValueError(
+            f"`y` must have shape (T, K) = ({T}, K) to match `t`, or (B, T, K) = (B, {T}, K) for a batch of "
+            f"B datasets; received shape {tuple(y.shape)}"
+        )
+    if y.dim() == _BATCH_DIMS and y.shape[0] == 0:
+        raise ValueError(f"`y` must hold at least one dataset: shape (B, T, K) with B >= 1; received shape "
+                         f"{tuple(y.shape)}")
+    if t.dim() == 2 and t.shape[0] != y.shape[0]:
+        raise ValueError(f"`t` of shape (B, T) must give the times of each of the B = {y.shape[0]} samples of `y` "
+                         f"{tuple(y.shape)}: expected shape ({y.shape[0]}, {T}) or ({T},) (shared); received shape "
+                         f"{tuple(t.shape)}")
+
+
+def _check_times(t: torch.Tensor) -> None:
+    """Times ``t (T,)`` or each row of ``t (B, T)``: finite and strictly increasing (vectorized over rows)."""
+    rows = t.reshape(-1, t.shape[-1])
+    per_sample = t.dim() == 2
+    finite = torch.isfinite(rows).all(dim=1)
+    if not bool(finite.all()):
+        if not per_sample:
+            raise ValueError("`t` must be finite; received NaN or inf times")
+        b = int((~finite).nonzero()[0, 0])
+        raise ValueError(f"`t` must be finite in every row; received NaN or inf times in row t[{b}] (the times of "
+                         f"sample {b})")
+    if rows.shape[1] < 2:
+        return
+    step = rows[:, 1:] > rows[:, :-1]
+    if bool(step.all()):
+        return
+    b, j = (int(v) for v in (~step).nonzero()[0])
+    if not per_sample:
+        raise ValueError(
+            "`t` must be strictly increasing (no duplicates); received "
+            f"t[{j}] = {t[j].item():g} followed by t[{j + 1}] = {t[j + 1].item():g}"
+        )
+    raise ValueError(
+        f"`t` must be strictly increasing (no duplicates) in every row; received t[{b}, {j}] = {t[b, j].item():g} "
+        f"followed by t[{b}, {j + 1}] = {t[b, j + 1].item():g} (the times of sample {b})"
+    )
+
+
 class Observations:
     """Measured values of (functions of) the states at discrete times: one dataset, or a batch.
 
     One dataset has values ``y (T, K)``. A batch of ``B`` independent datasets (for
-    :func:`torchql.fit_many`) has values ``y (B, T, K)`` sharing the times ``t (T,)`` and the
-    ``observe`` specification, and is validated once, vectorized, for the whole batch:
-    ``obs[b]`` is sample ``b`` as a one-dataset ``Observations`` and ``obs[i:j]`` the batch of
-    samples ``i .. j - 1`` (both copies: editing them leaves the batch as it is), ``len(obs)``
-    is ``B``, and iterating gives the samples in order.
+    :func:`torchql.fit_many`) has values ``y (B, T, K)`` and the same ``observe``
+    specification; its samples share the times ``t (T,)`` or each has its own, ``t (B, T)``
+    (the same number ``T`` of times). A batch is validated once, vectorized: ``obs[b]`` is
+    sample ``b`` as a one-dataset ``Observations`` (with its own times) and ``obs[i:j]`` the
+    batch of samples ``i .. j - 1`` (both copies: editing them leaves the batch as it is),
+    ``len(obs)`` is ``B``, and iterating gives the samples in order.
 
     Parameters
     ----------
-    t : Tensor or array, shape ``(T,)``
+    t : Tensor or array, shape ``(T,)``, or ``(B, T)`` for a batch
         Observation times, finite and strictly increasing (same unit as the model's time). A
-        batch shares them: per-sample times ``(B, T)`` are not supported (group the samples by
-        their times, one batch per group).
+        batch's samples share ``t (T,)``, or row ``b`` of ``t (B, T)`` holds sample ``b``'s own
+        times (each row finite and strictly increasing).
     y : Tensor or array, shape ``(T, K)``, ``(T,)`` when ``K == 1``, or ``(B, T, K)`` for a batch
         Measured values. ``NaN`` marks a missing value, which is skipped (each sample of a batch
         has its own missing values, and at least one value); ``inf`` is rejected.
@@ -88,7 +143,7 @@ class Observations:
 
     Attributes
     ----------
-    t : Tensor ``(T,)``
+    t : Tensor ``(T,)``, or ``(B, T)`` for a batch with per-sample times
     y, sigma : Tensor ``(T, K)``, or ``(B, T, K)`` for a batch (``y``'s dtype is ``t``'s)
     exact : bool Tensor of ``y``'s shape
     observe : the ``observe`` argument as given.
@@ -107,35 +162,12 @@ class Observations:
     ) -> None:
         t = _as_float_tensor(t, "t")
         y = _as_float_tensor(y, "y")
-        batched = y.dim() == _BATCH_DIMS
-        if t.dim() != 1:
-            if batched:
-                raise ValueError(
-                    "`t` must be one-dimensional, shape (T,), shared by every sample of the batch; received shape "
-                    f"{tuple(t.shape)}. Per-sample times are not supported: group the samples by their times, "
-                    "one batched Observations per group")
-            raise ValueError(f"`t` must be one-dimensional, shape (T,); received shape {tuple(t.shape)}")
-        if t.numel() == 0:
-            raise ValueError("`t` must contain at least one observation time; received an empty tensor")
-        if not torch.isfinite(t).all():
-            raise ValueError("`t` must be finite; received NaN or inf times")
-        if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
-            bad = int(torch.nonzero(t[1:] <= t[:-1])[0, 0])
-            raise ValueError(
-                "`t` must be strictly increasing (no duplicates); received "
-                f"t[{bad}] = {t[bad].item():g} followed by t[{bad + 1}] = {t[bad + 1].item():g}"
-            )
-        T = t.shape[0]
         if y.dim() == 1:
             y = y.unsqueeze(-1)
-        if y.dim() not in (2, _BATCH_DIMS) or y.shape[-2] != T:
-            raise ValueError(
-                f"`y` must have shape (T, K) = ({T}, K) to match `t`, or (B, T, K) = (B, {T}, K) for a batch of "
-                f"B datasets; received shape {tuple(y.shape)}"
-            )
-        if batched and y.shape[0] == 0:
-            raise ValueError(f"`y` must hold at least one dataset: shape (B, T, K) with B >= 1; received shape "
-                             f"{tuple(y.shape)}")
+        _check_shapes(t, y)
+        batched = y.dim() == _BATCH_DIMS
+        T = t.shape[-1]
+        _check_times(t)
         infinite = torch.isinf(y)
         if infinite.any():
             where = f" (y[{int(infinite.flatten(1).any(dim=1).nonzero()[0, 0])}] does)" if batched else ""
@@ -227,8 +259,13 @@ class Observations:
 
     @property
     def n_times(self) -> int:
-        """Number of observation times ``T``."""
-        return self.t.shape[0]
+        """Number of observation times ``T`` (of each sample)."""
+        return self.t.shape[-1]
+
+    @property
+    def per_sample_times(self) -> bool:
+        """Whether each sample of a batch has its own times, ``t (B, T)`` (``False``: shared ``t (T,)``)."""
+        return self.t.dim() == 2
 
     @property
     def n_outputs(self) -> int:
@@ -276,7 +313,8 @@ class Observations:
             if not -B <= i < B:
                 raise IndexError(f"sample index {i} is out of range for a batch of {B}")
             rows = i % B
-        return Observations._validated(self.t.clone(), self.y[rows].clone(), self.observe, self.sigma[rows].clone(),
+        t = self.t[rows].clone() if self.per_sample_times else self.t.clone()
+        return Observations._validated(t, self.y[rows].clone(), self.observe, self.sigma[rows].clone(),
                                        self.exact[rows].clone(), self.sigma_given)
 
     def __iter__(self) -> Iterator["Observations"]:
@@ -286,8 +324,11 @@ class Observations:
 
     def __repr__(self) -> str:
         batch = "" if self.batch_size is None else f"B={self.batch_size}, "
-        return (f"Observations({batch}T={self.n_times}, K={self.n_outputs}, "
-                f"t=[{self.t[0].item():g}, {self.t[-1].item():g}])")
+        if self.per_sample_times:  # the span of all samples' times
+            times = f"t per sample in [{self.t[:, 0].min().item():g}, {self.t[:, -1].max().item():g}]"
+        else:
+            times = f"t=[{self.t[0].item():g}, {self.t[-1].item():g}]"
+        return f"Observations({batch}T={self.n_times}, K={self.n_outputs}, {times})"
 
 
 class ObservationOperator:

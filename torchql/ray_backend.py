@@ -52,7 +52,8 @@ def fit_many_ray(
     ----------
     model, data, x0, guesses
         As in :func:`torchql.fit_many` (``data`` one Observations holding a batch, values
-        ``(B, T, K)``, sliced into batches, or a list of ``B`` Observations; ``x0``
+        ``(B, T, K)`` with times ``(T,)`` or per sample ``(B, T)``, sliced into batches that keep
+        their samples' times, or a list of ``B`` Observations; ``x0``
         ``(B, n_states)`` or ``(n_states,)``; ``guesses`` values ``(B, ...)`` or shared).
     batch_size : int
         Datasets per Ray task (default 1024). Larger batches vectorize better; more batches
@@ -158,6 +159,14 @@ def _reporter(progress, total: int):
     return _progress(progress, total)
 
 
+def _initial_times(parts: Sequence[BatchFitResult]) -> float | torch.Tensor:
+    """The parts' ``t0``: a float when every sample of every part shares it, else one per sample ``(B,)``."""
+    if all(not isinstance(p.t0, torch.Tensor) for p in parts) and len({p.t0 for p in parts}) == 1:
+        return parts[0].t0
+    return torch.cat([p.t0 if isinstance(p.t0, torch.Tensor)
+                      else torch.full((len(p.status),), p.t0, dtype=p.x0.dtype, device=p.x0.device) for p in parts])
+
+
 def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
     """One :class:`BatchFitResult` from consecutive parts (same model, unknowns and settings), in order."""
     first = parts[0]
@@ -167,7 +176,7 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         message=[m for p in parts for m in p.message],
         params={name: torch.cat([p.params[name] for p in parts]) for name in first.params},
         x0=torch.cat([p.x0 for p in parts]),
-        t0=first.t0,
+        t0=_initial_times(parts),
         unknown_names=list(first.unknown_names),
         estimates=torch.cat([p.estimates for p in parts]),
         iterations=torch.cat([p.iterations for p in parts]),
