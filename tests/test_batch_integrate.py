@@ -2,7 +2,7 @@
 
 import torch
 
-from torchql.batch_integrate import dopri_batch, propagate_linear_batch, solve_on_grid_batch
+from torchql.batch_integrate import dopri_batch, integrate_each, propagate_linear_batch, solve_on_grid_batch
 from torchql.linearize import linearize
 from torchql.model import AugmentedSystem
 from torchql.models import CoastingCar
@@ -175,3 +175,16 @@ def test_linear_propagation_and_shooting_on_per_sample_grids_equal_each_grid_alo
                                           guess=traj[s:s + 1, :count] * 1.001)
         torch.testing.assert_close(shot[s, :count], alone[0], rtol=1e-13, atol=0)
         torch.testing.assert_close(shot[s, count:], shot[s, count - 1].expand(G - count, -1), rtol=1e-13, atol=0)
+
+
+def test_integrate_each_on_per_sample_grids_hits_each_samples_times():
+    system, z0 = _cars(3)
+    grid, lengths = _own_grids(3)
+    hit = grid[:, :25:6].contiguous()  # nodes of each sample (before its padding)
+    traj, errors, evals = integrate_each(system, z0, grid, solver="dopri5", rtol=1e-10, atol=1e-12, hit=hit)
+    assert errors == [None] * 3 and evals > 0
+    for s, count in enumerate(lengths):
+        own = grid[s, :count]
+        exact = _exact_speed(own - own[0], z0[s:s + 1])[0]
+        assert float(((traj[s, :count, 0] - exact) / exact).abs().max()) < 1e-8
+        assert torch.equal(traj[s, count:], traj[s, count - 1].expand(grid.shape[1] - count, -1))

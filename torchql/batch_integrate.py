@@ -311,7 +311,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
 
 
 def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, solver: str, rtol: float,
-                   atol: float, hit: torch.Tensor, max_steps: int | None = None) -> tuple[torch.Tensor, list, int]:
+                   atol: float, hit: torch.Tensor | None, max_steps: int | None = None) -> tuple[torch.Tensor, list, int]:
     """Each sample's model integrated on its own by torchdiffeq (the fallback of :func:`solve_on_grid_batch`).
 
     ``grid``: the shared grid ``(G,)`` or each sample's own ``(S, G)`` (padded at the end by
@@ -337,7 +337,7 @@ def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor
         try:
             with torch.no_grad():
                 x = solve(counter, z0[s, :n], own, solver=solver, rtol=rtol, atol=atol,
-                          hit=hit[s] if hit.dim() == 2 else hit, max_steps=max_steps)
+                          hit=hit[s] if hit is not None and hit.dim() == 2 else hit, max_steps=max_steps)
             out[s, :end, :n] = x
             out[s, end:, :n] = x[-1]
             out[s, :, n:] = z0[s, n:]
