@@ -33,7 +33,7 @@ from .grid_solve import _SAFETY as _GRID_SAFETY, _Field, _rk4_pair as _grid_rk4_
 from .integrate import IntegrationError, solve
 from .model import AugmentedSystem
 from .taylor import series_transfers
-from .transfer import _Coefficients, prefix_products
+from .transfer import _Coefficients, hermite_to_power, prefix_products
 
 __all__ = ["propagate_linear_batch", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
 
@@ -79,7 +79,7 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
         torch.mul(source[..., side], scale, out=data[b])
     coefficients = object.__new__(_Coefficients)
     coefficients.order, coefficients.a, coefficients.M = order, a, M
-    coefficients.data = data.reshape(4, Q, S * (G - 1))
+    coefficients.data = hermite_to_power(data.reshape(4, Q, S * (G - 1)))
     return coefficients
 
 

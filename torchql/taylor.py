@@ -28,7 +28,7 @@ two, ``rho / n <= RHO_MAX``): the series' terms then decrease from the start, so
 not grow by cancellation (at most by ``e^RHO_MAX``), and the substeps' transfers are composed by
 products. Each substep gets ``1 / n`` of the interval's tolerance. The polynomial coefficients of
 a substep are those of the interval shifted and scaled exactly (one 4x4 matrix per substep
-acting on the Hermite data).
+acting on the interval's power-basis coefficients).
 
 Compared with the RK4 step doubling of :mod:`torchql.transfer` (which evaluates the
 coefficients at ``4 n + 1`` points and forms ``3 n`` step propagators per interval), a smooth
@@ -91,53 +91,34 @@ class SeriesTransfers(NamedTuple):
     points: int
 
 
-def _hermite_monomials(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``H (4, 4)``: row ``b`` holds the power-basis coefficients of Hermite basis function ``b``."""
-    return torch.tensor([[1.0, 0.0, -3.0, 2.0], [0.0, 1.0, -2.0, 1.0], [0.0, 0.0, 3.0, -2.0], [0.0, 0.0, -1.0, 1.0]],
-                        dtype=dtype, device=device)
-
-
 def _substep_matrices(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``W (n, 4, 4)``: ``W[m, b, k]`` is the coefficient of ``sigma^k`` of Hermite basis ``b`` at ``s = (m + sigma) / n``."""
-    shift = torch.zeros(n, 4, 4, dtype=torch.float64)  # s^k in powers of sigma, exactly
+    """``W (n, 4, 4)``: ``W[m, k, j]`` is the coefficient of ``sigma^j`` of ``s^k`` at ``s = (m + sigma) / n``.
+
+    So a cubic ``sum_k c_k s^k`` is ``sum_j (sum_k c_k W[m, k, j]) sigma^j`` on substep ``m``.
+    """
+    shift = torch.zeros(n, 4, 4, dtype=torch.float64)
     for m in range(n):
         for k in range(4):
             for j in range(k + 1):
                 shift[m, k, j] = math.comb(k, j) * (m / n) ** (k - j) * (1.0 / n) ** j
-    return (_hermite_monomials(torch.float64, torch.device("cpu")) @ shift).to(dtype=dtype, device=device)
-
-
-@functools.lru_cache(maxsize=32)
-def _substep_weights(n: int) -> list:
-    """:func:`_substep_matrices` as nested lists of floats (small rationals), computed once per ``n``."""
-    return _substep_matrices(n, torch.float64, torch.device("cpu")).tolist()
+    return shift.to(dtype=dtype, device=device)
 
 
 def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
     """Power-basis coefficients ``(4, Q, n I)`` of the ``n`` substeps of every interval, substep-major.
 
-    ``data (4, Q, I)`` holds the Hermite node data (values and scaled slopes); the rows of
-    ``h f`` and ``h A`` (all but the first ``M``) are divided by ``n``, the substep's length.
-    Up to two substeps as sums of scaled rows (a matrix product with an inner dimension of 4
-    runs far below the memory bandwidth), beyond that as one matrix product.
+    ``data (4, Q, I)``: the intervals' power-basis coefficients (:class:`torchql.transfer._Coefficients`),
+    returned as they are for one substep. For more, each substep's are those of the interval
+    shifted and scaled exactly, and the rows of ``h f`` and ``h A`` (all but the first ``M``) are
+    divided by ``n``, the substep's length.
     """
+    if n == 1:
+        return data
     Q, I = data.shape[1:]
-    if n > 2:  # many substeps: one matrix product, whatever its speed per entry
-        W = _substep_matrices(n, data.dtype, data.device)  # (n, 4, 4)
-        mono = (W.permute(0, 2, 1).reshape(4 * n, 4) @ data.reshape(4, Q * I)).reshape(n, 4, Q, I)
-        out = mono.permute(1, 2, 0, 3).reshape(4, Q, n * I)
-    else:
-        W = _substep_weights(n)
-        out = data.new_empty(4, Q, n * I)
-        for m in range(n):
-            for k in range(4):
-                target = out[k, :, m * I:(m + 1) * I]
-                terms = [(W[m][b][k], data[b]) for b in range(4) if W[m][b][k] != 0.0]
-                torch.mul(terms[0][1], terms[0][0], out=target)
-                for weight, row in terms[1:]:
-                    target.add_(row, alpha=weight)
-    if n > 1:
-        out[:, M:] /= n
+    W = _substep_matrices(n, data.dtype, data.device)  # (n, 4, 4)
+    mono = (W.permute(0, 2, 1).reshape(4 * n, 4) @ data.reshape(4, Q * I)).reshape(n, 4, Q, I)
+    out = mono.permute(1, 2, 0, 3).reshape(4, Q, n * I)
+    out[:, M:] /= n
     return out
 
 
@@ -244,7 +225,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
     Parameters
     ----------
     coefficients : _Coefficients
-        Hermite node data of the ``N`` intervals (see :class:`torchql.transfer._Coefficients`).
+        Power-basis coefficients of the ``N`` intervals (see :class:`torchql.transfer._Coefficients`).
     rtol, atol : float
         Tolerances of one interval's transfer.
     max_substeps : int
@@ -278,7 +259,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
     # series of every interval that needs no substeps, the common case
     for start in range(0, N, _CHUNK):
         part = slice(start, start + _CHUNK)
-        mono = _monomials(data[..., part], M, 1)
+        mono = data[..., part]  # one substep: the interval's own coefficients
         r = _norms(mono, a, M)
         rho = r.sum(dim=0)
         wanted = torch.ceil(torch.log2((rho / RHO_MAX).clamp(min=1.0))).nan_to_num(nan=62.0, posinf=62.0)

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 
 from .integrate import IntegrationError
-from .trajectory import IntervalSystem, hermite_basis
+from .trajectory import IntervalSystem
 
 __all__ = ["Transfers", "interval_transfers", "prefix_products", "compose_transfers"]
 
@@ -154,11 +154,28 @@ def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
     return Transfers(Y, coefficients.order), n_evals
 
 
+def hermite_to_power(data: torch.Tensor) -> torch.Tensor:
+    """Cubic Hermite data to power-basis coefficients, in place: ``data (4, ...)`` is returned.
+
+    In: the values and scaled slopes at the start (``data[0]``, ``data[1]``), then at the end
+    (``data[2]``, ``data[3]``). Out: ``c_0 .. c_3`` of ``sum_k c_k s^k`` on ``s`` in ``[0, 1]``:
+    ``c_0 = v_0``, ``c_1 = d_0``, ``c_2 = 3 (v_1 - v_0) - 2 d_0 - d_1``,
+    ``c_3 = 2 (v_0 - v_1) + d_0 + d_1``.
+    """
+    rise = data[2] - data[0]
+    data[3].add_(data[1]).add_(rise, alpha=-2.0)  # c_3
+    torch.sub(rise, data[1], out=data[2])
+    data[2].sub_(data[3])  # c_2 = rise - d_0 - c_3
+    return data
+
+
 class _Coefficients:
     """The local-time coefficients ``X_j(s)`` of every interval, active rows only, in stored order.
 
-    The node values and scaled slopes of ``z``, ``h f`` and ``h A`` are stacked once, so that
-    the cubic Hermite interpolation at any local times is one matrix product. A component is
+    The reference ``z``, ``h f`` and ``h A`` of every interval are cubic Hermite interpolants of
+    their node values and scaled slopes; they are stored once as power-basis coefficients
+    (``data (4, Q, N)``, degree first), so that their values at any local times are one matrix
+    product and the Taylor series of :mod:`torchql.taylor` reads them directly. A component is
     active when its row of ``f`` or ``A`` (or of their slopes) is nonzero at some node.
     """
 
@@ -175,7 +192,7 @@ class _Coefficients:
         perm = self.order[:-1]
         fJ = fJ[:, :, perm[:self.a]][..., torch.cat([torch.zeros(1, dtype=perm.dtype, device=perm.device), perm + 1])]
         data = torch.cat([z[..., perm], fJ.flatten(-2)], dim=-1)  # (4, N, M + a (M+1))
-        self.data = data.transpose(1, 2).contiguous()  # (4, Q, N)
+        self.data = hermite_to_power(data.transpose(1, 2).contiguous())  # (4, Q, N)
 
     @property
     def intervals(self) -> int:
@@ -184,7 +201,7 @@ class _Coefficients:
     def at(self, s: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
         """``X (K, a, M+1, I)``: active rows of ``[[h A, h B], [0, 0]]`` at local times ``s (K,)``."""
         data = self.data if index is None else self.data[..., index]
-        basis = torch.stack(hermite_basis(s), dim=-1)  # (K, 4)
+        basis = torch.stack([torch.ones_like(s), s, s * s, s * s * s], dim=-1)  # (K, 4)
         values = (basis @ data.flatten(1)).unflatten(1, data.shape[1:])  # (K, Q, I)
         M, a = self.M, self.a
         z, fA = values[:, :M], values[:, M:].unflatten(1, (a, M + 1))  # (K, M, I), (K, a, 1 + M, I)
