@@ -50,22 +50,39 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
     or ``A`` somewhere) its row ``h [f | A]`` and scaled slope ``h^2 [f' | A']``.
     """
     S, G, M = z.shape
-    moving = ((lin.f != 0) | (lin.f_dot != 0) | (lin.jac != 0).any(dim=-1) | (lin.jac_dot != 0).any(dim=-1))
-    moving = moving.flatten(0, 1).any(dim=0)  # (M,); NaN counts as moving
+    # a component moves where its row of f or A (or of their slopes) is nonzero somewhere; NaN
+    # counts as moving (a sum of magnitudes with a NaN is NaN, and NaN != 0). Summed over the
+    # nodes as (nodes, entries) arrays: reductions over a leading axis with small trailing ones
+    # are several times slower
+    def magnitude(x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(S * G, -1).abs().sum(dim=0).reshape(M, -1).sum(dim=1)  # (M,)
+
+    size = torch.stack([magnitude(lin.f), magnitude(lin.f_dot), magnitude(lin.jac), magnitude(lin.jac_dot)])
+    moving = (size != 0).any(dim=0)  # (M,)
     index = torch.arange(M, device=z.device)
     order = torch.cat([index[moving], index[~moving], torch.tensor([M], device=z.device)])
     perm = order[:-1]
-    act = perm[:int(moving.sum())]
-    a = act.numel()
+    a = int(moving.sum())
     Q = M + a * (M + 1)
+
+    def rows_of(x: torch.Tensor, both: bool) -> torch.Tensor:
+        """``x[..., act]`` (and ``[..., perm]`` on the last axis too if ``both``); slices when the moving
+        components come first, as the states do before the constant coefficients."""
+        if ordered:
+            return x[..., :a, :] if both else x[..., :a]
+        x = x[..., perm[:a], :] if both else x[..., perm[:a]]
+        return x[..., perm] if both else x
+
+    ordered = bool((perm == index).all())
     # node values and slopes, component-major: (Q, S, G)
     values, slopes = z.new_empty(Q, S, G), z.new_empty(Q, S, G)
-    values[:M], slopes[:M] = z[..., perm].permute(2, 0, 1), z_dot[..., perm].permute(2, 0, 1)
+    values[:M] = (z if ordered else z[..., perm]).permute(2, 0, 1)
+    slopes[:M] = (z_dot if ordered else z_dot[..., perm]).permute(2, 0, 1)
     rows = values[M:].unflatten(0, (a, M + 1))
-    rows[:, 0], rows[:, 1:] = lin.f[..., act].permute(2, 0, 1), lin.jac[..., act, :][..., perm].permute(2, 3, 0, 1)
+    rows[:, 0], rows[:, 1:] = rows_of(lin.f, False).permute(2, 0, 1), rows_of(lin.jac, True).permute(2, 3, 0, 1)
     rows = slopes[M:].unflatten(0, (a, M + 1))
-    rows[:, 0] = lin.f_dot[..., act].permute(2, 0, 1)
-    rows[:, 1:] = lin.jac_dot[..., act, :][..., perm].permute(2, 3, 0, 1)
+    rows[:, 0] = rows_of(lin.f_dot, False).permute(2, 0, 1)
+    rows[:, 1:] = rows_of(lin.jac_dot, True).permute(2, 3, 0, 1)
     # per interval: values at the start, scaled slopes there, then the same at the end; the rows of
     # f and A scaled by h (values) and h^2 (slopes), those of z by 1 and h
     h = (t[..., 1:] - t[..., :-1]).reshape(1, -1, G - 1)  # (1, 1 or S, G - 1)
