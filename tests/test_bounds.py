@@ -85,6 +85,28 @@ def test_rate_pulled_far_from_its_bound_gives_a_status_not_nan():
         assert "lie at their bounds" in r.message
 
 
+def test_capped_step_is_judged_by_the_model_not_by_its_linear_solution():
+    """2-digit oscillator data, guesses A = 0.016, B = 1.94 (a start of the basin study).
+
+    The fifth step asks to raise both rates a thousandfold (capped). The linear solution of that
+    step fits the data well, so its own misfit would accept it; the model at A = 16297,
+    B = 2972 does not, and once there the iteration drifted for 30 iterations to estimates the
+    data cannot fix (NOT_IDENTIFIABLE). A capped step is now accepted only when the model's own
+    sum of squares falls: the fit converges to the optimum.
+    """
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-13, atol=1e-15)[:, 0]
+    y = torch.tensor([[float(f"{v:.1e}")] for v in y.tolist()], dtype=DT)
+    data = torchql.Observations(t, y, observe=["y"])
+    x0 = torch.tensor([y[0, 0].item(), ((y[1, 0] - y[0, 0]) / 0.5).item()], dtype=DT)
+    r = torchql.fit(LinearOscillator(A=0.1 * 0.159746, B=3.0 * 0.647142), data, x0=x0, max_iter=30, max_steps=5000,
+                    bounds={"A": (0.0, None), "B": (0.0, None)})
+    assert r.status is torchql.Status.CONVERGED, r.message
+    # the optimum of these data (the basin study's, to its printed digits)
+    assert r.params["A"].item() == pytest.approx(0.102054, rel=1e-5)
+    assert r.params["B"].item() == pytest.approx(3.00089, rel=1e-5)
+
+
 @pytest.mark.parametrize("method", torchql.METHODS)
 def test_bounds_containing_the_truth_recover_it(data, method):
     r = torchql.fit(LinearOscillator(**GUESS), data, x0=X0, method=method,

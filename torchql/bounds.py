@@ -149,6 +149,15 @@ class Bounds:
         u_new = torch.where(high, torch.nextafter(self.upper, -inf), u_new)
         return torch.where(bounded, u_new - u, alpha_q), low | high | capped
 
+    def capped(self, alpha_q: torch.Tensor) -> bool:
+        """Whether :meth:`step` caps some bounded unknown's internal step ``alpha_q (m,)`` at
+        :data:`MAX_INTERNAL_STEP`: the linearization then asked for a move beyond where it can
+        be trusted."""
+        if not self.active:
+            return False
+        bounded = self.has_lower | self.has_upper
+        return bool((bounded & ~(alpha_q.abs() <= MAX_INTERNAL_STEP)).any())
+
     def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
         """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""
         scale = torch.maximum(u.abs(), torch.ones_like(u))

@@ -729,7 +729,7 @@ class _Problem:
                     ok = math.isfinite(trial.merit) and bool(torch.isfinite(trial.C).all())
                 except IntegrationError:
                     ok = False
-                if ok and (self.damping is None or self._better(trial, current)):
+                if ok and (self.damping is None or self._better(trial, current, state.capped)):
                     break
                 if self.damping is None:  # the thesis' iteration: the step is taken, and fails
                     state.z0 = self._shifted(current.z0, alpha)
@@ -778,16 +778,21 @@ class _Problem:
         anchored.nonlinear_sse, anchored.nonlinear_traj = current.nonlinear_sse, z_traj
         return anchored
 
-    def _better(self, trial: _Iterate, current: _Iterate) -> bool:
+    def _better(self, trial: _Iterate, current: _Iterate, capped: bool = False) -> bool:
         """Whether ``trial`` lowers the sum of squares relative to ``current``.
 
         The cheap test compares the merits (for Kantorovich, the particular solutions' sums of
         squares, which approximate the nonlinear ones to second order in the trajectory's
         distance from the model's solution). Far from the solution, where a Kantorovich step
         can raise that approximation and still be a good step, the model is integrated from
-        both initial estimates and the nonlinear sums of squares decide.
+        both initial estimates and the nonlinear sums of squares decide. They decide too when
+        the step was ``capped`` (a bounded unknown asked to move by more than a factor
+        ``e^MAX_INTERNAL_STEP``): the linear solution then lies far outside the region where it
+        approximates the model, and its own small misfit says nothing about the model's
+        (shooting's merit is the model's sum of squares already).
         """
-        if trial.merit <= current.merit * (1 + _MERIT_SLACK):
+        trusted = not capped or self.method == "shooting"  # shooting's merit is the model's own
+        if trusted and trial.merit <= current.merit * (1 + _MERIT_SLACK):
             return True
         if self.method == "shooting":
             return False
@@ -829,6 +834,7 @@ class _Problem:
         C = current.C * self.bounds.derivative(u) if self.bounds.active else current.C
         try:
             sol = solve_update(C, current.d, self.weights, self.exact, self.rcond, damping)
+            state.capped = self.bounds.capped(sol.alpha)
             alpha, blocked = self.bounds.step(u, sol.alpha)
             if bool(blocked.any()):  # moved onto their bounds and held; the others re-solved
                 move = alpha.masked_fill(~blocked, 0.0)
@@ -1030,6 +1036,7 @@ class _IterationState:
         self.iterations = 0
         self.final_traj: torch.Tensor | None = None  # nonlinear trajectory of z0, when already computed
         self.final_guess: torch.Tensor | None = None  # a prediction of it (G, M), when there is one
+        self.capped = False  # whether the last solved step was capped (see Bounds.capped)
 
 
 class _Counter:
