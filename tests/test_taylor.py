@@ -89,9 +89,7 @@ def test_result_does_not_depend_on_which_intervals_are_summed_together():
     a_ref, b_ref = _random_reference(seed=5), _random_reference(seed=6, scale=1.0)
     ca, cb = _Coefficients(IntervalSystem(a_ref)), _Coefficients(IntervalSystem(b_ref))
     assert torch.equal(ca.order, cb.order)
-    both = object.__new__(_Coefficients)
-    both.order, both.a, both.M = ca.order, ca.a, ca.M
-    both.data = torch.cat([ca.data, cb.data], dim=-1)
+    both = _Coefficients.of(torch.cat([ca.data, cb.data], dim=-1), ca.order, ca.a, ca.M)
     together = series_transfers(both, rtol=1e-10, atol=1e-12)
     alone = [series_transfers(c, rtol=1e-10, atol=1e-12) for c in (ca, cb)]
     assert torch.equal(together.Y, torch.cat([alone[0].Y, alone[1].Y], dim=-1))

@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 
 from .grid_solve import _SAFETY as _GRID_SAFETY, _Field, _rk4_pair as _grid_rk4_pair
-from .integrate import IntegrationError, solve
+from .integrate import IntegrationError, interval_tolerances, solve
 from .model import AugmentedSystem
 from .taylor import series_transfers
 from .transfer import _Coefficients, hermite_to_power, prefix_products
@@ -94,10 +94,7 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
               (slopes, end, slope_scale))
     for b, (source, side, scale) in enumerate(blocks):
         torch.mul(source[..., side], scale, out=data[b])
-    coefficients = object.__new__(_Coefficients)
-    coefficients.order, coefficients.a, coefficients.M = order, a, M
-    coefficients.data = hermite_to_power(data.reshape(4, Q, S * (G - 1)))
-    return coefficients
+    return _Coefficients.of(hermite_to_power(data.reshape(4, Q, S * (G - 1))), order, a, M)
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
@@ -139,7 +136,7 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
     N = G - 1
     coefficients = _coefficients(t, z, z_dot, lin)
     if t.dim() == 1:
-        rtol_j, atol_j = _interval_tolerances(rtol, atol, N, z.dtype)
+        rtol_j, atol_j = interval_tolerances(rtol, atol, N, z.dtype)
         out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
         Y, failed, points = out.Y, out.failed, out.points
     else:
@@ -157,13 +154,6 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         W[:, 1:, order[:a]] = torch.einsum("sapn,spc->snac", Pr, w)
     W[failed] = float("nan")
     return W, failed, points
-
-
-def _interval_tolerances(rtol: float, atol: float, intervals: int, dtype: torch.dtype) -> tuple[float, float]:
-    """Tolerances of one interval of a grid of ``intervals``: the whole one's over ``sqrt(intervals)``."""
-    tiny = 10 * torch.finfo(dtype).eps
-    intervals = max(intervals, 1)
-    return max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
 
 
 def _interval_counts(grid: torch.Tensor) -> torch.Tensor:
@@ -191,7 +181,7 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
     dtype = data.dtype
     values = counts.unique().tolist()
     if len(values) == 1:
-        rtol_j, atol_j = _interval_tolerances(rtol, atol, values[0], dtype)
+        rtol_j, atol_j = interval_tolerances(rtol, atol, values[0], dtype)
         out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
         return out.Y, out.failed, out.points
     Y = data.new_zeros(coefficients.a, coefficients.M + 1, S * N)
@@ -200,10 +190,8 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
     for value in values:
         samples = (counts == value).nonzero().flatten()
         columns = (samples.unsqueeze(1) * N + torch.arange(N, device=data.device)).flatten()
-        part = object.__new__(_Coefficients)
-        part.order, part.a, part.M = coefficients.order, coefficients.a, coefficients.M
-        part.data = data[..., columns]
-        rtol_j, atol_j = _interval_tolerances(rtol, atol, value, dtype)
+        part = _Coefficients.of(data[..., columns], coefficients.order, coefficients.a, coefficients.M)
+        rtol_j, atol_j = interval_tolerances(rtol, atol, value, dtype)
         out = series_transfers(part, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
         Y[..., columns], failed[columns] = out.Y, out.failed
         points += out.points
@@ -286,10 +274,10 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
     N = G - 1
     per_sample = grid.dim() == 2
     if per_sample:  # each sample's tolerances over its own intervals: (S, 1) per interval below
-        tolerances = [_interval_tolerances(rtol, atol, c, z0.dtype) for c in _interval_counts(grid).tolist()]
+        tolerances = [interval_tolerances(rtol, atol, c, z0.dtype) for c in _interval_counts(grid).tolist()]
         rtol_j, atol_j = (torch.tensor(v, dtype=z0.dtype, device=z0.device).unsqueeze(-1) for v in zip(*tolerances))
     else:
-        rtol_j, atol_j = _interval_tolerances(rtol, atol, N, z0.dtype)
+        rtol_j, atol_j = interval_tolerances(rtol, atol, N, z0.dtype)
     field = _Field(system.f)
     active = torch.arange(S, device=z0.device)
     steps = torch.ones(S, N, dtype=torch.long, device=z0.device)

@@ -139,7 +139,7 @@ class Bounds:
         if not self.active:
             return alpha_q, torch.zeros_like(alpha_q, dtype=torch.bool)
         bounded = self.has_lower | self.has_upper
-        capped = bounded & ~(alpha_q.abs() <= MAX_INTERNAL_STEP)  # NaN counts as capped
+        capped = self._capped(alpha_q)
         alpha_q = torch.where(capped, alpha_q.nan_to_num(0.0).clamp(-MAX_INTERNAL_STEP, MAX_INTERNAL_STEP), alpha_q)
         u_new = self.external(self.internal(u) + alpha_q)
         inf = torch.full_like(u, math.inf)
@@ -153,10 +153,11 @@ class Bounds:
         """Whether :meth:`step` caps some bounded unknown's internal step ``alpha_q (m,)`` at
         :data:`MAX_INTERNAL_STEP`: the linearization then asked for a move beyond where it can
         be trusted."""
-        if not self.active:
-            return False
-        bounded = self.has_lower | self.has_upper
-        return bool((bounded & ~(alpha_q.abs() <= MAX_INTERNAL_STEP)).any())
+        return self.active and bool(self._capped(alpha_q).any())
+
+    def _capped(self, alpha_q: torch.Tensor) -> torch.Tensor:
+        """Bounded unknowns whose internal step exceeds :data:`MAX_INTERNAL_STEP` (NaN counts as capped)."""
+        return (self.has_lower | self.has_upper) & ~(alpha_q.abs() <= MAX_INTERNAL_STEP)
 
     def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
         """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""

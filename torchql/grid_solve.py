@@ -22,7 +22,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch.func import jacrev, vmap
 
-from .integrate import IntegrationError
+from .integrate import IntegrationError, interval_tolerances
 from .transfer import Transfers, compose_transfers
 
 __all__ = ["GridSolveInfo", "IntervalBudgetError", "solve_on_grid"]
@@ -108,8 +108,7 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     if G == 1:
         return X, GridSolveInfo(0, 0, 0.0, 0)
     intervals = G - 1
-    tiny = 10 * torch.finfo(z0.dtype).eps
-    rtol_j, atol_j = max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
+    rtol_j, atol_j = interval_tolerances(rtol, atol, intervals, z0.dtype)
     field = _Field(func)
     t0, h = grid[:-1], grid[1:] - grid[:-1]
     steps = torch.full((intervals,), 1, dtype=torch.long, device=grid.device)  # coarse steps per interval

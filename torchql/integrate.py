@@ -9,7 +9,8 @@ from torchdiffeq._impl.odeint import SOLVERS
 from . import _checks
 from .model import ODEModel
 
-__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances", "solve", "simulate"]
+__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
+           "interval_tolerances", "solve", "simulate"]
 
 #: Every solver name torchdiffeq accepts.
 SOLVER_NAMES: tuple[str, ...] = tuple(name for name in SOLVERS if name != "scipy_solver")
@@ -32,6 +33,14 @@ def default_tolerances(dtype: torch.dtype, rtol: float | None, atol: float | Non
     if dtype == torch.float64:
         return (1e-10 if rtol is None else rtol), (1e-12 if atol is None else atol)
     return (1e-6 if rtol is None else rtol), (1e-8 if atol is None else atol)
+
+
+def interval_tolerances(rtol: float, atol: float, intervals: int, dtype: torch.dtype) -> tuple[float, float]:
+    """Tolerances of one interval of a grid of ``intervals`` integrated separately: the whole solution's
+    over ``sqrt(intervals)`` (independent errors add in quadrature), never below ten roundoffs."""
+    tiny = 10 * torch.finfo(dtype).eps
+    intervals = max(intervals, 1)
+    return max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
 
 
 def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, atol: float,

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from .integrate import solve
+from .integrate import interval_tolerances, solve
 from .trajectory import IntervalSystem, LinearizedReference
 from .taylor import taylor_transfers
 from .transfer import Transfers, compose_transfers, interval_transfers
@@ -98,8 +98,7 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
         return w0.unsqueeze(0), 0
     system = IntervalSystem(reference)
     intervals = G - 1
-    tiny = 10 * torch.finfo(w0.dtype).eps
-    rtol_j, atol_j = max(rtol / intervals**0.5, tiny), max(atol / intervals**0.5, tiny)
+    rtol_j, atol_j = interval_tolerances(rtol, atol, intervals, w0.dtype)
     M = w0.shape[0]
     if linear_solver == "taylor":
         transfers, n_evals = taylor_transfers(system, rtol=rtol_j, atol=atol_j)

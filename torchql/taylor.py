@@ -172,7 +172,7 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
         recent = recent[-3:] + [new]
         T += new
         k += 1
-        if k >= _FIRST_TEST or k >= _MAX_TERMS:
+        if k >= _FIRST_TEST:  # (< _MAX_TERMS: the cap below always follows a test)
             norms = torch.stack(recent).abs()  # (4, a, P, J) -> (4, P, J): ||T_{k-3}||, .., ||T_k|| by column
             norms = norms[:, 0] if a == 1 else norms.amax(dim=1)
             weights = _tail_weights(k, r)  # (4, J) in the same order

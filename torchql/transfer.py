@@ -194,6 +194,14 @@ class _Coefficients:
         data = torch.cat([z[..., perm], fJ.flatten(-2)], dim=-1)  # (4, N, M + a (M+1))
         self.data = hermite_to_power(data.transpose(1, 2).contiguous())  # (4, Q, N)
 
+    @classmethod
+    def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int) -> "_Coefficients":
+        """Coefficients already in stored form: power-basis ``data (4, Q, N)``, ``order (M+1,)``,
+        ``a`` active components of ``M``."""
+        coefficients = object.__new__(cls)
+        coefficients.data, coefficients.order, coefficients.a, coefficients.M = data, order, a, M
+        return coefficients
+
     @property
     def intervals(self) -> int:
         return self.data.shape[-1]
