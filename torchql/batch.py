@@ -624,12 +624,8 @@ class _Engine:
         W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
                                                   atol=spec.atol)
         self.nfev += evals
-        if self.obs.dim() == 1:
-            obs = self.obs
-            C, d, resid = self._rows(idx, z[:, obs], W[:, obs, :, 0], W[:, obs, :, 1:])
-        else:
-            W_obs = self._at_obs(W, idx)
-            C, d, resid = self._rows(idx, self._at_obs(z, idx), W_obs[..., 0], W_obs[..., 1:])
+        W_obs = self._at_obs(W, idx)
+        C, d, resid = self._rows(idx, self._at_obs(z, idx), W_obs[..., 0], W_obs[..., 1:])
         sse, merit = self._ssq(idx, resid), self._ssq(idx, d)
         S = idx.numel()
         return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed,
