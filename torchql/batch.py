@@ -39,6 +39,7 @@ import torch
 from . import _checks
 from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
+from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _DAMPINGS, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
 from .integrate import check_solver, default_tolerances
@@ -73,6 +74,7 @@ def fit_many(
     fixed_x0: Sequence[str] | None = None,
     t0: float | None = None,
     max_iter: int = 50,
+    max_time: float | None = None,
     rtol: float | None = None,
     atol: float | None = None,
     xtol: float | None = None,
@@ -115,6 +117,12 @@ def fit_many(
         Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
         ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
         sample's fixed value. Default: the model's buffers for every sample.
+    max_time : float, optional
+        Wall-clock budget in seconds for the whole batch, checked between iterations and inside
+        long phases. When it runs out, every sample still running (or not yet started, in a
+        later chunk) ends with ``Status.MAX_TIME`` at its last accepted estimates (NaN ``sse``
+        and covariance); samples that finished before still get their final evaluation.
+        Default: none.
     fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
         As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``,
         ``linear_solver="taylor"``). ``solver`` integrates a sample on its own only when
@@ -140,6 +148,7 @@ def fit_many(
     spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
                  damping, solver, max_steps)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
+    max_time = None if max_time is None else _checks.positive_number("max_time", max_time)
     report = _progress(progress, spec.B)
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
@@ -151,22 +160,23 @@ def fit_many(
     nfev = 0
     finished = 0
     try:
-        for start in range(0, B, chunk_size):
-            index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
-            engine = _Engine(spec, index)
+        with time_budget(max_time):
+            for start in range(0, B, chunk_size):
+                index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
+                engine = _Engine(spec, index, max_time)
 
-            def step(count, offset=finished):
-                report(offset + count)
+                def step(count, offset=finished):
+                    report(offset + count)
 
-            chunk = engine.run(step)
-            out_z0[index] = chunk["z0"]
-            out["sse"][index], out["cov"][index], out["iterations"][index] = chunk["sse"], chunk["cov"], \
-                chunk["iterations"]
-            for k, i in enumerate(index.tolist()):
-                statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
-            nfev += engine.nfev
-            finished += index.numel()
-            report(finished)
+                chunk = engine.run(step)
+                out_z0[index] = chunk["z0"]
+                out["sse"][index], out["cov"][index], out["iterations"][index] = chunk["sse"], chunk["cov"], \
+                    chunk["iterations"]
+                for k, i in enumerate(index.tolist()):
+                    statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
+                nfev += engine.nfev
+                finished += index.numel()
+                report(finished)
     finally:
         report(None)
     return spec.result(out_z0, out, statuses, messages, nfev)
@@ -561,8 +571,8 @@ def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> tuple[torch.Tens
 class _Engine:
     """The iteration of one chunk of samples (indices ``index`` of the batch)."""
 
-    def __init__(self, spec: _Spec, index: torch.Tensor) -> None:
-        self.spec = spec
+    def __init__(self, spec: _Spec, index: torch.Tensor, max_time: float | None = None) -> None:
+        self.spec, self.max_time = spec, max_time
         self.system = spec.system
         self.y, self.w, self.mask = spec.y[index], spec.weights[index], spec.mask[index]
         self.L = spec.L[index]
@@ -736,130 +746,142 @@ class _Engine:
                 detail[r] = text
             report(int((status != _RUNNING).sum()))
 
-        # first iterate: the model integrated (loosely) from the guesses
-        traj, errors = self._nonlinear(all_idx, z0, loose=True)
-        bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
-        for r in bad.nonzero().flatten().tolist():
-            status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
-            detail[r] = f" The solver said: {errors[r]}."
-        lin = self._linearize(all_idx, traj)
-        cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
-        self._fail_integration(cur["failed"] & ~bad, status, detail)
-        final_guess = cur["W"][:, :, :, 0].clone()
-        n = self.system.n
-        typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), self.z0_guess[:, n:].abs()], dim=1)
-        typical = torch.where(typical > 0, typical, torch.ones_like(typical))
-        scale = typical[:, spec.unknown_index]
-        report(int((status != _RUNNING).sum()))
+        final_guess = None
+        try:
+            # first iterate: the model integrated (loosely) from the guesses
+            traj, errors = self._nonlinear(all_idx, z0, loose=True)
+            bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
+            for r in bad.nonzero().flatten().tolist():
+                status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
+                detail[r] = f" The solver said: {errors[r]}."
+            lin = self._linearize(all_idx, traj)
+            cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
+            self._fail_integration(cur["failed"] & ~bad, status, detail)
+            final_guess = cur["W"][:, :, :, 0].clone()
+            n = self.system.n
+            typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), self.z0_guess[:, n:].abs()], dim=1)
+            typical = torch.where(typical > 0, typical, torch.ones_like(typical))
+            scale = typical[:, spec.unknown_index]
+            report(int((status != _RUNNING).sum()))
 
-        while True:
-            running = status == _RUNNING
-            # the start of an iteration: the budget, then the iterate's rows
-            start = running & fresh
-            maxed = start & (iterations >= spec.max_iter)
-            if bool(maxed.any()):
-                stop(maxed.nonzero().flatten(), Status.MAX_ITER)
-            start &= ~maxed
-            finite = (torch.isfinite(cur["sse"]) & torch.isfinite(cur["C"]).flatten(1).all(dim=1)
-                      & torch.isfinite(cur["d"]).all(dim=1))
-            diverged = start & ~finite
-            if bool(diverged.any()):
-                stop(diverged.nonzero().flatten(), Status.DIVERGED, " The residuals became non-finite.")
-            fresh &= ~start
-            act = (status == _RUNNING).nonzero().flatten()
-            if not act.numel():
-                break
-            alpha = self._solve(act, cur, damping[act])
-            u = cur["z0"][act][:, spec.unknown_index]
-            scaled = (alpha.abs() / torch.maximum(u.abs(), scale[act])).amax(dim=1)
-            bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
-            if bool(bad.any()):
-                stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
-                keep = ~bad
-                act, alpha, scaled = act[keep], alpha[keep], scaled[keep]
-            # convergence, tested on undamped steps only
-            zero = damping[act] == 0
-            sse = cur["sse"][act]
-            conv = zero & (scaled <= spec.xtol)
-            conv_sse = (zero & ~conv & torch.isfinite(sse_prev[act]) & (sse > 0)
-                        & ((sse - sse_prev[act]).abs() <= spec.ftol * sse) & (scaled <= math.sqrt(spec.xtol)))
-            sse_prev[act[zero & ~conv & ~conv_sse]] = sse[zero & ~conv & ~conv_sse]
-            done = conv | conv_sse
-            if bool(done.any()):
-                rows = act[done]
-                W = cur["W"][rows]
-                z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
-                iterations[rows] += 1
-                final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
-                if bool(conv.any()):
-                    stop(act[conv], Status.CONVERGED)
-                if bool(conv_sse.any()):
-                    stop(act[conv_sse], Status.CONVERGED_SSE)
-                act, alpha = act[~done], alpha[~done]
-            if not act.numel():
-                continue
-            trial, ok = self._propose(act, cur, alpha)
-            if spec.damping is None:
-                accept = ok
-            else:
-                better = trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK)
-                check = ok & ~better
-                if bool(check.any()):
-                    rows = check.nonzero().flatten()
-                    t_sse = self._nonlinear_sse(act, trial, rows)
-                    c_sse = self._nonlinear_sse(all_idx, cur, act[rows])
-                    better[rows] = t_sse <= c_sse * (1 + _MERIT_SLACK)
-                accept = ok & better
-            if bool(accept.any()):
-                rows = accept.nonzero().flatten()
-                target = act[rows]
-                _put(cur, target, trial, rows)
-                last_damping[target] = damping[target]
-                damping[target] = 0.0
-                iterations[target] += 1
-                fresh[target] = True
-                z0[target] = trial["z0"][rows]
-                final_guess[target] = _pick(trial["W"], rows)[..., 0]
-            rejected = act[~accept]
-            if not rejected.numel():
-                continue
-            if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
-                z0[rejected] = _shifted(cur["z0"][rejected], alpha[~accept], spec.unknown_index)
-                iterations[rejected] += 1
-                stop(rejected, Status.INTEGRATION_FAILED,
-                     " The undamped step led to a trajectory that cannot be integrated; the default "
-                     "damping=\"lm\" would have shortened it.")
-                continue
-            # Kantorovich re-anchors an undamped rejection about the model's own solution
-            candidates = rejected[(damping[rejected] == 0) & ~cur["anchored"][rejected]]
-            anchored_rows = candidates[:0]
-            if candidates.numel():
-                self._nonlinear_sse(all_idx, cur, candidates)
-                integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
-                anchored_rows = candidates[integrable]
-                if anchored_rows.numel():
-                    traj = cur["nl_traj"][anchored_rows]
-                    lin = self._linearize(anchored_rows, traj)
-                    anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin)
-                    anchored["anchored"][:] = True
-                    anchored["nl_sse"] = cur["nl_sse"][anchored_rows]
-                    anchored["nl_traj"] = traj
-                    failed = anchored["failed"]
-                    if bool(failed.any()):
-                        self._fail_integration_rows(anchored_rows[failed], status, detail)
-                    keep = (~failed).nonzero().flatten()
-                    _put(cur, anchored_rows[keep], anchored, keep)
-            raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
-            if raise_rows.numel():
-                d = damping[raise_rows]
-                last = last_damping[raise_rows]
-                first = torch.where(last > 0, torch.clamp(last / 10, min=_DAMPING_MIN), _DAMPING_START)
-                d = torch.where(d == 0, first, 10 * d)  # as fit's _first_damping, per sample
-                damping[raise_rows] = d
-                stalled = raise_rows[d > _DAMPING_MAX]
-                if stalled.numel():
-                    stop(stalled, Status.STALLED)
-        return self._finish(z0, status, detail, iterations, final_guess)
+            while True:
+                running = status == _RUNNING
+                if time_left() <= 0 and bool(running.any()):
+                    stop(running.nonzero().flatten(), Status.MAX_TIME)
+                    running = status == _RUNNING
+                # the start of an iteration: the budget, then the iterate's rows
+                start = running & fresh
+                maxed = start & (iterations >= spec.max_iter)
+                if bool(maxed.any()):
+                    stop(maxed.nonzero().flatten(), Status.MAX_ITER)
+                start &= ~maxed
+                finite = (torch.isfinite(cur["sse"]) & torch.isfinite(cur["C"]).flatten(1).all(dim=1)
+                          & torch.isfinite(cur["d"]).all(dim=1))
+                diverged = start & ~finite
+                if bool(diverged.any()):
+                    stop(diverged.nonzero().flatten(), Status.DIVERGED, " The residuals became non-finite.")
+                fresh &= ~start
+                act = (status == _RUNNING).nonzero().flatten()
+                if not act.numel():
+                    break
+                alpha = self._solve(act, cur, damping[act])
+                u = cur["z0"][act][:, spec.unknown_index]
+                scaled = (alpha.abs() / torch.maximum(u.abs(), scale[act])).amax(dim=1)
+                bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
+                if bool(bad.any()):
+                    stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
+                    keep = ~bad
+                    act, alpha, scaled = act[keep], alpha[keep], scaled[keep]
+                # convergence, tested on undamped steps only
+                zero = damping[act] == 0
+                sse = cur["sse"][act]
+                conv = zero & (scaled <= spec.xtol)
+                conv_sse = (zero & ~conv & torch.isfinite(sse_prev[act]) & (sse > 0)
+                            & ((sse - sse_prev[act]).abs() <= spec.ftol * sse) & (scaled <= math.sqrt(spec.xtol)))
+                sse_prev[act[zero & ~conv & ~conv_sse]] = sse[zero & ~conv & ~conv_sse]
+                done = conv | conv_sse
+                if bool(done.any()):
+                    rows = act[done]
+                    W = cur["W"][rows]
+                    z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
+                    iterations[rows] += 1
+                    final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
+                    if bool(conv.any()):
+                        stop(act[conv], Status.CONVERGED)
+                    if bool(conv_sse.any()):
+                        stop(act[conv_sse], Status.CONVERGED_SSE)
+                    act, alpha = act[~done], alpha[~done]
+                if not act.numel():
+                    continue
+                trial, ok = self._propose(act, cur, alpha)
+                if spec.damping is None:
+                    accept = ok
+                else:
+                    better = trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK)
+                    check = ok & ~better
+                    if bool(check.any()):
+                        rows = check.nonzero().flatten()
+                        t_sse = self._nonlinear_sse(act, trial, rows)
+                        c_sse = self._nonlinear_sse(all_idx, cur, act[rows])
+                        better[rows] = t_sse <= c_sse * (1 + _MERIT_SLACK)
+                    accept = ok & better
+                if bool(accept.any()):
+                    rows = accept.nonzero().flatten()
+                    target = act[rows]
+                    _put(cur, target, trial, rows)
+                    last_damping[target] = damping[target]
+                    damping[target] = 0.0
+                    iterations[target] += 1
+                    fresh[target] = True
+                    z0[target] = trial["z0"][rows]
+                    final_guess[target] = _pick(trial["W"], rows)[..., 0]
+                rejected = act[~accept]
+                if not rejected.numel():
+                    continue
+                if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
+                    z0[rejected] = _shifted(cur["z0"][rejected], alpha[~accept], spec.unknown_index)
+                    iterations[rejected] += 1
+                    stop(rejected, Status.INTEGRATION_FAILED,
+                         " The undamped step led to a trajectory that cannot be integrated; the default "
+                         "damping=\"lm\" would have shortened it.")
+                    continue
+                # Kantorovich re-anchors an undamped rejection about the model's own solution
+                candidates = rejected[(damping[rejected] == 0) & ~cur["anchored"][rejected]]
+                anchored_rows = candidates[:0]
+                if candidates.numel():
+                    self._nonlinear_sse(all_idx, cur, candidates)
+                    integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
+                    anchored_rows = candidates[integrable]
+                    if anchored_rows.numel():
+                        traj = cur["nl_traj"][anchored_rows]
+                        lin = self._linearize(anchored_rows, traj)
+                        anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin)
+                        anchored["anchored"][:] = True
+                        anchored["nl_sse"] = cur["nl_sse"][anchored_rows]
+                        anchored["nl_traj"] = traj
+                        failed = anchored["failed"]
+                        if bool(failed.any()):
+                            self._fail_integration_rows(anchored_rows[failed], status, detail)
+                        keep = (~failed).nonzero().flatten()
+                        _put(cur, anchored_rows[keep], anchored, keep)
+                raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
+                if raise_rows.numel():
+                    d = damping[raise_rows]
+                    last = last_damping[raise_rows]
+                    first = torch.where(last > 0, torch.clamp(last / 10, min=_DAMPING_MIN), _DAMPING_START)
+                    d = torch.where(d == 0, first, 10 * d)  # as fit's _first_damping, per sample
+                    damping[raise_rows] = d
+                    stalled = raise_rows[d > _DAMPING_MAX]
+                    if stalled.numel():
+                        stop(stalled, Status.STALLED)
+        except TimeBudgetExceeded:  # inside a phase: the samples still running stop where they are
+            stop((status == _RUNNING).nonzero().flatten(), Status.MAX_TIME)
+        spent = [r for r, c in enumerate(status.tolist()) if c == _STATUSES.index(Status.MAX_TIME)]
+        for r in spent:
+            detail[r] = (f" Stopped after {int(iterations[r])} iterations (max_time = {self.max_time:g} s)."
+                         + detail[r])
+        with no_time_budget():  # the samples that finished in time get their final evaluation
+            return self._finish(z0, status, detail, iterations, final_guess)
 
     def _fail_integration(self, failed, status, detail) -> None:
         self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
@@ -895,7 +917,7 @@ class _Engine:
         sse = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         cov = torch.full((S, m, m), float("nan"), dtype=dtype, device=dev)
         codes = [_STATUSES[int(c)] for c in status.tolist()]
-        final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED) for c in codes],
+        final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
                              dtype=torch.bool, device=dev)
         rows = final.nonzero().flatten()
         if rows.numel():

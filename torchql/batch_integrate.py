@@ -30,7 +30,8 @@ from __future__ import annotations
 import torch
 
 from .grid_solve import _SAFETY as _GRID_SAFETY, _Field, _rk4_pair as _grid_rk4_pair
-from .integrate import IntegrationError, interval_tolerances, solve
+from .budget import check_time
+from .integrate import CountedField, IntegrationError, interval_tolerances, solve
 from .model import AugmentedSystem
 from .taylor import series_transfers
 from .transfer import _Coefficients, hermite_to_power, prefix_products
@@ -211,6 +212,7 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
     n_evals = 0
     todo = torch.arange(N, device=x0.device)
     while todo.numel():
+        check_time()
         for n in steps[todo].unique().tolist():
             group = todo[steps[todo] == n]
             rt = rtol[group] if isinstance(rtol, torch.Tensor) else rtol
@@ -286,6 +288,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
     for _ in range(max_newton):
         if not active.numel():
             break
+        check_time()
         A = active.numel()
         Xa = X[active]
         st = steps[active].reshape(-1)
@@ -336,7 +339,7 @@ def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor
     ends = (_last_nodes(grid) + 1).tolist() if grid.dim() == 2 else [G] * S
     for s in range(S):
         model = system.model_with(z0[s, n:])
-        counter = _Counter(model)
+        counter = CountedField(model)
         end = ends[s]
         own = grid[s, :end] if grid.dim() == 2 else grid
         try:
@@ -350,16 +353,6 @@ def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor
             errors[s] = str(exc)
         n_evals += counter.n_evals
     return out, errors, n_evals
-
-
-class _Counter:
-    def __init__(self, func) -> None:
-        self.func, self.n_evals = func, 0
-
-    def __call__(self, t, y):
-        self.n_evals += 1
-        return self.func(t, y)
-
 
 
 # Dormand–Prince 5(4) tableau (the dopri5 of torchdiffeq and scipy's RK45)
@@ -456,6 +449,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if end is None else ok & (end > 1)).nonzero().flatten()
     while active.numel():
+        check_time()
         everyone = active.numel() == S  # no gathering while no sample has finished or failed
         xa, ta, ka, ha = (x, t, k1, h) if everyone else (x[active], t[active], k1[active], h[active])
         node_a = node if everyone else node[active]

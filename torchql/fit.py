@@ -27,7 +27,8 @@ from torch.func import jacrev, vmap
 
 from . import _checks
 from .bounds import Bounds
-from .integrate import IntegrationError, check_solver, default_tolerances, solve
+from .budget import TimeBudgetExceeded, time_budget, time_left
+from .integrate import CountedField, IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
 from .grid_solve import IntervalBudgetError, solve_on_grid
 from .lstsq import ExactRowsError, solve_update
@@ -59,6 +60,7 @@ def fit(
     method: str = "kantorovich",
     bounds: dict | None = None,
     max_iter: int = 50,
+    max_time: float | None = None,
     throw: bool = False,
     solver: str = "dopri5",
     rtol: float | None = None,
@@ -111,6 +113,12 @@ def fit(
         estimate that ends at a bound is named in the message.
     max_iter : int
         Maximum number of updates.
+    max_time : float, optional
+        Wall-clock budget in seconds, checked between iterations and inside long phases (every
+        right-hand-side evaluation of an integration). When it runs out the fit ends with
+        ``Status.MAX_TIME`` and the last accepted estimates, without the final evaluation (its
+        ``sse``, residuals and covariance are NaN; ``history`` holds the last iterate's SSE).
+        Default: none.
     throw : bool
         Raise :class:`torchql.FitError` instead of returning an unsuccessful result.
     solver : str
@@ -182,18 +190,20 @@ def fit(
     if isinstance(data, (list, tuple)):
         return _fit_experiments(
             model, list(data), x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
-            max_iter=max_iter, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond,
-            grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping,
-            linear_solver=linear_solver, callback=callback)
+            max_iter=max_iter, max_time=max_time, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol,
+            ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
+            damping=damping, linear_solver=linear_solver, callback=callback)
     problem = _Problem(
         model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
-        rcond, grid, initial_trajectory, max_steps, damping, linear_solver,
+        rcond, grid, initial_trajectory, max_steps, damping, linear_solver, max_time,
     )
-    result = problem.run(callback)
+    with time_budget(problem.max_time):
+        result = problem.run(callback)
     result.data = data
     result.fit_kwargs = dict(
         x0=None if x0 is None else torch.as_tensor(x0).detach().clone(), params=None if params is None else list(params),
-        fixed_x0=None if fixed_x0 is None else list(fixed_x0), t0=t0, method=method, max_iter=max_iter, solver=solver,
+        fixed_x0=None if fixed_x0 is None else list(fixed_x0), t0=t0, method=method, max_iter=max_iter,
+        max_time=max_time, solver=solver,
         rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory,
         max_steps=max_steps, damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds),
     )
@@ -207,7 +217,7 @@ class _Problem:
 
     def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
                  xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping="lm",
-                 linear_solver=DEFAULT_LINEAR_SOLVER):
+                 linear_solver=DEFAULT_LINEAR_SOLVER, max_time=None):
         _checks.model_class(model)
         names = tuple(model.state_names)
         if not isinstance(data, Observations):
@@ -234,6 +244,7 @@ class _Problem:
         max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
         if max_steps is not None:
             max_steps = _checks.positive_int("max_steps", max_steps)
+        self.max_time = None if max_time is None else _checks.positive_number("max_time", max_time)
 
         self.dtype, self.device = model_dtype_device(model)
         dtype, device = self.dtype, self.device
@@ -463,7 +474,7 @@ class _Problem:
         not turn a smooth trial into a blow-up.
         """
         n = self.system.n
-        counter = _Counter(self.system.model_with(z0[n:]))
+        counter = CountedField(self.system.model_with(z0[n:]))
         rtol = max(self.rtol, _LOOSE_RTOL) if loose else self.rtol
         atol = self.atol * rtol / self.rtol
         x = None
@@ -638,6 +649,11 @@ class _Problem:
             self._iterate(state, first)
         except IntegrationError as exc:
             state.status, state.detail = Status.INTEGRATION_FAILED, f" The solver said: {exc}."
+        except TimeBudgetExceeded:
+            state.status = Status.MAX_TIME
+        if state.status is Status.MAX_TIME:
+            state.detail = (f" Stopped after {state.iterations} iterations (max_time = {self.max_time:g} s)."
+                            + state.detail)
         return self._finish(state)
 
     # ------------------------------------------------------------------------------------
@@ -705,6 +721,9 @@ class _Problem:
         while True:
             if state.iterations >= self.max_iter:
                 state.status = Status.MAX_ITER
+                return
+            if time_left() <= 0:
+                state.status = Status.MAX_TIME
                 return
             record = self._record_iterate(state, current)
             if record is None:
@@ -890,7 +909,7 @@ class _Problem:
         sse, exact_residual = float("nan"), float("nan")
         singular_values = torch.zeros(0, dtype=self.dtype, device=self.device)
         cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
-        final_ok = status not in (Status.DIVERGED, Status.INTEGRATION_FAILED)
+        final_ok = status not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME)
         if not final_ok and (not history or not torch.equal(history[-1].x0, z0[:n])
                              or history[-1].iteration != iterations):
             history.append(self._record(iterations, z0, float("nan")))  # the estimate returned, unevaluated
@@ -1037,18 +1056,6 @@ class _IterationState:
         self.final_traj: torch.Tensor | None = None  # nonlinear trajectory of z0, when already computed
         self.final_guess: torch.Tensor | None = None  # a prediction of it (G, M), when there is one
         self.capped = False  # whether the last solved step was capped (see Bounds.capped)
-
-
-class _Counter:
-    """Wraps a right-hand side to count its evaluations."""
-
-    def __init__(self, func):
-        self.func = func
-        self.n_evals = 0
-
-    def __call__(self, t, y):
-        self.n_evals += 1
-        return self.func(t, y)
 
 
 def _slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:

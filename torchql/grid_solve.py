@@ -22,6 +22,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch.func import jacrev, vmap
 
+from .budget import check_time
 from .integrate import IntegrationError, interval_tolerances
 from .transfer import Transfers, compose_transfers
 
@@ -115,6 +116,7 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     n_evals = 0
     previous = float("inf")  # the last Newton correction's size
     for iteration in range(1, max_newton + 1):
+        check_time()
         phi, S, evals = _integrate_controlled(field, t0, h, X[:-1], steps, rtol_j, atol_j, max_substeps, grid)
         n_evals += evals
         defect = phi - X[1:]

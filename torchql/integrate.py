@@ -7,10 +7,11 @@ from torchdiffeq import odeint
 from torchdiffeq._impl.odeint import SOLVERS
 
 from . import _checks
+from .budget import check_time
 from .model import ODEModel
 
 __all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
-           "interval_tolerances", "solve", "simulate"]
+           "interval_tolerances", "solve", "simulate", "CountedField"]
 
 #: Every solver name torchdiffeq accepts.
 SOLVER_NAMES: tuple[str, ...] = tuple(name for name in SOLVERS if name != "scipy_solver")
@@ -20,6 +21,22 @@ ADAPTIVE_SOLVERS: tuple[str, ...] = ("dopri8", "dopri5", "bosh3", "fehlberg2", "
 
 class IntegrationError(RuntimeError):
     """The ODE solver failed (step-size underflow, step budget exceeded, non-finite state)."""
+
+
+class CountedField:
+    """A right-hand side ``func(t, y)`` that counts its evaluations and checks the fit's time budget.
+
+    Every integration a fit runs goes through one, so that an integration that crawls (a stiff
+    stretch, a blow-up) ends at ``max_time`` (see :mod:`torchql.budget`) instead of running on.
+    """
+
+    def __init__(self, func) -> None:
+        self.func, self.n_evals = func, 0
+
+    def __call__(self, t, y):
+        check_time()
+        self.n_evals += 1
+        return self.func(t, y)
 
 
 def check_solver(solver: str) -> None:

@@ -24,6 +24,10 @@ class Status(enum.Enum):
         "The maximum number of iterations was reached before convergence. Increase `max_iter`, "
         "or start from guesses closer to the solution."
     )
+    MAX_TIME = (
+        "The time budget `max_time` ran out before convergence; the estimates are the last accepted "
+        "iterate's, not evaluated further. Increase `max_time`, or start from guesses closer to the solution."
+    )
     DIVERGED = (
         "The iteration diverged: the update or the trajectory became non-finite. Start from guesses "
         "closer to the solution, or observe more of the trajectory."

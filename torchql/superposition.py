@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from .integrate import interval_tolerances, solve
+from .integrate import CountedField, interval_tolerances, solve
 from .trajectory import IntervalSystem, LinearizedReference
 from .taylor import taylor_transfers
 from .transfer import Transfers, compose_transfers, interval_transfers
@@ -106,7 +106,7 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
         transfers, n_evals = interval_transfers(system, rtol=rtol_j, atol=atol_j)
     else:
         s = torch.tensor([0.0, 1.0], dtype=w0.dtype, device=w0.device)
-        Y = solve(system, system.initial(), s, solver=solver, rtol=rtol_j, atol=atol_j, max_steps=max_steps,
+        Y = solve(CountedField(system), system.initial(), s, solver=solver, rtol=rtol_j, atol=atol_j, max_steps=max_steps,
                   norm=_max_norm, first_step=1.0)[-1]
         T = torch.zeros(intervals, M + 1, M + 1, dtype=w0.dtype, device=w0.device)
         T[:, :M] = Y

@@ -44,6 +44,7 @@ from typing import NamedTuple
 
 import torch
 
+from .budget import check_time
 from .integrate import IntegrationError
 from .trajectory import IntervalSystem
 from .transfer import Transfers, _Coefficients, _product
@@ -274,6 +275,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
         pending[part] = ~single
     # the rest, by number of substeps
     while bool(pending.any()):
+        check_time()
         n = int(substeps[pending].min())
         if n > max_substeps:
             break

@@ -33,6 +33,7 @@ from typing import NamedTuple
 
 import torch
 
+from .budget import check_time
 from .integrate import IntegrationError
 from .trajectory import IntervalSystem
 
@@ -133,6 +134,7 @@ def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
     Y, ratio, n_evals = _rk4_pair(coefficients, None, 1, rtol, atol)
     steps = torch.full_like(ratio, 2, dtype=torch.long)  # fine steps used per interval
     while True:
+        check_time()
         bad = ~(ratio <= 1.0)  # NaN fails too
         if not bool(bad.any()):
             break

@@ -1,0 +1,99 @@
+"""The wall-clock budget ``max_time``: fits end with Status.MAX_TIME instead of running on."""
+
+import math
+import time
+
+import pytest
+import torch
+
+import torchql
+from testmodels import Decay
+from torchql.budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
+
+DT = torch.float64
+T = torch.linspace(0, 2, 11, dtype=DT)
+Y = (1.5 * torch.exp(-0.7 * T)).unsqueeze(-1)
+
+
+class SlowDecay(Decay):
+    """``y' = -k y`` whose every right-hand-side evaluation takes 20 ms: an unbudgeted fit takes minutes."""
+
+    def forward(self, t, x):
+        time.sleep(0.02)
+        return super().forward(t, x)
+
+
+def test_budget_context_nests_to_the_earlier_deadline_and_can_be_lifted():
+    assert time_left() == math.inf
+    check_time()  # no budget: never raises
+    with time_budget(100.0):
+        assert 99.0 < time_left() <= 100.0
+        with time_budget(1000.0):  # an inner budget never extends the outer one
+            assert time_left() <= 100.0
+        with time_budget(0.0):
+            time.sleep(0.001)
+            with pytest.raises(TimeBudgetExceeded):
+                check_time()
+            with no_time_budget():
+                check_time()
+                assert time_left() == math.inf
+        assert time_left() > 99.0
+    assert time_left() == math.inf
+
+
+def test_fit_stops_at_max_time_with_its_own_status():
+    data = torchql.Observations(T, Y, observe=["y"])
+    start = time.perf_counter()
+    result = torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5)
+    elapsed = time.perf_counter() - start
+    assert result.status is torchql.Status.MAX_TIME
+    assert not result.success
+    assert "max_time = 0.5 s" in result.message and "Increase `max_time`" in result.message
+    assert math.isnan(result.sse) and torch.isnan(result.covariance).all()
+    assert torch.isfinite(result.estimates).all()
+    # without the budget this fit runs for minutes (thousands of 20 ms evaluations); the budget is
+    # checked at every evaluation, so it ends within a few evaluations of 0.5 s (generous bound: a busy machine)
+    assert elapsed < 10.0
+
+
+def test_fit_within_its_budget_is_unchanged():
+    data = torchql.Observations(T, Y, observe=["y"])
+    x0 = torch.tensor([1.0], dtype=DT)
+    free = torchql.fit(Decay(k=0.2), data, x0=x0)
+    budgeted = torchql.fit(Decay(k=0.2), data, x0=x0, max_time=600.0)
+    assert budgeted.status is free.status is torchql.Status.CONVERGED
+    assert torch.equal(budgeted.estimates, free.estimates)
+    assert budgeted.iterations == free.iterations
+    assert abs(float(budgeted.params["k"]) - 0.7) < 1e-8
+
+
+def test_fit_many_stops_every_running_and_unstarted_sample_at_max_time():
+    data = torchql.Observations(T, torch.stack([Y, 1.1 * Y, 0.9 * Y]), observe=["y"])
+    start = time.perf_counter()
+    result = torchql.fit_many(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5,
+                              chunk_size=1)
+    assert time.perf_counter() - start < 10.0
+    assert [s.name for s in result.status] == ["MAX_TIME"] * 3
+    assert not bool(result.success.any())
+    assert all("max_time = 0.5 s" in m for m in result.message)
+    assert torch.isnan(result.sse).all()
+    # the samples of the chunks that never started keep their guesses
+    assert float(result.params["k"][2]) == pytest.approx(0.2, abs=0.0)
+
+
+def test_fit_many_within_its_budget_is_unchanged():
+    data = torchql.Observations(T, torch.stack([Y, 1.1 * Y]), observe=["y"])
+    x0 = torch.tensor([1.0], dtype=DT)
+    free = torchql.fit_many(Decay(k=0.2), data, x0=x0)
+    budgeted = torchql.fit_many(Decay(k=0.2), data, x0=x0, max_time=600.0)
+    assert [s.name for s in budgeted.status] == [s.name for s in free.status] == ["CONVERGED"] * 2
+    assert torch.equal(budgeted.estimates, free.estimates)
+
+
+@pytest.mark.parametrize("value", [0, -1.0, math.nan, "1"])
+def test_max_time_must_be_a_positive_number(value):
+    data = torchql.Observations(T, Y, observe=["y"])
+    with pytest.raises((TypeError, ValueError), match="max_time"):
+        torchql.fit(Decay(), data, x0=torch.tensor([1.0], dtype=DT), max_time=value)
+    with pytest.raises((TypeError, ValueError), match="max_time"):
+        torchql.fit_many(Decay(), [data, data], x0=torch.tensor([1.0], dtype=DT), max_time=value)
