@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .model import _element_names
+from .status import Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from .result import FitResult, IterationRecord
@@ -34,8 +35,6 @@ def condition_number(result: "FitResult") -> float:
     ``inf`` when the problem is rank deficient (``Status.NOT_IDENTIFIABLE`` or a zero singular
     value), ``nan`` when the Jacobian was not evaluated (the fit failed).
     """
-    from .result import Status
-
     s = result.singular_values
     if result.status is Status.NOT_IDENTIFIABLE:
         return math.inf
@@ -91,8 +90,6 @@ def _g(x: float, digits: int = 7) -> str:
 
 
 def _no_errorbar_reason(result: "FitResult") -> str:
-    from .result import Status
-
     if result.status is Status.NOT_IDENTIFIABLE:
         detail = result.message[len(result.status.value):].strip()
         return "not identifiable: the scaled Jacobian is rank deficient" + (f" ({detail})" if detail else "")
