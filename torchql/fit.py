@@ -916,6 +916,7 @@ class _Problem:
                                        torch.ones(L, dtype=self.dtype, device=self.device),
                                        torch.zeros(L, dtype=torch.bool, device=self.device), self.rcond)
                     singular_values = sol.singular_values
+                    converged = status.success
                     if sol.rank_deficient and status.success:
                         status, detail = Status.NOT_IDENTIFIABLE, self._null_detail(sol.null_vectors)
                     elif sol.rank_deficient and status in (Status.MAX_ITER, Status.STALLED):
@@ -924,6 +925,8 @@ class _Problem:
                             self._null_detail(sol.null_vectors)
                             + f" The iteration did not converge ({status.name}): it moved along them.")
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
+                    if not converged:  # error bars about estimates that are not an optimum mean nothing
+                        cov = cov._replace(matrix=torch.full_like(cov.matrix, float("nan")))
             except IntegrationError as exc:
                 status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
         at_bound = self.bounds.at_bound(z0[self.unknown_index]) if self.bounds.active else []
@@ -957,6 +960,8 @@ class _Problem:
             method=self.method,
             model=fitted,
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
+            lower=self.bounds.lower.clone() if self.bounds.active else None,
+            upper=self.bounds.upper.clone() if self.bounds.active else None,
         )
 
     def _null_detail(self, null_vectors: torch.Tensor) -> str:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .model import _element_names
+from .result import Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from .result import FitResult, IterationRecord
@@ -34,8 +35,6 @@ def condition_number(result: "FitResult") -> float:
     ``inf`` when the problem is rank deficient (``Status.NOT_IDENTIFIABLE`` or a zero singular
     value), ``nan`` when the Jacobian was not evaluated (the fit failed).
     """
-    from .result import Status
-
     s = result.singular_values
     if result.status is Status.NOT_IDENTIFIABLE:
         return math.inf
@@ -90,9 +89,19 @@ def _g(x: float, digits: int = 7) -> str:
     return f"{x:.{digits}g}"
 
 
-def _no_errorbar_reason(result: "FitResult") -> str:
-    from .result import Status
+def _bounded(result: "FitResult") -> list[str]:
+    """Names of the unknowns with a bound (their intervals are in the internal variable)."""
+    if result.lower is None and result.upper is None:
+        return []
+    m = len(result.unknown_names)
+    inf = torch.full((m,), math.inf, dtype=torch.float64)
+    lower = inf.neg() if result.lower is None else result.lower.detach().cpu().to(torch.float64)
+    upper = inf if result.upper is None else result.upper.detach().cpu().to(torch.float64)
+    flags = (torch.isfinite(lower) | torch.isfinite(upper)).tolist()
+    return [name for name, flag in zip(result.unknown_names, flags) if flag]
 
+
+def _no_errorbar_reason(result: "FitResult") -> str:
     if result.status is Status.NOT_IDENTIFIABLE:
         detail = result.message[len(result.status.value):].strip()
         return "not identifiable: the scaled Jacobian is rank deficient" + (f" ({detail})" if detail else "")
@@ -161,22 +170,34 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
 
     se = result.stderr
     est = result.estimates.tolist()
-    cis = result.confidence_intervals(level)
     pct = f"{100 * level:g}%"
-    add(f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval)")
     missing = []
-    for name, value in zip(names, est):
-        s = se[name]
-        if not math.isfinite(s):
-            missing.append(name)
-            add(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
-            continue
-        rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
-        lo, hi = cis[name]
-        add(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
-    if missing:
-        add("[[Unknowns without error bars]]")
-        add(f"    {', '.join(missing)}: {_no_errorbar_reason(result)}")
+    if not (result.success or result.status is Status.NOT_IDENTIFIABLE):
+        # estimates that are not an optimum: no error bar or interval about them means anything
+        add(f"[[Unknowns]] (value; no standard errors or intervals: {_no_errorbar_reason(result)})")
+        for name, value in zip(names, est):
+            add(f"    {name:<{width}} = {_g(value)}")
+        missing = names
+    else:
+        cis = result.confidence_intervals(level)
+        bounded = _bounded(result)
+        header = f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval"
+        if bounded:
+            header += (f"; of {', '.join(bounded)} in the bounds' internal variable (log of the distance to "
+                       "one bound, logit between two), mapped back: inside the bounds, asymmetric")
+        add(header + ")")
+        for name, value in zip(names, est):
+            s = se[name]
+            if not math.isfinite(s):
+                missing.append(name)
+                add(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
+                continue
+            rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
+            lo, hi = cis[name]
+            add(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
+        if missing:
+            add("[[Unknowns without error bars]]")
+            add(f"    {', '.join(missing)}: {_no_errorbar_reason(result)}")
 
     if m > 1 and not missing:
         corr = result.correlation

@@ -146,8 +146,9 @@ class FitResult:
         Singular values of the column-scaled weighted Jacobian at the estimates.
     covariance : Tensor ``(m, m)``
         Covariance of ``estimates`` (``unknown_names`` order), from the final Jacobian:
-        ``s^2 (J^T J)^{-1}`` restricted to the directions the exact values leave free; NaN
-        when the problem is not identifiable or the fit failed.
+        ``s^2 (J^T J)^{-1}`` restricted to the directions the exact values leave free. All NaN
+        when the iteration did not converge (every unsuccessful status but a converged
+        ``NOT_IDENTIFIABLE``); NaN rows and columns for the unknowns the data do not determine.
     dof : int
         Degrees of freedom of the residuals, ``L - m``.
     residual_variance : float
@@ -175,6 +176,10 @@ class FitResult:
         With several experiments (``data`` a list): each one's initial time; ``x0`` is then
         ``(E, n_states)``, one row per experiment, and ``t0`` is 0 (the normalized time of the
         stacked problem that ``history`` trajectories live on).
+    lower, upper : Tensor ``(m,)`` or None
+        The ``bounds`` of the unknowns, in ``unknown_names`` order (``-inf``/``inf`` where a side
+        is open); ``None``: no bounds. Bounded unknowns' intervals are computed in the internal
+        variable of :mod:`torchql.bounds` (see :meth:`confidence_intervals`).
     """
 
     success: bool
@@ -205,10 +210,15 @@ class FitResult:
     data: "Observations | None" = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
     experiment_t0: list[float] | None = field(default=None, repr=False)
+    lower: torch.Tensor | None = field(default=None, repr=False)
+    upper: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
-        """Standard error of every unknown, by name (initial states as ``"y(t0)"``)."""
+        """Standard error of every unknown, by name (initial states as ``"y(t0)"``).
+
+        NaN when the fit did not converge (see :attr:`covariance`) and for unknowns the data do
+        not determine."""
         diag = torch.diagonal(self.covariance).clamp_min(0).sqrt()
         return {name: float(v) for name, v in zip(self.unknown_names, diag)}
 
@@ -224,10 +234,18 @@ class FitResult:
         ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual
         variance was estimated, the normal quantile when ``sigma`` was known. Wald intervals
         rely on the model being close to linear in the unknowns over the interval.
+
+        A bounded unknown's interval is the Wald interval of its internal variable (``log`` of
+        the distance to a single bound, ``logit`` of the position between two) mapped back: it
+        lies inside the bounds and is asymmetric (:func:`torchql.uncertainty.wald_intervals`).
+        Both ends are NaN when the fit did not succeed (a ``NOT_IDENTIFIABLE`` fit keeps the
+        intervals of the unknowns the data determine) and for unknowns without a standard error.
         """
         from .uncertainty import wald_intervals
 
-        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level)
+        valid = self.success or self.status is Status.NOT_IDENTIFIABLE
+        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
+                              lower=self.lower, upper=self.upper, valid=valid)
 
     @property
     def condition_number(self) -> float:
