@@ -128,6 +128,35 @@ def test_not_identifiable_report_explains_missing_error_bars(product):
     assert "[[Correlations]]" not in text
 
 
+def test_failed_fit_report_gives_the_reason_instead_of_error_bars_and_intervals():
+    from testmodels import Decay
+
+    times = torch.linspace(0, 2, 9, dtype=DT)
+    data = torchql.Observations(times, torch.exp(-0.7 * times) + 0.01 * torch.cos(5 * times), observe=["y"])
+    result = torchql.fit(Decay(30.0), data, x0=torch.tensor([5.0], dtype=DT), max_iter=1)
+    assert result.status is torchql.Status.MAX_ITER
+    text = result.report()
+    assert "no standard errors or intervals: the fit did not converge (MAX_ITER)" in text
+    assert "CI [" not in text and "+/-" not in text and "[[Correlations]]" not in text
+    for name, value in zip(result.unknown_names, result.estimates.tolist()):  # the estimates are still shown
+        assert re.search(rf"\n    {re.escape(name)} += {re.escape(f'{value:.7g}')}\n", text)
+
+
+def test_bounded_report_says_which_intervals_are_in_the_internal_variable():
+    from testmodels import Decay
+
+    times = torch.linspace(0, 2, 9, dtype=DT)
+    data = torchql.Observations(times, torch.exp(-0.7 * times) + 0.01 * torch.cos(5 * times), observe=["y"])
+    result = torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT), bounds={"k": (0, None)})
+    assert result.success
+    text = result.report()
+    header = next(line for line in text.splitlines() if line.startswith("[[Unknowns]]"))
+    assert "of k in the bounds' internal variable" in header and "y(t0)" not in header
+    lo, hi = result.confidence_intervals(0.95)["k"]
+    assert f"95% CI [{lo:.7g}, {hi:.7g}]" in text
+    assert "internal variable" not in torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT)).report()
+
+
 # ----------------------------------------------------------------------------------------- plots
 @pytest.fixture()
 def agg():

@@ -206,7 +206,8 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
             slope = bounds.derivative(u).abs()
             se_q = torch.where(se == 0, torch.zeros_like(se), se / slope)
             q_hat = bounds.internal(u)
-            ends = torch.stack([bounds.external(q_hat - q * se_q), bounds.external(q_hat + q * se_q)])
+            a, b = bounds.external(q_hat - q * se_q), bounds.external(q_hat + q * se_q)
+            ends = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])  # u falls with q below an upper bound only
             for i in bounded.nonzero().flatten().tolist():
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
     return {name: ((nan, nan) if not math.isfinite(float(s)) else ends_)
