@@ -207,3 +207,37 @@ def test_missing_matplotlib_names_the_extra(car, monkeypatch):
         car.plot_fit()
     with pytest.raises(ImportError, match=r"pip install torchql\[plot\]"):
         car.plot_convergence()
+
+
+class _Logistic(torchql.ODEModel):
+    """``y' = r y (1 - y / K)``."""
+
+    state_names = ("y",)
+
+    def __init__(self, r, K):
+        super().__init__()
+        self.register_buffer("r", torch.tensor(r, dtype=DT))
+        self.register_buffer("K", torch.tensor(K, dtype=DT))
+
+    def forward(self, t, x):
+        return self.r * x * (1 - x / self.K)
+
+
+def test_iteration_sse_is_the_stored_trajectory_and_acceptance_lowers_a_recorded_merit():
+    """From far guesses the Kantorovich SSE column (of the predicted linear trajectories) dips
+    below the optimum and rises back; every accepted step lowered the merit it was judged by."""
+    times = torch.linspace(0, 10, 21, dtype=DT)
+    truth = torchql.simulate(_Logistic(0.9, 10.0), torch.tensor([0.5], dtype=DT), times)[:, 0]
+    y = truth + 0.1 * torch.randn(21, generator=torch.Generator().manual_seed(1), dtype=DT)
+    result = torchql.fit(_Logistic(2.0, 2.0), torchql.Observations(times, y, observe=["y"]),
+                         x0=torch.tensor([0.5], dtype=DT))
+    assert result.success
+    sse = [rec.sse for rec in result.history]
+    assert min(sse) < result.sse * (1 - 1e-3)  # a predicted trajectory fits better than the optimum model
+    assert any(b > a * (1 + 1e-3) for a, b in zip(sse, sse[1:]))  # the column rises somewhere
+    assert sse[-1] == result.sse and math.isnan(result.history[-1].merit)
+    steps = result.history[:-1]
+    assert all(math.isfinite(rec.merit) for rec in steps)
+    for a, b in zip(steps, steps[1:]):  # the acceptance test, as recorded
+        assert b.merit <= a.merit * (1 + 1e-10) or b.model_merit <= a.model_merit * (1 + 1e-10)
+    assert "not the model's solution: it need not fall" in result.report()

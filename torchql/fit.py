@@ -722,6 +722,7 @@ class _Problem:
                     state.iterations += 1
                     state.final_traj = None  # the final pass integrates the shifted estimates
                     state.final_guess = current.W[:, :, 0] + current.W[:, :, 1:] @ alpha
+                    record.model_merit = _or_nan(current.nonlinear_sse)
                     self._notify(state, record)
                     return
                 try:
@@ -744,13 +745,16 @@ class _Problem:
                 if anchored is not None:
                     current = anchored
                     record.sse, record.trajectory = current.sse, current.traj.detach().clone()
+                    record.merit = current.merit
                     continue
                 damping = _first_damping(last_damping) if damping == 0.0 else 10 * damping
                 if damping > _DAMPING_MAX:
                     record.rejected = rejected
+                    record.model_merit = _or_nan(current.nonlinear_sse)
                     state.status = Status.STALLED
                     self._notify(state, record)
                     return
+            record.model_merit = _or_nan(current.nonlinear_sse)
             self._notify(state, record)
             last_damping, damping = damping, 0.0
             state.iterations += 1
@@ -819,6 +823,7 @@ class _Problem:
     def _record_iterate(self, state, current: _Iterate) -> IterationRecord | None:
         """Append the iterate to the history; ``None`` (status set) when its rows are non-finite."""
         record = self._record(state.iterations, current.z0, current.sse, self.grid, current.traj)
+        record.merit = current.merit
         state.history.append(record)
         if state.scale is None:
             state.scale = self._typical_scale(current.traj)
@@ -995,6 +1000,10 @@ _LOOSE_RTOL = 1e-6
 _DAMPING_START = 1e-3
 _DAMPING_MIN = 1e-10
 _DAMPING_MAX = 1e12
+
+
+def _or_nan(value: float | None) -> float:
+    return float("nan") if value is None else value
 
 
 def _first_damping(last: float) -> float:

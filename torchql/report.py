@@ -5,7 +5,12 @@ statistics (values, unknowns, degrees of freedom, SSE, residual standard deviati
 chi-square when ``sigma`` was given, AIC and BIC, condition number of the scaled Jacobian);
 every unknown as ``value +/- stderr (relative %)`` with its Wald interval; the correlations
 above a threshold; the unknowns without error bars and why; and the iteration table (SSE,
-scaled ``|alpha|`` and every unknown per iterate, like the thesis' Table 3.2).
+scaled ``|alpha|`` and every unknown per iterate, like the thesis' Table 3.2). A fit that did
+not converge shows its estimates without error bars or intervals, and says why. Bounded
+unknowns' intervals are Wald intervals in the bounds' internal variable, mapped back (see
+:meth:`torchql.FitResult.confidence_intervals`); the header line names them. The iteration
+table's SSE is :attr:`torchql.IterationRecord.sse` (for Kantorovich, that of the iterate's
+stored linear trajectory; see there).
 
 AIC and BIC are computed from the SSE as lmfit does (a Gaussian likelihood with the variance
 profiled out): ``N ln(SSE / N) + 2 m`` and ``N ln(SSE / N) + ln(N) m``, with ``N`` the
@@ -212,7 +217,13 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
             add(f"    {f'C({a}, {b})':<{cw}} = {r:+.4f}")
 
     if iterations and result.history:
-        add("[[Iterations]] (|alpha|: the update scaled by the unknowns' magnitudes)")
+        if result.method == "kantorovich":
+            what = ("SSE: of the iterate's stored trajectory, the linear prediction w_0 + W alpha of the step "
+                    "that led to it (not the model's solution: it need not fall, and may dip below the optimum); "
+                    "steps are accepted on IterationRecord.merit or the model's own sum of squares")
+        else:
+            what = "SSE: of the model's solution from the iterate's estimates"
+        add(f"[[Iterations]] ({what}; |alpha|: the update scaled by the unknowns' magnitudes)")
         cols = [max(14, len(n) + 1) for n in names]
         add(f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols)))
         for rec in result.history:

@@ -73,8 +73,18 @@ class IterationRecord:
     x0 : Tensor ``(n_states,)``
         Initial-state estimate at this iterate.
     sse : float
-        Weighted sum of squared residuals of this iterate's trajectory (for the Kantorovich
-        method, the stored superposed trajectory; for shooting, the nonlinear solution).
+        Weighted sum of squared residuals (values marked exact left out) of this iterate's
+        stored trajectory ``trajectory``. Shooting: the model's own solution from this
+        iterate's estimates. Kantorovich: the trajectory the previous iterate's linear problem
+        predicted for the step taken, ``w_0 + W alpha`` (the reference this iterate is
+        linearized about; iteration 0: the first reference, integrated from the guesses or
+        built from the data), or after a rejected step the model's solution from the
+        estimates that the iterate was re-anchored to. Kantorovich's column is therefore not
+        monotone: a step is accepted when it lowers :attr:`merit` or, failing that, the model's
+        own sum of squares (:attr:`model_merit`), neither of which is this value, and a
+        predicted trajectory is no model solution, so its sum of squares may fall below the
+        least-squares optimum and rise back to it as the iteration converges. The last
+        iterate's is the model's own at the estimates (``FitResult.sse``).
     alpha : Tensor ``(m,)`` or None
         The update computed from this iterate (None if none was computed).
     alpha_norm : float
@@ -89,6 +99,17 @@ class IterationRecord:
     rejected : int
         Trial steps from this iterate that were rejected (they raised the sum of squares or
         could not be integrated) before one was accepted.
+    merit : float
+        What the step acceptance compares first: the weighted sum of squares of this iterate's
+        particular solution (Kantorovich: the linear problem's trajectory from this iterate's
+        estimates without an update; shooting: the model's solution, then equal to ``sse``),
+        plus ``1e6`` times the exact values' squared misfit. A step from the previous iterate
+        was accepted because this fell, or else because :attr:`model_merit` did. NaN for the
+        final evaluation.
+    model_merit : float
+        The same sum for the model's own solution from this iterate's estimates (integrated at
+        a loose tolerance), when the acceptance test needed it; NaN when it did not (the merits
+        decided) or the iterate's step was never tested.
     """
 
     iteration: int
@@ -101,6 +122,8 @@ class IterationRecord:
     trajectory_t: torch.Tensor | None = None
     damping: float = 0.0
     rejected: int = 0
+    merit: float = float("nan")
+    model_merit: float = float("nan")
 
 
 @dataclass
