@@ -194,8 +194,8 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     if not valid:
         return {name: (nan, nan) for name in names}
     u = torch.as_tensor(estimates).detach().reshape(-1)
-    se = torch.tensor([float(stderr[name]) for name in names], dtype=u.dtype, device=u.device)
-    out = {name: (float(v) - q * float(s), float(v) + q * float(s)) for name, v, s in zip(names, u, se)}
+    ses = [float(stderr[name]) for name in names]
+    out = {name: (float(v) - q * s, float(v) + q * s) for name, v, s in zip(names, u, ses)}
     if lower is not None or upper is not None:
         from .bounds import Bounds
 
@@ -203,6 +203,7 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
         bounds = Bounds.of(-inf if lower is None else lower.to(u), inf if upper is None else upper.to(u), names)
         bounded = bounds.has_lower | bounds.has_upper
         if bool(bounded.any()):
+            se = torch.tensor(ses, dtype=u.dtype, device=u.device)
             slope = bounds.derivative(u).abs()
             se_q = torch.where(se == 0, torch.zeros_like(se), se / slope)
             q_hat = bounds.internal(u)
@@ -210,5 +211,4 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
             ends = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])  # u falls with q below an upper bound only
             for i in bounded.nonzero().flatten().tolist():
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
-    return {name: ((nan, nan) if not math.isfinite(float(s)) else ends_)
-            for (name, ends_), s in zip(out.items(), se)}
+    return {name: ends if math.isfinite(s) else (nan, nan) for (name, ends), s in zip(out.items(), ses)}
