@@ -87,6 +87,9 @@ def test_oscillators_stop_on_their_own_and_max_iter_is_per_sample():
                            grid=50, max_iter=9) for b in range(5)]
     assert_same_as_single(batch, singles)
     assert [s.name for s in batch.status] == ["CONVERGED"] * 4 + ["MAX_ITER"]
+    # no error bars about the unconverged sample's estimates, as fit gives none
+    assert torch.isnan(batch.covariance[4]).all() and torch.isfinite(batch.covariance[:4]).all()
+    assert all(math.isnan(lo) and math.isnan(hi) for lo, hi in batch[4].confidence_intervals().values())
     assert len(set(batch.iterations[:4].tolist())) > 1  # converged samples stopped at their own iteration
     assert finished[-1] == 5 and sorted(finished) == finished and len(finished) > 2  # samples finished apart
 

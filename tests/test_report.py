@@ -128,6 +128,35 @@ def test_not_identifiable_report_explains_missing_error_bars(product):
     assert "[[Correlations]]" not in text
 
 
+def test_failed_fit_report_gives_the_reason_instead_of_error_bars_and_intervals():
+    from testmodels import Decay
+
+    times = torch.linspace(0, 2, 9, dtype=DT)
+    data = torchql.Observations(times, torch.exp(-0.7 * times) + 0.01 * torch.cos(5 * times), observe=["y"])
+    result = torchql.fit(Decay(30.0), data, x0=torch.tensor([5.0], dtype=DT), max_iter=1)
+    assert result.status is torchql.Status.MAX_ITER
+    text = result.report()
+    assert "no standard errors or intervals: the fit did not converge (MAX_ITER)" in text
+    assert "CI [" not in text and "+/-" not in text and "[[Correlations]]" not in text
+    for name, value in zip(result.unknown_names, result.estimates.tolist()):  # the estimates are still shown
+        assert re.search(rf"\n    {re.escape(name)} += {re.escape(f'{value:.7g}')}\n", text)
+
+
+def test_bounded_report_says_which_intervals_are_in_the_internal_variable():
+    from testmodels import Decay
+
+    times = torch.linspace(0, 2, 9, dtype=DT)
+    data = torchql.Observations(times, torch.exp(-0.7 * times) + 0.01 * torch.cos(5 * times), observe=["y"])
+    result = torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT), bounds={"k": (0, None)})
+    assert result.success
+    text = result.report()
+    header = next(line for line in text.splitlines() if line.startswith("[[Unknowns]]"))
+    assert "of k in the bounds' internal variable" in header and "y(t0)" not in header
+    lo, hi = result.confidence_intervals(0.95)["k"]
+    assert f"95% CI [{lo:.7g}, {hi:.7g}]" in text
+    assert "internal variable" not in torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT)).report()
+
+
 # ----------------------------------------------------------------------------------------- plots
 @pytest.fixture()
 def agg():
@@ -178,3 +207,37 @@ def test_missing_matplotlib_names_the_extra(car, monkeypatch):
         car.plot_fit()
     with pytest.raises(ImportError, match=r"pip install torchql\[plot\]"):
         car.plot_convergence()
+
+
+class _Logistic(torchql.ODEModel):
+    """``y' = r y (1 - y / K)``."""
+
+    state_names = ("y",)
+
+    def __init__(self, r, K):
+        super().__init__()
+        self.register_buffer("r", torch.tensor(r, dtype=DT))
+        self.register_buffer("K", torch.tensor(K, dtype=DT))
+
+    def forward(self, t, x):
+        return self.r * x * (1 - x / self.K)
+
+
+def test_iteration_sse_is_the_stored_trajectory_and_acceptance_lowers_a_recorded_merit():
+    """From far guesses the Kantorovich SSE column (of the predicted linear trajectories) dips
+    below the optimum and rises back; every accepted step lowered the merit it was judged by."""
+    times = torch.linspace(0, 10, 21, dtype=DT)
+    truth = torchql.simulate(_Logistic(0.9, 10.0), torch.tensor([0.5], dtype=DT), times)[:, 0]
+    y = truth + 0.1 * torch.randn(21, generator=torch.Generator().manual_seed(1), dtype=DT)
+    result = torchql.fit(_Logistic(2.0, 2.0), torchql.Observations(times, y, observe=["y"]),
+                         x0=torch.tensor([0.5], dtype=DT))
+    assert result.success
+    sse = [rec.sse for rec in result.history]
+    assert min(sse) < result.sse * (1 - 1e-3)  # a predicted trajectory fits better than the optimum model
+    assert any(b > a * (1 + 1e-3) for a, b in zip(sse, sse[1:]))  # the column rises somewhere
+    assert sse[-1] == result.sse and math.isnan(result.history[-1].merit)
+    steps = result.history[:-1]
+    assert all(math.isfinite(rec.merit) for rec in steps)
+    for a, b in zip(steps, steps[1:]):  # the acceptance test, as recorded
+        assert b.merit <= a.merit * (1 + 1e-10) or b.model_merit <= a.model_merit * (1 + 1e-10)
+    assert "not the model's solution: it need not fall" in result.report()

@@ -120,3 +120,98 @@ def test_stderr_and_wald_coverage_over_repeated_noisy_datasets():
     assert np.all(np.abs(spread / mean_se - 1) < 0.15), (spread, mean_se)
     for name, count in covered.items():
         assert 0.90 <= count / n <= 0.99, (name, count)
+
+
+# ------------------------------------------------------------------ failed fits, bounded unknowns
+DECAY_TIMES = torch.linspace(0, 2, 9, dtype=DT)
+# y' = -k y with k = 0.03 and noise of about 0.035: the data barely show the decay, and the
+# symmetric Wald interval of an unbounded fit reaches below k = 0
+DECAY_NOISE = torch.tensor([0.03, -0.04, 0.02, 0.05, -0.03, -0.02, 0.04, -0.05, 0.01], dtype=DT)
+SLOW_DECAY = torchql.Observations(DECAY_TIMES, torch.exp(-0.03 * DECAY_TIMES) + DECAY_NOISE, observe=["y"])
+
+
+def test_a_fit_stopped_early_has_no_error_bars_or_intervals():
+    result = torchql.fit(Decay(30.0), SLOW_DECAY, x0=torch.tensor([5.0], dtype=DT), max_iter=1)
+    assert result.status is torchql.Status.MAX_ITER and not result.success
+    assert torch.isnan(result.covariance).all()
+    assert all(math.isnan(v) for v in result.stderr.values())
+    cis = result.confidence_intervals(0.95)
+    assert list(cis) == ["y(t0)", "k"]
+    assert all(math.isnan(lo) and math.isnan(hi) for lo, hi in cis.values())
+    assert result.dof == 7 and math.isfinite(result.sse)  # the fit's own statistics are still reported
+
+
+def _decay_fit(bounds=None, k=0.05):
+    return torchql.fit(Decay(k), SLOW_DECAY, x0=torch.tensor([1.0], dtype=DT), bounds=bounds)
+
+
+def test_positive_rate_interval_is_wald_in_log_k_and_stays_positive():
+    free = _decay_fit()
+    assert free.success and free.lower is None and free.upper is None
+    k_hat, se = free.estimates[1].item(), free.stderr["k"]
+    lo, hi = free.confidence_intervals(0.95)["k"]
+    assert lo < 0 < k_hat < hi  # the symmetric interval of a positive rate crosses zero
+    q = student_t_quantile(0.975, 7)
+    assert (lo, hi) == pytest.approx((k_hat - q * se, k_hat + q * se), rel=1e-12)
+
+    bounded = _decay_fit({"k": (0, None)})
+    assert bounded.success
+    torch.testing.assert_close(bounded.lower, torch.tensor([-math.inf, 0.0], dtype=DT))
+    torch.testing.assert_close(bounded.upper, torch.tensor([math.inf, math.inf], dtype=DT))
+    k_b, se_b = bounded.estimates[1].item(), bounded.stderr["k"]
+    assert k_b == pytest.approx(k_hat, rel=1e-8)  # an interior optimum: the bound does not move it
+    assert se_b == pytest.approx(se, rel=1e-6)  # the standard error stays in the user's units
+    lo_b, hi_b = bounded.confidence_intervals(0.95)["k"]
+    # u = exp(q): se_q = se / k, the interval exp(log k -/+ t se / k)
+    half = q * se_b / k_b
+    assert lo_b == pytest.approx(math.exp(math.log(k_b) - half), rel=1e-12, abs=0)
+    assert hi_b == pytest.approx(math.exp(math.log(k_b) + half), rel=1e-12, abs=0)
+    assert 0 < lo_b < k_b < hi_b
+    assert hi_b - k_b > k_b - lo_b  # asymmetric, longer toward large rates
+    # the unbounded initial state keeps its symmetric interval
+    y_lo, y_hi = bounded.confidence_intervals(0.95)["y(t0)"]
+    y_hat, y_se = bounded.estimates[0].item(), bounded.stderr["y(t0)"]
+    assert (y_lo, y_hi) == pytest.approx((y_hat - q * y_se, y_hat + q * y_se), rel=1e-12)
+
+
+def test_two_sided_bound_interval_is_wald_in_logit_and_stays_inside():
+    free = _decay_fit()
+    lo_free, hi_free = free.confidence_intervals(0.95)["k"]
+    assert lo_free < 0 and hi_free > 0.08  # crosses both bounds below
+    bounded = _decay_fit({"k": (0.0, 0.08)})
+    assert bounded.success
+    k_b, se_b = bounded.estimates[1].item(), bounded.stderr["k"]
+    lo, hi = bounded.confidence_intervals(0.95)["k"]
+    assert 0.0 < lo < k_b < hi < 0.08
+    # u = 0.08 sigmoid(q): du/dq = k (0.08 - k) / 0.08
+    q_hat = math.log(k_b / (0.08 - k_b))
+    half = student_t_quantile(0.975, 7) * se_b * 0.08 / (k_b * (0.08 - k_b))
+    sigmoid = lambda x: 1 / (1 + math.exp(-x))  # noqa: E731
+    assert lo == pytest.approx(0.08 * sigmoid(q_hat - half), rel=1e-12, abs=0)
+    assert hi == pytest.approx(0.08 * sigmoid(q_hat + half), rel=1e-12, abs=0)
+
+
+def test_upper_bound_interval_mirrors_the_lower_one():
+    bounded = _decay_fit({"k": (None, 0.06)})
+    assert bounded.success
+    k_b, se_b = bounded.estimates[1].item(), bounded.stderr["k"]
+    lo, hi = bounded.confidence_intervals(0.9)["k"]
+    half = student_t_quantile(0.95, 7) * se_b / (0.06 - k_b)  # u = 0.06 - exp(q)
+    assert lo == pytest.approx(0.06 - math.exp(math.log(0.06 - k_b) + half), rel=1e-12, abs=0)
+    assert hi == pytest.approx(0.06 - math.exp(math.log(0.06 - k_b) - half), rel=1e-12, abs=0)
+    assert lo < k_b < hi < 0.06
+
+
+def test_several_experiments_carry_the_bounds_and_bounded_intervals():
+    second = torchql.Observations(DECAY_TIMES, 2 * torch.exp(-0.03 * DECAY_TIMES) - DECAY_NOISE, observe=["y"])
+    result = torchql.fit(Decay(0.05), [SLOW_DECAY, second], x0=torch.tensor([[1.0], [2.0]], dtype=DT),
+                         bounds={"k": (0, None), "y": (0, None)})
+    assert result.success
+    k = result.unknown_names.index("k")
+    assert result.lower is not None and result.lower.shape == (len(result.unknown_names),)
+    assert bool((result.lower == 0).all()) and bool(torch.isinf(result.upper).all())
+    cis = result.confidence_intervals(0.95)
+    k_hat, se = result.estimates[k].item(), result.stderr["k"]
+    half = student_t_quantile(0.975, result.dof) * se / k_hat
+    assert cis["k"] == pytest.approx((k_hat * math.exp(-half), k_hat * math.exp(half)), rel=1e-12)
+    assert all(0 < lo < hi for lo, hi in cis.values())

@@ -917,6 +917,7 @@ class _Engine:
         sse = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         cov = torch.full((S, m, m), float("nan"), dtype=dtype, device=dev)
         codes = [_STATUSES[int(c)] for c in status.tolist()]
+        converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
         final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
                              dtype=torch.bool, device=dev)
         rows = final.nonzero().flatten()
@@ -972,6 +973,7 @@ class _Engine:
                     text += f" The iteration did not converge ({code.name}): it moved along them."
                 codes[r], detail[r] = Status.NOT_IDENTIFIABLE, text
             cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
+            cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
         messages = [c.value + d for c, d in zip(codes, detail)]
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages)
 

@@ -29,6 +29,9 @@ class SampleResult:
     n_observations, dof, residual_variance, unknown_names, t0, sigma_known
         As in :class:`BatchFitResult`, for this sample (``params`` values of the buffers' own
         shapes, ``x0 (n_states,)``, ``estimates (m,)``, ``covariance (m, m)``).
+    lower, upper : Tensor ``(m,)`` or None
+        Bounds of the unknowns, as in :class:`torchql.FitResult` (``fit_many`` takes no bounds:
+        ``None``).
     """
 
     index: int
@@ -47,6 +50,8 @@ class SampleResult:
     unknown_names: list[str]
     t0: float
     sigma_known: bool
+    lower: torch.Tensor | None = None
+    upper: torch.Tensor | None = None
 
     @property
     def stderr(self) -> dict[str, float]:
@@ -59,11 +64,15 @@ class SampleResult:
 
         As :meth:`torchql.FitResult.confidence_intervals`: ``q`` is Student's t quantile with
         ``dof`` degrees of freedom when the residual variance was estimated, the normal
-        quantile when ``sigma`` was known.
+        quantile when ``sigma`` was known; NaN ends when the sample's fit did not succeed (but
+        for a ``NOT_IDENTIFIABLE`` one's determined unknowns) or an unknown has no standard
+        error; a bounded unknown's (``lower``/``upper``) in its internal variable, mapped back.
         """
         from .uncertainty import wald_intervals
 
-        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level)
+        valid = self.success or self.status is Status.NOT_IDENTIFIABLE
+        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
+                              lower=self.lower, upper=self.upper, valid=valid)
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))
@@ -99,7 +108,8 @@ class BatchFitResult:
     sse : Tensor ``(B,)``
         Weighted sum of squared residuals of each fitted model (NaN where it failed).
     covariance : Tensor ``(B, m, m)``
-        Covariance of each sample's estimates (NaN rows/columns for undetermined unknowns).
+        Covariance of each sample's estimates: NaN rows/columns for undetermined unknowns, all
+        NaN for a sample whose iteration did not converge (as :attr:`torchql.FitResult.covariance`).
     n_observations : Tensor ``(B,)`` of int
         Values used per sample (NaNs skipped).
     dof : Tensor ``(B,)`` of int

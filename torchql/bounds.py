@@ -79,6 +79,16 @@ class Bounds:
         self.has_upper = torch.isfinite(self.upper)
         self.active = bool((self.has_lower | self.has_upper).any())
 
+    @classmethod
+    def of(cls, lower: torch.Tensor, upper: torch.Tensor, names: Sequence[str]) -> "Bounds":
+        """Bounds from their values ``lower``, ``upper`` ``(m,)`` (infinite where a side is open),
+        as a :class:`torchql.FitResult` stores them, for the change of variables they define."""
+        bounds = cls(None, names, {}, names, lower.dtype, lower.device)
+        bounds.lower, bounds.upper = lower.clone(), upper.clone()
+        bounds.has_lower, bounds.has_upper = torch.isfinite(bounds.lower), torch.isfinite(bounds.upper)
+        bounds.active = bool((bounds.has_lower | bounds.has_upper).any())
+        return bounds
+
     def check_inside(self, u: torch.Tensor) -> None:
         """Raise ``ValueError`` naming every guess that is not strictly inside its bounds."""
         outside = (self.has_lower & (u <= self.lower)) | (self.has_upper & (u >= self.upper))

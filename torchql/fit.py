@@ -741,6 +741,7 @@ class _Problem:
                     state.iterations += 1
                     state.final_traj = None  # the final pass integrates the shifted estimates
                     state.final_guess = current.W[:, :, 0] + current.W[:, :, 1:] @ alpha
+                    record.model_merit = _or_nan(current.nonlinear_sse)
                     self._notify(state, record)
                     return
                 try:
@@ -763,13 +764,16 @@ class _Problem:
                 if anchored is not None:
                     current = anchored
                     record.sse, record.trajectory = current.sse, current.traj.detach().clone()
+                    record.merit = current.merit
                     continue
                 damping = _first_damping(last_damping) if damping == 0.0 else 10 * damping
                 if damping > _DAMPING_MAX:
                     record.rejected = rejected
+                    record.model_merit = _or_nan(current.nonlinear_sse)
                     state.status = Status.STALLED
                     self._notify(state, record)
                     return
+            record.model_merit = _or_nan(current.nonlinear_sse)
             self._notify(state, record)
             last_damping, damping = damping, 0.0
             state.iterations += 1
@@ -838,6 +842,7 @@ class _Problem:
     def _record_iterate(self, state, current: _Iterate) -> IterationRecord | None:
         """Append the iterate to the history; ``None`` (status set) when its rows are non-finite."""
         record = self._record(state.iterations, current.z0, current.sse, self.grid, current.traj)
+        record.merit = current.merit
         state.history.append(record)
         if state.scale is None:
             state.scale = self._typical_scale(current.traj)
@@ -935,6 +940,7 @@ class _Problem:
                                        torch.ones(L, dtype=self.dtype, device=self.device),
                                        torch.zeros(L, dtype=torch.bool, device=self.device), self.rcond)
                     singular_values = sol.singular_values
+                    converged = status.success
                     if sol.rank_deficient and status.success:
                         status, detail = Status.NOT_IDENTIFIABLE, self._null_detail(sol.null_vectors)
                     elif sol.rank_deficient and status in (Status.MAX_ITER, Status.STALLED):
@@ -943,6 +949,8 @@ class _Problem:
                             self._null_detail(sol.null_vectors)
                             + f" The iteration did not converge ({status.name}): it moved along them.")
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
+                    if not converged:  # error bars about estimates that are not an optimum mean nothing
+                        cov = cov._replace(matrix=torch.full_like(cov.matrix, float("nan")))
             except IntegrationError as exc:
                 status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
         at_bound = self.bounds.at_bound(z0[self.unknown_index]) if self.bounds.active else []
@@ -976,6 +984,8 @@ class _Problem:
             method=self.method,
             model=fitted,
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
+            lower=self.bounds.lower.clone() if self.bounds.active else None,
+            upper=self.bounds.upper.clone() if self.bounds.active else None,
         )
 
     def _null_detail(self, null_vectors: torch.Tensor) -> str:
@@ -1009,6 +1019,10 @@ _LOOSE_RTOL = 1e-6
 _DAMPING_START = 1e-3
 _DAMPING_MIN = 1e-10
 _DAMPING_MAX = 1e12
+
+
+def _or_nan(value: float | None) -> float:
+    return float("nan") if value is None else value
 
 
 def _first_damping(last: float) -> float:

@@ -64,7 +64,8 @@ class ProfileResult:
     closed : tuple of bool
         Whether each side's end was found.
     wald : tuple of float
-        The Wald interval at the same level, for comparison.
+        The Wald interval at the same level, for comparison (``FitResult.confidence_intervals``:
+        for a bounded unknown, in its internal variable and mapped back).
     values : Tensor ``(K,)``
         The fixed values of the unknown at which the profile was evaluated, increasing
         (the estimate and the root-finding evaluations included).

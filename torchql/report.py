@@ -5,7 +5,12 @@ statistics (values, unknowns, degrees of freedom, SSE, residual standard deviati
 chi-square when ``sigma`` was given, AIC and BIC, condition number of the scaled Jacobian);
 every unknown as ``value +/- stderr (relative %)`` with its Wald interval; the correlations
 above a threshold; the unknowns without error bars and why; and the iteration table (SSE,
-scaled ``|alpha|`` and every unknown per iterate, like the thesis' Table 3.2).
+scaled ``|alpha|`` and every unknown per iterate, like the thesis' Table 3.2). A fit that did
+not converge shows its estimates without error bars or intervals, and says why. Bounded
+unknowns' intervals are Wald intervals in the bounds' internal variable, mapped back (see
+:meth:`torchql.FitResult.confidence_intervals`); the header line names them. The iteration
+table's SSE is :attr:`torchql.IterationRecord.sse` (for Kantorovich, that of the iterate's
+stored linear trajectory; see there).
 
 AIC and BIC are computed from the SSE as lmfit does (a Gaussian likelihood with the variance
 profiled out): ``N ln(SSE / N) + 2 m`` and ``N ln(SSE / N) + ln(N) m``, with ``N`` the
@@ -89,6 +94,18 @@ def _g(x: float, digits: int = 7) -> str:
     return f"{x:.{digits}g}"
 
 
+def _bounded(result: "FitResult") -> list[str]:
+    """Names of the unknowns with a bound (their intervals are in the internal variable)."""
+    if result.lower is None and result.upper is None:
+        return []
+    m = len(result.unknown_names)
+    inf = torch.full((m,), math.inf, dtype=torch.float64)
+    lower = inf.neg() if result.lower is None else result.lower.detach().cpu().to(torch.float64)
+    upper = inf if result.upper is None else result.upper.detach().cpu().to(torch.float64)
+    flags = (torch.isfinite(lower) | torch.isfinite(upper)).tolist()
+    return [name for name, flag in zip(result.unknown_names, flags) if flag]
+
+
 def _no_errorbar_reason(result: "FitResult") -> str:
     if result.status is Status.NOT_IDENTIFIABLE:
         detail = result.message[len(result.status.value):].strip()
@@ -158,22 +175,34 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
 
     se = result.stderr
     est = result.estimates.tolist()
-    cis = result.confidence_intervals(level)
     pct = f"{100 * level:g}%"
-    add(f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval)")
     missing = []
-    for name, value in zip(names, est):
-        s = se[name]
-        if not math.isfinite(s):
-            missing.append(name)
-            add(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
-            continue
-        rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
-        lo, hi = cis[name]
-        add(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
-    if missing:
-        add("[[Unknowns without error bars]]")
-        add(f"    {', '.join(missing)}: {_no_errorbar_reason(result)}")
+    if not (result.success or result.status is Status.NOT_IDENTIFIABLE):
+        # estimates that are not an optimum: no error bar or interval about them means anything
+        add(f"[[Unknowns]] (value; no standard errors or intervals: {_no_errorbar_reason(result)})")
+        for name, value in zip(names, est):
+            add(f"    {name:<{width}} = {_g(value)}")
+        missing = names
+    else:
+        cis = result.confidence_intervals(level)
+        bounded = _bounded(result)
+        header = f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval"
+        if bounded:
+            header += (f"; of {', '.join(bounded)} in the bounds' internal variable (log of the distance to "
+                       "one bound, logit between two), mapped back: inside the bounds, asymmetric")
+        add(header + ")")
+        for name, value in zip(names, est):
+            s = se[name]
+            if not math.isfinite(s):
+                missing.append(name)
+                add(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
+                continue
+            rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
+            lo, hi = cis[name]
+            add(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
+        if missing:
+            add("[[Unknowns without error bars]]")
+            add(f"    {', '.join(missing)}: {_no_errorbar_reason(result)}")
 
     if m > 1 and not missing:
         corr = result.correlation
@@ -188,7 +217,13 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
             add(f"    {f'C({a}, {b})':<{cw}} = {r:+.4f}")
 
     if iterations and result.history:
-        add("[[Iterations]] (|alpha|: the update scaled by the unknowns' magnitudes)")
+        if result.method == "kantorovich":
+            what = ("SSE: of the iterate's stored trajectory, the linear prediction w_0 + W alpha of the step "
+                    "that led to it (not the model's solution: it need not fall, and may dip below the optimum); "
+                    "steps are accepted on IterationRecord.merit or the model's own sum of squares")
+        else:
+            what = "SSE: of the model's solution from the iterate's estimates"
+        add(f"[[Iterations]] ({what}; |alpha|: the update scaled by the unknowns' magnitudes)")
         cols = [max(14, len(n) + 1) for n in names]
         add(f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols)))
         for rec in result.history:

@@ -37,8 +37,18 @@ class IterationRecord:
     x0 : Tensor ``(n_states,)``
         Initial-state estimate at this iterate.
     sse : float
-        Weighted sum of squared residuals of this iterate's trajectory (for the Kantorovich
-        method, the stored superposed trajectory; for shooting, the nonlinear solution).
+        Weighted sum of squared residuals (values marked exact left out) of this iterate's
+        stored trajectory ``trajectory``. Shooting: the model's own solution from this
+        iterate's estimates. Kantorovich: the trajectory the previous iterate's linear problem
+        predicted for the step taken, ``w_0 + W alpha`` (the reference this iterate is
+        linearized about; iteration 0: the first reference, integrated from the guesses or
+        built from the data), or after a rejected step the model's solution from the
+        estimates that the iterate was re-anchored to. Kantorovich's column is therefore not
+        monotone: a step is accepted when it lowers :attr:`merit` or, failing that, the model's
+        own sum of squares (:attr:`model_merit`), neither of which is this value, and a
+        predicted trajectory is no model solution, so its sum of squares may fall below the
+        least-squares optimum and rise back to it as the iteration converges. The last
+        iterate's is the model's own at the estimates (``FitResult.sse``).
     alpha : Tensor ``(m,)`` or None
         The update computed from this iterate (None if none was computed).
     alpha_norm : float
@@ -53,6 +63,17 @@ class IterationRecord:
     rejected : int
         Trial steps from this iterate that were rejected (they raised the sum of squares or
         could not be integrated) before one was accepted.
+    merit : float
+        What the step acceptance compares first: the weighted sum of squares of this iterate's
+        particular solution (Kantorovich: the linear problem's trajectory from this iterate's
+        estimates without an update; shooting: the model's solution, then equal to ``sse``),
+        plus ``1e6`` times the exact values' squared misfit. A step from the previous iterate
+        was accepted because this fell, or else because :attr:`model_merit` did. NaN for the
+        final evaluation.
+    model_merit : float
+        The same sum for the model's own solution from this iterate's estimates (integrated at
+        a loose tolerance), when the acceptance test needed it; NaN when it did not (the merits
+        decided) or the iterate's step was never tested.
     """
 
     iteration: int
@@ -65,6 +86,8 @@ class IterationRecord:
     trajectory_t: torch.Tensor | None = None
     damping: float = 0.0
     rejected: int = 0
+    merit: float = float("nan")
+    model_merit: float = float("nan")
 
 
 @dataclass
@@ -110,8 +133,9 @@ class FitResult:
         Singular values of the column-scaled weighted Jacobian at the estimates.
     covariance : Tensor ``(m, m)``
         Covariance of ``estimates`` (``unknown_names`` order), from the final Jacobian:
-        ``s^2 (J^T J)^{-1}`` restricted to the directions the exact values leave free; NaN
-        when the problem is not identifiable or the fit failed.
+        ``s^2 (J^T J)^{-1}`` restricted to the directions the exact values leave free. All NaN
+        when the iteration did not converge (every unsuccessful status but a converged
+        ``NOT_IDENTIFIABLE``); NaN rows and columns for the unknowns the data do not determine.
     dof : int
         Degrees of freedom of the residuals, ``L - m``.
     residual_variance : float
@@ -139,6 +163,10 @@ class FitResult:
         With several experiments (``data`` a list): each one's initial time; ``x0`` is then
         ``(E, n_states)``, one row per experiment, and ``t0`` is 0 (the normalized time of the
         stacked problem that ``history`` trajectories live on).
+    lower, upper : Tensor ``(m,)`` or None
+        The ``bounds`` of the unknowns, in ``unknown_names`` order (``-inf``/``inf`` where a side
+        is open); ``None``: no bounds. Bounded unknowns' intervals are computed in the internal
+        variable of :mod:`torchql.bounds` (see :meth:`confidence_intervals`).
     """
 
     success: bool
@@ -169,10 +197,15 @@ class FitResult:
     data: "Observations | None" = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
     experiment_t0: list[float] | None = field(default=None, repr=False)
+    lower: torch.Tensor | None = field(default=None, repr=False)
+    upper: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
-        """Standard error of every unknown, by name (initial states as ``"y(t0)"``)."""
+        """Standard error of every unknown, by name (initial states as ``"y(t0)"``).
+
+        NaN when the fit did not converge (see :attr:`covariance`) and for unknowns the data do
+        not determine."""
         diag = torch.diagonal(self.covariance).clamp_min(0).sqrt()
         return {name: float(v) for name, v in zip(self.unknown_names, diag)}
 
@@ -188,10 +221,18 @@ class FitResult:
         ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual
         variance was estimated, the normal quantile when ``sigma`` was known. Wald intervals
         rely on the model being close to linear in the unknowns over the interval.
+
+        A bounded unknown's interval is the Wald interval of its internal variable (``log`` of
+        the distance to a single bound, ``logit`` of the position between two) mapped back: it
+        lies inside the bounds and is asymmetric (:func:`torchql.uncertainty.wald_intervals`).
+        Both ends are NaN when the fit did not succeed (a ``NOT_IDENTIFIABLE`` fit keeps the
+        intervals of the unknowns the data determine) and for unknowns without a standard error.
         """
         from .uncertainty import wald_intervals
 
-        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level)
+        valid = self.success or self.status is Status.NOT_IDENTIFIABLE
+        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
+                              lower=self.lower, upper=self.upper, valid=valid)
 
     @property
     def condition_number(self) -> float:

@@ -164,13 +164,23 @@ def student_t_quantile(p: float, dof: float) -> float:
     return 0.5 * (lo + hi)
 
 
-def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool,
-                   level: float) -> dict[str, tuple[float, float]]:
-    """Wald intervals ``estimate -/+ q * stderr`` at confidence ``level``, by name.
+def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, level: float,
+                   lower: torch.Tensor | None = None, upper: torch.Tensor | None = None,
+                   valid: bool = True) -> dict[str, tuple[float, float]]:
+    """Wald intervals at confidence ``level``, by name.
+
+    An unbounded unknown gets ``estimate -/+ q * stderr``. A bounded one (``lower``/``upper``,
+    Tensors ``(m,)`` in the order of ``names``, infinite where a side is open; ``None``: all
+    unbounded) gets the Wald interval of its internal variable ``q`` of
+    :class:`torchql.bounds.Bounds` (``log(u - lo)``, ``log(hi - u)`` or ``logit((u - lo) / (hi - lo))``),
+    ``q_hat -/+ q * stderr / |du/dq|``, mapped back to ``u``: it lies inside the bounds and is
+    asymmetric about the estimate (the delta method's standard error of ``q``).
 
     ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual variance
     was estimated (NaN without degrees of freedom), the normal quantile when ``sigma`` was
-    known. ``estimates`` is in the order of ``names``; ``stderr`` maps a name to its standard error.
+    known. ``estimates`` is in the order of ``names``; ``stderr`` maps a name to its standard
+    error. With ``valid`` False (the fit did not converge), and for an unknown without a finite
+    standard error, both ends are NaN.
     """
     if not (isinstance(level, float) and 0.0 < level < 1.0):
         raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
@@ -179,4 +189,26 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool,
         q = normal_quantile(p)
     else:
         q = student_t_quantile(p, dof) if dof > 0 else float("nan")
-    return {name: (float(v) - q * stderr[name], float(v) + q * stderr[name]) for name, v in zip(names, estimates)}
+    names = list(names)
+    nan = float("nan")
+    if not valid:
+        return {name: (nan, nan) for name in names}
+    u = torch.as_tensor(estimates).detach().reshape(-1)
+    ses = [float(stderr[name]) for name in names]
+    out = {name: (float(v) - q * s, float(v) + q * s) for name, v, s in zip(names, u, ses)}
+    if lower is not None or upper is not None:
+        from .bounds import Bounds
+
+        inf = torch.full_like(u, math.inf)
+        bounds = Bounds.of(-inf if lower is None else lower.to(u), inf if upper is None else upper.to(u), names)
+        bounded = bounds.has_lower | bounds.has_upper
+        if bool(bounded.any()):
+            se = torch.tensor(ses, dtype=u.dtype, device=u.device)
+            slope = bounds.derivative(u).abs()
+            se_q = torch.where(se == 0, torch.zeros_like(se), se / slope)
+            q_hat = bounds.internal(u)
+            a, b = bounds.external(q_hat - q * se_q), bounds.external(q_hat + q * se_q)
+            ends = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])  # u falls with q below an upper bound only
+            for i in bounded.nonzero().flatten().tolist():
+                out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
+    return {name: ends if math.isfinite(s) else (nan, nan) for (name, ends), s in zip(out.items(), ses)}
