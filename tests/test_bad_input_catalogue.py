@@ -36,6 +36,61 @@ class NaNAfterOne(torchql.ODEModel):
         return torch.where(t > 1.0, torch.full_like(x, math.nan), -self.k * x)
 
 
+class ScaledInPlace(torchql.ODEModel):
+    """``y' = -k y`` written with an in-place update of its input ``x``."""
+
+    state_names = ("y",)
+
+    def __init__(self, k=0.3):
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+
+    def forward(self, t, x):
+        return -self.k * x.mul_(1.0)
+
+
+class ShiftedInPlace(ScaledInPlace):
+    """The same, updating one component of ``x`` in place."""
+
+    def forward(self, t, x):
+        x[..., 0] += 0.0
+        return -self.k * x
+
+
+class NaNAtStart(ScaledInPlace):
+    """``y' = -k sqrt(y)``: NaN for a negative state."""
+
+    def forward(self, t, x):
+        return -self.k * torch.sqrt(x)
+
+
+class InfAtStart(ScaledInPlace):
+    """``y' = -k / y``: inf at ``y = 0``."""
+
+    def forward(self, t, x):
+        return -self.k / x
+
+
+class ParameterDecay(torchql.ODEModel):
+    """``y' = -k y`` with ``k`` registered as an ``nn.Parameter`` (not a buffer)."""
+
+    state_names = ("y",)
+
+    def __init__(self, k=0.3, constants=()):
+        super().__init__()
+        self.k = torch.nn.Parameter(torch.tensor(k, dtype=DT))
+        self.constants = constants
+
+    def forward(self, t, x):
+        return -self.k * x
+
+
+def batch(samples=3):
+    return torchql.Observations(T, Y.expand(samples, -1, -1), observe=["y"])
+
+
+HALF = r"`model` computes in torch.{}.*model.double\(\)"
+IN_PLACE = r"`model` forward updates its input `x` in place.*build a new tensor instead"
 X0 = torch.tensor([1.0], dtype=DT)
 RAISES = [
     ("NaN time", lambda: torchql.Observations(T.clone().index_fill_(0, torch.tensor([3]), math.nan), Y, observe=["y"]),
@@ -77,6 +132,40 @@ RAISES = [
     ("a batch of datasets given to adjoint_fit",
      lambda: adjoint_fit(Decay(0.3), torchql.Observations(T, Y.expand(3, -1, -1), observe=["y"]), x0=X0), ValueError,
      r"`data` holds a batch.*torchql.fit_many"),
+    ("bfloat16 model in fit", lambda: torchql.fit(Decay(0.3, dtype=torch.bfloat16), data(), X0), TypeError,
+     HALF.format("bfloat16")),
+    ("bfloat16 model in fit_many", lambda: torchql.fit_many(Decay(0.3, dtype=torch.bfloat16), batch(), X0), TypeError,
+     HALF.format("bfloat16")),
+    ("bfloat16 model in simulate", lambda: torchql.simulate(Decay(0.3, dtype=torch.bfloat16), X0, T), TypeError,
+     HALF.format("bfloat16")),
+    ("float16 model in fit", lambda: torchql.fit(Decay(0.3, dtype=torch.float16), data(), X0), TypeError,
+     HALF.format("float16")),
+    ("float16 model in fit_many", lambda: torchql.fit_many(Decay(0.3, dtype=torch.float16), batch(), X0), TypeError,
+     HALF.format("float16")),
+    ("float16 model in simulate", lambda: torchql.simulate(Decay(0.3, dtype=torch.float16), X0, T), TypeError,
+     HALF.format("float16")),
+    ("forward updates x in place (mul_) in fit", lambda: torchql.fit(ScaledInPlace(), data(), X0), ValueError,
+     IN_PLACE),
+    ("forward updates x in place (mul_) in fit_many", lambda: torchql.fit_many(ScaledInPlace(), batch(), X0),
+     ValueError, IN_PLACE),
+    ("forward updates x in place (mul_) in simulate", lambda: torchql.simulate(ScaledInPlace(), X0, T), ValueError,
+     IN_PLACE),
+    ("forward updates a component of x in place in fit", lambda: torchql.fit(ShiftedInPlace(), data(), X0),
+     ValueError, IN_PLACE),
+    ("forward updates a component of x in place in fit_many",
+     lambda: torchql.fit_many(ShiftedInPlace(), batch(), X0), ValueError, IN_PLACE),
+    ("forward NaN at the guesses in fit", lambda: torchql.fit(NaNAtStart(), data(), -X0), ValueError,
+     r"`model` forward is not finite at the guesses: dy/dt = nan at t0 = 0, x0 = \(y = -1\), k = 0.3\..*x0"),
+    ("forward inf at the guesses in fit", lambda: torchql.fit(InfAtStart(), data(), 0 * X0), ValueError,
+     r"`model` forward is not finite at the guesses: dy/dt = -inf at t0 = 0, x0 = \(y = 0\), k = 0.3"),
+    ("forward NaN at the guesses in fit_many", lambda: torchql.fit_many(NaNAtStart(), batch(), -X0), ValueError,
+     r"`model` forward is not finite at the guesses: dy/dt = nan at t0 = 0, x0 = \(y = -1\), k = 0.3"),
+    ("forward NaN at one sample's guesses in fit_many",
+     lambda: torchql.fit_many(NaNAtStart(), batch(), torch.tensor([[1.0], [1.0], [-1.0]], dtype=DT)), ValueError,
+     r"`model` forward is not finite at the guesses of `data\[2\]`: dy/dt = nan .*x0 = \(y = -1\)"),
+    ("unknown name in params of a model with a Parameter",
+     lambda: torchql.fit(ParameterDecay(), data(), X0, params=["kk"]), ValueError,
+     r"`params` names unknown buffer 'kk'; .* float parameters \('k',\)"),
 ]
 
 
@@ -114,3 +203,85 @@ def test_failure_is_a_status_with_an_actionable_message(case, call, status, matc
     assert __import__("re").search(match, result.message), result.message
     with pytest.raises(torchql.FitError):
         raise torchql.FitError(result)
+
+
+# --- inputs accepted as they are: requires_grad tensors are read (copied), nn.Parameter coefficients
+K_TRUE, Y0_TRUE = 0.7, 1.5
+
+
+def _assert_exact_decay(result):
+    assert result.success, result.message
+    assert abs(float(result.params["k"]) - K_TRUE) < 1e-8
+    assert abs(float(result.x0[0]) - Y0_TRUE) < 1e-8
+
+
+def _assert_exact_batch(result):
+    assert bool(result.success.all()), result.message
+    assert float((result.params["k"] - K_TRUE).abs().max()) < 1e-8
+    assert float((result.x0[:, 0] - Y0_TRUE).abs().max()) < 1e-8
+
+
+def test_x0_that_requires_grad_is_read_not_differentiated():
+    x0 = X0.clone().requires_grad_(True)
+    _assert_exact_decay(torchql.fit(Decay(0.3), data(), x0))
+    _assert_exact_batch(torchql.fit_many(Decay(0.3), batch(), x0))
+    assert x0.requires_grad and float(x0.detach()) == 1.0
+    x = torchql.simulate(Decay(K_TRUE), torch.tensor([Y0_TRUE], dtype=DT, requires_grad=True), T)
+    assert torch.allclose(x, Y, rtol=1e-8, atol=0)
+
+
+def test_observations_of_tensors_that_require_grad_are_copies():
+    t, y = T.clone().requires_grad_(True), Y.clone().requires_grad_(True)
+    sigma = torch.ones(11, 1, dtype=DT, requires_grad=True)
+    obs = torchql.Observations(t, y, observe=["y"], sigma=sigma)
+    assert not (obs.t.requires_grad or obs.y.requires_grad or obs.sigma.requires_grad)
+    assert torch.equal(obs.t, T) and torch.equal(obs.y, Y)
+    assert t.requires_grad and y.requires_grad and sigma.requires_grad
+    assert torch.equal(t.detach(), T) and torch.equal(y.detach(), Y)
+    _assert_exact_decay(torchql.fit(Decay(0.3), obs, X0))
+    many = torchql.Observations(t, y.expand(3, -1, -1), observe=["y"])
+    assert not many.y.requires_grad
+    _assert_exact_batch(torchql.fit_many(Decay(0.3), many, X0))
+    _assert_exact_batch(torchql.fit_many(Decay(0.3), [obs, obs], X0))
+
+
+@pytest.mark.parametrize("params", [None, ["k"]], ids=["default params", "params=['k']"])
+def test_parameter_coefficient_is_fitted_like_a_buffer(params):
+    model = ParameterDecay(0.3)
+    result = torchql.fit(model, data(), X0, params=params)
+    _assert_exact_decay(result)
+    assert result.unknown_names == ["y(t0)", "k"]
+    assert not result.params["k"].requires_grad
+    fitted = result.model.k
+    assert isinstance(fitted, torch.nn.Parameter) and fitted.requires_grad
+    assert abs(float(fitted.detach()) - K_TRUE) < 1e-8 and dict(result.model.named_buffers()) == {}
+    assert isinstance(model.k, torch.nn.Parameter) and model.k.requires_grad and float(model.k.detach()) == 0.3
+    assert torch.allclose(result.predict(T), Y, rtol=1e-8, atol=0)
+
+    many = torchql.fit_many(model, batch(), X0, params=params)
+    _assert_exact_batch(many)
+    sample = many.model_of(1).k
+    assert isinstance(sample, torch.nn.Parameter) and abs(float(sample.detach()) - K_TRUE) < 1e-8
+    assert float(model.k.detach()) == 0.3 and model.k.requires_grad
+
+    experiments = torchql.fit(model, [data(), data()], torch.stack([X0, X0]), params=params)
+    assert experiments.success, experiments.message
+    assert abs(float(experiments.model.k.detach()) - K_TRUE) < 1e-8 and isinstance(experiments.model.k, torch.nn.Parameter)
+    assert float(model.k.detach()) == 0.3
+
+
+def test_parameter_listed_in_constants_is_not_estimated():
+    model = ParameterDecay(K_TRUE, constants=("k",))
+    result = torchql.fit(model, data(), X0)
+    assert result.success, result.message
+    assert result.unknown_names == ["y(t0)"]
+    assert abs(float(result.x0[0]) - Y0_TRUE) < 1e-8 and float(result.model.k.detach()) == K_TRUE
+    many = torchql.fit_many(model, batch(), X0)
+    assert many.unknown_names == ["y(t0)"] and bool(many.success.all())
+
+
+def test_adjoint_fit_of_a_parameter_coefficient():
+    model = ParameterDecay(0.6)
+    result = adjoint_fit(model, data(), x0=torch.tensor([1.4], dtype=DT), optimizer="lbfgs", adjoint=False)
+    assert abs(float(result.params["k"]) - K_TRUE) < 1e-4, result.message
+    assert isinstance(result.model.k, torch.nn.Parameter) and float(model.k.detach()) == 0.6

@@ -7,8 +7,12 @@ import numbers
 
 import torch
 
-__all__ = ["positive_number", "finite_number", "positive_int", "model_class", "distinct_names",
-           "single_observations"]
+__all__ = ["positive_number", "finite_number", "positive_int", "model_class", "model_forward", "distinct_names",
+           "coefficients_text", "single_observations"]
+
+#: Floating dtypes a model may compute in (half precisions cannot resolve a fit's tolerances,
+#: and torch's CPU linear algebra does not implement them).
+_MODEL_DTYPES = (torch.float32, torch.float64)
 
 
 def _is_real_number(value) -> bool:
@@ -42,14 +46,67 @@ def positive_int(name: str, value, minimum: int = 1) -> int:
 
 
 def model_class(model) -> None:
-    """``TypeError`` unless ``model`` is a :class:`torchql.ODEModel` with valid state names."""
-    from .model import ODEModel
+    """``TypeError``/``ValueError`` unless ``model`` is a :class:`torchql.ODEModel` with valid
+    state names and float32 or float64 coefficients (buffers and parameters)."""
+    from .model import ODEModel, coefficients, model_dtype_device
 
     if not isinstance(model, ODEModel):
         raise TypeError(f"`model` must be a torchql.ODEModel; received {type(model).__name__}")
     names = tuple(model.state_names)
     if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
         raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {names!r}")
+    dtype, _ = model_dtype_device(model)
+    if dtype not in _MODEL_DTYPES:
+        which = [name for name, value in coefficients(model).items() if value.dtype not in _MODEL_DTYPES]
+        raise TypeError(
+            f"`model` computes in {dtype} (its coefficients {which[:5]} are {dtype}), which cannot resolve the "
+            "integration and least-squares tolerances; convert it to float64 with `model.double()` (or float32 "
+            "with `model.float()`)")
+
+
+def model_forward(rhs, t0: torch.Tensor, x0: torch.Tensor, names, coefficients: dict[str, float],
+                  dtype: torch.dtype, sample: str = "", finite: bool = True) -> None:
+    """Evaluate a model's right-hand side once at the guesses; errors name `model` forward and the fix.
+
+    ``rhs(t, x)`` is the model's forward (with the coefficient guesses ``coefficients``, named
+    element-wise, in place); ``x0 (n,)`` the initial state at ``t0``. ``x`` is passed as a copy that
+    requires grad, outside ``torch.no_grad``, so that an in-place update of ``x`` in the forward is
+    caught here by torch's own check (a fit differentiates through the forward), and any change
+    of ``x``'s values too. Then: a Tensor of ``x``'s shape and ``dtype``, finite (unless ``finite``
+    is false). ``sample`` says whose guesses they are in the message, e.g. ``" of `data[3]`"``.
+    """
+    n = x0.shape[0]
+    x = x0.detach().clone().requires_grad_(True)
+    inplace = ("`model` forward updates its input `x` in place ({}); a fit differentiates through the "
+               "forward, so it must leave `x` unchanged: build a new tensor instead (e.g. `x * 2` instead of "
+               "`x.mul_(2)`, `torch.stack`/`torch.cat` of the components instead of `x[..., 0] += ...`)")
+    try:
+        with torch.enable_grad():
+            out = rhs(t0, x)
+    except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
+        if "in-place" in str(exc) or "inplace" in str(exc):
+            raise ValueError(inplace.format(f"torch said: {exc}")) from exc
+        raise ValueError(f"`model` forward(t, x) failed for x of shape ({n},): {exc}") from exc
+    if not torch.equal(x.detach(), x0.detach()):
+        raise ValueError(inplace.format(f"x = {x0.tolist()} became {x.detach().tolist()}"))
+    if not isinstance(out, torch.Tensor):
+        raise TypeError(f"`model` forward must return a Tensor; received {type(out).__name__}")
+    if out.shape != (n,):
+        raise ValueError(f"`model` forward must return dx/dt of the state's shape ({n},) for x of shape ({n},); "
+                         f"received shape {tuple(out.shape)}")
+    if out.dtype != dtype:
+        raise TypeError(f"`model` forward must return dtype {dtype} (the coefficients' dtype); received {out.dtype}")
+    out = out.detach()
+    bad = (~torch.isfinite(out)).nonzero().flatten().tolist() if finite else []
+    if bad:
+        derivatives = ", ".join(f"d{names[i]}/dt = {out[i].item()}" for i in bad)
+        state = ", ".join(f"{name} = {value:g}" for name, value in zip(names, x0.tolist()))
+        items = list(coefficients.items())
+        coefs = "".join(f", {name} = {value:g}" for name, value in items[:8]) + (", ..." if len(items) > 8 else "")
+        raise ValueError(
+            f"`model` forward is not finite at the guesses{sample}: {derivatives} at t0 = {float(t0):g}, x0 = ({state})"
+            f"{coefs}. The model must be finite at the initial state: choose a `x0` and coefficient guesses where "
+            "it is defined, or guard the forward against division by zero and log/sqrt of negative values")
 
 
 def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> list[str]:
@@ -70,6 +127,14 @@ def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> l
     if len(set(names)) != len(names):
         raise ValueError(f"`{name}` lists a {kind} twice: {names!r}")
     return names
+
+
+def coefficients_text(model) -> str:
+    """What an error about an unknown coefficient name lists: the model's float buffers, and its
+    float parameters when it has any."""
+    buffers = tuple(name for name, b in model.named_buffers() if b.is_floating_point())
+    parameters = tuple(name for name, p in model.named_parameters() if p.is_floating_point())
+    return f"the model's float buffers are {buffers}" + (f" and its float parameters {parameters}" if parameters else "")
 
 
 def single_observations(name: str, data) -> None:

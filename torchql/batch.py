@@ -29,12 +29,12 @@ supported here (fit such datasets with :func:`torchql.fit`).
 
 from __future__ import annotations
 
-import copy
 import math
 import warnings
 from collections.abc import Callable, Sequence
 
 import torch
+from torch.func import vmap
 
 from . import _checks
 from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
@@ -92,8 +92,9 @@ def fit_many(
     Parameters
     ----------
     model : ODEModel
-        The model; its buffer values are the guesses (unless ``guesses`` gives per-sample
-        ones). Never modified.
+        The model; its coefficients' values (float buffers, and float ``nn.Parameter`` objects treated
+        alike) are the guesses (unless ``guesses`` gives per-sample ones). Float32 or float64.
+        Never modified.
     data : Observations holding a batch, or list of Observations
         The ``B`` datasets: one :class:`~torchql.Observations` with values ``(B, T, K)`` and
         times ``t (T,)`` shared or ``(B, T)`` per sample (validated once, the fast way to build
@@ -106,13 +107,14 @@ def fit_many(
         supported (use :func:`torchql.fit`).
     x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
         Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
-        every state must be observed directly at ``t0`` in every sample.
+        every state must be observed directly at ``t0`` in every sample. Its values are copied.
     t0 : float, optional
         Time of ``x0`` (the model's time unit), shared by every sample and not later than any
         sample's first observation time. Default: each sample's own first observation time
         (the shared first time when the samples share their times).
     params : sequence of str, optional
-        Buffers to estimate (default: every float buffer not in the model's ``constants``).
+        Coefficients to estimate (default: every float buffer and parameter not in the model's
+        ``constants``).
     guesses : dict of str to Tensor, optional
         Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
         ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
@@ -254,15 +256,14 @@ class _Spec:
         if params is None:
             params = [name for name in available if name not in tuple(model.constants)]
         else:
-            params = _checks.distinct_names("params", params, available, "buffer",
-                                            f"the model's float buffers are {tuple(available)}")
+            params = _checks.distinct_names("params", params, available, "buffer", _checks.coefficients_text(model))
         if guesses is None:
             guesses = {}
         if not isinstance(guesses, dict):
             raise TypeError(f"`guesses` must be a dict {{buffer name: Tensor (B, ...)}}; received {type(guesses).__name__}")
         for name in guesses:
             if name not in available:
-                raise ValueError(f"`guesses` names unknown buffer {name!r}; the model's float buffers are {tuple(available)}")
+                raise ValueError(f"`guesses` names unknown buffer {name!r}; {_checks.coefficients_text(model)}")
         per_sample = list(params) + [name for name in guesses if name not in params]
         self.params = list(params)
         self.system = AugmentedSystem(model, per_sample, dtype, device)
@@ -272,7 +273,7 @@ class _Spec:
         for name, shape in zip(per_sample, system.param_shapes):
             value = guesses.get(name, buffers[name])
             try:
-                value = torch.as_tensor(value, dtype=dtype, device=device)
+                value = torch.as_tensor(value, dtype=dtype, device=device).detach()
             except (TypeError, ValueError) as exc:
                 raise TypeError(f"`guesses[{name!r}]` must be a tensor of shape (B, *{tuple(shape)}) = "
                                 f"{(B, *shape)}; received {type(value).__name__}") from exc
@@ -300,7 +301,7 @@ class _Spec:
             x0 = self._x0_from_data(names)
         else:
             try:
-                x0 = torch.as_tensor(x0, dtype=dtype, device=device)
+                x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach()
             except (TypeError, ValueError) as exc:
                 raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
                                 f"({n},); received {type(x0).__name__}") from exc
@@ -412,21 +413,29 @@ class _Spec:
         return x0
 
     def _check_model(self, x0: torch.Tensor) -> None:
-        n = self.system.n
-        t0 = self.t0.reshape(-1)[0]  # sample 0's
+        """The forward on sample 0's guesses (in-place updates, shape, dtype, finite; differentiable
+        with torch.func), then finite on every sample's guesses, vectorized."""
+        system = self.system
+        t0 = self.t0.expand(self.B)
+
+        def check(b: int, sample: str = "") -> None:
+            p = self.z0[b, system.n:]
+            _checks.model_forward(lambda t, x: system.rhs(t, x, p), t0[b], self.z0[b, :system.n],
+                                  system.state_names, dict(zip(system.element_names, p.tolist())), self.dtype,
+                                  sample)
+
+        check(0)
         try:
-            with torch.no_grad():
-                out = self.system.f(t0, self.z0[0])
-        except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
-            raise ValueError(f"`model` forward(t, x) failed for x of shape ({n},): {exc}") from exc
-        if out.shape != (self.system.M,):
-            raise ValueError(f"`model` forward must return dx/dt of the state's shape ({n},)")
-        try:
-            linearize(self.system, t0.reshape(1), self.z0[:1])
+            linearize(system, t0[:1], self.z0[:1])
         except Exception as exc:  # noqa: BLE001
             raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
                              f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
                              "values.") from exc
+        with torch.no_grad():
+            finite = torch.isfinite(vmap(system.f)(t0, self.z0)).all(dim=1)
+        bad = (~finite).nonzero().flatten().tolist()
+        if bad:
+            check(bad[0], f" of `data[{bad[0]}]`" + (f" (samples {bad[:10]} alike)" if len(bad) > 1 else ""))
         self.operator.check(x0)
 
     # ------------------------------------------------------------------------------------------
@@ -457,7 +466,7 @@ class _Spec:
             unknown_names=list(self.unknown_names), estimates=z0[:, self.unknown_index].clone(),
             iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
             dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
-            model=copy.deepcopy(system.model))
+            model=system.user_model())
 
 
 def check_data(data) -> Observations | list[Observations]:
@@ -532,7 +541,7 @@ def _make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> torch.Tensor:
     extra = torch.zeros(0, dtype=dtype, device=device)
     intervals = 1000
     if isinstance(grid, torch.Tensor):
-        extra = grid.to(dtype=dtype, device=device).reshape(-1)
+        extra = grid.detach().to(dtype=dtype, device=device).reshape(-1)
         if not torch.isfinite(extra).all():
             raise ValueError("`grid` times must be finite")
         extra = extra[(extra > t0) & (extra < t_end)]

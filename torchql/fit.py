@@ -32,7 +32,7 @@ from .integrate import CountedField, IntegrationError, check_solver, default_tol
 from .linearize import linearize
 from .grid_solve import IntervalBudgetError, solve_on_grid
 from .lstsq import ExactRowsError, solve_update
-from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, model_dtype_device
+from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
 from .smoothing import interpolate, smooth
@@ -80,7 +80,8 @@ def fit(
     Parameters
     ----------
     model : ODEModel
-        The model; its buffer values are the initial guesses. Never modified.
+        The model; its coefficients' values (float buffers, and float ``nn.Parameter`` objects treated
+        alike) are the initial guesses. Float32 or float64. Never modified.
     data : Observations or list of Observations
         Measurements; see :class:`torchql.Observations`. A list holds several experiments that
         share the coefficients, each with its own times and initial state, fitted as one problem
@@ -90,10 +91,11 @@ def fit(
         result's ``x0`` is ``(E, n_states)`` (``result.predict(t, experiment=e)``).
     x0 : Tensor ``(n_states,)``, optional
         Initial-state guess at ``t0`` (exact values for the states in ``fixed_x0``). If
-        omitted, every state must be observed directly at ``t0`` and the data are used.
+        omitted, every state must be observed directly at ``t0`` and the data are used. Its
+        values are copied (a tensor that requires grad is read, not differentiated through).
     params : sequence of str, optional
-        Buffers to estimate. Default: every floating-point buffer not listed in the model's
-        ``constants``. Vector and matrix buffers are estimated element-wise.
+        Coefficients to estimate. Default: every floating-point buffer and parameter not listed
+        in the model's ``constants``. Vector and matrix coefficients are estimated element-wise.
     fixed_x0 : sequence of str, optional
         States whose initial value is known exactly (taken from ``x0``); they get no
         homogeneous solution and are honoured exactly.
@@ -265,8 +267,7 @@ class _Problem:
         if params is None:
             params = [name for name in available if name not in tuple(model.constants)]
         else:
-            params = _checks.distinct_names("params", params, available, "buffer",
-                                            f"the model's float buffers are {tuple(available)}")
+            params = _checks.distinct_names("params", params, available, "buffer", _checks.coefficients_text(model))
         self.system = AugmentedSystem(model, params, dtype, device)
         system = self.system
         n = system.n
@@ -304,7 +305,7 @@ class _Problem:
             x0 = self._x0_from_data(names)
         else:
             try:
-                x0 = torch.as_tensor(x0, dtype=dtype, device=device).clone()
+                x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach().clone()
             except (TypeError, ValueError) as exc:
                 raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); received {type(x0).__name__}") from exc
         if x0.shape != (n,):
@@ -371,22 +372,10 @@ class _Problem:
         return x0
 
     def _check_model(self, x0: torch.Tensor) -> None:
-        model = self.system.model
-        n = self.system.n
-        try:
-            with torch.no_grad():
-                out = model(self.t0, x0)
-        except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
-            raise ValueError(f"`model` forward(t, x) failed for x of shape ({n},): {exc}") from exc
-        if not isinstance(out, torch.Tensor):
-            raise TypeError(f"`model` forward must return a Tensor; received {type(out).__name__}")
-        if out.shape != (n,):
-            raise ValueError(
-                f"`model` forward must return dx/dt of the state's shape ({n},) for x of shape ({n},); "
-                f"received shape {tuple(out.shape)}"
-            )
-        if out.dtype != self.dtype:
-            raise TypeError(f"`model` forward must return dtype {self.dtype} (the buffers' dtype); received {out.dtype}")
+        system = self.system
+        p0 = self.z0[system.n:]
+        _checks.model_forward(lambda t, x: system.rhs(t, x, p0), self.t0, x0, system.state_names,
+                              dict(zip(system.element_names, p0.tolist())), self.dtype)
         try:
             linearize(self.system, self.t0.reshape(1), self.z0.unsqueeze(0))
         except Exception as exc:  # noqa: BLE001
@@ -401,7 +390,7 @@ class _Problem:
         extra = torch.zeros(0, dtype=dtype, device=device)
         intervals = 1000
         if isinstance(grid, torch.Tensor):
-            extra = grid.to(dtype=dtype, device=device).reshape(-1)
+            extra = grid.detach().to(dtype=dtype, device=device).reshape(-1)
             if not torch.isfinite(extra).all():
                 raise ValueError("`grid` times must be finite")
             extra = extra[(extra > self.t0) & (extra < t_end)]
@@ -962,7 +951,7 @@ class _Problem:
             success=status.success,
             status=status,
             message=status.value + detail,
-            params={k: v.clone() for k, v in dict(fitted.named_buffers()).items() if v.is_floating_point()},
+            params={k: v.detach().clone() for k, v in coefficients(fitted).items()},
             x0=z0[:n].detach().clone(),
             t0=float(self.t0),
             unknown_names=list(self.unknown_names),
@@ -1108,7 +1097,7 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     span = torch.where(span > 0, span, torch.ones_like(span))
     if x0 is not None:
         try:
-            x0_t = torch.as_tensor(x0, dtype=dtype, device=device)
+            x0_t = torch.as_tensor(x0, dtype=dtype, device=device).detach()
         except (TypeError, ValueError) as exc:
             raise TypeError(f"`x0` must be a tensor of shape (E, n_states) = ({E}, {n}); received {type(x0).__name__}") from exc
         if x0_t.shape != (E, n):
@@ -1146,7 +1135,7 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds, grid=grid,
                  throw=False, callback=callback, **options)
     fitted = copy.deepcopy(model)
-    own = dict(model.named_buffers())
+    own = coefficients(model)
     result.params = {name: value for name, value in result.params.items() if name in own}
     for name, value in result.params.items():
         _set_buffer(fitted, name, value)

@@ -8,7 +8,7 @@ from torchdiffeq._impl.odeint import SOLVERS
 
 from . import _checks
 from .budget import check_time
-from .model import ODEModel
+from .model import ODEModel, model_dtype_device
 
 __all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
            "interval_tolerances", "solve", "simulate", "CountedField"]
@@ -120,9 +120,9 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     Parameters
     ----------
     model : ODEModel
-        Its buffers are the coefficients used.
+        Its buffers (and parameters) are the coefficients used; float32 or float64.
     x0 : Tensor ``(n_states,)``
-        State at ``t0``.
+        State at ``t0`` (its values; not differentiated through).
     t : Tensor ``(T,)``
         Output times, strictly increasing; they may lie before ``t0`` (integrated backwards).
     t0 : float, optional
@@ -136,10 +136,9 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     """
     _checks.model_class(model)
     check_solver(solver)
-    dtype = next((b.dtype for b in model.buffers() if b.is_floating_point()), torch.float64)
-    device = next((b.device for b in model.buffers()), torch.device("cpu"))
-    t = torch.as_tensor(t, dtype=dtype, device=device)
-    x0 = torch.as_tensor(x0, dtype=dtype, device=device)
+    dtype, device = model_dtype_device(model)
+    t = torch.as_tensor(t, dtype=dtype, device=device).detach()
+    x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach()
     n = len(model.state_names)
     if t.dim() != 1 or t.numel() == 0:
         raise ValueError(f"`t` must be a non-empty one-dimensional tensor; received shape {tuple(t.shape)}")
@@ -154,6 +153,9 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     rtol, atol = default_tolerances(dtype, rtol, atol)
     rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
     t0_ = t[0] if t0 is None else torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
+    # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is the
+    # solver's to report, as IntegrationError, like one met later on)
+    _checks.model_forward(model, t0_, x0, model.state_names, {}, dtype, finite=False)
     with torch.no_grad():
         return _integrate_both_ways(model, x0, t, t0_, solver, rtol, atol)
 

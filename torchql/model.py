@@ -1,10 +1,11 @@
 """ODE models and their augmentation with unknown coefficients (null equations).
 
-A model is an :class:`ODEModel`: an ``nn.Module`` whose floating-point buffers are the
-coefficients of the right-hand side ``dx/dt = f(t, x; p)``. The estimator never asks the user
-to write the augmented system ``z = (x, p)``, ``p' = 0`` by hand: :class:`AugmentedSystem`
-builds it with :func:`torch.func.functional_call`, substituting the unknown buffers by the
-trailing components of ``z``.
+A model is an :class:`ODEModel`: an ``nn.Module`` whose floating-point buffers (and
+floating-point parameters, ``nn.Parameter``, treated alike) are the coefficients of the
+right-hand side ``dx/dt = f(t, x; p)``. The estimator never asks the user to write the augmented
+system ``z = (x, p)``, ``p' = 0`` by hand: :class:`AugmentedSystem` builds it with
+:func:`torch.func.functional_call`, substituting the unknown coefficients by the trailing
+components of ``z``.
 """
 
 from __future__ import annotations
@@ -17,14 +18,17 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-__all__ = ["ODEModel", "AugmentedSystem", "coefficient_names"]
+__all__ = ["ODEModel", "AugmentedSystem", "coefficient_names", "coefficients"]
 
 
 class ODEModel(nn.Module):
     """Base class of the ODE models that torchql fits.
 
     Subclasses set :attr:`state_names` (one name per state, in order), register each
-    coefficient as a floating-point buffer, and implement :meth:`forward`.
+    coefficient as a floating-point buffer, and implement :meth:`forward`. A coefficient
+    registered as an ``nn.Parameter`` is treated like a buffer: a fit reads its value as the
+    guess, never modifies it, and returns a model whose Parameter holds the estimate.
+    Coefficients must be float32 or float64 (``model.double()``).
 
     Attributes
     ----------
@@ -72,18 +76,28 @@ class ODEModel(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} must implement forward(t, x)")
 
 
+def coefficients(model: nn.Module) -> dict[str, torch.Tensor]:
+    """The coefficients of ``model`` by (dotted) name: its floating-point buffers in registration
+    order, then its floating-point parameters in registration order (the tensors themselves)."""
+    out = {name: buf for name, buf in model.named_buffers() if buf.is_floating_point()}
+    out.update((name, par) for name, par in model.named_parameters() if par.is_floating_point())
+    return out
+
+
 def model_dtype_device(model: nn.Module) -> tuple[torch.dtype, torch.device]:
-    """The dtype a fit computes in (the float buffers' promoted dtype, float64 if none) and the device."""
-    floats = [b for b in model.buffers() if b.is_floating_point()]
+    """The dtype a fit computes in (the coefficients' promoted dtype, float64 if none) and the device."""
+    floats = list(coefficients(model).values())
     dtype = floats[0].dtype if floats else torch.float64
     for b in floats[1:]:
         dtype = torch.promote_types(dtype, b.dtype)
-    return dtype, next((b.device for b in model.buffers()), torch.device("cpu"))
+    tensors = list(model.buffers()) + list(model.parameters())
+    return dtype, next((b.device for b in tensors), torch.device("cpu"))
 
 
 def coefficient_names(model: nn.Module) -> list[str]:
-    """Names of all floating-point buffers of ``model`` (its coefficients), in registration order."""
-    return [name for name, buf in model.named_buffers() if buf.is_floating_point()]
+    """Names of the coefficients of ``model``: its floating-point buffers, then its floating-point
+    parameters, each in registration order (see :func:`coefficients`)."""
+    return list(coefficients(model))
 
 
 def _element_names(name: str, shape: torch.Size) -> list[str]:
@@ -107,9 +121,11 @@ class AugmentedSystem:
     ----------
     model : ODEModel
         The user's model. It is deep-copied and moved to ``dtype``/``device``; the user's
-        object is never modified.
+        object is never modified. In the copy, :attr:`model`, every coefficient is a plain
+        buffer that requires no gradient (an ``nn.Parameter`` of the user's model included:
+        :meth:`model_with` and :meth:`user_model` give it back as a Parameter).
     param_names : sequence of str
-        Buffers to treat as unknowns. Their elements, flattened in row-major order, are the
+        Coefficients to treat as unknowns. Their elements, flattened in row-major order, are the
         trailing ``P`` components of ``z``.
     dtype, device
         Floating dtype and device of every computation.
@@ -134,11 +150,11 @@ class AugmentedSystem:
         device: torch.device,
     ) -> None:
         self.model = copy.deepcopy(model).to(device=device)
-        buffers = dict(self.model.named_buffers())
-        for name, buf in buffers.items():
-            if buf.is_floating_point() and buf.dtype != dtype:
-                _set_buffer(self.model, name, buf.to(dtype))
-        buffers = dict(self.model.named_buffers())
+        #: ``{name: requires_grad}`` of the user's parameters, held as buffers in :attr:`model`
+        self.parameter_flags = _parameters_to_buffers(self.model)
+        for name, buf in coefficients(self.model).items():
+            _set_buffer(self.model, name, buf.detach().to(dtype))
+        buffers = coefficients(self.model)
         self.dtype = dtype
         self.device = device
         self.param_names = list(param_names)
@@ -156,7 +172,7 @@ class AugmentedSystem:
     # ----------------------------------------------------------------------------------------
     def pack_params(self) -> torch.Tensor:
         """Current values of the unknown buffers, flattened: shape ``(P,)``."""
-        buffers = dict(self.model.named_buffers())
+        buffers = coefficients(self.model)
         if not self.param_names:
             return torch.zeros(0, dtype=self.dtype, device=self.device)
         return torch.cat([buffers[name].reshape(-1) for name in self.param_names])
@@ -180,17 +196,49 @@ class AugmentedSystem:
         return torch.cat([dx, torch.zeros_like(p)])
 
     def model_with(self, p: torch.Tensor) -> ODEModel:
-        """A deep copy of the model whose unknown buffers hold ``p`` (shape ``(P,)``)."""
+        """A copy of the user's model whose unknown coefficients hold ``p`` (shape ``(P,)``)."""
+        return self.user_model({name: value.clone() for name, value in self.unpack_params(p.detach()).items()})
+
+    def user_model(self, values: dict[str, torch.Tensor] | None = None) -> ODEModel:
+        """A deep copy of :attr:`model` with coefficients set from ``values`` and the user's
+        parameters registered as ``nn.Parameter`` again (with their ``requires_grad``)."""
         fitted = copy.deepcopy(self.model)
-        for name, value in self.unpack_params(p.detach()).items():
-            _set_buffer(fitted, name, value.clone())
+        for name, value in (values or {}).items():
+            _set_buffer(fitted, name, value)
+        for name, requires_grad in self.parameter_flags.items():
+            owner, leaf = _owner(fitted, name)
+            owner._parameters[leaf] = nn.Parameter(owner._buffers.pop(leaf), requires_grad=requires_grad)
         return fitted
 
 
-def _set_buffer(module: nn.Module, dotted: str, value: torch.Tensor) -> None:
-    """Replace buffer ``dotted`` (``"sub.name"`` allowed) of ``module`` by ``value``."""
+def _owner(module: nn.Module, dotted: str) -> tuple[nn.Module, str]:
+    """The submodule holding tensor ``dotted`` (``"sub.name"`` allowed), and the tensor's own name."""
     *path, leaf = dotted.split(".")
     owner = module
     for part in path:
         owner = getattr(owner, part)
-    owner._buffers[leaf] = value
+    return owner, leaf
+
+
+def _parameters_to_buffers(module: nn.Module) -> dict[str, bool]:
+    """Re-register every parameter of ``module`` (modified in place) as a buffer holding its value,
+    detached; returns ``{dotted name: requires_grad}`` of the parameters so moved."""
+    flags = {}
+    for name, par in list(module.named_parameters(remove_duplicate=False)):
+        owner, leaf = _owner(module, name)
+        del owner._parameters[leaf]
+        owner._buffers[leaf] = par.detach()
+        flags[name] = par.requires_grad
+    return flags
+
+
+def _set_buffer(module: nn.Module, dotted: str, value: torch.Tensor) -> None:
+    """Replace coefficient ``dotted`` (``"sub.name"`` allowed) of ``module`` by ``value``: a buffer
+    is replaced by ``value`` itself, an ``nn.Parameter`` by a Parameter holding ``value``'s data
+    (``requires_grad`` as before)."""
+    owner, leaf = _owner(module, dotted)
+    if leaf in owner._parameters:
+        old = owner._parameters[leaf]
+        owner._parameters[leaf] = nn.Parameter(value.detach(), requires_grad=old is None or old.requires_grad)
+    else:
+        owner._buffers[leaf] = value

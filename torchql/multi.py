@@ -43,13 +43,14 @@ class StackedModel(ODEModel):
 
     def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor) -> None:
         super().__init__()
-        names = [name for name, _ in model.named_buffers()]
+        tensors = list(model.named_buffers()) + list(model.named_parameters())  # parameters held as buffers
+        names = [name for name, _ in tensors]
         nested = [name for name in names if "." in name]
         if nested:
             raise ValueError(
                 f"several experiments need a model whose buffers are its own (not a submodule's); found {nested}")
         self.inner = _Frozen(model)
-        for name, value in model.named_buffers():
+        for name, value in tensors:
             self.register_buffer(name, value.detach().clone())
         self._buffer_names = names
         self.E = int(t0.shape[0])

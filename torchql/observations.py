@@ -36,9 +36,13 @@ def _fits(shape: tuple[int, ...], target: tuple[int, ...], shared: tuple[tuple[i
 
 
 def _as_float_tensor(value, name: str, dtype: torch.dtype | None = None) -> torch.Tensor:
-    """Convert array-likes to a floating tensor; a clear error for anything else."""
+    """Convert array-likes to a floating tensor; a clear error for anything else.
+
+    A tensor that requires grad is read detached (its values; measurements are not differentiated
+    through), never modified: callers copy before writing.
+    """
     if isinstance(value, torch.Tensor):
-        tensor = value
+        tensor = value.detach()
     else:
         try:
             tensor = torch.as_tensor(np.asarray(value, dtype=np.float64))
@@ -121,7 +125,8 @@ class Observations:
     Parameters
     ----------
     t : Tensor or array, shape ``(T,)``, or ``(B, T)`` for a batch
-        Observation times, finite and strictly increasing (same unit as the model's time). A
+        Observation times, finite and strictly increasing (same unit as the model's time). Every
+        tensor argument is copied (detached when it requires grad; the caller's is left as it is). A
         batch's samples share ``t (T,)``, or row ``b`` of ``t (B, T)`` holds sample ``b``'s own
         times (each row finite and strictly increasing).
     y : Tensor or array, shape ``(T, K)``, ``(T,)`` when ``K == 1``, or ``(B, T, K)`` for a batch

@@ -27,7 +27,7 @@ from typing import NamedTuple
 
 import torch
 
-from .model import _set_buffer
+from .model import _set_buffer, coefficients
 from .observations import ObservationOperator, Observations
 from .result import FitResult, Status
 from .uncertainty import normal_quantile, student_t_quantile
@@ -220,7 +220,7 @@ def profile(
     index = names.index(name)
     theta_hat = float(result.estimates[index])
     states = list(result.model.state_names)
-    buffers = {k: v for k, v in result.model.named_buffers() if v.is_floating_point()}
+    buffers = coefficients(result.model)
 
     # --- the unknowns of the original fit, and how `name` is held fixed
     free_params = _original_params(result, buffers)
