@@ -543,8 +543,10 @@ def run_problem(job: tuple[str, int, float, float | None]) -> dict:
         wrong = "claims convergence above the best SSE"
     elif tq["status"] == "NOT_IDENTIFIABLE" and cond_opt < MAX_COND:
         wrong = f"NOT_IDENTIFIABLE, condition number at scipy's optimum {cond_opt:.3g}"
+    sse_truth = problem.sse(problem.truth)
     return dict(family=family, seed=seed, noise=noise, variant=problem.variant, names=problem.unknown_names,
-                truth=problem.truth, guess=problem.guess, best=best, floor=problem.floor,
+                truth=problem.truth, guess=problem.guess, best=best, floor=problem.floor, sse_truth=sse_truth,
+                local=bool(best > 2 * sse_truth + problem.floor),
                 cond_truth=problem.cond_truth, cond_opt=cond_opt, torchql=tq, scipy=sp, wrong=wrong)
 
 
@@ -590,6 +592,7 @@ def report(records: Sequence[dict], args_line: str) -> str:
     sp_wall = np.array([r["scipy"]["wall"] for r in records])
     ratios = tq_wall / sp_wall
     worst = int(np.argmax(ratios))
+    local = ", ".join(f"{r['family']} seed {r['seed']} noise {r['noise']:g}" for r in records if r["local"]) or "none"
     lines = [
         "# Random problems: torchql against scipy least_squares",
         "",
@@ -611,13 +614,15 @@ def report(records: Sequence[dict], args_line: str) -> str:
         f"{records[worst]['seed']} noise {records[worst]['noise']:g}: {tq_wall[worst]:.3g} s against "
         f"{sp_wall[worst]:.3g} s)",
         f"- wrong diagnoses: {sum(r['wrong'] is not None for r in records)}",
+        f"- best SSE above twice the truth's plus the floor (both methods in a local optimum): {local}",
         "",
         "## torchql not reaching the best SSE",
         "",
     ]
     missed = [r for r in records if not r["torchql"]["reached"]]
     lines += [f"- {r['family']} ({r['variant'] or '-'}) seed {r['seed']} noise {r['noise']:g}: "
-              f"{r['torchql']['status']}, SSE {r['torchql']['sse_eval']:.6g} against best {r['best']:.6g}; "
+              f"{r['torchql']['status']}, SSE {r['torchql']['sse_eval']:.6g} against best {r['best']:.6g} "
+              f"(truth {r['sse_truth']:.6g}; condition number at scipy's optimum {r['cond_opt']:.3g}); "
               f"{r['torchql']['message']!r}" for r in missed] or ["- none"]
     lines += ["", "## Wrong diagnoses", ""]
     lines += [f"- {r['family']} seed {r['seed']} noise {r['noise']:g}: {r['wrong']} ({r['torchql']['status']})"
@@ -628,14 +633,15 @@ def report(records: Sequence[dict], args_line: str) -> str:
               for r in records if not r["scipy"]["reached"]] or ["- none"]
     lines += ["", "## Per problem", "",
               "| family | variant | seed | noise | torchql status | torchql SSE | iter | torchql s | scipy status | "
-              "scipy SSE | nfev | scipy s | reached (tq/sp) |",
-              "| --- | --- | ---: | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | --- |"]
+              "scipy SSE | nfev | scipy s | reached (tq/sp) | truth's SSE | cond. at scipy's optimum |",
+              "| --- | --- | ---: | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: |"]
     for r in records:
         tq, sp = r["torchql"], r["scipy"]
         lines.append(f"| {r['family']} | {r['variant']} | {r['seed']} | {r['noise']:g} | {tq['status']} | "
                      f"{tq['sse_eval']:.6g} | {tq['iterations']} | {tq['wall']:.3g} | {sp['status']} | "
                      f"{sp['sse_eval']:.6g} | {sp['nfev']} | {sp['wall']:.3g} | "
-                     f"{'yes' if tq['reached'] else 'no'}/{'yes' if sp['reached'] else 'no'} |")
+                     f"{'yes' if tq['reached'] else 'no'}/{'yes' if sp['reached'] else 'no'} | {r['sse_truth']:.6g} | "
+                     f"{r['cond_opt']:.3g} |")
     lines += ["", "## Estimates", "", "Unknowns: initial states, then coefficients.", ""]
     for r in records:
         lines.append(f"- {r['family']} seed {r['seed']} noise {r['noise']:g} {r['names']}: truth "
