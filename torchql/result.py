@@ -175,6 +175,10 @@ class FitResult:
         With several experiments (``data`` a list): each one's initial time; ``x0`` is then
         ``(E, n_states)``, one row per experiment, and ``t0`` is 0 (the normalized time of the
         stacked problem that ``history`` trajectories live on).
+    moved_guesses : dict of str to (float, float)
+        ``{name: (given, used)}`` for every guess that lay on or outside its ``bounds`` and was
+        moved strictly inside before the iteration (see :meth:`torchql.bounds.Bounds.move_inside`);
+        ``history[0]`` holds the guesses used. Empty when none was moved.
     """
 
     success: bool
@@ -205,6 +209,7 @@ class FitResult:
     data: "Observations | None" = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
     experiment_t0: list[float] | None = field(default=None, repr=False)
+    moved_guesses: dict[str, tuple[float, float]] = field(default_factory=dict, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
