@@ -325,6 +325,20 @@ def test_initial_state_guess_on_its_bound_in_several_experiments():
     assert model.k.item() == 0.0 and torch.equal(x0, torch.tensor([[2.0], [0.0]], dtype=DT))
 
 
+def test_multistart_accepts_a_guess_on_its_bound():
+    """The central guess k = 0 on its bound (0, None): the first start is it (moved by fit), the
+    others' distance from the bound is drawn in [1 / spread, spread]; all reach the truth k = 0.7."""
+    t = torch.linspace(0, 2, 11, dtype=DT)
+    data = torchql.Observations(t, (1.5 * torch.exp(-0.7 * t)).unsqueeze(-1), observe=["y"])
+    ms = torchql.multistart(Decay(0.0), data, torch.tensor([1.5], dtype=DT), starts=4, spread=3.0,
+                            bounds={"k": (0.0, None)})
+    assert ms.guesses[0, 0].item() == 0.0 and ms.results[0].moved_guesses == {"k": (0.0, 1e-3)}
+    assert bool(((ms.guesses[1:] >= 1 / 3) & (ms.guesses[1:] <= 3)).all())
+    assert all(r.moved_guesses == {} for r in ms.results[1:])
+    assert ms.n_converged == 4 and len(ms.optima) == 1
+    assert ms.best.params["k"].item() == pytest.approx(0.7, rel=1e-8)
+
+
 def test_profile_of_a_fit_started_on_its_bound():
     """A profile re-fits from the fit's estimates (inside), its own limit may sit on the rate's bound.
 
