@@ -26,7 +26,7 @@ import torch
 from torch.func import jacrev, vmap
 
 from . import _checks
-from .bounds import Bounds
+from .bounds import Bounds, moved_guesses_note
 from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
@@ -109,10 +109,15 @@ def fit(
         ``{name: (lower, upper)}`` with ``None`` for an open side, e.g. ``{"k": (0.0, None)}``.
         A name is a coefficient (a vector or matrix buffer's name bounds every element; an
         element is named like ``"W[0,1]"``) or a state (its initial value, also ``"x(t0)"``).
-        The guesses must lie strictly inside. Bounded unknowns are iterated in a transformed
-        variable (logarithmic for one-sided bounds, logistic for two-sided), so every iterate
-        stays inside; estimates, covariance and reports are in the user's units, and an
-        estimate that ends at a bound is named in the message.
+        Bounded unknowns are iterated in a transformed variable (logarithmic for one-sided
+        bounds, logistic for two-sided), so every iterate stays strictly inside; estimates,
+        covariance and reports are in the user's units, and an estimate that ends at a bound is
+        named in the message. A guess on a bound or outside it (a rate guessed 0 with
+        ``(0.0, None)``) is moved inside, to where one capped step of the transformed variable
+        reaches the unknown's scale: to ``bound + 1e-3 * max(1, |bound|)`` (``bound - ...`` for an
+        upper bound), or to ``1e-3`` of the width inside the nearer of two bounds (see
+        :mod:`torchql.bounds`). The result's ``moved_guesses`` and message name each moved
+        guess and where it went; the model and ``x0`` keep their values.
     max_iter : int
         Maximum number of updates.
     max_time : float, optional
@@ -338,14 +343,20 @@ class _Problem:
                 "at most one exact value per unknown can be met"
             )
 
-        # --- bounds (the guesses strictly inside)
+        # --- bounds (guesses on or outside a bound moved strictly inside; see Bounds.move_inside)
         n_free = len(free_states)
         groups, k = {}, n_free
         for name, size in zip(system.param_names, system.param_sizes):
             groups[name] = list(range(k, k + size))
             k += size
         self.bounds = Bounds(bounds, self.unknown_names, groups, list(names) + list(available), dtype, device)
-        self.bounds.check_inside(self.z0[self.unknown_index])
+        given = self.z0[self.unknown_index]
+        used, moved = self.bounds.move_inside(given)
+        self.moved_guesses = {self.unknown_names[i]: (float(given[i]), float(used[i]))
+                              for i in torch.nonzero(moved).flatten().tolist()}
+        if self.moved_guesses:
+            self.z0[self.unknown_index] = used
+            x0 = self.z0[:n]
 
         # --- the model and the observation operator on the guesses
         self._check_model(x0)
@@ -946,6 +957,8 @@ class _Problem:
         if at_bound:
             detail += (f" The estimates of {at_bound} lie at their bounds: the data pull them outside, and "
                        "their standard errors and intervals assume an interior optimum.")
+        if self.moved_guesses:
+            detail += " " + moved_guesses_note(self.moved_guesses)
         fitted = system.model_with(z0[n:])
         return FitResult(
             success=status.success,
@@ -975,6 +988,7 @@ class _Problem:
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
             lower=self.bounds.lower.clone() if self.bounds.active else None,
             upper=self.bounds.upper.clone() if self.bounds.active else None,
+            moved_guesses=dict(self.moved_guesses),
         )
 
     def _null_detail(self, null_vectors: torch.Tensor) -> str:

@@ -135,7 +135,11 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         Each estimated coefficient ``c`` is drawn log-uniformly in ``[c / spread, c * spread]``
         (its sign kept; a zero guess is drawn uniformly in ``[-1, 1]``). A coefficient with
         both bounds finite is drawn within them instead (log-uniformly when they are positive),
-        one with one bound is drawn as above and clipped strictly inside it.
+        one with one bound is drawn as above and clipped strictly inside it; if its guess lies
+        on that bound (a rate guessed 0 with ``(0, None)``) or beyond it, its distance from the
+        bound is drawn log-uniformly in ``[s / spread, s * spread]``, ``s = max(1, |bound|)``.
+        The first start (``include_guess``) is the guess itself, which :func:`torchql.fit`
+        moves inside its bounds (see its ``bounds``).
     seed : int
         Seed of the draws (reproducible).
     include_guess : bool
@@ -249,6 +253,11 @@ def _draw(center: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, spread
                 value = math.exp(math.log(lo) + u[i].item() * (math.log(hi) - math.log(lo)))
             else:
                 value = lo + u[i].item() * (hi - lo)
+        elif math.isfinite(lo) and not c > lo or math.isfinite(hi) and not c < hi:
+            # the guess on (or beyond) its one bound: the distance from that bound drawn
+            # log-uniformly around the bound's scale max(1, |bound|)
+            bound, side = (lo, 1.0) if math.isfinite(lo) else (hi, -1.0)
+            value = bound + side * max(1.0, abs(bound)) * math.exp((2 * u[i].item() - 1) * math.log(spread))
         elif c == 0:
             value = 2 * u[i].item() - 1
         else:

@@ -1,6 +1,7 @@
 """A text report of a fit, in the manner of lmfit's ``fit_report``.
 
-The report has five parts: the fit (method, status, message, iterations, evaluations); its
+The report has five parts: the fit (method, status, message, iterations, evaluations, and
+the guesses moved inside their bounds, if any); its
 statistics (values, unknowns, degrees of freedom, SSE, residual standard deviation, reduced
 chi-square when ``sigma`` was given, AIC and BIC, condition number of the scaled Jacobian);
 every unknown as ``value +/- stderr (relative %)`` with its Wald interval; the correlations
@@ -154,6 +155,10 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
     add(f"    message            = {result.message}")
     add(f"    iterations         = {result.iterations}")
     add(f"    function evals     = {result.nfev}")
+    if result.moved_guesses:
+        add("    moved guesses      = " + ", ".join(f"{name}: {given:g} -> {used:.6g}"
+                                                    for name, (given, used) in result.moved_guesses.items())
+            + " (on or outside their bounds: moved inside)")
 
     n_exact = int(result.exact_mask.sum())
     aic, bic = information_criteria(result)

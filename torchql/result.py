@@ -167,6 +167,10 @@ class FitResult:
         The ``bounds`` of the unknowns, in ``unknown_names`` order (``-inf``/``inf`` where a side
         is open); ``None``: no bounds. Bounded unknowns' intervals are computed in the internal
         variable of :mod:`torchql.bounds` (see :meth:`confidence_intervals`).
+    moved_guesses : dict of str to (float, float)
+        ``{name: (given, used)}`` for every guess that lay on or outside its ``bounds`` and was
+        moved strictly inside before the iteration (see :meth:`torchql.bounds.Bounds.move_inside`);
+        ``history[0]`` holds the guesses used. Empty when none was moved.
     """
 
     success: bool
@@ -199,6 +203,7 @@ class FitResult:
     experiment_t0: list[float] | None = field(default=None, repr=False)
     lower: torch.Tensor | None = field(default=None, repr=False)
     upper: torch.Tensor | None = field(default=None, repr=False)
+    moved_guesses: dict[str, tuple[float, float]] = field(default_factory=dict, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
