@@ -90,3 +90,17 @@ def test_interpolation_error_is_fourth_order():
         exact = (math.cos(2 * T) + 2 * math.sin(2 * T) - math.exp(-T)) / 5
         errors.append(abs(W[-1, 0, 0].item() - exact))
     assert errors[1] < errors[0] / 10, errors
+
+
+def test_model_defect_is_zero_on_a_solution_and_relative_to_the_slopes():
+    from torchql.trajectory import model_defect
+
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    z = torch.stack([torch.exp(-2 * t), 3 * torch.ones_like(t)], dim=-1)  # y = e^{-2t}, a parameter column
+    f = torch.stack([-2 * z[:, 0], torch.zeros_like(t)], dim=-1)
+    z_dot = f.clone()
+    assert float(model_defect(f, z_dot, 1)) == 0.0
+    z_dot[4, 0] += 0.5  # one node off by 0.5 against slopes of size at most 2
+    assert abs(float(model_defect(f, z_dot, 1)) - 0.25) < 1e-15
+    batch = model_defect(torch.stack([f, f]), torch.stack([f, z_dot]), 1)  # (S, G, M) -> (S,)
+    assert batch.shape == (2,) and float(batch[0]) == 0.0 and abs(float(batch[1]) - 0.25) < 1e-15

@@ -28,12 +28,14 @@ from torch import nn
 from torchdiffeq import odeint, odeint_adjoint
 
 from . import _checks
+from .diagnosis import null_detail
 from .fit import _Problem, fit
 from .integrate import IntegrationError, solve
 from .lstsq import solve_update
 from .model import ODEModel, _set_buffer
 from .observations import Observations
 from .result import FitResult, IterationRecord, Status
+from .uncertainty import covariance
 
 __all__ = ["adjoint_fit", "OPTIMIZERS"]
 
@@ -434,7 +436,7 @@ class _GradientRun:
                                torch.zeros_like(final.exact_mask), p.rcond)
             if sol.rank_deficient:
                 status = Status.NOT_IDENTIFIABLE
-                message = Status.NOT_IDENTIFIABLE.value + p._null_detail(sol.null_vectors)
+                message = Status.NOT_IDENTIFIABLE.value + null_detail(sol.null_vectors, p.unknown_names)
         kwargs = dict(final.fit_kwargs)
         kwargs["max_iter"] = 50  # a re-fit (torchql.profile) iterates with fit's own default
         kwargs["method"] = "kantorovich"
@@ -442,8 +444,13 @@ class _GradientRun:
                                       max_time=self.max_time, tol=self.tol, gtol=self.gtol, window=self.window,
                                       adjoint=self.adjoint,
                                       wall_time=elapsed)
+        # the evaluation at the estimates (max_iter=0) is no converged fit, so its covariance is NaN;
+        # error bars belong to the gradient run's estimates when that run converged
+        cov = final.covariance
+        if status.success and torch.isfinite(final.jacobian).all():
+            cov = covariance(final.jacobian, final.exact_mask, final.sse, final.sigma_known, p.rcond).matrix
         return dataclasses.replace(
-            final, success=status.success, status=status, message=message, iterations=iterations,
+            final, success=status.success, status=status, message=message, iterations=iterations, covariance=cov,
             history=history, nfev=self.rhs.n_evals, method=self.optimizer_name, data=data, fit_kwargs=kwargs,
         )
 

@@ -39,6 +39,7 @@ from torch.func import vmap
 from . import _checks
 from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
+from .diagnosis import final_status, null_detail
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _DAMPINGS, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
@@ -47,6 +48,7 @@ from .linearize import Linearization, linearize
 from .lstsq import solve_update
 from .model import AugmentedSystem, ODEModel, coefficient_names, model_dtype_device
 from .observations import ObservationOperator, Observations
+from .trajectory import DEFECT_TRUST, model_defect
 from .result import Status
 from .uncertainty import covariance
 
@@ -582,6 +584,8 @@ class _Engine:
 
     def __init__(self, spec: _Spec, index: torch.Tensor, max_time: float | None = None) -> None:
         self.spec, self.max_time = spec, max_time
+        self.scale: torch.Tensor | None = None  # (S, m) typical magnitudes, from the first trajectory
+        self.sse_start: torch.Tensor | None = None  # (S,) the model's sums of squares at the guesses
         self.system = spec.system
         self.y, self.w, self.mask = spec.y[index], spec.weights[index], spec.mask[index]
         self.L = spec.L[index]
@@ -771,6 +775,7 @@ class _Engine:
             typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), self.z0_guess[:, n:].abs()], dim=1)
             typical = torch.where(typical > 0, typical, torch.ones_like(typical))
             scale = typical[:, spec.unknown_index]
+            self.scale, self.sse_start = scale, cur["sse"].clone()  # for the final diagnosis
             report(int((status != _RUNNING).sum()))
 
             while True:
@@ -826,7 +831,9 @@ class _Engine:
                 if spec.damping is None:
                     accept = ok
                 else:
-                    better = trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK)
+                    # as fit's _better: the linear merit decides only for trials near solving the model
+                    better = ((trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK))
+                              & (trial["defect"] <= DEFECT_TRUST))
                     check = ok & ~better
                     if bool(check.any()):
                         rows = check.nonzero().flatten()
@@ -892,6 +899,13 @@ class _Engine:
         with no_time_budget():  # the samples that finished in time get their final evaluation
             return self._finish(z0, status, detail, iterations, final_guess)
 
+    def _scale_of(self, r: int) -> torch.Tensor:
+        """Sample ``r``'s typical magnitudes of the unknowns ``(m,)`` (of its first trajectory, else its guesses)."""
+        if self.scale is not None:
+            return self.scale[r]
+        typical = self.z0_guess[r].abs()
+        return torch.where(typical > 0, typical, torch.ones_like(typical))[self.spec.unknown_index]
+
     def _fail_integration(self, failed, status, detail) -> None:
         self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
 
@@ -914,6 +928,7 @@ class _Engine:
         z_dot = _pick(lin_ref.f, act) + torch.einsum("sgij,sgj->sgi", _pick(lin_ref.jac, act), z_safe - z_ref)
         lin = self._linearize(act, z_safe, z_dot)
         trial = self._evaluate(act, z0_new, z_safe, z_dot, lin)
+        trial["defect"] = model_defect(lin.f, z_dot, self.system.n)
         ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
         return trial, ok
@@ -968,19 +983,22 @@ class _Engine:
             _, deficient, _ = _lstsq(J, torch.zeros(J.shape[:2], dtype=dtype, device=dev),
                                      torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
             deficient |= L < m
-            for k in deficient.nonzero().flatten().tolist():
-                r = int(rows[k])
+            for k, r in enumerate(rows.tolist()):
                 code = codes[r]
                 if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
                     continue
-                used = self.mask[r].reshape(-1)
-                sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
-                                   torch.ones(int(L[k]), dtype=dtype, device=dev),
-                                   torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
-                text = _null_detail(sol.null_vectors, spec.unknown_names)
-                if not code.success:
-                    text += f" The iteration did not converge ({code.name}): it moved along them."
-                codes[r], detail[r] = Status.NOT_IDENTIFIABLE, text
+                null_text = ""
+                if bool(deficient[k]):
+                    used = self.mask[r].reshape(-1)
+                    sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
+                                       torch.ones(int(L[k]), dtype=dtype, device=dev),
+                                       torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
+                    null_text = null_detail(sol.null_vectors, spec.unknown_names)
+                codes[r], more = final_status(
+                    code, rank_deficient=bool(deficient[k]), null_text=null_text,
+                    estimates=z0[r, spec.unknown_index], scale=self._scale_of(r), unknown_names=spec.unknown_names,
+                    sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]))
+                detail[r] = more if code.success else detail[r] + more
             cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
         messages = [c.value + d for c, d in zip(codes, detail)]
@@ -1013,6 +1031,10 @@ def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x if index.numel() == x.shape[0] else x[index]
 
 
+#: Entries of a trial iterate that only decide its acceptance and are not kept.
+_TRIAL_ONLY = ("failed", "defect")
+
+
 def _put(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None:
     """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur`` (sorted, distinct indices).
 
@@ -1021,11 +1043,11 @@ def _put(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None
     """
     if target.numel() == cur["z0"].shape[0] and rows.numel() == new["z0"].shape[0]:
         for key, value in new.items():
-            if key != "failed":
+            if key not in _TRIAL_ONLY:
                 cur[key] = value
         return
     for key, value in new.items():
-        if key == "failed":
+        if key in _TRIAL_ONLY:
             continue
         if key == "lin":
             for old, fresh in zip(cur["lin"], value):
@@ -1081,13 +1103,3 @@ def _covariance(J, used, sse, L, spec: _Spec, deficient) -> torch.Tensor:
         cov[k] = covariance(J[k][rows], torch.zeros(int(rows.sum()), dtype=torch.bool, device=J.device),
                             float(sse[k]), spec.sigma_known, spec.rcond).matrix
     return cov
-
-
-def _null_detail(null_vectors: torch.Tensor, unknown_names: list[str]) -> str:
-    parts = []
-    for k in range(null_vectors.shape[1]):
-        involved = [name for name, c in zip(unknown_names, null_vectors[:, k].tolist()) if abs(c) > 0.1]
-        group = "{" + ", ".join(involved) + "}"
-        if group not in parts:
-            parts.append(group)
-    return " Unknowns the data cannot separate: " + "; ".join(parts) + "."

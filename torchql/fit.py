@@ -31,6 +31,7 @@ from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, default_tolerances, solve
 from .linearize import linearize
 from .grid_solve import IntervalBudgetError, solve_on_grid
+from .diagnosis import final_status, null_detail
 from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
@@ -39,7 +40,7 @@ from .smoothing import interpolate, smooth
 from .result import FitError, FitResult, IterationRecord, Status
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns, propagate_linear
 from .uncertainty import covariance
-from .trajectory import LinearizedReference
+from .trajectory import DEFECT_TRUST, LinearizedReference, model_defect
 
 __all__ = ["fit", "METHODS"]
 
@@ -696,7 +697,9 @@ class _Problem:
         reference = current.reference
         z_dot = reference.slopes_of(z_new)
         lin = linearize(self.system, self.grid, z_new, z_dot)
-        return self._evaluate_kantorovich(z0, LinearizedReference(self.grid, z_new, z_dot, lin))
+        trial = self._evaluate_kantorovich(z0, LinearizedReference(self.grid, z_new, z_dot, lin))
+        trial.defect = float(model_defect(lin.f, z_dot, self.system.n))
+        return trial
 
     def _iterate(self, state, current: _Iterate) -> None:
         """Quasilinearization steps, globalized by Levenberg–Marquardt damping.
@@ -812,9 +815,13 @@ class _Problem:
         the step was ``capped`` (a bounded unknown asked to move by more than a factor
         ``e^MAX_INTERNAL_STEP``): the linear solution then lies far outside the region where it
         approximates the model, and its own small misfit says nothing about the model's
-        (shooting's merit is the model's sum of squares already).
+        (shooting's merit is the model's sum of squares already). And they decide when the
+        trial trajectory is far from solving the model (its :func:`~torchql.trajectory.model_defect`
+        above ``DEFECT_TRUST``): a step into a region where the linearization is poor can lower
+        the linear problem's misfit while the model's own rises (a Michaelis–Menten step to a
+        negative ``Km`` whose model solution is singular).
         """
-        trusted = not capped or self.method == "shooting"  # shooting's merit is the model's own
+        trusted = (not capped and trial.defect <= DEFECT_TRUST) or self.method == "shooting"
         if trusted and trial.merit <= current.merit * (1 + _MERIT_SLACK):
             return True
         if self.method == "shooting":
@@ -941,13 +948,12 @@ class _Problem:
                                        torch.zeros(L, dtype=torch.bool, device=self.device), self.rcond)
                     singular_values = sol.singular_values
                     converged = status.success
-                    if sol.rank_deficient and status.success:
-                        status, detail = Status.NOT_IDENTIFIABLE, self._null_detail(sol.null_vectors)
-                    elif sol.rank_deficient and status in (Status.MAX_ITER, Status.STALLED):
-                        # the iteration wandered along directions the data do not determine
-                        status, detail = Status.NOT_IDENTIFIABLE, (
-                            self._null_detail(sol.null_vectors)
-                            + f" The iteration did not converge ({status.name}): it moved along them.")
+                    null_text = null_detail(sol.null_vectors, self.unknown_names) if sol.rank_deficient else ""
+                    status, more = final_status(
+                        status, rank_deficient=sol.rank_deficient, null_text=null_text,
+                        estimates=z0[self.unknown_index], scale=self._scale_of(state),
+                        unknown_names=self.unknown_names, sse=sse, sse_start=self._model_sse_at_start(history))
+                    detail = more if converged else detail + more
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
                     if not converged:  # error bars about estimates that are not an optimum mean nothing
                         cov = cov._replace(matrix=torch.full_like(cov.matrix, float("nan")))
@@ -991,15 +997,17 @@ class _Problem:
             moved_guesses=dict(self.moved_guesses),
         )
 
-    def _null_detail(self, null_vectors: torch.Tensor) -> str:
-        parts = []
-        for k in range(null_vectors.shape[1]):
-            v = null_vectors[:, k]
-            involved = [name for name, c in zip(self.unknown_names, v.tolist()) if abs(c) > 0.1]
-            group = "{" + ", ".join(involved) + "}"
-            if group not in parts:  # several null directions may involve the same unknowns
-                parts.append(group)
-        return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
+    def _scale_of(self, state) -> torch.Tensor:
+        """The unknowns' typical magnitudes ``(m,)`` (of the first trajectory, else of the guesses)."""
+        if state.scale is not None:
+            return state.scale
+        typical = self.z0.abs()
+        return torch.where(typical > 0, typical, torch.ones_like(typical))[self.unknown_index]
+
+    def _model_sse_at_start(self, history: list[IterationRecord]) -> float | None:
+        """The model's own sum of squares at the guesses, when the first iterate is its solution."""
+        integrated = self.method == "shooting" or self.initial_trajectory == "integrate"
+        return history[0].sse if integrated and history else None
 
 
 #: Gauss–Newton steps of the gradient matching that gives the first coefficients from the data.
@@ -1057,6 +1065,7 @@ class _Iterate:
         self.nonlinear_sse: float | None = merit if shooting else None
         self.nonlinear_traj: torch.Tensor | None = reference if shooting else None
         self.anchored = shooting  # linearized about the model's own solution from z0
+        self.defect = 0.0  # model_defect of the reference (Kantorovich trial steps; 0 otherwise)
 
 
 class _IterationState:

@@ -24,8 +24,9 @@ class Status(enum.Enum):
         "iterate's, not evaluated further. Increase `max_time`, or start from guesses closer to the solution."
     )
     DIVERGED = (
-        "The iteration diverged: the update or the trajectory became non-finite. Start from guesses "
-        "closer to the solution, or observe more of the trajectory."
+        "The iteration diverged: the estimates ran away, or the update, the trajectory or the sum of squares "
+        "became non-finite or grew without bound. Start from guesses closer to the solution, use `bounds` to "
+        "keep the unknowns in a sensible range, or observe more of the trajectory."
     )
     INTEGRATION_FAILED = (
         "The ODE solver failed. Start from better guesses (the model may blow up there), loosen "

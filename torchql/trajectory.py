@@ -17,7 +17,26 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["LinearizedReference", "IntervalSystem", "hermite_basis"]
+__all__ = ["LinearizedReference", "IntervalSystem", "hermite_basis", "model_defect"]
+
+#: A superposed trajectory whose :func:`model_defect` exceeds this is too far from solving the
+#: model for its linear problem's sum of squares to judge a step by (see ``fit``'s damping).
+DEFECT_TRUST = 0.1
+
+
+def model_defect(f: torch.Tensor, z_dot: torch.Tensor, n: int) -> torch.Tensor:
+    """How far a trajectory is from solving the model, relative to its own slopes.
+
+    ``max_{j, i} |f_i(z(t_j)) - z_i'(t_j)| / max_j |z_i'(t_j)|`` over the nodes ``j`` and the
+    ``n`` states ``i``, for node values of the model's right-hand side ``f (..., G, M)`` and the
+    trajectory's slopes ``z_dot (..., G, M)``: shape ``(...)``. Zero for a solution of the model;
+    for a Kantorovich step it shrinks quadratically with the step, so it tells a step near the
+    optimum, whose linear sum of squares predicts the model's, from one far away.
+    """
+    slopes = z_dot[..., :n]
+    scale = slopes.abs().amax(dim=-2, keepdim=True)
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    return ((f[..., :n] - slopes).abs() / scale).amax(dim=(-2, -1))
 
 
 def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,0 +1,140 @@
+"""Truthful statuses for fits that do not reach an optimum: diverged is not "not identifiable"."""
+
+import math
+
+import pytest
+import torch
+
+import torchql
+from torchql.diagnosis import RUNAWAY_FACTOR, SSE_GROWTH, WEAK_RUNAWAY_FACTOR, final_status, null_detail, ran_away
+from torchql.status import Status
+
+DT = torch.float64
+NULL = " Unknowns the data cannot separate: {V, Km}."
+
+
+NAMES = ["V", "Km"]
+SCALE = torch.ones(2, dtype=DT)
+
+
+def rules(status, deficient=False, growth=(1.0, 1.0), sse=1.0, sse_start=1.0):
+    """``final_status`` for estimates ``growth`` times their typical magnitude (1)."""
+    return final_status(status, rank_deficient=deficient, null_text=NULL if deficient else "",
+                        estimates=torch.tensor(growth, dtype=DT), scale=SCALE, unknown_names=NAMES, sse=sse,
+                        sse_start=sse_start)
+
+
+WEAK = (2 * WEAK_RUNAWAY_FACTOR, 1.0)  # beyond the factor for weakly determined directions only
+STRONG = (2 * RUNAWAY_FACTOR, 1.0)
+
+
+def test_null_detail_names_each_group_once():
+    v = torch.tensor([[0.7, 0.7], [0.7, 0.7], [0.0, 0.0]], dtype=DT)
+    assert null_detail(v, ["V", "Km", "S(t0)"]) == NULL
+
+
+def test_ran_away_compares_with_the_typical_magnitude():
+    scale = torch.tensor([1.0, 1e-3, 2.0], dtype=DT)
+    u = torch.tensor([-2e6, 5e2, math.nan], dtype=DT)
+    assert ran_away(u, scale, ["a", "b", "c"]) == ["a", "c"]
+    assert ran_away(torch.tensor([RUNAWAY_FACTOR], dtype=DT), torch.ones(1, dtype=DT), ["a"]) == []
+
+
+@pytest.mark.parametrize("status", [Status.CONVERGED, Status.CONVERGED_SSE])
+def test_converged(status):
+    assert rules(status) == (status, "")
+    assert rules(status, deficient=True) == (Status.NOT_IDENTIFIABLE, NULL)
+    # a full-rank optimum far from the guesses is an optimum
+    assert rules(status, growth=STRONG) == (status, "")
+    # converged only relative to estimates that ran away along a direction the data barely determine
+    code, detail = rules(status, deficient=True, growth=(2 * WEAK_RUNAWAY_FACTOR, -3 * WEAK_RUNAWAY_FACTOR))
+    assert code is Status.DIVERGED and "['V', 'Km'] ran away" in detail and "{V, Km}" in detail
+    # a non-identifiable direction's minimal-norm steps stay near the guesses
+    assert rules(status, deficient=True, growth=(0.5 * WEAK_RUNAWAY_FACTOR, 1.0))[0] is Status.NOT_IDENTIFIABLE
+
+
+@pytest.mark.parametrize("status", [Status.MAX_ITER, Status.STALLED])
+def test_unconverged(status):
+    assert rules(status) == (status, "")
+    code, detail = rules(status, deficient=True)
+    assert code is Status.NOT_IDENTIFIABLE and detail.startswith(NULL) and status.name in detail
+    code, detail = rules(status, growth=STRONG)
+    assert code is Status.DIVERGED and "['V'] ran away" in detail and status.name in detail
+    assert rules(status, growth=WEAK) == (status, "")  # full rank: far, but perhaps on its way
+    code, detail = rules(status, deficient=True, growth=WEAK)
+    assert code is Status.DIVERGED and "barely determine" in detail
+    code, detail = rules(status, sse=2 * SSE_GROWTH, sse_start=1.0)
+    assert code is Status.DIVERGED and "grew from 1 at the guesses to 2000" in detail
+    # no start from the model's own solution (a data-built first trajectory): no comparison
+    assert rules(status, sse=1e300, sse_start=None) == (status, "")
+
+
+@pytest.mark.parametrize("status", [Status.INTEGRATION_FAILED, Status.DIVERGED, Status.EXACT_INFEASIBLE,
+                                    Status.MAX_TIME])
+def test_other_statuses_stand(status):
+    assert rules(status, deficient=True, growth=STRONG, sse=1e9) == (status, "")
+
+
+class MichaelisMenten(torchql.ODEModel):
+    """``S' = -V S / (Km + S)``: identifiable from its full decay, linear (``-(V/Km) S``) as ``Km -> inf``."""
+
+    state_names = ("S",)
+
+    def __init__(self, V=1.0, Km=0.5):
+        super().__init__()
+        self.register_buffer("V", torch.tensor(V, dtype=DT))
+        self.register_buffer("Km", torch.tensor(Km, dtype=DT))
+
+    def forward(self, t, x):
+        return -self.V * x / (self.Km + x)
+
+
+T = torch.linspace(0, 10, 21, dtype=DT)
+
+
+def test_a_runaway_along_a_weak_direction_is_diverged_not_unidentifiable():
+    """From V = 0.3, Km = 0.15 the integrated start descends into the valley ``V, Km -> inf`` with ``V / Km``
+    fixed (sum of squares 2.17 at infinity, 0 at the truth). The Jacobian there is nearly rank deficient,
+    but the problem is well conditioned at its optimum (column-scaled condition number 38): the honest
+    status is DIVERGED, naming the runaway, in fit and in fit_many alike."""
+    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
+    data = torchql.Observations(T, y, observe=["S"])
+    result = torchql.fit(MichaelisMenten(0.3, 0.15), data, x0=torch.tensor([5.0], dtype=DT),
+                         initial_trajectory="integrate")
+    assert result.status is Status.DIVERGED, result.message
+    assert "['V', 'Km'] ran away" in result.message
+    assert abs(float(result.params["V"])) > WEAK_RUNAWAY_FACTOR * 0.3
+    batch = torchql.fit_many(MichaelisMenten(0.3, 0.15), torchql.Observations(T, torch.stack([y, y]), observe=["S"]),
+                             x0=torch.tensor([5.0], dtype=DT))
+    assert [s.name for s in batch.status] == ["DIVERGED", "DIVERGED"], batch.message
+    assert all("ran away" in m for m in batch.message)
+
+
+def test_the_same_data_from_the_data_built_start_reach_the_truth():
+    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
+    data = torchql.Observations(T, y, observe=["S"])
+    result = torchql.fit(MichaelisMenten(0.3, 0.15), data, x0=torch.tensor([5.0], dtype=DT),
+                         initial_trajectory="data")
+    assert result.success, result.message
+    # exact data, rtol 1e-10: the estimates to the integrator's accuracy times the conditioning (38)
+    assert abs(float(result.params["V"]) - 1.0) < 1e-7 and abs(float(result.params["Km"]) - 0.5) < 1e-7
+
+
+def test_a_step_far_from_solving_the_model_is_judged_by_the_model():
+    """From the true V, Km but S(t0) guessed 2 (truth 5), the second undamped Kantorovich step goes to
+    V = -3.3, Km = -5.1: its linear problem's misfit falls (6.7 -> 6.1), but the trajectory is far from
+    solving the model (model_defect 83: the model is singular where Km + S = 0). Judged by its linear
+    misfit the step was taken and the iteration ran away to V, Km ~ -1e6; judged by the model it is
+    rejected, the step damped, and the fit converges to the truth, through fit and fit_many alike."""
+    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
+    data = torchql.Observations(T, y, observe=["S"])
+    result = torchql.fit(MichaelisMenten(1.0, 0.5), data, x0=torch.tensor([2.0], dtype=DT),
+                         initial_trajectory="integrate")
+    assert result.success, result.message
+    assert abs(float(result.params["V"]) - 1.0) < 1e-7 and abs(float(result.params["Km"]) - 0.5) < 1e-7
+    assert abs(float(result.x0[0]) - 5.0) < 1e-7
+    assert any(record.rejected for record in result.history)
+    batch = torchql.fit_many(MichaelisMenten(1.0, 0.5), torchql.Observations(T, torch.stack([y, y]), observe=["S"]),
+                             x0=torch.tensor([2.0], dtype=DT))
+    assert bool(batch.success.all()), batch.message
+    assert torch.allclose(batch.estimates[0], result.estimates, rtol=1e-8, atol=0)

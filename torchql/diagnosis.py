@@ -1,0 +1,101 @@
+"""Why an unconverged fit failed, told truthfully: not identifiable, or diverged.
+
+A fit that ends at ``MAX_ITER`` or ``STALLED`` is examined at its final estimates:
+
+* if its estimates ran away (some unknown grew more than :data:`RUNAWAY_FACTOR` times its
+  typical magnitude, or :data:`WEAK_RUNAWAY_FACTOR` times along a direction the data barely
+  determine) or its sum of squares grew more than :data:`SSE_GROWTH` times the model's own at the
+  start, it diverged (``DIVERGED``);
+* otherwise, if the scaled Jacobian is rank deficient, the data do not determine the named
+  unknowns (``NOT_IDENTIFIABLE``), the iteration having moved along them;
+* otherwise the status stands.
+
+A converged fit is examined too: a rank-deficient Jacobian at its estimates means the data do
+not determine them (``NOT_IDENTIFIABLE``), unless the estimates ran away along that direction.
+A runaway into a degenerate limit (a Michaelis–Menten ``V, Km -> inf`` with ``V / Km`` fixed,
+where the model becomes ``S' = -(V / Km) S``) makes the Jacobian nearly rank deficient and the
+relative steps tiny without the problem being unidentifiable at its optimum: that fit diverged.
+Along a direction the data truly do not determine, the least-squares steps are of minimal
+norm and the estimates stay near their guesses.
+
+``fit``, ``fit_many`` and the gradient baselines share these rules and the wording of the
+unknowns the data cannot separate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+
+from .status import Status
+
+__all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "null_detail", "ran_away", "final_status"]
+
+#: An unknown whose magnitude exceeds this many times its typical one has run away.
+RUNAWAY_FACTOR = 1e6
+#: The same where the Jacobian at the estimates is rank deficient (a runaway along the directions
+#: the data barely determine; a non-identifiable fit's minimal-norm steps stay far below it).
+WEAK_RUNAWAY_FACTOR = 1e4
+#: A final sum of squares this many times the model's own at the start is a divergence.
+SSE_GROWTH = 1e3
+
+
+def null_detail(null_vectors: torch.Tensor, unknown_names: Sequence[str]) -> str:
+    """`` Unknowns the data cannot separate: {a, b}; {c}.`` from the null directions ``(m, k)``."""
+    parts: list[str] = []
+    for k in range(null_vectors.shape[1]):
+        involved = [name for name, c in zip(unknown_names, null_vectors[:, k].tolist()) if abs(c) > 0.1]
+        group = "{" + ", ".join(involved) + "}"
+        if group not in parts:  # several null directions may involve the same unknowns
+            parts.append(group)
+    return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
+
+
+def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequence[str],
+             factor: float = RUNAWAY_FACTOR) -> list[str]:
+    """Names of the unknowns ``(m,)`` larger in magnitude than ``factor`` times ``scale (m,)``."""
+    away = ~(estimates.abs() <= factor * scale)  # NaN runs away too
+    return [name for name, flag in zip(unknown_names, away.tolist()) if flag]
+
+
+def final_status(status: Status, *, rank_deficient: bool, null_text: str, estimates: torch.Tensor,
+                 scale: torch.Tensor, unknown_names: Sequence[str], sse: float,
+                 sse_start: float | None) -> tuple[Status, str]:
+    """The status of a fit whose iteration ended at ``status``, and the detail to add to its message.
+
+    Parameters
+    ----------
+    status : Status
+        How the iteration ended; converged statuses, ``MAX_ITER`` and ``STALLED`` are examined.
+    rank_deficient : bool
+        Whether the scaled Jacobian at the final estimates is rank deficient.
+    null_text : str
+        :func:`null_detail` of its null directions (used when it is).
+    estimates, scale : Tensor ``(m,)``
+        The final estimates and the unknowns' typical magnitudes (see :func:`ran_away`).
+    unknown_names : sequence of str
+    sse : float
+        The model's sum of squares at the final estimates.
+    sse_start : float or None
+        The model's own sum of squares at the guesses, when the iteration started from it.
+    """
+    examined = status.success or status in (Status.MAX_ITER, Status.STALLED)
+    if not examined:
+        return status, ""
+    factor = WEAK_RUNAWAY_FACTOR if rank_deficient else RUNAWAY_FACTOR
+    runaway = ran_away(estimates, scale, unknown_names, factor)
+    if runaway and (rank_deficient or not status.success):
+        where = ", where the data barely determine them." + null_text[1:] if rank_deficient else "."
+        ended = "" if status.success else f" before the iteration ended at {status.name}"
+        return Status.DIVERGED, (f" The estimates of {runaway} ran away (more than {factor:g} times their typical "
+                                 f"magnitude){ended}{where}")
+    if status.success:
+        return (Status.NOT_IDENTIFIABLE, null_text) if rank_deficient else (status, "")
+    if sse_start is not None and math.isfinite(sse_start) and sse > SSE_GROWTH * max(sse_start, 0.0) and sse > 0:
+        return Status.DIVERGED, (f" The sum of squares grew from {sse_start:.6g} at the guesses to {sse:.6g}"
+                                 f" before the iteration ended at {status.name}.")
+    if rank_deficient:  # the iteration wandered along directions the data do not determine
+        return Status.NOT_IDENTIFIABLE, null_text + f" The iteration did not converge ({status.name}): it moved along them."
+    return status, ""
