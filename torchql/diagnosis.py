@@ -87,7 +87,7 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
     factor = WEAK_RUNAWAY_FACTOR if rank_deficient else RUNAWAY_FACTOR
     runaway = ran_away(estimates, scale, unknown_names, factor)
     if runaway and (rank_deficient or not status.success):
-        where = ", where the data barely determine them." + null_text[1:] if rank_deficient else "."
+        where = ", where the data barely determine them." + null_text if rank_deficient else "."
         ended = "" if status.success else f" before the iteration ended at {status.name}"
         return Status.DIVERGED, (f" The estimates of {runaway} ran away (more than {factor:g} times their typical "
                                  f"magnitude){ended}{where}")
