@@ -138,3 +138,18 @@ def test_a_step_far_from_solving_the_model_is_judged_by_the_model():
                              x0=torch.tensor([2.0], dtype=DT))
     assert bool(batch.success.all()), batch.message
     assert torch.allclose(batch.estimates[0], result.estimates, rtol=1e-8, atol=0)
+
+
+def test_a_coefficient_the_data_start_puts_near_zero_is_not_a_runaway():
+    """x'' = -xi x seen at t = 0, 0.5, 1 as cos(pi t) = 1, 0, -1: every xi fits (with its own x'(0)),
+    so the problem is not identifiable. The data-built start fits xi ~ 1e-13 to the straight line's
+    slopes; the fit ends at xi = 8.38, far above that but not above the guess 1: NOT_IDENTIFIABLE."""
+    from torchql.models import HarmonicOscillator
+
+    t = torch.tensor([0.0, 0.5, 1.0], dtype=DT)
+    data = torchql.Observations(t, torch.cos(math.pi * t), observe=["x"])
+    result = torchql.fit(HarmonicOscillator(1.0), data, x0=torch.tensor((1.0, 1.0), dtype=DT),
+                         initial_trajectory="data")
+    assert abs(float(result.history[0].params["xi"])) < 1e-6
+    assert result.status is Status.NOT_IDENTIFIABLE, result.message
+    assert "{u(t0), xi}" in result.message

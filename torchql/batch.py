@@ -900,11 +900,11 @@ class _Engine:
             return self._finish(z0, status, detail, iterations, final_guess)
 
     def _scale_of(self, r: int) -> torch.Tensor:
-        """Sample ``r``'s typical magnitudes of the unknowns ``(m,)`` (of its first trajectory, else its guesses)."""
-        if self.scale is not None:
-            return self.scale[r]
-        typical = self.z0_guess[r].abs()
-        return torch.where(typical > 0, typical, torch.ones_like(typical))[self.spec.unknown_index]
+        """Sample ``r``'s typical magnitudes of the unknowns ``(m,)`` for the runaway test, as fit's:
+        the larger of its guesses and its first iterate's magnitudes."""
+        guess = self.z0_guess[r, self.spec.unknown_index].abs()
+        typical = guess if self.scale is None else torch.maximum(self.scale[r], guess)
+        return torch.where(typical > 0, typical, torch.ones_like(typical))
 
     def _fail_integration(self, failed, status, detail) -> None:
         self._fail_integration_rows(failed.nonzero().flatten(), status, detail)

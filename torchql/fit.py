@@ -358,6 +358,7 @@ class _Problem:
         if self.moved_guesses:
             self.z0[self.unknown_index] = used
             x0 = self.z0[:n]
+        self.u_guess = self.z0[self.unknown_index].clone()  # the guesses used, before any data-built start
 
         # --- the model and the observation operator on the guesses
         self._check_model(x0)
@@ -998,11 +999,11 @@ class _Problem:
         )
 
     def _scale_of(self, state) -> torch.Tensor:
-        """The unknowns' typical magnitudes ``(m,)`` (of the first trajectory, else of the guesses)."""
-        if state.scale is not None:
-            return state.scale
-        typical = self.z0.abs()
-        return torch.where(typical > 0, typical, torch.ones_like(typical))[self.unknown_index]
+        """The unknowns' typical magnitudes ``(m,)`` for the runaway test: the larger of the guesses
+        used and the first iterate's magnitudes (a data-built start may put a coefficient near 0)."""
+        guess = self.u_guess.abs()
+        typical = guess if state.scale is None else torch.maximum(state.scale, guess)
+        return torch.where(typical > 0, typical, torch.ones_like(typical))
 
     def _model_sse_at_start(self, history: list[IterationRecord]) -> float | None:
         """The model's own sum of squares at the guesses, when the first iterate is its solution."""
