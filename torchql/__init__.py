@@ -1,6 +1,6 @@
 """torchql: system identification by quasilinearization, in PyTorch."""
 
-from . import baselines, models
+from . import baselines, models, propagators
 from .batch import fit_many
 from .batch_result import BatchFitResult
 from .fit import METHODS, fit
@@ -40,4 +40,5 @@ __all__ = [
     "NewtonResult",
     "models",
     "baselines",
+    "propagators",
 ]

@@ -38,6 +38,7 @@ from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
 from .smoothing import interpolate, smooth
 from .result import FitError, FitResult, IterationRecord, Status
+from .propagators import LinearPropagator
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns, propagate_linear
 from .uncertainty import covariance
 from .trajectory import DEFECT_TRUST, LinearizedReference, model_defect
@@ -73,7 +74,7 @@ def fit(
     initial_trajectory: str = "integrate",
     max_steps: int | None = None,
     damping: str | None = "lm",
-    linear_solver: str = DEFAULT_LINEAR_SOLVER,
+    linear_solver: "str | LinearPropagator" = DEFAULT_LINEAR_SOLVER,
     callback: Callable[[IterationRecord], None] | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
@@ -167,7 +168,7 @@ def fit(
         squares (so near the optimum the iteration is the thesis' one, quadratically
         convergent); otherwise, or when its trajectory cannot be integrated, the step is
         damped until it does. ``None``: the undamped iteration of the thesis, step for step.
-    linear_solver : str
+    linear_solver : str or torchql.propagators.LinearPropagator
         How the linear (particular and homogeneous) system is propagated over the grid: one of
         ``torchql.LINEAR_SOLVERS``. ``"taylor"`` (default): every grid interval's transfer
         matrix at once from its Taylor series (exact for the interpolated coefficients, summed
@@ -177,7 +178,8 @@ def fit(
         Newton's method, :mod:`torchql.grid_solve`) wherever a prediction of its trajectory is at
         hand (the first reference, trial steps, the final pass), falling back to ``solver``.
         ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with ``solver``,
-        which integrates the nonlinear model too.
+        which integrates the nonlinear model too. A :class:`torchql.propagators.LinearPropagator`
+        object is used as given (its ``grid_solver`` says whether the grid solver may be used).
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
 
@@ -233,7 +235,7 @@ class _Problem:
                 f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
         for arg, value, allowed in (("method", method, METHODS), ("initial_trajectory", initial_trajectory,
                                                                    _INITIAL_TRAJECTORIES),
-                                    ("solver", solver, None), ("linear_solver", linear_solver, None)):
+                                    ("solver", solver, None)):
             if not isinstance(value, str):
                 raise TypeError(f"`{arg}` must be a string" + (f", one of {allowed}" if allowed else "")
                                 + f"; received {type(value).__name__}")
@@ -247,8 +249,7 @@ class _Problem:
         if damping is not None and not isinstance(damping, str) or damping not in _DAMPINGS:
             raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
         self.damping = damping
-        check_linear_solver(linear_solver)
-        self.linear_solver = linear_solver
+        self.linear_solver = check_linear_solver(linear_solver)
         max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
         if max_steps is not None:
             max_steps = _checks.positive_int("max_steps", max_steps)
@@ -487,7 +488,7 @@ class _Problem:
         if self.max_steps is not None:  # the user's step budget per grid interval binds this solver too
             substeps = min(substeps, 1 << (self.max_steps.bit_length() - 1))
         with torch.no_grad():
-            if (guess is not None and self.linear_solver != "torchdiffeq" and substeps >= 2
+            if (guess is not None and self.linear_solver.grid_solver and substeps >= 2
                     and bool(torch.isfinite(guess).all())):
                 try:
                     x, _ = solve_on_grid(counter, z0[:n], self.grid, rtol=rtol, atol=atol, guess=guess[:, :n],

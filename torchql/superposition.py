@@ -16,26 +16,25 @@ from __future__ import annotations
 
 import torch
 
-from .integrate import CountedField, interval_tolerances, solve
+from .integrate import interval_tolerances
+from .propagators import DEFAULT_PROPAGATOR, PROPAGATORS, LinearPropagator, linear_propagator
 from .trajectory import IntervalSystem, LinearizedReference
-from .taylor import taylor_transfers
-from .transfer import Transfers, compose_transfers, interval_transfers
+from .transfer import compose_transfers
 
 __all__ = ["LINEAR_SOLVERS", "DEFAULT_LINEAR_SOLVER", "check_linear_solver", "initial_columns", "propagate_linear"]
 
-#: Integrators of the interval transfers: ``"taylor"`` (each interval's Taylor series, exact for
-#: its polynomial coefficients, summed to a bounded truncation error, :mod:`torchql.taylor`),
+#: The built-in propagators' names (:mod:`torchql.propagators`): ``"taylor"`` (each interval's
+#: Taylor series, exact for its polynomial coefficients, summed to a bounded truncation error),
 #: ``"rk4_doubling"`` (fixed RK4 steps with step doubling and refinement of the intervals that
-#: need it, :mod:`torchql.transfer`) or ``"torchdiffeq"`` (one adaptive torchdiffeq call over all
-#: intervals, with the solver named by ``solver``).
-LINEAR_SOLVERS: tuple[str, ...] = ("taylor", "rk4_doubling", "torchdiffeq")
-DEFAULT_LINEAR_SOLVER: str = "taylor"
+#: need it) and ``"torchdiffeq"`` (one adaptive torchdiffeq call over all intervals, with the
+#: solver named by ``solver``).
+LINEAR_SOLVERS: tuple[str, ...] = tuple(PROPAGATORS)
+DEFAULT_LINEAR_SOLVER: str = DEFAULT_PROPAGATOR
 
 
-def check_linear_solver(linear_solver: str) -> None:
-    """Raise ``ValueError`` naming the valid choices when ``linear_solver`` is not one of them."""
-    if linear_solver not in LINEAR_SOLVERS:
-        raise ValueError(f"`linear_solver` must be one of {LINEAR_SOLVERS}; received {linear_solver!r}")
+def check_linear_solver(linear_solver: "str | LinearPropagator") -> LinearPropagator:
+    """The propagator ``linear_solver`` names (or is); ``ValueError`` naming the valid choices otherwise."""
+    return linear_propagator(linear_solver)
 
 
 def initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
@@ -48,7 +47,7 @@ def initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tens
 
 def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver: str = "dopri5", rtol: float,
                      atol: float, max_steps: int | None = None,
-                     linear_solver: str = DEFAULT_LINEAR_SOLVER) -> tuple[torch.Tensor, int]:
+                     linear_solver: "str | LinearPropagator" = DEFAULT_LINEAR_SOLVER) -> tuple[torch.Tensor, int]:
     """Integrate the quasilinear system over the reference's grid.
 
     Every interval's transfer ``(Phi_j, c_j)`` is integrated at once, in the local time ``s``
@@ -69,8 +68,8 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
     max_steps : int, optional
         Step budget of the torchdiffeq call (unused by ``"taylor"`` and ``"rk4_doubling"``, which
         cap the substeps per interval instead; see :func:`torchql.taylor.taylor_transfers`).
-    linear_solver : str
-        One of :data:`LINEAR_SOLVERS`: ``"taylor"`` (default) sums each interval's Taylor series
+    linear_solver : str or LinearPropagator
+        A registered name (:data:`LINEAR_SOLVERS`) or a propagator object: ``"taylor"`` (default) sums each interval's Taylor series
         (exact for the interpolated coefficients) to a bounded truncation error, in substeps
         where the interval is long against the dynamics; ``"rk4_doubling"`` integrates with fixed
         RK4 steps and step doubling, refining only the intervals that need it; ``"torchdiffeq"``
@@ -92,29 +91,11 @@ def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver
     IntegrationError
         When a transfer cannot be integrated to the tolerance or becomes non-finite.
     """
-    check_linear_solver(linear_solver)
+    propagator = linear_propagator(linear_solver)
     G = reference.t.shape[0]
     if G == 1:
         return w0.unsqueeze(0), 0
     system = IntervalSystem(reference)
-    intervals = G - 1
-    rtol_j, atol_j = interval_tolerances(rtol, atol, intervals, w0.dtype)
-    M = w0.shape[0]
-    if linear_solver == "taylor":
-        transfers, n_evals = taylor_transfers(system, rtol=rtol_j, atol=atol_j)
-    elif linear_solver == "rk4_doubling":
-        transfers, n_evals = interval_transfers(system, rtol=rtol_j, atol=atol_j)
-    else:
-        s = torch.tensor([0.0, 1.0], dtype=w0.dtype, device=w0.device)
-        Y = solve(CountedField(system), system.initial(), s, solver=solver, rtol=rtol_j, atol=atol_j, max_steps=max_steps,
-                  norm=_max_norm, first_step=1.0)[-1]
-        T = torch.zeros(intervals, M + 1, M + 1, dtype=w0.dtype, device=w0.device)
-        T[:, :M] = Y
-        T[:, M, M] = 1.0
-        transfers = Transfers.from_full(T)
-        n_evals = system.n_evals
+    rtol_j, atol_j = interval_tolerances(rtol, atol, G - 1, w0.dtype)
+    transfers, n_evals = propagator.transfers(system, rtol=rtol_j, atol=atol_j, solver=solver, max_steps=max_steps)
     return compose_transfers(transfers, w0), n_evals
-
-
-def _max_norm(x: torch.Tensor) -> torch.Tensor:
-    return x.abs().max()

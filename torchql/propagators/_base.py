@@ -1,0 +1,66 @@
+"""The interface every linear propagator implements."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..trajectory import IntervalSystem
+    from ..transfer import Transfers
+
+
+class LinearPropagator:
+    """Integrates the transfers of every grid interval of a quasilinear system at once.
+
+    Attributes
+    ----------
+    name : str
+        The name ``linear_solver=`` selects it by.
+    grid_solver : bool
+        Whether ``fit`` may also solve the nonlinear model on the grid (multiple shooting from a
+        predicted trajectory, :mod:`torchql.grid_solve`) wherever a prediction is at hand; if
+        not, every nonlinear pass is integrated by the adaptive ``solver``.
+    """
+
+    name: str = ""
+    grid_solver: bool = True
+
+    def transfers(self, system: "IntervalSystem", *, rtol: float, atol: float, solver: str,
+                  max_steps: int | None) -> "tuple[Transfers, int]":
+        """The transfers ``T_j`` of all ``G - 1`` intervals of ``system``, each within ``rtol``/``atol``.
+
+        Parameters
+        ----------
+        system : IntervalSystem
+            Every interval's linear problem in local time ``s`` in ``[0, 1]``.
+        rtol, atol : float
+            Per-interval tolerances (already divided for the accumulation over the grid).
+        solver : str
+            ``fit``'s torchdiffeq method name, for propagators that integrate with it.
+        max_steps : int or None
+            ``fit``'s step budget, for propagators that integrate adaptively.
+
+        Returns
+        -------
+        transfers : Transfers
+        n_evals : int
+            Evaluations of the interval system's coefficients (each one on all intervals at once).
+
+        Raises
+        ------
+        IntegrationError
+            When a transfer cannot be integrated to the tolerance or becomes non-finite.
+        """
+        raise NotImplementedError
+
+    def __eq__(self, other: object) -> bool:
+        """Equal to another propagator of the same class and name, or to its name."""
+        if isinstance(other, str):
+            return other == self.name
+        return type(other) is type(self) and getattr(other, "name", None) == self.name
+
+    def __hash__(self) -> int:
+        return hash((type(self), self.name))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"

@@ -1,0 +1,34 @@
+"""``linear_solver="torchdiffeq"``: one adaptive torchdiffeq call over all intervals."""
+
+from __future__ import annotations
+
+import torch
+
+from ..integrate import CountedField, solve
+from ..transfer import Transfers
+from ._base import LinearPropagator
+
+
+class Torchdiffeq(LinearPropagator):
+    """All intervals' transfers in one torchdiffeq call with ``fit``'s ``solver`` (max-norm error
+    control, so that no interval dilutes another's error; first step the whole interval, since the
+    intervals are short against the dynamics). ``fit`` then integrates every nonlinear pass with
+    ``solver`` too, instead of solving it on the grid."""
+
+    name = "torchdiffeq"
+    grid_solver = False
+
+    def transfers(self, system, *, rtol, atol, solver, max_steps):
+        Y0 = system.initial()
+        intervals, M = Y0.shape[0], Y0.shape[1]
+        s = torch.tensor([0.0, 1.0], dtype=Y0.dtype, device=Y0.device)
+        Y = solve(CountedField(system), Y0, s, solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
+                  norm=_max_norm, first_step=1.0)[-1]
+        T = torch.zeros(intervals, M + 1, M + 1, dtype=Y.dtype, device=Y.device)
+        T[:, :M] = Y
+        T[:, M, M] = 1.0
+        return Transfers.from_full(T), system.n_evals
+
+
+def _max_norm(x: torch.Tensor) -> torch.Tensor:
+    return x.abs().max()
