@@ -41,13 +41,14 @@ from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch
 from .batch_result import BatchFitResult
 from .diagnosis import final_status, null_detail
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
-from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _DAMPINGS, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
+from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
-from .integrate import check_solver, default_tolerances
+from .integrate import check_solver
 from .linearize import Linearization, linearize
 from .lstsq import solve_update
 from .model import AugmentedSystem, ODEModel, coefficient_names, model_dtype_device
 from .observations import ObservationOperator, Observations
+from .options import Limits, Tolerances, check_damping
 from .trajectory import DEFECT_TRUST, model_defect
 from .result import Status
 from .uncertainty import covariance
@@ -152,7 +153,7 @@ def fit_many(
     spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
                  damping, solver, max_steps)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
-    max_time = None if max_time is None else _checks.positive_number("max_time", max_time)
+    max_time = Limits.resolve(max_time=max_time).max_time
     report = _progress(progress, spec.B)
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
@@ -233,21 +234,12 @@ class _Spec:
         if not isinstance(solver, str):
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver)
-        if damping is not None and not isinstance(damping, str) or damping not in _DAMPINGS:
-            raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
-        self.damping, self.solver = damping, solver
-        self.max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
-        self.max_steps = None if max_steps is None else _checks.positive_int("max_steps", max_steps)
+        self.damping, self.solver = check_damping(damping), solver
+        limits = Limits.resolve(max_iter, max_steps)
+        self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
         self.dtype, self.device = dtype, device = model_dtype_device(model)
-        rtol, atol = default_tolerances(dtype, rtol, atol)
-        self.rtol, self.atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
-        eps = torch.finfo(dtype).eps
-        self.xtol = (_checks.positive_number("xtol", xtol) if xtol is not None
-                     else max(1e-8 if dtype == torch.float64 else 1e-4, 100 * self.rtol))
-        self.ftol = (_checks.positive_number("ftol", ftol) if ftol is not None
-                     else (1e-12 if dtype == torch.float64 else 1e-6))
-        self.rcond = (_checks.positive_number("rcond", rcond) if rcond is not None
-                      else max(1e3 * self.rtol, 1e3 * eps))
+        tol = Tolerances.resolve(dtype, rtol, atol, xtol, ftol, rcond)
+        self.rtol, self.atol, self.xtol, self.ftol, self.rcond = tol.rtol, tol.atol, tol.xtol, tol.ftol, tol.rcond
 
         # --- data: (B, T, K)
         self._stack(data, dtype, device)

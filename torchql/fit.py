@@ -28,7 +28,7 @@ from torch.func import jacrev, vmap
 from . import _checks
 from .bounds import Bounds, moved_guesses_note
 from .budget import TimeBudgetExceeded, time_budget, time_left
-from .integrate import CountedField, IntegrationError, check_solver, default_tolerances, solve
+from .integrate import CountedField, IntegrationError, check_solver, solve
 from .linearize import linearize
 from .grid_solve import IntervalBudgetError, solve_on_grid
 from .diagnosis import final_status, null_detail
@@ -36,6 +36,7 @@ from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
+from .options import Limits, Tolerances, check_damping
 from .smoothing import interpolate, smooth
 from .result import FitError, FitResult, IterationRecord, Status
 from .propagators import LinearPropagator
@@ -48,7 +49,6 @@ __all__ = ["fit", "METHODS"]
 #: The iteration schemes ``fit`` offers.
 METHODS: tuple[str, ...] = ("kantorovich", "shooting")
 _INITIAL_TRAJECTORIES = ("integrate", "data")
-_DAMPINGS = ("lm", None)
 
 
 def fit(
@@ -246,26 +246,15 @@ class _Problem:
             raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
         if initial_trajectory == "data" and method != "kantorovich":
             raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
-        if damping is not None and not isinstance(damping, str) or damping not in _DAMPINGS:
-            raise ValueError(f"`damping` must be one of {_DAMPINGS}; received {damping!r}")
-        self.damping = damping
+        self.damping = check_damping(damping)
         self.linear_solver = check_linear_solver(linear_solver)
-        max_iter = _checks.positive_int("max_iter", max_iter, minimum=0)
-        if max_steps is not None:
-            max_steps = _checks.positive_int("max_steps", max_steps)
-        self.max_time = None if max_time is None else _checks.positive_number("max_time", max_time)
+        limits = Limits.resolve(max_iter, max_steps, max_time)
+        max_iter, max_steps, self.max_time = limits.max_iter, limits.max_steps, limits.max_time
 
         self.dtype, self.device = model_dtype_device(model)
         dtype, device = self.dtype, self.device
-        rtol, atol = default_tolerances(dtype, rtol, atol)
-        rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
-        eps = torch.finfo(dtype).eps
-        self.rtol, self.atol = rtol, atol
-        self.xtol = (_checks.positive_number("xtol", xtol) if xtol is not None
-                     else max(1e-8 if dtype == torch.float64 else 1e-4, 100 * rtol))
-        self.ftol = (_checks.positive_number("ftol", ftol) if ftol is not None
-                     else (1e-12 if dtype == torch.float64 else 1e-6))
-        self.rcond = _checks.positive_number("rcond", rcond) if rcond is not None else max(1e3 * rtol, 1e3 * eps)
+        tol = Tolerances.resolve(dtype, rtol, atol, xtol, ftol, rcond)
+        self.rtol, self.atol, self.xtol, self.ftol, self.rcond = tol.rtol, tol.atol, tol.xtol, tol.ftol, tol.rcond
         self.method, self.solver, self.max_iter, self.max_steps = method, solver, max_iter, max_steps
         self.initial_trajectory = initial_trajectory
 
