@@ -185,7 +185,8 @@ def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, gri
                 f"the nonlinear model could not be integrated to the tolerance over the grid interval starting "
                 f"at t = {float(grid[worst]):.6g} with {max_substeps} RK4 steps; refine the grid or loosen `rtol`/`atol`")
         r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
+        # a huge finite ratio asks for 2**factor beyond int64 (negative steps); max_substeps binds anyway
+        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
         steps[todo] = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps // 2))
     return phi, S, n_evals
 
