@@ -32,25 +32,11 @@ from __future__ import annotations
 import torch
 
 import torchql
-from torchql.models import FirstOrderReactions, LinearOscillator
+from torchql.models import BranchedReactions, FirstOrderReactions, LinearOscillator
 
 DT = torch.float64
 
 
-class Kinetics(torchql.ODEModel):
-    """``A -k1-> B -k2-> C``, ``A -k3-> C`` (first order)."""
-
-    state_names = ("A", "B", "C")
-
-    def __init__(self, k1: float, k2: float, k3: float) -> None:
-        super().__init__()
-        for name, value in (("k1", k1), ("k2", k2), ("k3", k3)):
-            self.register_buffer(name, torch.tensor(float(value), dtype=DT))
-
-    def forward(self, t, x):
-        A, B, _ = x.unbind(-1)
-        r1, r2, r3 = self.k1 * A, self.k2 * B, self.k3 * A
-        return torch.stack((-r1 - r3, r1 - r2, r2 + r3), dim=-1)
 
 
 def _exact(model, x0, t, observe):
@@ -62,12 +48,12 @@ def problems():
     """``(name, truth (dict), make_model(guess dict), data, x0, bounds, starts)`` per problem."""
     truth = dict(k1=0.9, k2=0.4, k3=0.25)
     x0 = torch.tensor([1.0, 0.0, 0.0], dtype=DT)
-    data = _exact(Kinetics(**truth), x0, torch.arange(21, dtype=DT) * 0.5, ("A", "B", "C"))
+    data = _exact(BranchedReactions(**truth), x0, torch.arange(21, dtype=DT) * 0.5, ("A", "B", "C"))
     starts = [("on the bound", "on", dict(k1=0.0, k2=0.0, k3=0.0)),
               ("near the bound", "1e-6", dict(k1=1e-6, k2=1e-6, k3=1e-6)),
               ("near the bound", "1e-10", dict(k1=1e-10, k2=1e-10, k3=1e-10)),
               ("inside", "-", dict(k1=0.5, k2=0.5, k3=0.5))]
-    yield ("kinetics", truth, lambda g: Kinetics(**g), data, x0,
+    yield ("kinetics", truth, lambda g: BranchedReactions(**g), data, x0,
            {"k1": (0.0, None), "k2": (0.0, None), "k3": (0.0, None)}, starts)
 
     truth = dict(k1=5e-5, k2=2e-4)

@@ -18,7 +18,7 @@ import torch
 import torchql
 from testmodels import Decay
 from torchql.bounds import START_OFFSET, Bounds
-from torchql.models import LinearOscillator
+from torchql.models import BranchedReactions, LinearOscillator
 
 DT = torch.float64
 TRUTH = torch.tensor([0.0, 1.0, 0.1, 3.0], dtype=DT)
@@ -210,20 +210,6 @@ def test_move_inside_rule():
     assert tiny.lower[0] < used[0] < tiny.upper[0]
 
 
-class Kinetics(torchql.ODEModel):
-    """``A -k1-> B -k2-> C`` and ``A -k3-> C`` (first order)."""
-
-    state_names = ("A", "B", "C")
-
-    def __init__(self, k1, k2, k3):
-        super().__init__()
-        for name, value in (("k1", k1), ("k2", k2), ("k3", k3)):
-            self.register_buffer(name, torch.tensor(float(value), dtype=DT))
-
-    def forward(self, t, x):
-        A, B, _ = x.unbind(-1)
-        r1, r2, r3 = self.k1 * A, self.k2 * B, self.k3 * A
-        return torch.stack((-r1 - r3, r1 - r2, r2 + r3), dim=-1)
 
 
 K_TRUTH = {"k1": 0.9, "k2": 0.4, "k3": 0.25}
@@ -234,13 +220,13 @@ K_BOUNDS = {"k1": (0.0, None), "k2": (0.0, None), "k3": (0.0, None)}
 @pytest.fixture(scope="module")
 def kinetics_data():
     t = torch.arange(21, dtype=DT) * 0.5
-    x = torchql.simulate(Kinetics(**K_TRUTH), K_X0, t, rtol=1e-13, atol=1e-15)
+    x = torchql.simulate(BranchedReactions(**K_TRUTH), K_X0, t, rtol=1e-13, atol=1e-15)
     return torchql.Observations(t, x, observe=["A", "B", "C"])
 
 
 @pytest.fixture(scope="module")
 def kinetics_inside(kinetics_data):
-    return torchql.fit(Kinetics(0.5, 0.5, 0.5), kinetics_data, K_X0, bounds=K_BOUNDS)
+    return torchql.fit(BranchedReactions(0.5, 0.5, 0.5), kinetics_data, K_X0, bounds=K_BOUNDS)
 
 
 def _relative_error(result, truth):
@@ -255,7 +241,7 @@ def test_rates_guessed_on_their_bound_reach_the_optimum(kinetics_data, kinetics_
     bound reaches it as the start inside does (measured: 9/10 iterations against 6/5, kantorovich/shooting;
     experiments/bound_start.py), to the same 1e-8 as every exact-data test here.
     """
-    model = Kinetics(0.0, 0.0, 0.0)
+    model = BranchedReactions(0.0, 0.0, 0.0)
     x0 = K_X0.clone()
     r = torchql.fit(model, kinetics_data, x0, method=method, bounds=K_BOUNDS)
     assert r.status.success, r.message

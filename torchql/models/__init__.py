@@ -3,9 +3,9 @@
 from .car import AIR_DENSITY, GRAVITY, CoastingCar
 from .fitzhugh_nagumo import FitzHughNagumo
 from .oscillators import HarmonicOscillator, LinearOscillator, NonlinearOscillator
-from .reactions import FirstOrderReactions
+from .reactions import BranchedReactions, FirstOrderReactions
 
 __all__ = [
     "HarmonicOscillator", "LinearOscillator", "NonlinearOscillator", "CoastingCar", "AIR_DENSITY", "GRAVITY",
-    "FitzHughNagumo", "FirstOrderReactions",
+    "FitzHughNagumo", "FirstOrderReactions", "BranchedReactions",
 ]
