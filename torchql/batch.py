@@ -39,7 +39,7 @@ from torch.func import vmap
 from . import _checks
 from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
-from .diagnosis import final_status, null_detail
+from .diagnosis import final_status, null_detail, typical_magnitudes
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
@@ -891,13 +891,6 @@ class _Engine:
         with no_time_budget():  # the samples that finished in time get their final evaluation
             return self._finish(z0, status, detail, iterations, final_guess)
 
-    def _scale_of(self, r: int) -> torch.Tensor:
-        """Sample ``r``'s typical magnitudes of the unknowns ``(m,)`` for the runaway test, as fit's:
-        the larger of its guesses and its first iterate's magnitudes."""
-        guess = self.z0_guess[r, self.spec.unknown_index].abs()
-        typical = guess if self.scale is None else torch.maximum(self.scale[r], guess)
-        return torch.where(typical > 0, typical, torch.ones_like(typical))
-
     def _fail_integration(self, failed, status, detail) -> None:
         self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
 
@@ -988,7 +981,10 @@ class _Engine:
                     null_text = null_detail(sol.null_vectors, spec.unknown_names)
                 codes[r], more = final_status(
                     code, rank_deficient=bool(deficient[k]), null_text=null_text,
-                    estimates=z0[r, spec.unknown_index], scale=self._scale_of(r), unknown_names=spec.unknown_names,
+                    estimates=z0[r, spec.unknown_index],
+                    scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
+                                             None if self.scale is None else self.scale[r]),
+                    unknown_names=spec.unknown_names,
                     sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]))
                 detail[r] = more if code.success else detail[r] + more
             cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)

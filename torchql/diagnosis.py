@@ -31,7 +31,8 @@ import torch
 
 from .status import Status
 
-__all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "null_detail", "ran_away", "final_status"]
+__all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "null_detail", "typical_magnitudes", "ran_away",
+           "final_status"]
 
 #: An unknown whose magnitude exceeds this many times its typical one has run away.
 RUNAWAY_FACTOR = 1e6
@@ -51,6 +52,14 @@ def null_detail(null_vectors: torch.Tensor, unknown_names: Sequence[str]) -> str
         if group not in parts:  # several null directions may involve the same unknowns
             parts.append(group)
     return " Unknowns the data cannot separate: " + "; ".join(parts) + "."
+
+
+def typical_magnitudes(guess: torch.Tensor, first: torch.Tensor | None = None) -> torch.Tensor:
+    """The unknowns' typical magnitudes ``(..., m)`` for :func:`ran_away`: the larger of the guesses
+    ``guess`` and the first iterate's magnitudes ``first`` (a data-built start may put a coefficient
+    near 0), 1 where both are 0."""
+    typical = guess.abs() if first is None else torch.maximum(first, guess.abs())
+    return torch.where(typical > 0, typical, torch.ones_like(typical))
 
 
 def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequence[str],

@@ -31,7 +31,7 @@ from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, solve
 from .linearize import linearize
 from .grid_solve import IntervalBudgetError, solve_on_grid
-from .diagnosis import final_status, null_detail
+from .diagnosis import final_status, null_detail, typical_magnitudes
 from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
@@ -942,7 +942,7 @@ class _Problem:
                     null_text = null_detail(sol.null_vectors, self.unknown_names) if sol.rank_deficient else ""
                     status, more = final_status(
                         status, rank_deficient=sol.rank_deficient, null_text=null_text,
-                        estimates=z0[self.unknown_index], scale=self._scale_of(state),
+                        estimates=z0[self.unknown_index], scale=typical_magnitudes(self.u_guess, state.scale),
                         unknown_names=self.unknown_names, sse=sse, sse_start=self._model_sse_at_start(history))
                     detail = more if converged else detail + more
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
@@ -987,13 +987,6 @@ class _Problem:
             upper=self.bounds.upper.clone() if self.bounds.active else None,
             moved_guesses=dict(self.moved_guesses),
         )
-
-    def _scale_of(self, state) -> torch.Tensor:
-        """The unknowns' typical magnitudes ``(m,)`` for the runaway test: the larger of the guesses
-        used and the first iterate's magnitudes (a data-built start may put a coefficient near 0)."""
-        guess = self.u_guess.abs()
-        typical = guess if state.scale is None else torch.maximum(state.scale, guess)
-        return torch.where(typical > 0, typical, torch.ones_like(typical))
 
     def _model_sse_at_start(self, history: list[IterationRecord]) -> float | None:
         """The model's own sum of squares at the guesses, when the first iterate is its solution."""
