@@ -92,13 +92,18 @@ class MichaelisMenten(torchql.ODEModel):
 T = torch.linspace(0, 10, 21, dtype=DT)
 
 
+def michaelis_menten_data():
+    """Exact S at 21 times over [0, 10] from V = 1, Km = 0.5, S(0) = 5: values ``(21, 1)`` and Observations."""
+    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
+    return y, torchql.Observations(T, y, observe=["S"])
+
+
 def test_a_runaway_along_a_weak_direction_is_diverged_not_unidentifiable():
     """From V = 0.3, Km = 0.15 the integrated start descends into the valley ``V, Km -> inf`` with ``V / Km``
     fixed (sum of squares 2.17 at infinity, 0 at the truth). The Jacobian there is nearly rank deficient,
     but the problem is well conditioned at its optimum (column-scaled condition number 38): the honest
     status is DIVERGED, naming the runaway, in fit and in fit_many alike."""
-    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
-    data = torchql.Observations(T, y, observe=["S"])
+    y, data = michaelis_menten_data()
     result = torchql.fit(MichaelisMenten(0.3, 0.15), data, x0=torch.tensor([5.0], dtype=DT),
                          initial_trajectory="integrate")
     assert result.status is Status.DIVERGED, result.message
@@ -111,8 +116,7 @@ def test_a_runaway_along_a_weak_direction_is_diverged_not_unidentifiable():
 
 
 def test_the_same_data_from_the_data_built_start_reach_the_truth():
-    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
-    data = torchql.Observations(T, y, observe=["S"])
+    y, data = michaelis_menten_data()
     result = torchql.fit(MichaelisMenten(0.3, 0.15), data, x0=torch.tensor([5.0], dtype=DT),
                          initial_trajectory="data")
     assert result.success, result.message
@@ -126,8 +130,7 @@ def test_a_step_far_from_solving_the_model_is_judged_by_the_model():
     solving the model (model_defect 83: the model is singular where Km + S = 0). Judged by its linear
     misfit the step was taken and the iteration ran away to V, Km ~ -1e6; judged by the model it is
     rejected, the step damped, and the fit converges to the truth, through fit and fit_many alike."""
-    y = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), T)
-    data = torchql.Observations(T, y, observe=["S"])
+    y, data = michaelis_menten_data()
     result = torchql.fit(MichaelisMenten(1.0, 0.5), data, x0=torch.tensor([2.0], dtype=DT),
                          initial_trajectory="integrate")
     assert result.success, result.message
