@@ -203,7 +203,7 @@ class FitOutcome:
     seconds: float = 0.0
 
 
-def outcome(result: torchql.FitResult | torchql.batch_result.SampleResult, truth: Sequence[float],
+def outcome(result: torchql.FitResult, truth: Sequence[float],
             seconds: float) -> FitOutcome:
     """The :class:`FitOutcome` of a fit: a ``FitResult``, or one sample of a ``BatchFitResult``."""
     if not result.success:

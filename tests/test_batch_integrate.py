@@ -5,7 +5,7 @@ import torch
 from torchql.batch_integrate import dopri_batch, integrate_each, propagate_linear_batch, solve_on_grid_batch
 from torchql.linearize import linearize
 from torchql.model import AugmentedSystem
-from torchql.models import CoastingCar
+from torchql.models import CoastingCar, LinearOscillator
 from torchql.models.car import AIR_DENSITY, GRAVITY
 from torchql.superposition import initial_columns, propagate_linear
 from torchql.trajectory import LinearizedReference
@@ -63,6 +63,20 @@ def test_a_sample_that_blows_up_fails_alone():
     traj, ok, _ = dopri_batch(system, z0, grid, rtol=1e-8, atol=1e-10, max_steps=2000)
     assert ok.tolist() == [True, False, True]
     assert torch.isnan(traj[1]).all() and torch.isfinite(traj[[0, 2]]).all()
+
+
+def test_a_blow_up_ends_in_a_step_size_underflow_not_the_step_budget():
+    """Past an overflow every trial step is non-finite (NaN error estimates, from inf - inf): each
+    one shrinks the step (by the controller's smallest factor, 0.2), so the sample fails after a
+    few dozen rejections instead of retrying one step size until ``max_steps`` (5,000 steps,
+    30,000 evaluations here). ``y'' = 300 y' - 2.5 y`` grows like ``exp(300 t)`` and overflows at
+    ``t ~ 2.4``; reaching it takes about 990 steps at ``rtol = 1e-4`` (measured: 5,941 evaluations)."""
+    system = AugmentedSystem(LinearOscillator(-300.0, 2.5), [], DT, torch.device("cpu"))
+    z0 = torch.tensor([[0.0, 1.0]], dtype=DT)
+    _, ok, evals = dopri_batch(system, z0, torch.linspace(0, 6.5, 51, dtype=DT), rtol=1e-4, atol=1e-6,
+                               max_steps=5000)
+    assert not bool(ok[0])
+    assert evals < 8_000, evals
 
 
 def test_linear_propagation_equals_the_single_propagation_per_sample():

@@ -157,9 +157,14 @@ def fit_many(
     report = _progress(progress, spec.B)
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
+    R = spec.weights.reshape(B, -1).shape[1]
     out = dict(sse=torch.empty(B, dtype=spec.dtype, device=spec.device),
                cov=torch.empty(B, m, m, dtype=spec.dtype, device=spec.device),
-               iterations=torch.empty(B, dtype=torch.long, device=spec.device))
+               iterations=torch.empty(B, dtype=torch.long, device=spec.device),
+               residuals=torch.empty(B, R, dtype=spec.dtype, device=spec.device),
+               jacobian=torch.empty(B, R, m, dtype=spec.dtype, device=spec.device),
+               singular_values=torch.empty(B, m, dtype=spec.dtype, device=spec.device),
+               sse_start=torch.empty(B, dtype=spec.dtype, device=spec.device))
     statuses: list[Status] = [Status.MAX_ITER] * B
     messages: list[str] = [""] * B
     nfev = 0
@@ -175,8 +180,8 @@ def fit_many(
 
                 chunk = engine.run(step)
                 out_z0[index] = chunk["z0"]
-                out["sse"][index], out["cov"][index], out["iterations"][index] = chunk["sse"], chunk["cov"], \
-                    chunk["iterations"]
+                for key in out:
+                    out[key][index] = chunk[key]
                 for k, i in enumerate(index.tolist()):
                     statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
                 nfev += engine.nfev
@@ -184,7 +189,14 @@ def fit_many(
                 report(finished)
     finally:
         report(None)
-    return spec.result(out_z0, out, statuses, messages, nfev)
+    result = spec.result(out_z0, out, statuses, messages, nfev)
+    result.data = data
+    result.fit_kwargs = dict(
+        params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
+        t0=t0, method="kantorovich", max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
+        xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory="integrate", max_steps=max_steps,
+        damping=damping, linear_solver="taylor")
+    return result
 
 
 def _progress(progress, total: int) -> Callable[[int | None], None]:
@@ -435,18 +447,7 @@ class _Spec:
     # ------------------------------------------------------------------------------------------
     def result(self, z0, out, statuses, messages, nfev) -> BatchFitResult:
         system, n, B = self.system, self.system.n, self.B
-        per_sample, start = {}, n
-        for name, shape, size in zip(system.param_names, system.param_shapes, system.param_sizes):
-            per_sample[name] = z0[:, start:start + size].reshape(B, *shape)
-            start += size
-        params = {}
-        for name, value in self.system.model.named_buffers():
-            if not value.is_floating_point():
-                continue
-            if name in per_sample:
-                params[name] = per_sample[name].clone()
-            else:
-                params[name] = value.expand(B, *value.shape).clone()
+        params = self._params_of(z0)
         dof = self.L - self.m
         if self.sigma_known:
             variance = torch.ones(B, dtype=self.dtype, device=self.device)
@@ -460,7 +461,24 @@ class _Spec:
             unknown_names=list(self.unknown_names), estimates=z0[:, self.unknown_index].clone(),
             iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
             dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
-            model=system.user_model())
+            model=system.user_model(), residuals=out["residuals"], jacobian=out["jacobian"],
+            used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
+            start_params=self._params_of(self.z0), start_x0=self.z0[:, :n].clone(), sse_start=out["sse_start"],
+            solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol})
+
+
+    def _params_of(self, z0: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every float buffer per sample ``(B, *shape)`` for augmented states ``z0 (B, M)``."""
+        system, B = self.system, self.B
+        per_sample, start = {}, system.n
+        for name, shape, size in zip(system.param_names, system.param_shapes, system.param_sizes):
+            per_sample[name] = z0[:, start:start + size].reshape(B, *shape)
+            start += size
+        params = {}
+        for name, value in system.model.named_buffers():
+            if value.is_floating_point():
+                params[name] = (per_sample[name] if name in per_sample else value.expand(B, *value.shape)).clone()
+        return params
 
 
 def check_data(data) -> Observations | list[Observations]:
@@ -925,6 +943,10 @@ class _Engine:
         dtype, dev = spec.dtype, spec.device
         sse = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         cov = torch.full((S, m, m), float("nan"), dtype=dtype, device=dev)
+        R = self.w.reshape(S, -1).shape[1]
+        residuals = torch.full((S, R), float("nan"), dtype=dtype, device=dev)
+        jacobian = torch.full((S, R, m), float("nan"), dtype=dtype, device=dev)
+        singular_values = torch.full((S, m), float("nan"), dtype=dtype, device=dev)
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
         final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
@@ -957,6 +979,7 @@ class _Engine:
             J = C * w.unsqueeze(-1)
             s = ((resid * w) ** 2).sum(dim=1)
             sse[rows] = s
+            residuals[rows], jacobian[rows] = resid * w, J
             nonfinite = ~torch.isfinite(s)
             for r in rows[nonfinite].tolist():
                 codes[r] = Status.DIVERGED
@@ -965,8 +988,9 @@ class _Engine:
             rows, J, s = rows[keep], J[keep], s[keep]
         if rows.numel():
             L = self.L[rows]
-            _, deficient, _ = _lstsq(J, torch.zeros(J.shape[:2], dtype=dtype, device=dev),
-                                     torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
+            _, deficient, sv = _lstsq(J, torch.zeros(J.shape[:2], dtype=dtype, device=dev),
+                                      torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
+            singular_values[rows] = sv
             deficient |= L < m
             for k, r in enumerate(rows.tolist()):
                 code = codes[r]
@@ -990,7 +1014,9 @@ class _Engine:
             cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
         messages = [c.value + d for c, d in zip(codes, detail)]
-        return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages)
+        return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
+                    residuals=residuals, jacobian=jacobian, singular_values=singular_values,
+                    sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
 
 
 # ----------------------------------------------------------------------------------------------

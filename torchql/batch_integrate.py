@@ -476,7 +476,9 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
         accept = finite & (ratio <= 1.0)
         factor = torch.where(ratio > 0, 0.9 * ratio.clamp(min=1e-10) ** -0.2, torch.full_like(ratio, 10.0))
-        factor = factor.nan_to_num(nan=0.2).clamp(0.2, 10.0)
+        # a non-finite trial (NaN ratio, which the test above sends to 10) shrinks the step, so that a
+        # blow-up ends in a step-size underflow instead of retrying the same step until max_steps
+        factor = torch.where(finite, factor, torch.full_like(factor, 0.2)).clamp(0.2, 10.0)
         factor = torch.where(accept, factor, factor.clamp(max=1.0))
         h_next = he * factor
         h_next = torch.where(accept & clipped, torch.maximum(h_next, ha), h_next)

@@ -1,4 +1,9 @@
-"""The result of :func:`torchql.fit_many`: per-sample estimates, statuses and statistics."""
+"""The result of :func:`torchql.fit_many`: per-sample estimates, statuses and statistics.
+
+``batch[i]`` is sample ``i``'s :class:`torchql.FitResult`, with everything a result of
+:func:`torchql.fit` has (report, intervals, prediction, profiles), so that one result type serves
+every fit.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .result import Status
+from .result import FitResult, IterationRecord, Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import ODEModel
@@ -17,67 +22,8 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = ["BatchFitResult", "SampleResult"]
 
 
-@dataclass
-class SampleResult:
-    """One sample of a :class:`BatchFitResult` (the fields of :class:`torchql.FitResult` it has).
-
-    Attributes
-    ----------
-    index : int
-        The sample's position in the batch.
-    success, status, message, params, x0, estimates, iterations, sse, covariance,
-    n_observations, dof, residual_variance, unknown_names, t0, sigma_known
-        As in :class:`BatchFitResult`, for this sample (``params`` values of the buffers' own
-        shapes, ``x0 (n_states,)``, ``estimates (m,)``, ``covariance (m, m)``).
-    lower, upper : Tensor ``(m,)`` or None
-        Bounds of the unknowns, as in :class:`torchql.FitResult` (``fit_many`` takes no bounds:
-        ``None``).
-    """
-
-    index: int
-    success: bool
-    status: Status
-    message: str
-    params: dict[str, torch.Tensor]
-    x0: torch.Tensor
-    estimates: torch.Tensor
-    iterations: int
-    sse: float
-    covariance: torch.Tensor
-    n_observations: int
-    dof: int
-    residual_variance: float
-    unknown_names: list[str]
-    t0: float
-    sigma_known: bool
-    lower: torch.Tensor | None = None
-    upper: torch.Tensor | None = None
-
-    @property
-    def stderr(self) -> dict[str, float]:
-        """Standard error of every unknown, by name."""
-        diag = torch.diagonal(self.covariance).clamp_min(0).sqrt()
-        return {name: float(v) for name, v in zip(self.unknown_names, diag)}
-
-    def confidence_intervals(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
-        """Wald intervals ``estimate -/+ q * stderr`` at confidence ``level``, by name.
-
-        As :meth:`torchql.FitResult.confidence_intervals`: ``q`` is Student's t quantile with
-        ``dof`` degrees of freedom when the residual variance was estimated, the normal
-        quantile when ``sigma`` was known; NaN ends when the sample's fit did not succeed (but
-        for a ``NOT_IDENTIFIABLE`` one's determined unknowns) or an unknown has no standard
-        error; a bounded unknown's (``lower``/``upper``) in its internal variable, mapped back.
-        """
-        from .uncertainty import wald_intervals
-
-        valid = self.success or self.status is Status.NOT_IDENTIFIABLE
-        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
-                              lower=self.lower, upper=self.upper, valid=valid)
-
-    def __repr__(self) -> str:
-        est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))
-        return (f"SampleResult(index={self.index}, success={self.success}, status={self.status.name}, "
-                f"iterations={self.iterations}, sse={self.sse:.6g}, {est})")
+#: One sample of a :class:`BatchFitResult` is a :class:`torchql.FitResult` (the former name of its type).
+SampleResult = FitResult
 
 
 @dataclass
@@ -123,6 +69,26 @@ class BatchFitResult:
     model : ODEModel
         A copy of the user's model holding the guesses (sample ``i``'s fitted model:
         :meth:`model_of`).
+    residuals : Tensor ``(B, R)`` or None
+        Weighted residuals of each fitted model at every value slot, ``R = T K`` in time-major
+        order (NaN in the slots ``used`` marks missing, and for samples without a final
+        evaluation).
+    jacobian : Tensor ``(B, R, m)`` or None
+        Weighted sensitivities at the estimates, rows as ``residuals`` (zero rows for missing values).
+    used : bool Tensor ``(B, R)`` or None
+        Which value slots each sample used (its values that are not NaN).
+    singular_values : Tensor ``(B, m)`` or None
+        Singular values of each column-scaled weighted Jacobian (NaN where not evaluated).
+    start_params, start_x0, sse_start
+        Each sample's guesses (``{name: (B, *shape)}``, ``(B, n_states)``) and the model's sum of
+        squares there ``(B,)``: the first record of ``batch[i].history``.
+    solver_options : dict
+        ``solver``, ``rtol``, ``atol`` of the fits (used by ``batch[i].predict``).
+    data : Observations or list of Observations or None
+        The datasets fitted (``batch[i].data`` is sample ``i``'s).
+    fit_kwargs : dict
+        The options :func:`torchql.fit_many` was called with that a re-fit of one sample by
+        :func:`torchql.fit` takes (for :func:`torchql.profile` of ``batch[i]``).
     """
 
     success: torch.Tensor
@@ -142,6 +108,16 @@ class BatchFitResult:
     sigma_known: bool
     nfev: int
     model: "ODEModel" = field(repr=False)
+    residuals: torch.Tensor | None = field(default=None, repr=False)
+    jacobian: torch.Tensor | None = field(default=None, repr=False)
+    used: torch.Tensor | None = field(default=None, repr=False)
+    singular_values: torch.Tensor | None = field(default=None, repr=False)
+    start_params: dict[str, torch.Tensor] | None = field(default=None, repr=False)
+    start_x0: torch.Tensor | None = field(default=None, repr=False)
+    sse_start: torch.Tensor | None = field(default=None, repr=False)
+    solver_options: dict = field(default_factory=dict, repr=False)
+    data: object = field(default=None, repr=False)
+    fit_kwargs: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])
@@ -154,19 +130,52 @@ class BatchFitResult:
             raise IndexError(f"sample index {i} is out of range for a batch of {B}")
         return i % B
 
-    def sample(self, i: int) -> SampleResult:
-        """Sample ``i``'s values (negative indices count from the end)."""
-        i = self._index(i)
-        return SampleResult(
-            index=i, success=bool(self.success[i]), status=self.status[i], message=self.message[i],
-            params={k: v[i].clone() for k, v in self.params.items()}, x0=self.x0[i].clone(),
-            estimates=self.estimates[i].clone(), iterations=int(self.iterations[i]), sse=float(self.sse[i]),
-            covariance=self.covariance[i].clone(), n_observations=int(self.n_observations[i]), dof=int(self.dof[i]),
-            residual_variance=float(self.residual_variance[i]), unknown_names=list(self.unknown_names),
-            t0=float(self.t0[i]) if isinstance(self.t0, torch.Tensor) else self.t0,
-            sigma_known=self.sigma_known)
+    def sample(self, i: int) -> FitResult:
+        """Sample ``i``'s :class:`torchql.FitResult` (negative indices count from the end).
 
-    def __getitem__(self, i: int) -> SampleResult:
+        As a result of :func:`torchql.fit` on that dataset alone, except: ``history`` holds two
+        records, the guesses (with the model's sum of squares there) and the estimates
+        (``fit_many`` keeps no iterates in between); ``nfev`` counts the whole batch's
+        evaluations; ``index`` is ``i``.
+        """
+        i = self._index(i)
+        nan = float("nan")
+        t0 = float(self.t0[i]) if isinstance(self.t0, torch.Tensor) else self.t0
+        m = len(self.unknown_names)
+        if self.used is not None:
+            used = self.used[i]
+            residuals, jacobian = self.residuals[i][used].clone(), self.jacobian[i][used].clone()
+            singular_values = self.singular_values[i].clone()
+        else:  # a result assembled without them (older parts)
+            L = int(self.n_observations[i])
+            residuals = self.x0.new_full((L,), nan)
+            jacobian, singular_values = self.x0.new_full((L, m), nan), self.x0.new_full((m,), nan)
+        if not bool(torch.isfinite(singular_values).all()):
+            singular_values = singular_values[:0]
+        params = {k: v[i].clone() for k, v in self.params.items()}
+        history = []
+        if self.start_params is not None:
+            history.append(IterationRecord(iteration=0, params={k: v[i].clone() for k, v in self.start_params.items()},
+                                           x0=self.start_x0[i].clone(), sse=float(self.sse_start[i])))
+        iterations = int(self.iterations[i])
+        history.append(IterationRecord(iteration=iterations, params={k: v.clone() for k, v in params.items()},
+                                       x0=self.x0[i].clone(), sse=float(self.sse[i])))
+        data = self.data
+        if data is not None:
+            data = data[i]
+        return FitResult(
+            success=bool(self.success[i]), status=self.status[i], message=self.message[i], params=params,
+            x0=self.x0[i].clone(), t0=t0, unknown_names=list(self.unknown_names),
+            estimates=self.estimates[i].clone(), iterations=iterations, history=history, sse=float(self.sse[i]),
+            residuals=residuals, jacobian=jacobian, exact_residual=0.0 if math.isfinite(float(self.sse[i])) else nan,
+            singular_values=singular_values, covariance=self.covariance[i].clone(), dof=int(self.dof[i]),
+            residual_variance=float(self.residual_variance[i]), sigma_known=self.sigma_known,
+            exact_mask=torch.zeros(residuals.shape[0], dtype=torch.bool, device=residuals.device),
+            n_observations=int(self.n_observations[i]), nfev=int(self.nfev), method="kantorovich",
+            model=self.model_of(i), solver_options=dict(self.solver_options), data=data,
+            fit_kwargs=dict(self.fit_kwargs), index=i)
+
+    def __getitem__(self, i: int) -> FitResult:
         return self.sample(i)
 
     def __iter__(self):

@@ -27,7 +27,6 @@ import torch
 
 from . import _checks
 from .batch import fit_many
-from .batch_result import SampleResult
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .observations import Observations
@@ -71,7 +70,7 @@ class MultiStartResult:
     best : FitResult
         The successful fit with the smallest SSE (if none succeeded, the fit with the smallest
         finite SSE, whose ``success`` is False).
-    results : list of FitResult, or of SampleResult when ``batched``
+    results : list of FitResult
         Every start's fit, in the order of ``guesses``. Batched, each is one sample of the
         ``fit_many`` result (status, message, estimates, SSE, covariance, ...; no trajectory).
     guesses : Tensor ``(N, P)``
@@ -86,7 +85,7 @@ class MultiStartResult:
     """
 
     best: FitResult
-    results: list[FitResult | SampleResult]
+    results: list[FitResult]
     guesses: torch.Tensor
     param_names: list[str]
     optima: list[Optimum] = field(default_factory=list)
@@ -186,7 +185,7 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         return fit(trial, data, x0, params=params, bounds=bounds, **fit_kwargs)
 
     batched = _fit_many_serves(data, bounds, fit_kwargs)
-    results: list[FitResult | SampleResult] = []
+    results: list[FitResult] = []
     if batched:
         rows = [system.unpack_params(g) for g in guesses]
         per_start = {name: torch.stack([row[name] for row in rows]) for name in system.param_names}

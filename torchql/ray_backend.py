@@ -126,7 +126,9 @@ def fit_many_ray(
     finally:
         if started:
             ray.shutdown()
-    return concatenate([parts[k] for k in sorted(parts)])
+    result = concatenate([parts[k] for k in sorted(parts)])
+    result.data = datasets
+    return result
 
 
 def _fit_batch(model, datasets, x0, guesses, options, torch_threads) -> BatchFitResult:
@@ -188,4 +190,19 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         sigma_known=first.sigma_known,
         nfev=int(math.fsum(p.nfev for p in parts)),
         model=first.model,
+        **_joined_evaluations(parts),
+        solver_options=dict(first.solver_options),
+        fit_kwargs=dict(first.fit_kwargs),
     )
+
+
+def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
+    """The parts' per-sample final evaluations and starts, joined (``None`` unless every part has them)."""
+    out = {}
+    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start"):
+        values = [getattr(p, key) for p in parts]
+        out[key] = torch.cat(values) if all(v is not None for v in values) else None
+    starts = [p.start_params for p in parts]
+    out["start_params"] = ({name: torch.cat([s[name] for s in starts]) for name in starts[0]}
+                           if all(s is not None for s in starts) else None)
+    return out

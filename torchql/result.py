@@ -167,6 +167,9 @@ class FitResult:
         The ``bounds`` of the unknowns, in ``unknown_names`` order (``-inf``/``inf`` where a side
         is open); ``None``: no bounds. Bounded unknowns' intervals are computed in the internal
         variable of :mod:`torchql.bounds` (see :meth:`confidence_intervals`).
+    index : int or None
+        For one sample of a :func:`torchql.fit_many` batch (``batch[i]``), its position ``i``;
+        ``None`` for :func:`torchql.fit`.
     moved_guesses : dict of str to (float, float)
         ``{name: (given, used)}`` for every guess that lay on or outside its ``bounds`` and was
         moved strictly inside before the iteration (see :meth:`torchql.bounds.Bounds.move_inside`);
@@ -204,6 +207,7 @@ class FitResult:
     lower: torch.Tensor | None = field(default=None, repr=False)
     upper: torch.Tensor | None = field(default=None, repr=False)
     moved_guesses: dict[str, tuple[float, float]] = field(default_factory=dict, repr=False)
+    index: int | None = field(default=None, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:

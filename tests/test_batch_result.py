@@ -1,0 +1,94 @@
+"""``fit_many(...)[i]`` is sample ``i``'s :class:`torchql.FitResult`: the one ``torchql.fit`` gives."""
+
+import math
+
+import pytest
+import torch
+
+import torchql
+from torchql.models import CoastingCar
+
+DT = torch.float64
+AREA, MASS = 17.3, 80.43
+CAR_T = torch.arange(9, dtype=DT) * 5.0
+
+
+def cars(B: int, seed: int = 11) -> tuple[torchql.Observations, torch.Tensor]:
+    """A batch of ``B`` noisy coast-down logs (values ``(B, 9, 1)``) and each one's first speed ``(B, 1)``."""
+    g = torch.Generator().manual_seed(seed)
+    ys = []
+    for _ in range(B):
+        C_D = 0.45 + 0.05 * torch.randn((), generator=g, dtype=DT)
+        mu = 0.015 + 0.003 * torch.randn((), generator=g, dtype=DT)
+        v = torchql.simulate(CoastingCar(AREA, MASS, float(C_D), float(mu)), torch.tensor([117.3], dtype=DT), CAR_T,
+                             rtol=1e-12, atol=1e-12)
+        ys.append(v + 0.3 * torch.randn(9, 1, generator=g, dtype=DT))
+    y = torch.stack(ys)
+    return torchql.Observations(CAR_T, y, observe=["v"]), y[:, 0]
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    data, x0 = cars(3)
+    batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20)
+    singles = [torchql.fit(CoastingCar(AREA, MASS), data[b], x0[b], grid=20) for b in range(3)]
+    return data, batch, singles
+
+
+def test_a_sample_is_the_fit_result_of_fit(fleet):
+    """Everything a single fit reports, from the batch: the final evaluations agree to the
+    integration tolerance's effect on them (the batch integrates on its own batched path: 1e-8
+    relative leaves a wide margin over the 1e-10 rtol)."""
+    _, batch, singles = fleet
+    for b, single in enumerate(singles):
+        sample = batch[b]
+        assert isinstance(sample, torchql.FitResult) and sample.index == b and single.index is None
+        assert sample.status is single.status and sample.message == single.message
+        assert sample.unknown_names == single.unknown_names
+        assert torch.allclose(sample.estimates, single.estimates, rtol=1e-8, atol=0)
+        assert sample.residuals.shape == single.residuals.shape == (9,)
+        assert torch.allclose(sample.residuals, single.residuals, rtol=1e-6, atol=1e-8)
+        assert torch.allclose(sample.jacobian, single.jacobian, rtol=1e-6, atol=1e-10)
+        assert torch.allclose(sample.singular_values, single.singular_values, rtol=1e-6, atol=0)
+        assert sample.condition_number == pytest.approx(single.condition_number, rel=1e-6)
+        assert sample.dof == single.dof and sample.n_observations == single.n_observations
+        for name, (lo, hi) in single.confidence_intervals().items():
+            lo_b, hi_b = sample.confidence_intervals()[name]
+            assert lo_b == pytest.approx(lo, rel=1e-6) and hi_b == pytest.approx(hi, rel=1e-6)
+        assert not sample.exact_mask.any() and sample.exact_residual == 0.0
+        # the guesses and the estimates: the first and last records of the single fit's history
+        assert [r.iteration for r in sample.history] == [0, single.iterations]
+        assert sample.history[0].sse == pytest.approx(single.history[0].sse, rel=1e-4)
+        assert float(sample.history[0].params["C_D"]) == float(single.history[0].params["C_D"])
+        assert sample.history[-1].sse == pytest.approx(single.sse, rel=1e-8)
+
+
+def test_a_sample_reports_predicts_and_profiles_like_a_fit(fleet):
+    data, batch, singles = fleet
+    sample, single = batch[1], singles[1]
+    text = sample.report()
+    assert "C_D" in text and "mu" in text and "Converged" in text
+    t = torch.linspace(0.0, 40.0, 5, dtype=DT)
+    assert torch.allclose(sample.predict(t), single.predict(t), rtol=1e-8, atol=0)
+    assert torch.equal(sample.data.y, data[1].y)
+    # a profile re-fits that sample alone, with the batch's settings (grid=20)
+    prof = torchql.profile(sample, "C_D", max_points=4)
+    ref = torchql.profile(single, "C_D", max_points=4)
+    assert prof.interval == pytest.approx(ref.interval, rel=1e-5)
+    assert prof.sse_min == pytest.approx(ref.sse_min, rel=1e-8)
+
+
+def test_a_failed_sample_has_no_evaluation_and_no_intervals():
+    """A sample whose model cannot be integrated (a negative drag coefficient: the speed blows
+    up): NaN SSE, residuals and Jacobian, no singular values, NaN intervals, and its history
+    ends at the estimates returned."""
+    data, x0 = cars(2, seed=4)
+    batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, guesses={"C_D": torch.tensor([0.4, -40.0], dtype=DT)},
+                             grid=20)
+    good, bad = batch[0], batch[1]
+    assert good.success and bad.status is torchql.Status.INTEGRATION_FAILED, batch.summary()
+    assert math.isnan(bad.sse) and torch.isnan(bad.residuals).all() and torch.isnan(bad.jacobian).all()
+    assert bad.singular_values.numel() == 0 and math.isnan(bad.condition_number)
+    assert all(math.isnan(lo) and math.isnan(hi) for lo, hi in bad.confidence_intervals().values())
+    assert bad.history[-1].iteration == bad.iterations == 0
+    assert float(bad.history[0].params["C_D"]) == -40.0
