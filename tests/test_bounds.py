@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import torchql
-from testmodels import Decay
+from testmodels import SIR, Decay
 from torchql.bounds import START_OFFSET, Bounds
 from torchql.models import BranchedReactions, LinearOscillator
 
@@ -347,24 +347,6 @@ def test_profile_of_a_fit_started_on_its_bound():
     (lo_on, hi_on), (lo_in, hi_in) = p_on.interval, p_in.interval
     assert lo_on < on.params["k"].item() < hi_on
     assert abs(lo_on - lo_in) < 1e-2 * se and abs(hi_on - hi_in) < 1e-2 * se
-
-
-class SIR(torchql.ODEModel):
-    """Susceptible-infected-recovered epidemic in a closed population of ``N`` (a constant)."""
-
-    state_names = ("S", "I", "R")
-    constants = ("N",)
-
-    def __init__(self, beta=1.66, gamma=0.44, N=763.0):
-        super().__init__()
-        self.register_buffer("beta", torch.tensor(beta, dtype=DT))
-        self.register_buffer("gamma", torch.tensor(gamma, dtype=DT))
-        self.register_buffer("N", torch.tensor(N, dtype=DT))
-
-    def forward(self, t, x):
-        S, I = x[..., 0], x[..., 1]
-        infection = self.beta * S * I / self.N
-        return torch.stack([-infection, infection - self.gamma * I, self.gamma * I], -1)
 
 
 SIR_POSITIVE = {"beta": (0, None), "gamma": (0, None), "I": (0, None)}

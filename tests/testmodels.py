@@ -30,3 +30,21 @@ class Product(torchql.ODEModel):
 
     def forward(self, t, x):
         return -self.a * self.b * x
+
+
+class SIR(torchql.ODEModel):
+    """Susceptible-infected-recovered epidemic in a closed population of ``N`` (a constant)."""
+
+    state_names = ("S", "I", "R")
+    constants = ("N",)
+
+    def __init__(self, beta=1.66, gamma=0.44, N=763.0):
+        super().__init__()
+        self.register_buffer("beta", torch.tensor(beta, dtype=torch.float64))
+        self.register_buffer("gamma", torch.tensor(gamma, dtype=torch.float64))
+        self.register_buffer("N", torch.tensor(N, dtype=torch.float64))
+
+    def forward(self, t, x):
+        S, I = x[..., 0], x[..., 1]
+        infection = self.beta * S * I / self.N
+        return torch.stack([-infection, infection - self.gamma * I, self.gamma * I], -1)

@@ -40,6 +40,7 @@ from . import _checks
 from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
 from .diagnosis import final_status, null_detail, typical_magnitudes
+from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
@@ -76,6 +77,7 @@ def fit_many(
     guesses: dict | None = None,
     fixed_x0: Sequence[str] | None = None,
     t0: float | None = None,
+    bounds: dict | None = None,
     max_iter: int = 50,
     max_time: float | None = None,
     rtol: float | None = None,
@@ -118,6 +120,11 @@ def fit_many(
     params : sequence of str, optional
         Coefficients to estimate (default: every float buffer and parameter not in the model's
         ``constants``).
+    bounds : dict, optional
+        ``{name: (lower, upper)}`` as in :func:`torchql.fit`, the same for every sample: bounded
+        unknowns are iterated in the same transformed variables, each sample's guesses on or
+        outside a bound are moved inside as ``fit`` moves them (``batch[i].moved_guesses``), and
+        an estimate at a bound is named in that sample's message.
     guesses : dict of str to Tensor, optional
         Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
         ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
@@ -151,7 +158,7 @@ def fit_many(
         For invalid arguments (naming the argument, the sample, what was expected and received).
     """
     spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps)
+                 damping, solver, max_steps, bounds)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     report = _progress(progress, spec.B)
@@ -195,7 +202,7 @@ def fit_many(
         params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
         t0=t0, method="kantorovich", max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
         xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory="integrate", max_steps=max_steps,
-        damping=damping, linear_solver="taylor")
+        damping=damping, linear_solver="taylor", bounds=None if bounds is None else dict(bounds))
     return result
 
 
@@ -239,7 +246,7 @@ class _Spec:
     """
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
-                 grid, damping, solver, max_steps) -> None:
+                 grid, damping, solver, max_steps, bounds=None) -> None:
         _checks.model_class(model)
         names = tuple(model.state_names)
         n = len(names)
@@ -337,6 +344,21 @@ class _Spec:
             raise ValueError(f"`data[{i}]` has {int(self.L[i])} usable values, fewer than the {m} unknowns "
                              f"{self.unknown_names}" + (f" (samples {short[:10]} alike)" if len(short) > 1 else "")
                              + "; remove it from the batch or fix some unknowns")
+        # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
+        groups, k = {}, len(free)
+        for name, size in zip(self.params, system.param_sizes):
+            groups[name] = list(range(k, k + size))
+            k += size
+        self.bounds = Bounds(bounds, self.unknown_names, groups, list(names) + list(available), dtype, device)
+        self.moved_guesses: dict[int, dict[str, tuple[float, float]]] = {}
+        if self.bounds.active:
+            given = self.z0[:, self.unknown_index]
+            used, moved = self.bounds.move_inside(given)
+            for b in moved.any(dim=1).nonzero().flatten().tolist():
+                self.moved_guesses[b] = {self.unknown_names[i]: (float(given[b, i]), float(used[b, i]))
+                                         for i in moved[b].nonzero().flatten().tolist()}
+            self.z0[:, self.unknown_index] = used
+            x0 = self.z0[:, :n]
         self._check_model(x0[0])
 
         # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
@@ -464,7 +486,10 @@ class _Spec:
             model=system.user_model(), residuals=out["residuals"], jacobian=out["jacobian"],
             used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
             start_params=self._params_of(self.z0), start_x0=self.z0[:, :n].clone(), sse_start=out["sse_start"],
-            solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol})
+            solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
+            lower=self.bounds.lower.clone() if self.bounds.active else None,
+            upper=self.bounds.upper.clone() if self.bounds.active else None,
+            moved_guesses={b: dict(moved) for b, moved in self.moved_guesses.items()})
 
 
     def _params_of(self, z0: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -593,7 +618,7 @@ class _Engine:
     """The iteration of one chunk of samples (indices ``index`` of the batch)."""
 
     def __init__(self, spec: _Spec, index: torch.Tensor, max_time: float | None = None) -> None:
-        self.spec, self.max_time = spec, max_time
+        self.spec, self.max_time, self.index = spec, max_time, index
         self.scale: torch.Tensor | None = None  # (S, m) typical magnitudes, from the first trajectory
         self.sse_start: torch.Tensor | None = None  # (S,) the model's sums of squares at the guesses
         self.system = spec.system
@@ -744,10 +769,35 @@ class _Engine:
 
     # --- the least-squares update -------------------------------------------------------------
     def _solve(self, idx, cur, damping):
-        """Batched :func:`torchql.lstsq.solve_update` without exact rows: ``alpha (S, m)``."""
+        """The damped updates of the samples ``idx``: ``alpha (S, m)``, the change of the unknowns,
+        and ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``).
+
+        Without bounds, batched :func:`torchql.lstsq.solve_update` (no exact rows). With bounds,
+        solved for the internal variables (columns times ``du/dq``) and mapped back; the unknowns
+        that the step pushes onto a bound or whose step is capped are held at their move while
+        the others are re-solved, as ``fit`` does.
+        """
+        spec = self.spec
         C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(self.w, idx).reshape(idx.numel(), -1)
-        alpha, _, _ = _lstsq(C, d, w, self.spec.rcond, damping)
-        return alpha
+        bounds = spec.bounds
+        if not bounds.active:
+            alpha, _, _ = _lstsq(C, d, w, spec.rcond, damping)
+            return alpha, torch.zeros(idx.numel(), dtype=torch.bool, device=alpha.device)
+        u = _pick(cur["z0"], idx)[:, spec.unknown_index]
+        Cq = C * bounds.derivative(u).unsqueeze(1)
+        alpha_q, _, _ = _lstsq(Cq, d, w, spec.rcond, damping)
+        capped = bounds._capped(alpha_q).any(dim=1)
+        alpha, blocked = bounds.step(u, alpha_q)
+        rows = blocked.any(dim=1).nonzero().flatten()
+        if rows.numel():  # moved onto their bounds (or capped) and held; the others re-solved
+            held = blocked[rows]
+            move = alpha[rows].masked_fill(~held, 0.0)
+            rhs = d[rows] - (C[rows] @ move.unsqueeze(-1)).squeeze(-1)
+            rest_q, _, _ = _lstsq(Cq[rows].masked_fill(held.unsqueeze(1), 0.0), rhs, w[rows], spec.rcond,
+                                  damping[rows])
+            rest, _ = bounds.step(u[rows], rest_q.masked_fill(held, 0.0))
+            alpha[rows] = torch.where(held, move, rest)
+        return alpha, capped
 
     # --- the iteration ------------------------------------------------------------------------
     def run(self, report) -> dict:
@@ -808,14 +858,14 @@ class _Engine:
                 act = (status == _RUNNING).nonzero().flatten()
                 if not act.numel():
                     break
-                alpha = self._solve(act, cur, damping[act])
+                alpha, capped = self._solve(act, cur, damping[act])
                 u = cur["z0"][act][:, spec.unknown_index]
                 scaled = (alpha.abs() / torch.maximum(u.abs(), scale[act])).amax(dim=1)
                 bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
                 if bool(bad.any()):
                     stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
                     keep = ~bad
-                    act, alpha, scaled = act[keep], alpha[keep], scaled[keep]
+                    act, alpha, scaled, capped = act[keep], alpha[keep], scaled[keep], capped[keep]
                 # convergence, tested on undamped steps only
                 zero = damping[act] == 0
                 sse = cur["sse"][act]
@@ -834,7 +884,7 @@ class _Engine:
                         stop(act[conv], Status.CONVERGED)
                     if bool(conv_sse.any()):
                         stop(act[conv_sse], Status.CONVERGED_SSE)
-                    act, alpha = act[~done], alpha[~done]
+                    act, alpha, capped = act[~done], alpha[~done], capped[~done]
                 if not act.numel():
                     continue
                 trial, ok = self._propose(act, cur, alpha)
@@ -842,8 +892,9 @@ class _Engine:
                     accept = ok
                 else:
                     # as fit's _better: the linear merit decides only for trials near solving the model
+                    # whose step was not capped at a bound's largest internal move
                     better = ((trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK))
-                              & (trial["defect"] <= DEFECT_TRUST))
+                              & (trial["defect"] <= DEFECT_TRUST) & ~capped)
                     check = ok & ~better
                     if bool(check.any()):
                         rows = check.nonzero().flatten()
@@ -1013,6 +1064,11 @@ class _Engine:
                 detail[r] = more if code.success else detail[r] + more
             cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
+        for k, r in enumerate(self.index.tolist()):
+            if spec.bounds.active:
+                detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index]))
+            if r in spec.moved_guesses:
+                detail[k] += " " + moved_guesses_note(spec.moved_guesses[r])
         messages = [c.value + d for c, d in zip(codes, detail)]
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,

@@ -89,6 +89,12 @@ class BatchFitResult:
     fit_kwargs : dict
         The options :func:`torchql.fit_many` was called with that a re-fit of one sample by
         :func:`torchql.fit` takes (for :func:`torchql.profile` of ``batch[i]``).
+    lower, upper : Tensor ``(m,)`` or None
+        The ``bounds`` of the unknowns (every sample's), as :attr:`torchql.FitResult.lower`;
+        ``None``: no bounds.
+    moved_guesses : dict of int to dict
+        ``{sample: {name: (given, used)}}`` for the samples whose guesses lay on or outside a
+        bound and were moved inside (``batch[i].moved_guesses``).
     """
 
     success: torch.Tensor
@@ -118,6 +124,9 @@ class BatchFitResult:
     solver_options: dict = field(default_factory=dict, repr=False)
     data: object = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
+    lower: torch.Tensor | None = field(default=None, repr=False)
+    upper: torch.Tensor | None = field(default=None, repr=False)
+    moved_guesses: dict[int, dict[str, tuple[float, float]]] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])
@@ -173,7 +182,10 @@ class BatchFitResult:
             exact_mask=torch.zeros(residuals.shape[0], dtype=torch.bool, device=residuals.device),
             n_observations=int(self.n_observations[i]), nfev=int(self.nfev), method="kantorovich",
             model=self.model_of(i), solver_options=dict(self.solver_options), data=data,
-            fit_kwargs=dict(self.fit_kwargs), index=i)
+            fit_kwargs=dict(self.fit_kwargs), index=i,
+            lower=None if self.lower is None else self.lower.clone(),
+            upper=None if self.upper is None else self.upper.clone(),
+            moved_guesses=dict(self.moved_guesses.get(i, {})))
 
     def __getitem__(self, i: int) -> FitResult:
         return self.sample(i)

@@ -41,7 +41,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-__all__ = ["Bounds", "MAX_INTERNAL_STEP", "START_OFFSET"]
+__all__ = ["Bounds", "MAX_INTERNAL_STEP", "START_OFFSET", "at_bound_note", "moved_guesses_note"]
 
 #: Largest move of a bounded unknown's internal variable ``q`` in one step (a factor 1000 in
 #: its distance to a bound).
@@ -217,6 +217,14 @@ class Bounds:
         near_lo = self.has_lower & ((u - self.lower).abs() <= rel * torch.maximum(scale, self.lower.abs().nan_to_num(0)))
         near_hi = self.has_upper & ((self.upper - u).abs() <= rel * torch.maximum(scale, self.upper.abs().nan_to_num(0)))
         return [self.names[i] for i in torch.nonzero(near_lo | near_hi).flatten().tolist()]
+
+
+def at_bound_note(names: Sequence[str]) -> str:
+    """The sentence of a fit's message that names the estimates lying at their bounds (empty if none)."""
+    if not names:
+        return ""
+    return (f" The estimates of {list(names)} lie at their bounds: the data pull them outside, and "
+            "their standard errors and intervals assume an interior optimum.")
 
 
 def moved_guesses_note(moved: Mapping[str, tuple[float, float]]) -> str:

@@ -26,7 +26,7 @@ import torch
 from torch.func import jacrev, vmap
 
 from . import _checks
-from .bounds import Bounds, moved_guesses_note
+from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, solve
 from .linearize import linearize
@@ -950,10 +950,8 @@ class _Problem:
                         cov = cov._replace(matrix=torch.full_like(cov.matrix, float("nan")))
             except IntegrationError as exc:
                 status, detail = Status.INTEGRATION_FAILED, f" The solver said, at the final estimates: {exc}."
-        at_bound = self.bounds.at_bound(z0[self.unknown_index]) if self.bounds.active else []
-        if at_bound:
-            detail += (f" The estimates of {at_bound} lie at their bounds: the data pull them outside, and "
-                       "their standard errors and intervals assume an interior optimum.")
+        if self.bounds.active:
+            detail += at_bound_note(self.bounds.at_bound(z0[self.unknown_index]))
         if self.moved_guesses:
             detail += " " + moved_guesses_note(self.moved_guesses)
         fitted = system.model_with(z0[n:])

@@ -8,11 +8,11 @@ distinct optima found, so that a user can see whether the best is likely global 
 reach it) or fragile (few do).
 
 When the fits are Kantorovich fits of one dataset with options that :func:`torchql.fit_many`
-supports (no ``bounds``, no values marked ``exact``, the default ``initial_trajectory`` and
+supports (``bounds`` included; no values marked ``exact``, the default ``initial_trajectory`` and
 ``linear_solver``), every start is fitted in one ``fit_many`` call, each sample from its own
 guesses on ``torchql.fit``'s iteration; the best start is then fitted once more with
 :func:`torchql.fit`, so that ``best`` is the full :class:`~torchql.FitResult` a loop would
-give. Otherwise (shooting, bounds, exact values, several experiments, ...) each start is one
+give. Otherwise (shooting, exact values, several experiments, ...) each start is one
 ``torchql.fit``.
 """
 
@@ -184,13 +184,13 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
             _set_buffer(trial, name, value)
         return fit(trial, data, x0, params=params, bounds=bounds, **fit_kwargs)
 
-    batched = _fit_many_serves(data, bounds, fit_kwargs)
+    batched = _fit_many_serves(data, fit_kwargs)
     results: list[FitResult] = []
     if batched:
         rows = [system.unpack_params(g) for g in guesses]
         per_start = {name: torch.stack([row[name] for row in rows]) for name in system.param_names}
         options = {key: value for key, value in fit_kwargs.items() if key in _FIT_MANY_OPTIONS}
-        results += fit_many(model, [data] * starts, x0, params=params, guesses=per_start, **options)
+        results += fit_many(model, [data] * starts, x0, params=params, guesses=per_start, bounds=bounds, **options)
         if callback is not None:
             for k, r in enumerate(results):
                 callback(k, r)
@@ -210,13 +210,12 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
                             optima=optima, batched=batched)
 
 
-def _fit_many_serves(data, bounds, fit_kwargs: dict) -> bool:
+def _fit_many_serves(data, fit_kwargs: dict) -> bool:
     """Whether :func:`torchql.fit_many` fits every start as ``torchql.fit(..., **fit_kwargs)`` would.
 
-    True for one dataset (not a list of experiments) without ``exact`` values, no ``bounds``,
-    and options all among :data:`_FIT_MANY_OPTIONS` or at the values of :data:`_FIT_MANY_FIXED`.
+    True for one dataset (not a list of experiments) without ``exact`` values, and options all among :data:`_FIT_MANY_OPTIONS` or at the values of :data:`_FIT_MANY_FIXED`.
     """
-    if not isinstance(data, Observations) or bool(data.exact.any()) or bounds:
+    if not isinstance(data, Observations) or bool(data.exact.any()):
         return False
     return all(key in _FIT_MANY_OPTIONS or (key in _FIT_MANY_FIXED and value == _FIT_MANY_FIXED[key])
                for key, value in fit_kwargs.items())

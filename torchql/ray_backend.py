@@ -193,7 +193,19 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         **_joined_evaluations(parts),
         solver_options=dict(first.solver_options),
         fit_kwargs=dict(first.fit_kwargs),
+        lower=first.lower,
+        upper=first.upper,
+        moved_guesses=_joined_moves(parts),
     )
+
+
+def _joined_moves(parts: Sequence[BatchFitResult]) -> dict:
+    """The parts' moved guesses, keyed by each sample's index in the joined batch."""
+    out, offset = {}, 0
+    for p in parts:
+        out.update({offset + b: moved for b, moved in p.moved_guesses.items()})
+        offset += len(p)
+    return out
 
 
 def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
