@@ -173,3 +173,11 @@ def test_bad_arguments_name_the_argument():
         rodas5p_batch(f, torch.ones(1, 2, dtype=DT), grid, rtol=-1.0, atol=1e-6)
     with pytest.raises(ValueError, match="`land`"):
         rodas5p_batch(f, torch.ones(1, 2, dtype=DT), grid, rtol=1e-6, atol=1e-6, land=torch.ones(3, dtype=torch.bool))
+
+
+def test_adjoint_fit_refuses_the_stiff_solver_by_name():
+    t = torch.linspace(0, 1, 5, dtype=DT)
+    data = torchql.Observations(t, torch.ones(5, 1, dtype=DT), observe=["y1"])
+    with pytest.raises(ValueError, match="`solver` of adjoint_fit must be a torchdiffeq method"):
+        torchql.baselines.adjoint_fit(Robertson(), data, x0=torch.tensor([1.0, 0.0, 0.0], dtype=DT),
+                                      solver="rodas5p")
