@@ -35,6 +35,7 @@ from .lstsq import solve_update
 from .model import ODEModel, _set_buffer
 from .observations import Observations
 from .result import FitResult, IterationRecord, Status
+from .solvers import STIFF_SOLVERS
 from .uncertainty import covariance
 
 __all__ = ["adjoint_fit", "OPTIMIZERS"]
@@ -153,6 +154,9 @@ def adjoint_fit(
         raise ValueError(f"`optimizer` must be one of {OPTIMIZERS}; received {optimizer!r}")
     if not isinstance(adjoint, bool):
         raise TypeError(f"`adjoint` must be True or False; received {adjoint!r}")
+    if solver in STIFF_SOLVERS:  # gradients flow through torchdiffeq's solvers only
+        raise ValueError(f"`solver` of adjoint_fit must be a torchdiffeq method, differentiated through "
+                         f"torchdiffeq; received {solver!r} (use torchql.fit for stiff models)")
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable as callback(step, sse, estimates); received {callback!r}")
     defaults = _DEFAULTS[optimizer]

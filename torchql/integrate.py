@@ -1,4 +1,5 @@
-"""Integration through torchdiffeq: solver choice, tolerances, and plain forward simulation."""
+"""Integration: solver choice (torchdiffeq's explicit solvers, torchql's implicit ``"rodas5p"`` for
+stiff models), tolerances, and plain forward simulation."""
 
 from __future__ import annotations
 
@@ -9,14 +10,15 @@ from torchdiffeq._impl.odeint import SOLVERS
 from . import _checks
 from .budget import check_time
 from .model import ODEModel, model_dtype_device
+from .solvers import STIFF_SOLVERS, JacobianError, rodas5p_solve
 
 __all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
            "interval_tolerances", "solve", "simulate", "CountedField"]
 
-#: Every solver name torchdiffeq accepts.
-SOLVER_NAMES: tuple[str, ...] = tuple(name for name in SOLVERS if name != "scipy_solver")
+#: Every solver name: torchdiffeq's, then the implicit solvers of :mod:`torchql.solvers` (for stiff models).
+SOLVER_NAMES: tuple[str, ...] = tuple(name for name in SOLVERS if name != "scipy_solver") + STIFF_SOLVERS
 #: Solvers with step-size control (they accept ``rtol``/``atol`` and land steps on ``step_t``).
-ADAPTIVE_SOLVERS: tuple[str, ...] = ("dopri8", "dopri5", "bosh3", "fehlberg2", "adaptive_heun")
+ADAPTIVE_SOLVERS: tuple[str, ...] = ("dopri8", "dopri5", "bosh3", "fehlberg2", "adaptive_heun") + STIFF_SOLVERS
 
 
 class IntegrationError(RuntimeError):
@@ -71,9 +73,10 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
     y0 : Tensor
         State at ``t[0]``.
     t : Tensor ``(G,)``
-        Strictly increasing output times (``t[0]`` is the initial time).
+        Strictly monotonic output times (``t[0]`` is the initial time; decreasing integrates backwards).
     solver : str
-        A torchdiffeq method name.
+        A torchdiffeq method name, or ``"rodas5p"`` (:func:`torchql.solvers.rodas5p_solve`: implicit,
+        for stiff systems; ``func`` must be differentiable by ``torch.func.jacrev``).
     rtol, atol : float
         Tolerances of adaptive solvers.
     hit : Tensor, optional
@@ -92,6 +95,9 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
     """
     if t.numel() == 1:
         return y0.unsqueeze(0)
+    if solver in STIFF_SOLVERS:
+        return _solve_stiff(func, y0, t, rtol=rtol, atol=atol, hit=hit, max_steps=max_steps, norm=norm,
+                            first_step=first_step)
     options = {}
     if solver in ADAPTIVE_SOLVERS:
         if hit is not None:
@@ -113,6 +119,17 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
     return out
 
 
+def _solve_stiff(func, y0, t, **options) -> torch.Tensor:
+    """:func:`solve` by Rodas5P; its per-sample failure statuses become :class:`IntegrationError`."""
+    try:
+        out, solution = rodas5p_solve(func, y0, t, **options)
+    except JacobianError as exc:
+        raise IntegrationError(str(exc)) from exc
+    if not bool(solution.ok[0]):
+        raise IntegrationError(solution.message(0))
+    return out
+
+
 def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "dopri5",
              rtol: float | None = None, atol: float | None = None) -> torch.Tensor:
     """Integrate ``model`` from ``x0`` at time ``t0`` and return the states at times ``t``.
@@ -127,7 +144,11 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
         Output times, strictly increasing; they may lie before ``t0`` (integrated backwards).
     t0 : float, optional
         Time of ``x0``; default ``t[0]``.
-    solver, rtol, atol
+    solver : str
+        As in :func:`torchql.fit` (default ``"dopri5"``); ``"rodas5p"`` for stiff models (fast
+        chemistry, relaxation oscillations), where explicit solvers crawl: an implicit Rosenbrock
+        method, see :mod:`torchql.solvers`.
+    rtol, atol
         As in :func:`torchql.fit`.
 
     Returns
