@@ -4,9 +4,12 @@ Over one step (local time ``sigma`` in ``[0, 1]``) the transfer solves ``T' = X(
 ``T(0) = I``, with ``X = [[h A, h B], [0, 0]]`` (the forcing column included, so that the
 particular solution is part of the same matrix). The step is split as ``T = exp(sigma E) + U``:
 
-* ``E = X(1/2)``, the coefficients frozen at the midpoint: ``exp(sigma E)`` is taken by
+* ``E = X(0)``, the coefficients frozen at the start of the step: ``exp(sigma E)`` is taken by
   ``torch.linalg.matrix_exp`` (scaling and squaring), exact whatever the stiffness, including
-  the forced response of a constant ``B`` (``[[e^E_A, phi_1(E_A) h B], [0, 1]]``);
+  the forced response of a constant ``B`` (``[[e^E_A, phi_1(E_A) h B], [0, 1]]``). Frozen at the
+  start rather than the midpoint, the correction's forcing vanishes at ``sigma = 0``, so the
+  correction starts on its own slow manifold to leading order: its initial layer, which Radau
+  IIA damps only by ``|R(h lambda)| ~ 3 / (h |lambda|)``, is then smaller by a factor ``h |lambda|``;
 * the correction ``U`` solves ``U' = X U + (X - E) exp(sigma E)``, ``U(0) = 0``, integrated by
   the three-stage Radau IIA collocation (order 5, L-stable and stiffly accurate: its result is
   the last stage value at ``sigma = 1``, so a stiff component ends on its quasi-steady state at the
@@ -32,6 +35,15 @@ result is returned (no extrapolation, which would not keep L-stability). Interva
 are integrated again with the number of steps the estimate predicts (a power of two, at least
 double), only those, up to ``max_substeps``.
 
+**Limitation: intermediate stiffness.** The correction's initial layer leaves an error of order
+``|q'| / (h |lambda|)^2`` per step (``q`` the quasi-steady state), from the last step of an interval
+only (earlier ones decay). With ``n`` steps it is ``n`` times larger, so refinement reduces it only
+once ``h |lambda| / n`` is of order one: for ``h |lambda|`` near ``10^2 .. 10^4`` and tight
+tolerances an interval can reach ``max_substeps`` (an ``IntegrationError``), and in that regime the
+step-doubling difference, which does not shrink with the step, can underestimate the error.
+From ``h |lambda| ~ 10^5`` on the layer is below double precision's reach of most tolerances and
+the first pass (two steps) passes; below ``~10`` the method is in its nonstiff regime (order 5).
+
 Only the rows of the components that change are integrated (coefficients have null equations;
 see :class:`torchql.transfer.Transfers`).
 """
@@ -56,7 +68,7 @@ _NODES = ((4 - _SQRT6) / 10, (4 + _SQRT6) / 10, 1.0)
 _RADAU = ((88 - 7 * _SQRT6) / 360, (296 - 169 * _SQRT6) / 1800, (-2 + 3 * _SQRT6) / 225,
           (296 + 169 * _SQRT6) / 1800, (88 + 7 * _SQRT6) / 360, (-2 - 3 * _SQRT6) / 225,
           (16 - _SQRT6) / 36, (16 + _SQRT6) / 36, 1 / 9)
-#: The local times of one step's evaluations: the midpoint, then the Radau nodes.
+#: The local times of one step's evaluations: the start (the frozen coefficients), then the Radau nodes.
 _STEP_TIMES = (0.0,) + _NODES
 #: Divisor of the step-doubling difference: ``2^q - 1`` for the stiff order ``q = 3``.
 _DIVISOR = 7.0
@@ -94,7 +106,7 @@ class ExponentialTransfers(NamedTuple):
 
 def _step(Xm: torch.Tensor, Xc: torch.Tensor) -> torch.Tensor:
     """Active rows ``(J, a, P)`` of one step's transfer, from the coefficients' active rows at the
-    midpoint ``Xm (J, a, P)`` and at the Radau nodes ``Xc (3, J, a, P)`` (already scaled by the step)."""
+    start ``Xm (J, a, P)`` (frozen) and at the Radau nodes ``Xc (3, J, a, P)`` (already scaled by the step)."""
     J, a, P = Xm.shape
     E = Xm.new_zeros(J, P, P)
     E[:, :a] = Xm
@@ -217,7 +229,7 @@ def exponential_transfers(coefficients: _Coefficients, *, rtol: float, atol: flo
 
 
 class ExponentialRadau(LinearPropagator):
-    """Every interval's transfer by the matrix exponential of its midpoint coefficients, corrected
+    """Every interval's transfer by the matrix exponential of its frozen coefficients, corrected
     for their variation by Radau IIA collocation, with step doubling: exact for constant
     coefficients, stable and accurate for stiff ``A`` (``h |lambda|`` up to ``10^8`` and beyond).
 
