@@ -7,18 +7,21 @@ transfers ``T_j`` (:class:`~torchql.transfer.Transfers`), each within the per-in
 ``linear_solver=`` takes a registered name or a :class:`LinearPropagator` object; adding one is
 one module here with a subclass, registered by :func:`register_propagator`.
 
-Registered: ``"taylor"`` (default, :mod:`.taylor`), ``"rk4_doubling"`` (:mod:`.rk4`) and
-``"torchdiffeq"`` (:mod:`.torchdiffeq`).
+Registered: ``"taylor"`` (default, :mod:`.taylor`), ``"rk4_doubling"`` (:mod:`.rk4`),
+``"torchdiffeq"`` (:mod:`.torchdiffeq`) and ``"exponential"`` (:mod:`.exponential`: the matrix
+exponential of frozen coefficients corrected by Radau IIA collocation, exact for constant
+coefficients and stable for stiff ``A``).
 """
 
 from __future__ import annotations
 
 from ._base import LinearPropagator
+from .exponential import ExponentialRadau
 from .rk4 import RK4Doubling
 from .taylor import TaylorSeries
 from .torchdiffeq import Torchdiffeq
 
-__all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "PROPAGATORS", "DEFAULT_PROPAGATOR",
+__all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "ExponentialRadau", "PROPAGATORS", "DEFAULT_PROPAGATOR",
            "register_propagator", "linear_propagator"]
 
 #: The registered propagators by name.
@@ -55,5 +58,5 @@ def linear_propagator(value: "str | LinearPropagator", arg: str = "linear_solver
                     f"torchql.propagators.LinearPropagator; received {type(value).__name__}")
 
 
-for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq()):
+for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau()):
     register_propagator(_propagator)
