@@ -44,9 +44,13 @@ from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
+from .grid import make_grid
 from .integrate import check_solver
+from .solvers import STIFF_SOLVERS, rodas5p_batch
 from .linearize import Linearization, linearize
 from .lstsq import solve_update
+from .propagators import PROPAGATORS, LinearPropagator
+from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
 from .model import AugmentedSystem, ODEModel, coefficient_names, model_dtype_device
 from .observations import ObservationOperator, Observations
 from .options import Limits, Tolerances, check_damping
@@ -88,6 +92,7 @@ def fit_many(
     grid: int | torch.Tensor | None = None,
     damping: str | None = "lm",
     solver: str = "dopri5",
+    linear_solver: "str | LinearPropagator" = DEFAULT_LINEAR_SOLVER,
     max_steps: int | None = None,
     chunk_size: int = DEFAULT_CHUNK,
     progress: bool | Callable[[int, int], None] = False,
@@ -136,9 +141,14 @@ def fit_many(
         and covariance); samples that finished before still get their final evaluation.
         Default: none.
     fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
-        As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``,
-        ``linear_solver="taylor"``). ``solver`` integrates a sample on its own only when
-        the batched integrators cannot (as ``fit`` falls back to it).
+        As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``).
+        With ``solver="rodas5p"`` (stiff models) every nonlinear pass is the batched implicit
+        :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as in
+        ``fit``; otherwise ``solver`` integrates a sample on its own only when the batched
+        Dormand–Prince cannot (as ``fit`` falls back to it).
+    linear_solver : str or LinearPropagator
+        As in :func:`torchql.fit`, among the propagators with a batched form
+        (``LinearPropagator.batched``): ``"taylor"`` (default) and ``"exponential"`` (stiff).
     chunk_size : int
         Samples fitted together (default 4096); larger batches are fitted chunk after chunk.
         The results do not depend on it.
@@ -158,7 +168,7 @@ def fit_many(
         For invalid arguments (naming the argument, the sample, what was expected and received).
     """
     spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds)
+                 damping, solver, max_steps, bounds, linear_solver)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     report = _progress(progress, spec.B)
@@ -202,7 +212,7 @@ def fit_many(
         params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
         t0=t0, method="kantorovich", max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
         xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory="integrate", max_steps=max_steps,
-        damping=damping, linear_solver="taylor", bounds=None if bounds is None else dict(bounds))
+        damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds))
     return result
 
 
@@ -246,7 +256,7 @@ class _Spec:
     """
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
-                 grid, damping, solver, max_steps, bounds=None) -> None:
+                 grid, damping, solver, max_steps, bounds=None, linear_solver=DEFAULT_LINEAR_SOLVER) -> None:
         _checks.model_class(model)
         names = tuple(model.state_names)
         n = len(names)
@@ -254,6 +264,11 @@ class _Spec:
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver)
         self.damping, self.solver = check_damping(damping), solver
+        self.linear_solver = check_linear_solver(linear_solver)
+        if not self.linear_solver.batched:
+            batched = tuple(name for name, p in PROPAGATORS.items() if p.batched)
+            raise ValueError(f"`linear_solver` {self.linear_solver.name!r} has no batched form; fit_many takes one of "
+                             f"{batched} (torchql.fit takes every propagator)")
         limits = Limits.resolve(max_iter, max_steps)
         self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
         self.dtype, self.device = dtype, device = model_dtype_device(model)
@@ -363,10 +378,10 @@ class _Spec:
 
         # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
         if self.t_obs.dim() == 1:
-            self.grid = _make_grid(grid, self.t0, self.t_obs)
+            self.grid = make_grid(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
             self.grid_size = None
         else:
-            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs)
+            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.model = model
 
@@ -570,32 +585,11 @@ def _same_observe(a, b) -> bool:
     return False
 
 
-def _make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> torch.Tensor:
-    """Kantorovich's storage grid, as :func:`torchql.fit` builds it."""
-    dtype, device = t_obs.dtype, t_obs.device
-    t_end = t_obs[-1]
-    span = float(t_end - t0)
-    extra = torch.zeros(0, dtype=dtype, device=device)
-    intervals = 1000
-    if isinstance(grid, torch.Tensor):
-        extra = grid.detach().to(dtype=dtype, device=device).reshape(-1)
-        if not torch.isfinite(extra).all():
-            raise ValueError("`grid` times must be finite")
-        extra = extra[(extra > t0) & (extra < t_end)]
-    elif grid is not None:
-        if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
-            raise ValueError(f"`grid` must be a positive number of intervals or a tensor of times; received {grid!r}")
-        intervals = int(grid)
-    if span <= 0:
-        return t0.reshape(1)
-    uniform = torch.linspace(float(t0), float(t_end), intervals + 1, dtype=dtype, device=device)
-    fixed = torch.cat([t0.reshape(1), t_obs])
-    gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
-    uniform = uniform[gap > 1e-6 * span / intervals]
-    return torch.unique(torch.cat([fixed, uniform, extra]))
+#: The storage grid, shared with ``fit`` (:func:`torchql.grid.make_grid`).
+_make_grid = make_grid
 
 
-def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Each sample's own grid, as :func:`torchql.fit` builds it for that dataset alone.
 
     ``t0``: shared ``()`` or per sample ``(B,)``; ``t_obs (B, T)``. Returns the grids ``(B, G)``,
@@ -606,7 +600,7 @@ def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor) -> tuple[torch.Tens
     B = t_obs.shape[0]
     starts = t0.expand(B) if t0.dim() == 0 else t0
     keys, inverse = torch.unique(torch.cat([starts.unsqueeze(1), t_obs], dim=1), dim=0, return_inverse=True)
-    grids = [_make_grid(grid, key[0], key[1:]) for key in keys]
+    grids = [make_grid(grid, key[0], key[1:], stiff=stiff) for key in keys]
     sizes = torch.tensor([g.numel() for g in grids], dtype=torch.long, device=t_obs.device)
     G = int(sizes.max())
     padded = torch.stack([torch.cat([g, g[-1:].expand(G - g.numel())]) for g in grids])
@@ -680,6 +674,7 @@ class _Engine:
         spec = self.spec
         w0 = _initial_columns(z0, spec.unknown_index)
         W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
+                                                  propagator=spec.linear_solver,
                                                   atol=spec.atol)
         self.nfev += evals
         W_obs = self._at_obs(W, idx)
@@ -712,7 +707,8 @@ class _Engine:
         traj = torch.full((S, G, self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
         ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
         with torch.no_grad():
-            if guess is not None and S * (G - 1) <= _SHOOTING_POINTS:
+            stiff = spec.solver in STIFF_SOLVERS
+            if guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver and not stiff:
                 usable = torch.isfinite(guess).flatten(1).all(dim=1)
                 sub = usable.nonzero().flatten()
                 if sub.numel():
@@ -730,6 +726,18 @@ class _Engine:
                 elif loose:
                     land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
                     land.scatter_(1, self.obs[idx[sub]], True)
+                if stiff:  # every sample by the implicit solver; its message kept for a failure
+                    sol = rodas5p_batch(self.system.f, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land,
+                                        error_components=self.system.n,
+                                        **({} if spec.max_steps is None else {"max_steps": spec.max_steps}))
+                    self.nfev += sol.n_f
+                    good = sol.ok
+                    traj[sub[good]], ok[sub[good]] = sol.y[good], True
+                    errors: list = [None] * S
+                    for k, s in enumerate(sub.tolist()):
+                        if not bool(good[k]):
+                            errors[s] = sol.message(k)
+                    return traj, errors
                 tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
                 self.nfev += evals
                 traj[sub[good]], ok[sub[good]] = tr[good], True
@@ -1016,6 +1024,7 @@ class _Engine:
             lin = self._linearize(rows, traj)
             w0 = _initial_columns(z0[rows], spec.unknown_index)
             W, failed, evals = propagate_linear_batch(self._grid_of(rows), traj, lin.f, lin, w0, rtol=spec.rtol,
+                                                      propagator=spec.linear_solver,
                                                       atol=spec.atol)
             self.nfev += evals
             for r in rows[failed].tolist():

@@ -99,7 +99,7 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
-                           rtol: float, atol: float, max_substeps: int = 1024
+                           rtol: float, atol: float, max_substeps: int = 1024, propagator=None
                            ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Particular and homogeneous solutions of ``S`` samples' quasilinear systems on the grid ``t``.
 
@@ -119,7 +119,10 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         (each interval gets them divided by the square root of the number of intervals: ``G - 1``
         on a shared grid, the sample's intervals of positive length on per-sample grids).
     max_substeps : int
-        Most Taylor substeps on one interval (see :func:`torchql.taylor.series_transfers`).
+        Most substeps on one interval (see :func:`torchql.taylor.series_transfers`).
+    propagator : LinearPropagator, optional
+        Whose batched :meth:`~torchql.propagators.LinearPropagator.series` integrates the
+        intervals (default: the Taylor series).
 
     Returns
     -------
@@ -136,12 +139,12 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
         return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), 0
     N = G - 1
     coefficients = _coefficients(t, z, z_dot, lin)
+    series = _taylor_series if propagator is None else propagator.series
     if t.dim() == 1:
         rtol_j, atol_j = interval_tolerances(rtol, atol, N, z.dtype)
-        out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
-        Y, failed, points = out.Y, out.failed, out.points
+        Y, failed, points = series(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
     else:
-        Y, failed, points = _series_per_sample(coefficients, _interval_counts(t), rtol, atol, max_substeps)
+        Y, failed, points = _series_per_sample(coefficients, _interval_counts(t), rtol, atol, max_substeps, series)
     order = coefficients.order
     failed = failed.reshape(S, N).any(dim=1)
     a, P = Y.shape[0], Y.shape[1]
@@ -167,14 +170,20 @@ def _last_nodes(grid: torch.Tensor) -> torch.Tensor:
     return (grid < grid[:, -1:]).sum(dim=1)
 
 
+def _taylor_series(coefficients: _Coefficients, *, rtol: float, atol: float, max_substeps: int):
+    """:func:`torchql.taylor.series_transfers` as ``(Y, failed, points)``."""
+    out = series_transfers(coefficients, rtol=rtol, atol=atol, max_substeps=max_substeps)
+    return out.Y, out.failed, out.points
+
+
 def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: float, atol: float,
-                       max_substeps: int) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """:func:`torchql.taylor.series_transfers` of ``S`` samples' ``N`` intervals each, per-sample tolerances.
+                       max_substeps: int, series=_taylor_series) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """``series`` (default the Taylor series) of ``S`` samples' ``N`` intervals each, per-sample tolerances.
 
     ``counts (S,)``: each sample's intervals of positive length, over whose square root its
-    tolerances are divided. Samples with the same count are summed in one call (an interval's
-    series does not depend on the intervals summed with it). Returns ``Y (a, M+1, S N)``,
-    ``failed (S N,)`` and the points computed.
+    tolerances are divided. Samples with the same count are integrated in one call (an
+    interval's transfer does not depend on the intervals integrated with it). Returns
+    ``Y (a, M+1, S N)``, ``failed (S N,)`` and the work done.
     """
     S = counts.shape[0]
     data = coefficients.data
@@ -183,8 +192,7 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
     values = counts.unique().tolist()
     if len(values) == 1:
         rtol_j, atol_j = interval_tolerances(rtol, atol, values[0], dtype)
-        out = series_transfers(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
-        return out.Y, out.failed, out.points
+        return series(coefficients, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
     Y = data.new_zeros(coefficients.a, coefficients.M + 1, S * N)
     failed = torch.zeros(S * N, dtype=torch.bool, device=data.device)
     points = 0
@@ -193,9 +201,9 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
         columns = (samples.unsqueeze(1) * N + torch.arange(N, device=data.device)).flatten()
         part = _Coefficients.of(data[..., columns], coefficients.order, coefficients.a, coefficients.M)
         rtol_j, atol_j = interval_tolerances(rtol, atol, value, dtype)
-        out = series_transfers(part, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
-        Y[..., columns], failed[columns] = out.Y, out.failed
-        points += out.points
+        Y_part, failed_part, work = series(part, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
+        Y[..., columns], failed[columns] = Y_part, failed_part
+        points += work
     return Y, failed, points
 
 

@@ -29,7 +29,9 @@ from . import _checks
 from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, solve
+from .solvers import STIFF_SOLVERS
 from .linearize import linearize
+from .grid import make_grid
 from .grid_solve import IntervalBudgetError, solve_on_grid
 from .diagnosis import final_status, null_detail, typical_magnitudes
 from .lstsq import ExactRowsError, solve_update
@@ -355,8 +357,7 @@ class _Problem:
         self.operator.check(x0)
 
         # --- grids
-        t_end = self.t_obs[-1]
-        self.grid = self._make_grid(grid, t_end)
+        self.grid = make_grid(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.nfev = 0
 
@@ -386,29 +387,6 @@ class _Problem:
                 "`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
                 f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor values."
             ) from exc
-
-    def _make_grid(self, grid, t_end) -> torch.Tensor:
-        dtype, device = self.dtype, self.device
-        span = float(t_end - self.t0)
-        extra = torch.zeros(0, dtype=dtype, device=device)
-        intervals = 1000
-        if isinstance(grid, torch.Tensor):
-            extra = grid.detach().to(dtype=dtype, device=device).reshape(-1)
-            if not torch.isfinite(extra).all():
-                raise ValueError("`grid` times must be finite")
-            extra = extra[(extra > self.t0) & (extra < t_end)]
-        elif grid is not None:
-            if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
-                raise ValueError(f"`grid` must be a positive number of intervals or a tensor of times; received {grid!r}")
-            intervals = int(grid)
-        if span <= 0:
-            return self.t0.reshape(1)
-        uniform = torch.linspace(float(self.t0), float(t_end), intervals + 1, dtype=dtype, device=device)
-        fixed = torch.cat([self.t0.reshape(1), self.t_obs])
-        # drop uniform nodes that nearly coincide with a fixed node (tiny intervals help nothing)
-        gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
-        uniform = uniform[gap > 1e-6 * span / intervals]
-        return torch.unique(torch.cat([fixed, uniform, extra]))
 
     # ------------------------------------------------------------------------------------
     def _rows(self, z_ref_obs, zp_obs, Z_obs):
@@ -478,7 +456,7 @@ class _Problem:
             substeps = min(substeps, 1 << (self.max_steps.bit_length() - 1))
         with torch.no_grad():
             if (guess is not None and self.linear_solver.grid_solver and substeps >= 2
-                    and bool(torch.isfinite(guess).all())):
+                    and self.solver not in STIFF_SOLVERS and bool(torch.isfinite(guess).all())):
                 try:
                     x, _ = solve_on_grid(counter, z0[:n], self.grid, rtol=rtol, atol=atol, guess=guess[:, :n],
                                          max_newton=_GRID_NEWTON, max_substeps=substeps)

@@ -8,20 +8,22 @@ transfers ``T_j`` (:class:`~torchql.transfer.Transfers`), each within the per-in
 one module here with a subclass, registered by :func:`register_propagator`.
 
 Registered: ``"taylor"`` (default, :mod:`.taylor`), ``"rk4_doubling"`` (:mod:`.rk4`),
-``"torchdiffeq"`` (:mod:`.torchdiffeq`) and ``"exponential"`` (:mod:`.exponential`: the matrix
+``"torchdiffeq"`` (:mod:`.torchdiffeq`), ``"exponential"`` (:mod:`.exponential`: the matrix
 exponential of frozen coefficients corrected by Radau IIA collocation, exact for constant
-coefficients and stable for stiff ``A``).
+coefficients and stable for stiff ``A``) and ``"radau"`` (the same module: Radau IIA collocation of
+the whole transfer, for every stiffness; what ``solver="auto"`` takes for a stiff model).
 """
 
 from __future__ import annotations
 
 from ._base import LinearPropagator
-from .exponential import ExponentialRadau
+from .exponential import ExponentialRadau, RadauCollocation
 from .rk4 import RK4Doubling
 from .taylor import TaylorSeries
 from .torchdiffeq import Torchdiffeq
 
-__all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "ExponentialRadau", "PROPAGATORS", "DEFAULT_PROPAGATOR",
+__all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "ExponentialRadau", "RadauCollocation",
+           "PROPAGATORS", "DEFAULT_PROPAGATOR",
            "register_propagator", "linear_propagator"]
 
 #: The registered propagators by name.
@@ -58,5 +60,5 @@ def linear_propagator(value: "str | LinearPropagator", arg: str = "linear_solver
                     f"torchql.propagators.LinearPropagator; received {type(value).__name__}")
 
 
-for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau()):
+for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau(), RadauCollocation()):
     register_propagator(_propagator)

@@ -53,6 +53,22 @@ class LinearPropagator:
         """
         raise NotImplementedError
 
+    def series(self, coefficients, *, rtol: float, atol: float, max_substeps: int):
+        """Batched transfers for :func:`torchql.fit_many`: every interval of every sample at once.
+
+        ``coefficients``: the intervals' power-basis coefficients (``torchql.transfer._Coefficients``,
+        the samples' intervals side by side); ``rtol``/``atol`` per interval. Returns ``(Y, failed,
+        n_evals)``: the active rows ``(a, M+1, N)``, a per-interval failure mask ``(N,)`` (never
+        raised) and the work done. A propagator without it serves ``fit`` only (``batched`` is
+        ``False``).
+        """
+        raise NotImplementedError
+
+    @property
+    def batched(self) -> bool:
+        """Whether :meth:`series` is implemented (``fit_many`` can use this propagator)."""
+        return type(self).series is not LinearPropagator.series
+
     def __eq__(self, other: object) -> bool:
         """Equal to another propagator of the same class and name, or to its name."""
         if isinstance(other, str):

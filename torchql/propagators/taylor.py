@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..taylor import taylor_transfers
+from ..taylor import series_transfers, taylor_transfers
 from ._base import LinearPropagator
 
 
@@ -15,3 +15,7 @@ class TaylorSeries(LinearPropagator):
 
     def transfers(self, system, *, rtol, atol, solver, max_steps):
         return taylor_transfers(system, rtol=rtol, atol=atol)
+
+    def series(self, coefficients, *, rtol, atol, max_substeps):
+        out = series_transfers(coefficients, rtol=rtol, atol=atol, max_substeps=max_substeps)
+        return out.Y, out.failed, out.points

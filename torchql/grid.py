@@ -1,0 +1,68 @@
+"""Kantorovich's storage grid: the times at which an iterate trajectory is stored.
+
+One builder serves :func:`torchql.fit` and :func:`torchql.fit_many` (each sample's grid is the one
+``fit`` builds for that dataset alone). The grid holds ``t0``, every observation time, and
+``intervals`` uniform intervals (default :data:`DEFAULT_INTERVALS`) or the user's extra times.
+
+A stiff model's solution has fast transients (Robertson kinetics: a boundary layer of width
+``1e-4`` on a span of ``1e5``) that uniform nodes cannot represent: with ``stiff=True``
+:data:`NODES_PER_DECADE` geometrically spaced nodes per decade are added from
+``t0 + EARLIEST * span`` to the end, so every interval is short against the time since ``t0``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["make_grid", "DEFAULT_INTERVALS", "NODES_PER_DECADE", "EARLIEST"]
+
+#: Uniform intervals of the default grid.
+DEFAULT_INTERVALS = 1000
+#: Geometric nodes per decade of ``t - t0`` added for stiff models.
+NODES_PER_DECADE = 10
+#: The earliest geometric node, as a fraction of the span after ``t0``.
+EARLIEST = 1e-9
+
+
+def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = False) -> torch.Tensor:
+    """The storage grid ``(G,)``: sorted, distinct, from ``t0`` to the last observation time.
+
+    Parameters
+    ----------
+    grid : int, Tensor or None
+        Number of uniform intervals (default :data:`DEFAULT_INTERVALS`), or extra times (those
+        strictly between ``t0`` and the last observation are kept, with the default intervals).
+    t0 : Tensor ``()``
+        Initial time.
+    t_obs : Tensor ``(T,)``
+        Observation times, increasing, none before ``t0``.
+    stiff : bool
+        Add geometrically spaced early nodes (see the module's description).
+    """
+    dtype, device = t_obs.dtype, t_obs.device
+    t_end = t_obs[-1]
+    span = float(t_end - t0)
+    extra = torch.zeros(0, dtype=dtype, device=device)
+    intervals = DEFAULT_INTERVALS
+    if isinstance(grid, torch.Tensor):
+        extra = grid.detach().to(dtype=dtype, device=device).reshape(-1)
+        if not torch.isfinite(extra).all():
+            raise ValueError("`grid` times must be finite")
+        extra = extra[(extra > t0) & (extra < t_end)]
+    elif grid is not None:
+        if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
+            raise ValueError(f"`grid` must be a positive number of intervals or a tensor of times; received {grid!r}")
+        intervals = int(grid)
+    if span <= 0:
+        return t0.reshape(1)
+    uniform = torch.linspace(float(t0), float(t_end), intervals + 1, dtype=dtype, device=device)
+    if stiff:
+        decades = -torch.log10(torch.tensor(EARLIEST, dtype=torch.float64))
+        count = int(decades) * NODES_PER_DECADE
+        early = float(t0) + span * torch.logspace(-float(decades), 0.0, count + 1, dtype=dtype, device=device)
+        uniform = torch.cat([uniform, early[:-1]])
+    fixed = torch.cat([t0.reshape(1), t_obs])
+    # drop free nodes that nearly coincide with a fixed node (tiny intervals help nothing)
+    gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
+    uniform = uniform[gap > 1e-6 * (uniform - t0).clamp(min=0).clamp(max=span / intervals)]
+    return torch.unique(torch.cat([fixed, uniform, extra]))
