@@ -168,3 +168,27 @@ def test_observables_and_noise_match_json(problem):
                 names = {**setup.symbols, **x, **{f"{kind}Parameter{i + 1}_{obs_id}": v for i, v in enumerate(p)}}
                 torch.testing.assert_close(mine(x, setup.symbols, p).expand(5), evaluate(text, names).expand(5),
                                            rtol=1e-12, atol=0.0, msg=f"{problem.name} {obs_id} {kind}")
+
+
+# --- the script's scipy column and stiffness measure (cheap parts, on Bruno) ---------------------------------
+def _script():
+    import importlib.util
+
+    pytest.importorskip("scipy")
+    spec = importlib.util.spec_from_file_location("petab_nllh", ROOT / "experiments" / "petab_nllh.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_script_scipy_column_and_stiffness():
+    script = _script()
+    bruno = load_problem(PROBLEMS["Bruno_JExpBot2016"], PETAB)
+    values = nominal_values(bruno)
+    scipy_value = negative_log_likelihood(bruno, values, script.scipy_simulator("RK45", 1e-8, 1e-10))
+    assert abs(scipy_value - bruno.reference_nllh) < 1e-3
+    ratio, where = script.stiffness(bruno, points=41)
+    assert 1.0 < ratio < 10.0 and "model1_data" in where  # first-order rates ~1e-2 /min over 180 min: not stiff
+    text = script.report([dict(name="P", reference=1.0, torchql=1.0 + 2e-3, solver="dopri5", seconds=0.1, scipy=1.0,
+                               scipy_method="RK45", scipy_seconds=0.1, stiffness=3.0, where="c", data=2, conditions=1)])
+    assert "| P | 1 | 2 | 1.000000 | 1.002000 | 2.0e-03 | dopri5 |" in text and "Further than 1e-3" in text
