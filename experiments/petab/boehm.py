@@ -22,7 +22,7 @@ from .spec import ProblemSpec
 
 __all__ = ["BoehmSTAT5", "SPEC"]
 
-#: Total STAT5 (concentration units of the states) shared between STAT5A and STAT5B at ``t = 0`` in the proportion ``ratio``.
+#: Total STAT5 (in the states' concentration units), split between STAT5A and STAT5B at ``t = 0`` as ``ratio``.
 TOTAL_STAT5 = 207.6
 #: The phosphorylation rate law's factor in front of ``k_phos`` (the SBML model's unit scaling).
 PHOS_SCALE = 1.25e-7

@@ -18,7 +18,7 @@ import torch
 
 import torchql
 
-from .problem import PetabProblem, _resolve, setup_condition
+from .problem import PetabProblem, resolve_entry, setup_condition
 
 __all__ = ["Simulator", "torchql_simulator", "row_terms", "likelihood_terms", "negative_log_likelihood"]
 
@@ -54,7 +54,8 @@ def _placeholders(entries, values):
     width = len(entries[0])
     if any(len(e) != width for e in entries):
         raise ValueError("the rows of one observable in one condition give different numbers of placeholders")
-    return tuple(torch.tensor([_resolve(e[i], values) for e in entries], dtype=torch.float64) for i in range(width))
+    return tuple(torch.tensor([resolve_entry(e[i], values) for e in entries], dtype=torch.float64)
+                 for i in range(width))
 
 
 def likelihood_terms(problem: PetabProblem, values: Mapping[str, float],
@@ -83,8 +84,10 @@ def likelihood_terms(problem: PetabProblem, values: Mapping[str, float],
                 continue
             chosen = [problem.measurements[i] for i in rows[mask].tolist()]
             x = dict(zip(spec.model.state_names, states[mask].unbind(-1)))
-            y = spec.observables[obs_id](x, setup.symbols, _placeholders([m.observable_parameters for m in chosen], values))
-            sigma = spec.noise[obs_id](x, setup.symbols, _placeholders([m.noise_parameters for m in chosen], values))
+            obs_params = _placeholders([m.observable_parameters for m in chosen], values)
+            noise_params = _placeholders([m.noise_parameters for m in chosen], values)
+            y = spec.observables[obs_id](x, setup.symbols, obs_params)
+            sigma = spec.noise[obs_id](x, setup.symbols, noise_params)
             m = torch.tensor([r.value for r in chosen], dtype=torch.float64)
             out[rows[mask]] = row_terms(m, y, sigma.expand_as(m), observable.transformation, observable.distribution)
     return out

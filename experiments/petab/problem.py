@@ -26,7 +26,7 @@ import torchql
 from .spec import ProblemSpec
 
 __all__ = ["PETAB_DIR", "Parameter", "Observable", "Measurement", "PetabProblem", "ConditionSetup", "load_problem",
-           "nominal_values", "values_from_scaled", "condition_symbols", "setup_condition"]
+           "nominal_values", "values_from_scaled", "resolve_entry", "condition_symbols", "setup_condition"]
 
 #: The shared folder of PEtab problems, beside the repository (``../shared/petab``).
 PETAB_DIR = Path(__file__).resolve().parents[2] / ".." / "shared" / "petab"
@@ -211,8 +211,8 @@ def values_from_scaled(problem: PetabProblem, theta: Sequence[float]) -> dict[st
     return values
 
 
-def _resolve(entry: float | str, values: Mapping[str, float]) -> float:
-    """A table entry: a number, or the id of a parameter (its value in ``values``)."""
+def resolve_entry(entry: float | str, values: Mapping[str, float]) -> float:
+    """The value of a table entry: a number, or the id of a parameter (its value in ``values``)."""
     if isinstance(entry, str):
         if entry not in values:
             raise KeyError(f"{entry!r} is neither a number nor a parameter id")
@@ -226,7 +226,7 @@ def condition_symbols(problem: PetabProblem, condition: str, values: Mapping[str
     out = {}
     for name, default in problem.model_symbols.items():
         if name in overrides:
-            out[name] = _resolve(overrides[name], values)
+            out[name] = resolve_entry(overrides[name], values)
         else:
             out[name] = float(values.get(name, default))
     out.update((name, float(v)) for name, v in values.items() if name not in out)
@@ -242,7 +242,7 @@ def setup_condition(problem: PetabProblem, condition: str, values: Mapping[str, 
     x0 = spec.initial_state(symbols).to(DTYPE)
     for k, state in enumerate(spec.model.state_names):  # a condition may set an initial state directly
         if state in problem.conditions[condition]:
-            x0[k] = _resolve(problem.conditions[condition][state], values)
+            x0[k] = resolve_entry(problem.conditions[condition][state], values)
     rows = [i for i, m in enumerate(problem.measurements) if m.condition == condition]
     row_times = torch.tensor([problem.measurements[i].time for i in rows], dtype=DTYPE)
     times, time_index = torch.unique(row_times, sorted=True, return_inverse=True)
