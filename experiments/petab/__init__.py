@@ -4,11 +4,11 @@ Boehm_JProteomeRes2014, Bruno_JExpBot2016 and Fiedler_BMCSystBiol2016 (Hass et a
 Bioinformatics 35:3073), read from ``../shared/petab/<name>.json`` beside the repository. Each problem's
 right-hand side, initial state, observables and noise are written by hand (:mod:`.boehm`, :mod:`.bruno`,
 :mod:`.fiedler`); :mod:`.problem` reads the tables and builds each condition's simulation, and
-:mod:`.likelihood` computes the PEtab negative log-likelihood from :func:`torchql.simulate`.
+:mod:`.likelihood` computes the PEtab negative log-likelihood from :func:`torchql.simulate`::
 
->>> from experiments.petab import PROBLEMS, load_problem, nominal_values, negative_log_likelihood
->>> problem = load_problem(PROBLEMS["Bruno_JExpBot2016"])
->>> negative_log_likelihood(problem, nominal_values(problem))   # reference -46.688177
+    from experiments.petab import PROBLEMS, load_problem, nominal_values, negative_log_likelihood
+    problem = load_problem(PROBLEMS["Bruno_JExpBot2016"])
+    negative_log_likelihood(problem, nominal_values(problem))   # -46.68818; reference -46.688177
 """
 
 from .boehm import SPEC as BOEHM
