@@ -1,0 +1,69 @@
+"""Stiff fits: Robertson kinetics through ``fit`` and ``fit_many`` on the stiff path.
+
+The stiff path is ``solver="rodas5p"`` (every nonlinear pass by the implicit Rosenbrock solver)
+with ``linear_solver="radau"`` (Radau IIA transfers) and the grid's early geometric nodes. The
+explicit defaults cannot fit this model at all (``simulate`` with dopri5 to t = 1e3 does not
+finish in 30 s; benchmarks/stiff_simulate.py).
+"""
+
+import pytest
+import torch
+
+import torchql
+from torchql.models import Robertson
+
+DT = torch.float64
+TRUTH = {"k1": 0.04, "k2": 3e7, "k3": 1e4}
+STIFF = dict(solver="rodas5p", linear_solver="radau", rtol=1e-8, atol=1e-14)
+
+
+@pytest.fixture(scope="module")
+def robertson_data():
+    """All three states at 12 log-spaced times from 1e-4 to 1e5, exact (simulated at rtol 1e-10)."""
+    t = torch.logspace(-4, 5, 12, dtype=DT)
+    x0 = torch.tensor([1.0, 0.0, 0.0], dtype=DT)
+    x = torchql.simulate(Robertson(), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p", rtol=1e-10,
+                         atol=1e-16)[1:]
+    return torchql.Observations(t, x, observe=["y1", "y2", "y3"], sigma=0.01 * x), x0
+
+
+def _fit(data, x0, guess, **options):
+    return torchql.fit(Robertson(**guess), data, x0, fixed_x0=["y1", "y2", "y3"], t0=0.0,
+                       bounds={k: (0.0, None) for k in TRUTH}, **STIFF, **options)
+
+
+@pytest.mark.slow
+def test_robertson_rates_from_guesses_2x_off_by_shooting(robertson_data):
+    """Exact data (relative weights 1 %): shooting reaches the truth to 1e-6 relative, the
+    integration tolerance's reach on these weights (rtol 1e-8 over values down to 1e-9 of y1)."""
+    data, x0 = robertson_data
+    r = _fit(data, x0, {"k1": 0.08, "k2": 1.5e7, "k3": 2e4}, method="shooting")
+    assert r.success, r.message
+    assert max(abs(r.params[k].item() - v) / v for k, v in TRUTH.items()) < 1e-6
+    assert r.solver_options["solver"] == "rodas5p"
+    # the fitted model predicts on the stiff path too
+    assert torch.allclose(r.predict(data.t), torchql.simulate(Robertson(), x0, data.t, t0=0.0, solver="rodas5p",
+                                                             rtol=1e-10, atol=1e-16), rtol=1e-5, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_robertson_kantorovich_fit_and_fit_many_agree(robertson_data):
+    """Kantorovich converges near the truth (its fixed point on this stiff problem lies 1e-4
+    relative from the optimum, see the README's stiff section); fit_many over two starts gives
+    the first start the result of fit from it, and the second the same optimum."""
+    data, x0 = robertson_data
+    guesses = [{"k1": 0.08, "k2": 1.5e7, "k3": 2e4}, {"k1": 0.02, "k2": 6e7, "k3": 5e3}]
+    single = _fit(data, x0, guesses[0])
+    per_sample = {k: torch.tensor([g[k] for g in guesses], dtype=DT) for k in TRUTH}
+    batch = torchql.fit_many(Robertson(), [data, data], x0, guesses=per_sample, fixed_x0=["y1", "y2", "y3"], t0=0.0,
+                             bounds={k: (0.0, None) for k in TRUTH}, **STIFF)
+    assert single.success and batch.success.all(), (single.message, batch.message)
+    assert max(abs(single.params[k].item() - v) / v for k, v in TRUTH.items()) < 1e-3
+    for b in range(2):
+        assert torch.allclose(batch[b].estimates, single.estimates, rtol=1e-6, atol=0)
+
+
+def test_fit_many_refuses_a_propagator_without_a_batched_form(robertson_data):
+    data, x0 = robertson_data
+    with pytest.raises(ValueError, match="`linear_solver` 'rk4_doubling' has no batched form"):
+        torchql.fit_many(Robertson(), [data], x0, linear_solver="rk4_doubling")
