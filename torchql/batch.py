@@ -23,8 +23,9 @@ per-sample masks:
   of the work (the engine only computes on the samples still running).
 
 A converged sample's estimates equal those of ``torchql.fit`` on that dataset alone (same
-optimum, to the convergence tolerance). Values marked ``exact`` and ``bounds`` are not
-supported here (fit such datasets with :func:`torchql.fit`).
+optimum, to the convergence tolerance), bounds included (iterated in the same transformed
+variables). Values marked ``exact`` are not supported here (fit such datasets with
+:func:`torchql.fit`).
 """
 
 from __future__ import annotations
