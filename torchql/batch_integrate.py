@@ -236,7 +236,7 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
         failed[todo[capped]] = True
         todo, current = todo[~capped], current[~capped]
         r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        factor = torch.ceil(torch.log2((_GRID_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
+        factor = torch.ceil(torch.log2((_GRID_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
         steps[todo] = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps // 2))
     return phi, S, failed, n_evals
 

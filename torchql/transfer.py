@@ -144,7 +144,8 @@ def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
             _fail(system, index, current, ratio, rtol, atol, max_substeps)
         # fine error ~ steps^-4: predict the steps needed, a power of two, at least double
         r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(min=1).to(torch.long)
+        # at most the cap's doublings: a huge finite ratio would overflow 2**factor
+        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
         wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
         for n_fine in wanted.unique().tolist():
             group = index[wanted == n_fine]

@@ -139,3 +139,25 @@ def test_fit_with_it_reaches_the_default_fit():
     mine = torchql.fit(LinearOscillator(0.5, 1.0), data, x0=x0, linear_solver="exponential")
     assert mine.success and default.success
     assert torch.allclose(mine.estimates, default.estimates, rtol=1e-8, atol=1e-10)
+
+
+def test_a_huge_error_ratio_refines_to_the_cap_instead_of_overflowing():
+    """An interval whose first error ratio is astronomically large (1e300: the predicted number of
+    steps, 2**333, overflows int64 to 0) is refined to ``max_substeps`` and failed, not divided by zero."""
+    from torchql.propagators import exponential
+
+    ref = _constant(torch.linspace(0.0, 1.0, 3, dtype=DT), torch.tensor([[-1.0]], dtype=DT),
+                    torch.tensor([1.0], dtype=DT))
+    coefficients = _Coefficients(IntervalSystem(ref))
+    original = exponential._pair
+
+    def huge_first_ratio(coefficients, index, n, rtol, atol, freeze=True):
+        Y, ratio, evals = original(coefficients, index, n, rtol, atol, freeze)
+        return Y, torch.full_like(ratio, 1e300 if n == 1 else 10.0), evals
+
+    exponential._pair = huge_first_ratio
+    try:
+        out = exponential.exponential_series(coefficients, rtol=1e-8, atol=1e-10, max_substeps=8)
+    finally:
+        exponential._pair = original
+    assert bool(out.failed.all()) and int(out.substeps.max()) == 8
