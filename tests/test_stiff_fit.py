@@ -48,8 +48,9 @@ def test_robertson_rates_from_guesses_2x_off_by_shooting(robertson_data):
 
 @pytest.mark.slow
 def test_robertson_kantorovich_fit_and_fit_many_agree(robertson_data):
-    """Kantorovich converges near the truth (its fixed point on this stiff problem lies 1e-4
-    relative from the optimum, see the README's stiff section); fit_many over two starts gives
+    """Kantorovich converges to within 1e-5 of the truth (measured 6e-6: its fixed point on the
+    storage grid, whose earliest interval after t0 = 0 is [0, 1e-8], lies that far from the
+    model's optimum; shooting's lies within 4e-8); fit_many over two starts gives
     the first start the result of fit from it, and the second the same optimum."""
     data, x0 = robertson_data
     guesses = [{"k1": 0.08, "k2": 1.5e7, "k3": 2e4}, {"k1": 0.02, "k2": 6e7, "k3": 5e3}]
@@ -58,7 +59,7 @@ def test_robertson_kantorovich_fit_and_fit_many_agree(robertson_data):
     batch = torchql.fit_many(Robertson(), [data, data], x0, guesses=per_sample, fixed_x0=["y1", "y2", "y3"], t0=0.0,
                              bounds={k: (0.0, None) for k in TRUTH}, **STIFF)
     assert single.success and batch.success.all(), (single.message, batch.message)
-    assert max(abs(single.params[k].item() - v) / v for k, v in TRUTH.items()) < 1e-3
+    assert max(abs(single.params[k].item() - v) / v for k, v in TRUTH.items()) < 1e-5
     for b in range(2):
         assert torch.allclose(batch[b].estimates, single.estimates, rtol=1e-6, atol=0)
 

@@ -133,7 +133,11 @@ def fit(
     throw : bool
         Raise :class:`torchql.FitError` instead of returning an unsuccessful result.
     solver : str
-        torchdiffeq method (``torchql.SOLVER_NAMES``); default ``"dopri5"``.
+        Nonlinear integrator (``torchql.SOLVER_NAMES``): a torchdiffeq method, default ``"dopri5"``,
+        or ``"rodas5p"`` for stiff models (:mod:`torchql.solvers`: implicit, L-stable; every
+        nonlinear pass uses it, none goes through the explicit grid solver, and the storage grid
+        gains geometric nodes after ``t0``, :func:`torchql.grid.make_grid`). With a stiff model,
+        pass ``linear_solver="radau"`` too.
     rtol, atol : float, optional
         Integrator tolerances; default ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` below.
     xtol : float, optional
@@ -180,8 +184,11 @@ def fit(
         Newton's method, :mod:`torchql.grid_solve`) wherever a prediction of its trajectory is at
         hand (the first reference, trial steps, the final pass), falling back to ``solver``.
         ``"torchdiffeq"``: the intervals' transfers integrated by torchdiffeq with ``solver``,
-        which integrates the nonlinear model too. A :class:`torchql.propagators.LinearPropagator`
-        object is used as given (its ``grid_solver`` says whether the grid solver may be used).
+        which integrates the nonlinear model too. ``"radau"`` (stiff models: Radau IIA
+        collocation, stable at every stiffness) and ``"exponential"`` (the matrix exponential of
+        frozen coefficients plus a Radau correction: exact for constant coefficients, fails at
+        intermediate stiffness): the nonlinear passes then use ``solver``. A
+        :class:`torchql.propagators.LinearPropagator` object is used as given (its ``grid_solver`` says whether the grid solver may be used).
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
 

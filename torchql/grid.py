@@ -20,8 +20,12 @@ __all__ = ["make_grid", "DEFAULT_INTERVALS", "NODES_PER_DECADE", "EARLIEST"]
 DEFAULT_INTERVALS = 1000
 #: Geometric nodes per decade of ``t - t0`` added for stiff models.
 NODES_PER_DECADE = 10
-#: The earliest geometric node, as a fraction of the span after ``t0``.
-EARLIEST = 1e-9
+#: The earliest geometric node, as a fraction of the span after ``t0``. On Robertson kinetics to
+#: ``t = 1e5`` (boundary layer of width ``~1e-4``, sigma 1 % of each value) ``1e-9`` left one interval
+#: ``[0, 1e-4]`` over the layer, and the Kantorovich fixed point 8e-5 (relative) from the optimum
+#: (SSE 91.4166 against 91.4153, whatever the nodes per decade); ``1e-13`` puts it within 3e-7 of
+#: the SSE (91.41535), and ``1e-16`` changes nothing more.
+EARLIEST = 1e-13
 
 
 def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = False) -> torch.Tensor:
@@ -58,7 +62,7 @@ def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = Fals
     uniform = torch.linspace(float(t0), float(t_end), intervals + 1, dtype=dtype, device=device)
     if stiff:
         decades = -torch.log10(torch.tensor(EARLIEST, dtype=torch.float64))
-        count = int(decades) * NODES_PER_DECADE
+        count = round(float(decades)) * NODES_PER_DECADE
         early = float(t0) + span * torch.logspace(-float(decades), 0.0, count + 1, dtype=dtype, device=device)
         uniform = torch.cat([uniform, early[:-1]])
     fixed = torch.cat([t0.reshape(1), t_obs])
