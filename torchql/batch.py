@@ -43,7 +43,7 @@ from .batch_result import BatchFitResult
 from .diagnosis import final_status, null_detail, typical_magnitudes
 from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
-from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
+from .fit import (METHODS, _DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
 from .grid import make_grid
 from .integrate import check_solver
@@ -82,6 +82,7 @@ def fit_many(
     guesses: dict | None = None,
     fixed_x0: Sequence[str] | None = None,
     t0: float | None = None,
+    method: str = "kantorovich",
     bounds: dict | None = None,
     max_iter: int = 50,
     max_time: float | None = None,
@@ -126,6 +127,9 @@ def fit_many(
     params : sequence of str, optional
         Coefficients to estimate (default: every float buffer and parameter not in the model's
         ``constants``).
+    method : {"kantorovich", "shooting"}
+        As in :func:`torchql.fit`: ``"shooting"`` integrates each sample's model from its
+        updated initial state (batched) at every trial step, with its sensitivities.
     bounds : dict, optional
         ``{name: (lower, upper)}`` as in :func:`torchql.fit`, the same for every sample: bounded
         unknowns are iterated in the same transformed variables, each sample's guesses on or
@@ -142,7 +146,7 @@ def fit_many(
         and covariance); samples that finished before still get their final evaluation.
         Default: none.
     fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
-        As in :func:`torchql.fit` (``method="kantorovich"``, ``initial_trajectory="integrate"``).
+        As in :func:`torchql.fit` (``initial_trajectory="integrate"``).
         With ``solver="rodas5p"`` (stiff models) every nonlinear pass is the batched implicit
         :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as in
         ``fit``; otherwise ``solver`` integrates a sample on its own only when the batched
@@ -169,7 +173,7 @@ def fit_many(
         For invalid arguments (naming the argument, the sample, what was expected and received).
     """
     spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds, linear_solver)
+                 damping, solver, max_steps, bounds, linear_solver, method)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     report = _progress(progress, spec.B)
@@ -211,7 +215,7 @@ def fit_many(
     result.data = data
     result.fit_kwargs = dict(
         params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
-        t0=t0, method="kantorovich", max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
+        t0=t0, method=method, max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
         xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory="integrate", max_steps=max_steps,
         damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds))
     return result
@@ -257,7 +261,8 @@ class _Spec:
     """
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
-                 grid, damping, solver, max_steps, bounds=None, linear_solver=DEFAULT_LINEAR_SOLVER) -> None:
+                 grid, damping, solver, max_steps, bounds=None, linear_solver=DEFAULT_LINEAR_SOLVER,
+                 method="kantorovich") -> None:
         _checks.model_class(model)
         names = tuple(model.state_names)
         n = len(names)
@@ -265,6 +270,11 @@ class _Spec:
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver)
         self.damping, self.solver = check_damping(damping), solver
+        if not isinstance(method, str):
+            raise TypeError(f"`method` must be a string, one of {METHODS}; received {type(method).__name__}")
+        if method not in METHODS:
+            raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
+        self.method = method
         self.linear_solver = check_linear_solver(linear_solver)
         if not self.linear_solver.batched:
             batched = tuple(name for name, p in PROPAGATORS.items() if p.batched)
@@ -831,7 +841,7 @@ class _Engine:
         final_guess = None
         try:
             # first iterate: the model integrated (loosely) from the guesses
-            traj, errors = self._nonlinear(all_idx, z0, loose=True)
+            traj, errors = self._nonlinear(all_idx, z0, loose=spec.method == "kantorovich")
             bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
             for r in bad.nonzero().flatten().tolist():
                 status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
@@ -899,6 +909,8 @@ class _Engine:
                 trial, ok = self._propose(act, cur, alpha)
                 if spec.damping is None:
                     accept = ok
+                elif spec.method == "shooting":  # the merit is the model's own sum of squares
+                    accept = ok & (trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK))
                 else:
                     # as fit's _better: the linear merit decides only for trials near solving the model
                     # whose step was not capped at a bound's largest internal move
@@ -933,6 +945,8 @@ class _Engine:
                     continue
                 # Kantorovich re-anchors an undamped rejection about the model's own solution
                 candidates = rejected[(damping[rejected] == 0) & ~cur["anchored"][rejected]]
+                if spec.method == "shooting":  # always about the model's own solution already
+                    candidates = candidates[:0]
                 anchored_rows = candidates[:0]
                 if candidates.numel():
                     self._nonlinear_sse(all_idx, cur, candidates)
@@ -984,6 +998,8 @@ class _Engine:
         W = _pick(cur["W"], act)
         z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
         z0_new = _shifted(_pick(cur["z0"], act), alpha, spec.unknown_index)
+        if spec.method == "shooting":
+            return self._shoot(act, z0_new, z_new)
         finite = torch.isfinite(z_new).flatten(1).all(dim=1)
         z_ref = _pick(cur["rz"], act)
         z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, z_ref)
@@ -993,6 +1009,20 @@ class _Engine:
         trial = self._evaluate(act, z0_new, z_safe, z_dot, lin)
         trial["defect"] = model_defect(lin.f, z_dot, self.system.n)
         ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
+              & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
+        return trial, ok
+
+    def _shoot(self, act, z0_new, z_new):
+        """Shooting's trial iterates: each sample's model integrated from ``z0_new (S, M)`` (the
+        linear prediction ``z_new`` its guess), with its sensitivities; ``ok`` where it integrates."""
+        guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
+        traj, errors = self._nonlinear(act, z0_new, loose=False, guess=guess)
+        integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
+        traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
+        lin = self._linearize(act, traj)
+        trial = self._evaluate(act, z0_new, traj, lin.f, lin)
+        trial["defect"] = torch.zeros_like(trial["merit"])
+        ok = (integrated & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
         return trial, ok
 
