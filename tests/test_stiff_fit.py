@@ -27,9 +27,9 @@ def robertson_data():
     return torchql.Observations(t, x, observe=["y1", "y2", "y3"], sigma=0.01 * x), x0
 
 
-def _fit(data, x0, guess, **options):
+def _fit(data, x0, guess, stiff=STIFF, **options):
     return torchql.fit(Robertson(**guess), data, x0, fixed_x0=["y1", "y2", "y3"], t0=0.0,
-                       bounds={k: (0.0, None) for k in TRUTH}, **STIFF, **options)
+                       bounds={k: (0.0, None) for k in TRUTH}, **stiff, **options)
 
 
 @pytest.mark.slow
@@ -51,13 +51,17 @@ def test_robertson_kantorovich_fit_and_fit_many_agree(robertson_data):
     """Kantorovich converges to within 1e-5 of the truth (measured 6e-6: its fixed point on the
     storage grid, whose earliest interval after t0 = 0 is [0, 1e-8], lies that far from the
     model's optimum; shooting's lies within 4e-8); fit_many over two starts gives
-    the first start the result of fit from it, and the second the same optimum."""
+    the first start the result of fit from it, and the second the same optimum. Both with the
+    default ``solver="auto"``, which finds the model stiff along the data and takes the stiff path."""
     data, x0 = robertson_data
     guesses = [{"k1": 0.08, "k2": 1.5e7, "k3": 2e4}, {"k1": 0.02, "k2": 6e7, "k3": 5e3}]
-    single = _fit(data, x0, guesses[0])
+    tolerances = dict(rtol=1e-8, atol=1e-14)
+    single = _fit(data, x0, guesses[0], stiff=tolerances)
+    assert single.solver_options["solver"] == "rodas5p" and single.fit_kwargs["solver"] == "auto"
     per_sample = {k: torch.tensor([g[k] for g in guesses], dtype=DT) for k in TRUTH}
     batch = torchql.fit_many(Robertson(), [data, data], x0, guesses=per_sample, fixed_x0=["y1", "y2", "y3"], t0=0.0,
-                             bounds={k: (0.0, None) for k in TRUTH}, **STIFF)
+                             bounds={k: (0.0, None) for k in TRUTH}, **tolerances)
+    assert batch.solver_options["solver"] == "rodas5p"
     assert single.success and batch.success.all(), (single.message, batch.message)
     assert max(abs(single.params[k].item() - v) / v for k, v in TRUTH.items()) < 1e-5
     for b in range(2):
@@ -68,3 +72,25 @@ def test_fit_many_refuses_a_propagator_without_a_batched_form(robertson_data):
     data, x0 = robertson_data
     with pytest.raises(ValueError, match="`linear_solver` 'rk4_doubling' has no batched form"):
         torchql.fit_many(Robertson(), [data], x0, linear_solver="rk4_doubling")
+
+
+def test_auto_finds_robertson_stiff_and_an_oscillator_not(robertson_data):
+    """The stiffness ratio along the data: Robertson's measured y2 (~4e-5) gives -2 k2 y2 ~ -2e3
+    over a span of 1e5 (2e8, far above the 1e4 threshold), though its Jacobian at the initial
+    state (1, 0, 0) is mild (0.04 * 1e5 = 4e3); a damped oscillator over 6.5 s stays near 1."""
+    from torchql.model import AugmentedSystem
+    from torchql.models import LinearOscillator
+    from torchql.stiffness import STIFF_RATIO, states_from_data, stiffness_ratio
+
+    data, x0 = robertson_data
+    system = AugmentedSystem(Robertson(), [], DT, torch.device("cpu"))
+    p = torch.zeros(1, 0, dtype=DT)
+    along_data = stiffness_ratio(system, data.t, states_from_data(data.y, [0, 1, 2], x0).unsqueeze(0), p,
+                                 data.t[-1])
+    at_start = stiffness_ratio(system, data.t, x0.expand(1, 12, 3), p, data.t[-1])
+    assert float(along_data) > 1e8 and float(at_start) < STIFF_RATIO
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), t)
+    oscillator = torchql.fit(LinearOscillator(A=0.5, B=1.0), torchql.Observations(t, y[:, :1], observe=["y"]),
+                             torch.tensor([0.5, 0.5], dtype=DT), grid=50)
+    assert oscillator.success and oscillator.solver_options["solver"] == "dopri5"

@@ -48,6 +48,7 @@ from .fit import (METHODS, _DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEW
 from .grid import make_grid
 from .integrate import check_solver
 from .solvers import STIFF_SOLVERS, rodas5p_batch
+from .stiffness import AUTO, EXPLICIT_SOLVER, STIFF_RATIO, STIFF_SOLVER, states_from_data, stiffness_ratio
 from .linearize import Linearization, linearize
 from .lstsq import solve_update
 from .propagators import PROPAGATORS, LinearPropagator
@@ -93,8 +94,8 @@ def fit_many(
     rcond: float | None = None,
     grid: int | torch.Tensor | None = None,
     damping: str | None = "lm",
-    solver: str = "dopri5",
-    linear_solver: "str | LinearPropagator" = DEFAULT_LINEAR_SOLVER,
+    solver: str = "auto",
+    linear_solver: "str | LinearPropagator | None" = None,
     max_steps: int | None = None,
     chunk_size: int = DEFAULT_CHUNK,
     progress: bool | Callable[[int, int], None] = False,
@@ -147,13 +148,16 @@ def fit_many(
         Default: none.
     fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
         As in :func:`torchql.fit` (``initial_trajectory="integrate"``).
-        With ``solver="rodas5p"`` (stiff models) every nonlinear pass is the batched implicit
-        :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as in
-        ``fit``; otherwise ``solver`` integrates a sample on its own only when the batched
+        ``solver="auto"`` (default) decides as ``fit`` does, once for the batch: ``"rodas5p"``
+        when some sample's model is stiff along its data (:mod:`torchql.stiffness`), else
+        ``"dopri5"``. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched
+        implicit :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as
+        in ``fit``; otherwise ``solver`` integrates a sample on its own only when the batched
         Dormand–Prince cannot (as ``fit`` falls back to it).
-    linear_solver : str or LinearPropagator
-        As in :func:`torchql.fit`, among the propagators with a batched form
-        (``LinearPropagator.batched``): ``"taylor"`` (default) and ``"exponential"`` (stiff).
+    linear_solver : str or LinearPropagator, optional
+        As in :func:`torchql.fit` (default ``"radau"`` with a stiff solver, else ``"taylor"``),
+        among the propagators with a batched form (``LinearPropagator.batched``): ``"taylor"``,
+        ``"radau"`` and ``"exponential"``.
     chunk_size : int
         Samples fitted together (default 4096); larger batches are fitted chunk after chunk.
         The results do not depend on it.
@@ -261,25 +265,24 @@ class _Spec:
     """
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
-                 grid, damping, solver, max_steps, bounds=None, linear_solver=DEFAULT_LINEAR_SOLVER,
+                 grid, damping, solver, max_steps, bounds=None, linear_solver=None,
                  method="kantorovich") -> None:
         _checks.model_class(model)
         names = tuple(model.state_names)
         n = len(names)
         if not isinstance(solver, str):
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
-        check_solver(solver)
+        check_solver(solver, auto=True)
         self.damping, self.solver = check_damping(damping), solver
         if not isinstance(method, str):
             raise TypeError(f"`method` must be a string, one of {METHODS}; received {type(method).__name__}")
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
         self.method = method
-        self.linear_solver = check_linear_solver(linear_solver)
-        if not self.linear_solver.batched:
+        if linear_solver is not None and not check_linear_solver(linear_solver).batched:
             batched = tuple(name for name, p in PROPAGATORS.items() if p.batched)
-            raise ValueError(f"`linear_solver` {self.linear_solver.name!r} has no batched form; fit_many takes one of "
-                             f"{batched} (torchql.fit takes every propagator)")
+            raise ValueError(f"`linear_solver` {check_linear_solver(linear_solver).name!r} has no batched form; "
+                             f"fit_many takes one of {batched} (torchql.fit takes every propagator)")
         limits = Limits.resolve(max_iter, max_steps)
         self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
         self.dtype, self.device = dtype, device = model_dtype_device(model)
@@ -386,6 +389,16 @@ class _Spec:
             self.z0[:, self.unknown_index] = used
             x0 = self.z0[:, :n]
         self._check_model(x0[0])
+
+        # --- the solver ("auto": stiff if some sample's model is stiff along its data)
+        if self.solver == AUTO:
+            y = torch.where(self.mask, self.y, torch.full_like(self.y, float("nan")))
+            x_obs = states_from_data(y, self.operator.observed_states, x0)
+            span = (self.t_obs[..., -1] - self.t0).expand(B)
+            ratio = stiffness_ratio(system, self.t_obs, x_obs, self.z0[:, n:], span)
+            self.solver = STIFF_SOLVER if bool((ratio > STIFF_RATIO).any()) else EXPLICIT_SOLVER
+        self.linear_solver = check_linear_solver(linear_solver if linear_solver is not None
+                                                 else ("radau" if self.solver in STIFF_SOLVERS else DEFAULT_LINEAR_SOLVER))
 
         # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
         if self.t_obs.dim() == 1:

@@ -30,6 +30,7 @@ from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, solve
 from .solvers import STIFF_SOLVERS
+from .stiffness import AUTO, EXPLICIT_SOLVER, STIFF_RATIO, STIFF_SOLVER, states_from_data, stiffness_ratio
 from .linearize import linearize
 from .grid import make_grid
 from .grid_solve import IntervalBudgetError, solve_on_grid
@@ -66,7 +67,7 @@ def fit(
     max_iter: int = 50,
     max_time: float | None = None,
     throw: bool = False,
-    solver: str = "dopri5",
+    solver: str = "auto",
     rtol: float | None = None,
     atol: float | None = None,
     xtol: float | None = None,
@@ -76,7 +77,7 @@ def fit(
     initial_trajectory: str = "integrate",
     max_steps: int | None = None,
     damping: str | None = "lm",
-    linear_solver: "str | LinearPropagator" = DEFAULT_LINEAR_SOLVER,
+    linear_solver: "str | LinearPropagator | None" = None,
     callback: Callable[[IterationRecord], None] | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
@@ -133,11 +134,13 @@ def fit(
     throw : bool
         Raise :class:`torchql.FitError` instead of returning an unsuccessful result.
     solver : str
-        Nonlinear integrator (``torchql.SOLVER_NAMES``): a torchdiffeq method, default ``"dopri5"``,
+        Nonlinear integrator: ``"auto"`` (default), a torchdiffeq method (``torchql.SOLVER_NAMES``)
         or ``"rodas5p"`` for stiff models (:mod:`torchql.solvers`: implicit, L-stable; every
         nonlinear pass uses it, none goes through the explicit grid solver, and the storage grid
-        gains geometric nodes after ``t0``, :func:`torchql.grid.make_grid`). With a stiff model,
-        pass ``linear_solver="radau"`` too.
+        gains geometric nodes after ``t0``, :func:`torchql.grid.make_grid`). ``"auto"`` takes
+        ``"rodas5p"`` when the model is stiff on the data's span (:mod:`torchql.stiffness`: the
+        Jacobian's fastest decay rate times the span, along the data, above ``1e4``), else
+        ``"dopri5"``; ``result.solver_options["solver"]`` says which.
     rtol, atol : float, optional
         Integrator tolerances; default ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` below.
     xtol : float, optional
@@ -174,9 +177,10 @@ def fit(
         squares (so near the optimum the iteration is the thesis' one, quadratically
         convergent); otherwise, or when its trajectory cannot be integrated, the step is
         damped until it does. ``None``: the undamped iteration of the thesis, step for step.
-    linear_solver : str or torchql.propagators.LinearPropagator
+    linear_solver : str or torchql.propagators.LinearPropagator, optional
         How the linear (particular and homogeneous) system is propagated over the grid: one of
-        ``torchql.LINEAR_SOLVERS``. ``"taylor"`` (default): every grid interval's transfer
+        ``torchql.LINEAR_SOLVERS``. Default: ``"radau"`` with a stiff ``solver``, else
+        ``"taylor"``. ``"taylor"``: every grid interval's transfer
         matrix at once from its Taylor series (exact for the interpolated coefficients, summed
         to a bounded truncation error), composed by a parallel prefix scan; ``"rk4_doubling"``:
         the same transfers by RK4 with step-doubling error control. With either, the nonlinear
@@ -236,7 +240,7 @@ class _Problem:
 
     def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
                  xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping="lm",
-                 linear_solver=DEFAULT_LINEAR_SOLVER, max_time=None):
+                 linear_solver=None, max_time=None):
         _checks.model_class(model)
         names = tuple(model.state_names)
         if not isinstance(data, Observations):
@@ -250,13 +254,14 @@ class _Problem:
                                 + f"; received {type(value).__name__}")
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
-        check_solver(solver)
+        check_solver(solver, auto=True)
         if initial_trajectory not in _INITIAL_TRAJECTORIES:
             raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
         if initial_trajectory == "data" and method != "kantorovich":
             raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
         self.damping = check_damping(damping)
-        self.linear_solver = check_linear_solver(linear_solver)
+        if linear_solver is not None:
+            check_linear_solver(linear_solver)
         limits = Limits.resolve(max_iter, max_steps, max_time)
         max_iter, max_steps, self.max_time = limits.max_iter, limits.max_steps, limits.max_time
 
@@ -363,8 +368,16 @@ class _Problem:
         self._check_model(x0)
         self.operator.check(x0)
 
-        # --- grids
-        self.grid = make_grid(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
+        # --- the solver ("auto": stiff or not along the data) and the grids
+        if self.solver == AUTO:
+            x_obs = states_from_data(self.y.masked_fill(~self.rows_mask, float("nan")),
+                                     self.operator.observed_states, x0).unsqueeze(0)
+            ratio = stiffness_ratio(system, self.t_obs, x_obs, self.z0[n:].unsqueeze(0), self.t_obs[-1] - self.t0)
+            self.solver = STIFF_SOLVER if float(ratio[0]) > STIFF_RATIO else EXPLICIT_SOLVER
+        stiff = self.solver in STIFF_SOLVERS
+        self.linear_solver = check_linear_solver(linear_solver if linear_solver is not None
+                                                 else ("radau" if stiff else DEFAULT_LINEAR_SOLVER))
+        self.grid = make_grid(grid, self.t0, self.t_obs, stiff=stiff)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.nfev = 0
 

@@ -41,10 +41,12 @@ class CountedField:
         return self.func(t, y)
 
 
-def check_solver(solver: str) -> None:
-    """Raise ``ValueError`` naming the valid solvers when ``solver`` is not one of them."""
-    if solver not in SOLVER_NAMES:
-        raise ValueError(f"`solver` must be one of {SOLVER_NAMES}; received {solver!r}")
+def check_solver(solver: str, auto: bool = False) -> None:
+    """Raise ``ValueError`` naming the valid solvers when ``solver`` is not one of them
+    (``auto``: ``"auto"`` is valid too, as in :func:`torchql.fit`)."""
+    names = (("auto",) if auto else ()) + SOLVER_NAMES
+    if solver not in names:
+        raise ValueError(f"`solver` must be one of {names}; received {solver!r}")
 
 
 def default_tolerances(dtype: torch.dtype, rtol: float | None, atol: float | None) -> tuple[float, float]:

@@ -31,15 +31,15 @@ from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .observations import Observations
 from .result import FitResult
-from .superposition import DEFAULT_LINEAR_SOLVER
+from .propagators import linear_propagator
 
 __all__ = ["multistart", "MultiStartResult", "Optimum"]
 
 #: Options of :func:`torchql.fit` that :func:`torchql.fit_many` takes as they are.
 _FIT_MANY_OPTIONS = frozenset({"fixed_x0", "t0", "max_iter", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
-                               "damping", "solver", "max_steps", "method"})
+                               "damping", "solver", "max_steps", "method", "linear_solver"})
 #: Options of :func:`torchql.fit` that ``fit_many`` always runs with these values.
-_FIT_MANY_FIXED = {"initial_trajectory": "integrate", "linear_solver": DEFAULT_LINEAR_SOLVER}
+_FIT_MANY_FIXED = {"initial_trajectory": "integrate"}
 
 
 @dataclass
@@ -213,12 +213,18 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
 def _fit_many_serves(data, fit_kwargs: dict) -> bool:
     """Whether :func:`torchql.fit_many` fits every start as ``torchql.fit(..., **fit_kwargs)`` would.
 
-    True for one dataset (not a list of experiments) without ``exact`` values, and options all among :data:`_FIT_MANY_OPTIONS` or at the values of :data:`_FIT_MANY_FIXED`.
+    True for one dataset (not a list of experiments) without ``exact`` values, and options all
+    among :data:`_FIT_MANY_OPTIONS`, at the values of :data:`_FIT_MANY_FIXED`, or a
+    ``linear_solver`` with a batched form.
     """
     if not isinstance(data, Observations) or bool(data.exact.any()):
         return False
-    return all(key in _FIT_MANY_OPTIONS or (key in _FIT_MANY_FIXED and value == _FIT_MANY_FIXED[key])
-               for key, value in fit_kwargs.items())
+
+    def served(key, value) -> bool:
+        if key == "linear_solver":
+            return value is None or linear_propagator(value).batched
+        return key in _FIT_MANY_OPTIONS or (key in _FIT_MANY_FIXED and value == _FIT_MANY_FIXED[key])
+    return all(served(key, value) for key, value in fit_kwargs.items())
 
 
 def _element_bounds(bounds, system: AugmentedSystem) -> tuple[torch.Tensor, torch.Tensor]:

@@ -243,6 +243,8 @@ def profile(
     options.setdefault("method", result.method)
     options.update({k: v for k, v in result.solver_options.items() if k not in options or options[k] is None})
     options["t0"] = result.t0
+    if options.get("solver") == "auto" and "solver" in result.solver_options:  # the fit's choice, kept
+        options["solver"] = result.solver_options["solver"]
     if result.fit_kwargs.get("bounds"):  # the profiled unknown is held fixed: its own bound goes
         options["bounds"] = {k: v for k, v in result.fit_kwargs["bounds"].items()
                              if k not in (name, name.removesuffix("(t0)"))}
