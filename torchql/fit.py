@@ -23,7 +23,6 @@ import warnings
 from collections.abc import Callable, Sequence
 
 import torch
-from torch.func import jacrev, vmap
 
 from . import _checks
 from .bounds import Bounds, at_bound_note, moved_guesses_note
@@ -39,8 +38,8 @@ from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
-from .options import Limits, Tolerances, check_damping
-from .smoothing import interpolate, smooth
+from .options import DAMPING_MAX, DAMPING_MIN, DAMPING_START, Limits, Tolerances, check_damping
+from .data_start import data_reference
 from .result import FitError, FitResult, IterationRecord, Status
 from .propagators import LinearPropagator
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns, propagate_linear
@@ -516,115 +515,10 @@ class _Problem:
             z_ref = self._forward(self.z0, loose=True, guess=self.z0.expand(grid.shape[0], -1))
             lin = linearize(system, grid, z_ref)
             return LinearizedReference(grid, z_ref, lin.f, lin)
-        z_ref = self.z0.unsqueeze(0).repeat(grid.shape[0], 1)
-        observed = []
-        for k, i in enumerate(self.operator.observed_states):
-            if i is None:
-                continue
-            ok = self.rows_mask[:, k]
-            if int(ok.sum()) >= 1:
-                values = smooth(self.t_obs[ok], self.y[ok, k], self.sigma[ok, k] ** -2)
-                z_ref[:, i] = interpolate(self.t_obs[ok], values, grid)
-                observed.append(i)
-        z_dot = _slopes(grid, z_ref)
-        hidden = [i for i in range(system.n) if i not in observed]
-        if observed and hidden:
-            z_ref = self._derive_hidden(z_ref, z_dot, observed, hidden)
-            z_dot = _slopes(grid, z_ref)
-        if observed and system.P:
-            z_ref = self._match_slopes(z_ref, z_dot)
-            self.z0 = torch.cat([self.z0[: system.n], z_ref[0, system.n:]])
+        z_ref, z_dot, self.z0 = data_reference(
+            system, grid, self.t_obs, self.y, self.sigma, self.rows_mask, self.operator.observed_states, self.z0,
+            self.unknown_index, self.bounds, self.rcond)
         return LinearizedReference(grid, z_ref, z_dot, linearize(system, grid, z_ref, z_dot))
-
-    def _match_slopes(self, z_ref, z_dot) -> torch.Tensor:
-        """First coefficients from the data's slopes: ``min_p sum_j ||(z'_j - f(t_j, z_j; p)) / s||^2``.
-
-        With the trajectory fixed at the smoothed data, the coefficients enter only the
-        right-hand side, so this small least-squares problem (gradient matching) needs no
-        integration and does not depend on how poor the guesses are; a few damped
-        Gauss–Newton steps from the guesses solve it (bounds honoured). ``s`` scales each
-        state's slopes to unit size. Returns ``z_ref`` with its coefficient columns replaced.
-        """
-        system, n = self.system, self.system.n
-        scale = z_dot[:, :n].abs().amax(dim=0)
-        scale = torch.where(scale > 0, scale, torch.ones_like(scale))
-
-        def mismatch(p, t, z, zd):
-            return (system.f(t, torch.cat([z[:n], p]))[:n] - zd[:n]) / scale
-
-        value = vmap(mismatch, in_dims=(None, 0, 0, 0))
-        jac = vmap(jacrev(mismatch), in_dims=(None, 0, 0, 0))
-        m_states = self.unknown_index.numel() - system.P
-        u = self.z0[self.unknown_index].clone()
-        p = self.z0[n:].clone()
-        with torch.no_grad():
-            r = value(p, self.grid, z_ref, z_dot).reshape(-1)
-            cost = float(r.square().sum())
-            if not math.isfinite(cost):
-                return z_ref
-            damping = 0.0
-            rows = torch.ones_like(r)
-            none = torch.zeros_like(r, dtype=torch.bool)
-            for _ in range(_MATCH_STEPS):
-                J = jac(p, self.grid, z_ref, z_dot).reshape(-1, system.P)
-                if self.bounds.active:
-                    J = J * self.bounds.derivative(u)[m_states:]
-                accepted = False
-                while damping <= _DAMPING_MAX:
-                    sol = solve_update(J, -r, rows, none, self.rcond, damping)
-                    step = torch.cat([torch.zeros(m_states, dtype=u.dtype, device=u.device), sol.alpha])
-                    change, _ = self.bounds.step(u, step)
-                    p_new = p + change[m_states:]
-                    r_new = value(p_new, self.grid, z_ref, z_dot).reshape(-1)
-                    new_cost = float(r_new.square().sum())
-                    if math.isfinite(new_cost) and new_cost < cost:
-                        accepted = True
-                        break
-                    damping = _DAMPING_START if damping == 0.0 else 10 * damping
-                if not accepted:
-                    break
-                small = bool((change.abs() <= 1e-10 * (u.abs() + 1e-300)).all())
-                p, u, r, cost, damping = p_new, u + change, r_new, new_cost, damping / 10
-                if small:
-                    break
-        out = z_ref.clone()
-        out[:, n:] = p
-        return out
-
-    def _derive_hidden(self, z_ref, z_dot, observed: list[int], hidden: list[int]) -> torch.Tensor:
-        """Unobserved states at every node, from the model: ``min ||x_o' - f_o(x_o, x_h)||`` over ``x_h``.
-
-        Where the observed states' equations involve the hidden ones (``y' = v`` gives ``v``
-        from the smoothed ``y``), a few vectorized Gauss–Newton steps from the guess ``x0``
-        find them at each node; nodes where this does not lower the mismatch, or becomes
-        non-finite, keep the guess.
-        """
-        system = self.system
-        obs = torch.tensor(observed, device=self.device)
-        hid = torch.tensor(hidden, device=self.device)
-
-        def mismatch(xh, t, z, zd):
-            return system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
-
-        jac = vmap(jacrev(mismatch))
-        value = vmap(mismatch)
-        xh = z_ref[:, hid].clone()
-        with torch.no_grad():
-            r = value(xh, self.grid, z_ref, z_dot)
-            best = r.square().sum(-1)
-            for _ in range(_DERIVE_STEPS):
-                J = jac(xh, self.grid, z_ref, z_dot)
-                step = torch.linalg.pinv(J, rtol=1e-8) @ r.unsqueeze(-1)
-                trial = xh - step.squeeze(-1)
-                r_trial = value(trial, self.grid, z_ref, z_dot)
-                norm = r_trial.square().sum(-1)
-                better = torch.isfinite(norm) & (norm < best)
-                xh = torch.where(better.unsqueeze(-1), trial, xh)
-                r = torch.where(better.unsqueeze(-1), r_trial, r)
-                best = torch.where(better, norm, best)
-        out = z_ref.clone()
-        out[:, hid] = xh
-        return out
 
     # ------------------------------------------------------------------------------------
     def run(self, callback) -> FitResult:
@@ -990,10 +884,6 @@ class _Problem:
         return history[0].sse if integrated and history else None
 
 
-#: Gauss–Newton steps of the gradient matching that gives the first coefficients from the data.
-_MATCH_STEPS = 30
-#: Gauss–Newton steps that derive unobserved states for a first trajectory from the data.
-_DERIVE_STEPS = 8
 #: Newton iterations the grid solver gets from a trajectory's linear prediction before the
 #: adaptive solver takes over (from a good prediction it needs two or three).
 _GRID_NEWTON = 8
@@ -1005,11 +895,8 @@ _GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
 _BLOWUP_STEPS = 16384
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
-#: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
-#: largest squared singular value of the scaled least-squares matrix; see :func:`_first_damping`).
-_DAMPING_START = 1e-3
-_DAMPING_MIN = 1e-10
-_DAMPING_MAX = 1e12
+#: Levenberg–Marquardt damping limits (:mod:`torchql.options`; see :func:`_first_damping`).
+_DAMPING_START, _DAMPING_MIN, _DAMPING_MAX = DAMPING_START, DAMPING_MIN, DAMPING_MAX
 
 
 def _or_nan(value: float | None) -> float:
@@ -1062,11 +949,6 @@ class _IterationState:
         self.final_traj: torch.Tensor | None = None  # nonlinear trajectory of z0, when already computed
         self.final_guess: torch.Tensor | None = None  # a prediction of it (G, M), when there is one
         self.capped = False  # whether the last solved step was capped (see Bounds.capped)
-
-
-def _slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """Node slopes of values ``z (G, M)`` on ``grid`` by finite differences (zeros on a one-node grid)."""
-    return torch.gradient(z, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z)
 
 
 def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, grid, throw, callback,

@@ -13,10 +13,15 @@ import torch
 from . import _checks
 from .integrate import default_tolerances
 
-__all__ = ["DAMPINGS", "Tolerances", "Limits", "check_damping"]
+__all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "Tolerances", "Limits", "check_damping"]
 
 #: The damping strategies: ``"lm"`` (Levenberg–Marquardt, default) or ``None`` (the thesis' iteration).
 DAMPINGS = ("lm", None)
+#: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
+#: largest squared singular value of the scaled least-squares matrix), for every damped solve.
+DAMPING_START = 1e-3
+DAMPING_MIN = 1e-10
+DAMPING_MAX = 1e12
 
 
 @dataclass(frozen=True)
