@@ -115,18 +115,20 @@ def test_batched_path_gives_the_loop_best_and_optima(monkeypatch):
         assert torch.allclose(ours.estimates, theirs.estimates, rtol=1e-8, atol=0)
 
 
-@pytest.mark.parametrize("kwargs", [dict(initial_trajectory="data"), dict(linear_solver="torchdiffeq")])
+@pytest.mark.parametrize("kwargs", [dict(linear_solver="torchdiffeq")])
 def test_options_fit_many_lacks_keep_the_loop(decay_data, kwargs):
     ms = torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), starts=2, grid=50, max_iter=2,
                             **kwargs)
     assert not ms.batched and all(isinstance(r, torchql.FitResult) for r in ms.results)
 
 
-@pytest.mark.parametrize("method", ["kantorovich", "shooting"])
-def test_starts_with_bounds_are_batched_and_match_the_loop(decay_data, monkeypatch, method):
-    """``fit_many`` takes ``bounds`` and ``method``: the starts are one batch, each the fit of the loop."""
+@pytest.mark.parametrize("options", [dict(method="kantorovich"), dict(method="shooting"),
+                                     dict(initial_trajectory="data")])
+def test_starts_with_bounds_are_batched_and_match_the_loop(decay_data, monkeypatch, options):
+    """``fit_many`` takes ``bounds``, ``method`` and ``initial_trajectory``: the starts are one
+    batch, each the fit of the loop."""
     args = (Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT))
-    kwargs = dict(starts=3, grid=50, bounds={"k": (0.01, 5.0)}, method=method)
+    kwargs = dict(starts=3, grid=50, bounds={"k": (0.01, 5.0)}, **options)
     batched = torchql.multistart(*args, **kwargs)
     monkeypatch.setattr(multistart_module, "_fit_many_serves", lambda *a: False)
     loop = torchql.multistart(*args, **kwargs)

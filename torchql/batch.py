@@ -38,12 +38,13 @@ import torch
 from torch.func import vmap
 
 from . import _checks
-from .batch_integrate import integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
+from .batch_integrate import _last_nodes, integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
 from .diagnosis import final_status, null_detail, typical_magnitudes
 from .bounds import Bounds, at_bound_note, moved_guesses_note
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
-from .fit import (METHODS, _DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
+from .data_start import data_reference
+from .fit import (METHODS, _INITIAL_TRAJECTORIES, _DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
 from .grid import make_grid
 from .integrate import check_solver
@@ -85,6 +86,7 @@ def fit_many(
     t0: float | None = None,
     method: str = "kantorovich",
     bounds: dict | None = None,
+    initial_trajectory: str = "integrate",
     max_iter: int = 50,
     max_time: float | None = None,
     rtol: float | None = None,
@@ -147,7 +149,11 @@ def fit_many(
         and covariance); samples that finished before still get their final evaluation.
         Default: none.
     fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
-        As in :func:`torchql.fit` (``initial_trajectory="integrate"``).
+        As in :func:`torchql.fit`.
+    initial_trajectory : {"integrate", "data"}
+        As in :func:`torchql.fit` (Kantorovich only): ``"data"`` builds each sample's first
+        reference from its own data (smoothed observed states, derived hidden states, coefficients
+        fitted to the slopes), with no integration from the guesses; one sample after another.
         ``solver="auto"`` (default) decides as ``fit`` does, once for the batch: ``"rodas5p"``
         when some sample's model is stiff along its data (:mod:`torchql.stiffness`), else
         ``"dopri5"``. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched
@@ -177,7 +183,7 @@ def fit_many(
         For invalid arguments (naming the argument, the sample, what was expected and received).
     """
     spec = _Spec(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds, linear_solver, method)
+                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     report = _progress(progress, spec.B)
@@ -220,7 +226,7 @@ def fit_many(
     result.fit_kwargs = dict(
         params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
         t0=t0, method=method, max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
-        xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory="integrate", max_steps=max_steps,
+        xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
         damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds))
     return result
 
@@ -266,7 +272,7 @@ class _Spec:
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
                  grid, damping, solver, max_steps, bounds=None, linear_solver=None,
-                 method="kantorovich") -> None:
+                 method="kantorovich", initial_trajectory="integrate") -> None:
         _checks.model_class(model)
         names = tuple(model.state_names)
         n = len(names)
@@ -279,6 +285,11 @@ class _Spec:
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
         self.method = method
+        if not isinstance(initial_trajectory, str) or initial_trajectory not in _INITIAL_TRAJECTORIES:
+            raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
+        if initial_trajectory == "data" and method != "kantorovich":
+            raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
+        self.initial_trajectory = initial_trajectory
         if linear_solver is not None and not check_linear_solver(linear_solver).batched:
             batched = tuple(name for name, p in PROPAGATORS.items() if p.batched)
             raise ValueError(f"`linear_solver` {check_linear_solver(linear_solver).name!r} has no batched form; "
@@ -853,21 +864,28 @@ class _Engine:
 
         final_guess = None
         try:
-            # first iterate: the model integrated (loosely) from the guesses
-            traj, errors = self._nonlinear(all_idx, z0, loose=spec.method == "kantorovich")
-            bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
-            for r in bad.nonzero().flatten().tolist():
-                status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
-                detail[r] = f" The solver said: {errors[r]}."
-            lin = self._linearize(all_idx, traj)
-            cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
+            n = self.system.n
+            if spec.initial_trajectory == "data":  # first iterate: each sample's data-built reference
+                traj, z_dot, z0 = self._data_start(all_idx, z0)
+                bad = torch.zeros(S, dtype=torch.bool, device=dev)
+                lin = self._linearize(all_idx, traj, z_dot)
+                cur = self._evaluate(all_idx, z0, traj, z_dot, lin)
+            else:  # first iterate: the model integrated (loosely, for Kantorovich) from the guesses
+                traj, errors = self._nonlinear(all_idx, z0, loose=spec.method == "kantorovich")
+                bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
+                for r in bad.nonzero().flatten().tolist():
+                    status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
+                    detail[r] = f" The solver said: {errors[r]}."
+                lin = self._linearize(all_idx, traj)
+                cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
             self._fail_integration(cur["failed"] & ~bad, status, detail)
             final_guess = cur["W"][:, :, :, 0].clone()
-            n = self.system.n
-            typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), self.z0_guess[:, n:].abs()], dim=1)
+            typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), z0[:, n:].abs()], dim=1)
             typical = torch.where(typical > 0, typical, torch.ones_like(typical))
             scale = typical[:, spec.unknown_index]
-            self.scale, self.sse_start = scale, cur["sse"].clone()  # for the final diagnosis
+            # for the final diagnosis: the model's own SSE at the guesses, when the first iterate is its solution
+            self.scale = scale
+            self.sse_start = None if spec.initial_trajectory == "data" else cur["sse"].clone()
             report(int((status != _RUNNING).sum()))
 
             while True:
@@ -1024,6 +1042,29 @@ class _Engine:
         ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
         return trial, ok
+
+    def _data_start(self, idx, z0):
+        """Each sample's first reference from its data (:func:`torchql.data_start.data_reference`,
+        as ``fit`` builds it): ``z_ref, z_dot (S, G, M)`` and the guesses ``z0 (S, M)`` with the
+        coefficients from the gradient matching. A sample on its own grid gets it on its own
+        nodes, the padding repeating the last one."""
+        spec = self.spec
+        S, M = z0.shape
+        z_ref = z0.new_empty(S, self.G, M)
+        z_dot = torch.zeros_like(z_ref)
+        z0 = z0.clone()
+        y = torch.where(self.mask, self.y, torch.full_like(self.y, float("nan")))
+        sigma = torch.where(self.mask, 1.0 / self.w.clamp(min=torch.finfo(self.w.dtype).tiny), torch.ones_like(self.w))
+        ends = (_last_nodes(self.grid) + 1).tolist() if self.grid.dim() == 2 else [self.G] * S
+        for k, s in enumerate(idx.tolist()):
+            grid = self.grid[s, :ends[k]] if self.grid.dim() == 2 else self.grid
+            t_obs = self.t_obs[s] if self.t_obs.dim() == 2 else self.t_obs
+            ref, slope, z0[k] = data_reference(self.system, grid, t_obs, y[s], sigma[s], self.mask[s],
+                                               spec.operator.observed_states, z0[k], spec.unknown_index,
+                                               spec.bounds, spec.rcond)
+            z_ref[k, :ends[k]], z_ref[k, ends[k]:] = ref, ref[-1]
+            z_dot[k, :ends[k]] = slope
+        return z_ref, z_dot, z0
 
     def _shoot(self, act, z0_new, z_new):
         """Shooting's trial iterates: each sample's model integrated from ``z0_new (S, M)`` (the

@@ -8,8 +8,8 @@ distinct optima found, so that a user can see whether the best is likely global 
 reach it) or fragile (few do).
 
 When the fits are of one dataset with options that :func:`torchql.fit_many` supports
-(``bounds`` and ``method`` included; no values marked ``exact``, the default ``initial_trajectory`` and
-``linear_solver``), every start is fitted in one ``fit_many`` call, each sample from its own
+(``bounds``, ``method`` and ``initial_trajectory`` included, a ``linear_solver`` with a batched
+form; no values marked ``exact``), every start is fitted in one ``fit_many`` call, each sample from its own
 guesses on ``torchql.fit``'s iteration; the best start is then fitted once more with
 :func:`torchql.fit`, so that ``best`` is the full :class:`~torchql.FitResult` a loop would
 give. Otherwise (exact values, several experiments, ...) each start is one
@@ -37,9 +37,10 @@ __all__ = ["multistart", "MultiStartResult", "Optimum"]
 
 #: Options of :func:`torchql.fit` that :func:`torchql.fit_many` takes as they are.
 _FIT_MANY_OPTIONS = frozenset({"fixed_x0", "t0", "max_iter", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
-                               "damping", "solver", "max_steps", "method", "linear_solver"})
+                               "damping", "solver", "max_steps", "method", "linear_solver",
+                               "initial_trajectory"})
 #: Options of :func:`torchql.fit` that ``fit_many`` always runs with these values.
-_FIT_MANY_FIXED = {"initial_trajectory": "integrate"}
+_FIT_MANY_FIXED: dict = {}
 
 
 @dataclass
