@@ -156,3 +156,20 @@ def test_a_coefficient_the_data_start_puts_near_zero_is_not_a_runaway():
     assert abs(float(result.history[0].params["xi"])) < 1e-6
     assert result.status is Status.NOT_IDENTIFIABLE, result.message
     assert "{u(t0), xi}" in result.message
+
+
+def test_rank_deficient_far_from_a_stationary_point_is_not_called_not_identifiable():
+    """NOT_IDENTIFIABLE after MAX_ITER or STALLED needs a (near-)stationary iterate: the
+    minimal-norm Gauss-Newton step there moves no unknown by more than STATIONARY_STEP of its
+    typical magnitude. Far from one, the rank deficiency may be the iterate's, not the optimum's:
+    the status stands, and the message names the unknowns."""
+    from torchql.diagnosis import STATIONARY_STEP
+
+    common = dict(rank_deficient=True, null_text=" Unknowns the data cannot separate: {a, b}.",
+                  estimates=torch.tensor([1.0, 2.0], dtype=torch.float64), scale=torch.ones(2, dtype=torch.float64),
+                  unknown_names=["a", "b"], sse=1.0, sse_start=None)
+    far = final_status(Status.MAX_ITER, step=torch.tensor([0.5, 0.0], dtype=torch.float64), **common)
+    assert far[0] is Status.MAX_ITER and "not near a stationary point" in far[1] and "{a, b}" in far[1]
+    near = final_status(Status.STALLED, step=torch.tensor([0.1 * STATIONARY_STEP, 0.0], dtype=torch.float64), **common)
+    assert near[0] is Status.NOT_IDENTIFIABLE and "{a, b}" in near[1]
+    assert final_status(Status.MAX_ITER, **common)[0] is Status.NOT_IDENTIFIABLE  # no step given: as before

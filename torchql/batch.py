@@ -1124,17 +1124,18 @@ class _Engine:
             J = C * w.unsqueeze(-1)
             s = ((resid * w) ** 2).sum(dim=1)
             sse[rows] = s
-            residuals[rows], jacobian[rows] = resid * w, J
+            rw = resid * w
+            residuals[rows], jacobian[rows] = rw, J
             nonfinite = ~torch.isfinite(s)
             for r in rows[nonfinite].tolist():
                 codes[r] = Status.DIVERGED
                 detail[r] = " The fitted trajectory is non-finite."
             keep = ~nonfinite
-            rows, J, s = rows[keep], J[keep], s[keep]
+            rows, J, s, rw = rows[keep], J[keep], s[keep], rw[keep]
         if rows.numel():
             L = self.L[rows]
-            _, deficient, sv = _lstsq(J, torch.zeros(J.shape[:2], dtype=dtype, device=dev),
-                                      torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
+            # the Gauss-Newton steps at the estimates (their stationarity), and the Jacobians' ranks
+            step, deficient, sv = _lstsq(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
             singular_values[rows] = sv
             deficient |= L < m
             for k, r in enumerate(rows.tolist()):
@@ -1154,7 +1155,8 @@ class _Engine:
                     scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
                                              None if self.scale is None else self.scale[r]),
                     unknown_names=spec.unknown_names,
-                    sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]))
+                    sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]),
+                    step=step[k])
                 detail[r] = more if code.success else detail[r] + more
             cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum

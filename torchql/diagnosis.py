@@ -6,8 +6,11 @@ A fit that ends at ``MAX_ITER`` or ``STALLED`` is examined at its final estimate
   typical magnitude, or :data:`WEAK_RUNAWAY_FACTOR` times along a direction the data barely
   determine) or its sum of squares grew more than :data:`SSE_GROWTH` times the model's own at the
   start, it diverged (``DIVERGED``);
-* otherwise, if the scaled Jacobian is rank deficient, the data do not determine the named
-  unknowns (``NOT_IDENTIFIABLE``), the iteration having moved along them;
+* otherwise, if the scaled Jacobian is rank deficient at a (near-)stationary iterate (the
+  Gauss–Newton step there, of minimal norm, moves no unknown by more than
+  :data:`STATIONARY_STEP` of its typical magnitude), the data do not determine the named
+  unknowns (``NOT_IDENTIFIABLE``), the iteration having moved along them; rank deficient far
+  from a stationary point, the status stands and the message names the unknowns;
 * otherwise the status stands.
 
 A converged fit is examined too: a rank-deficient Jacobian at its estimates means the data do
@@ -31,8 +34,8 @@ import torch
 
 from .status import Status
 
-__all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "null_detail", "typical_magnitudes", "ran_away",
-           "final_status"]
+__all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "STATIONARY_STEP", "null_detail",
+           "typical_magnitudes", "ran_away", "final_status"]
 
 #: An unknown whose magnitude exceeds this many times its typical one has run away.
 RUNAWAY_FACTOR = 1e6
@@ -41,6 +44,9 @@ RUNAWAY_FACTOR = 1e6
 WEAK_RUNAWAY_FACTOR = 1e4
 #: A final sum of squares this many times the model's own at the start is a divergence.
 SSE_GROWTH = 1e3
+#: An unconverged iterate is near-stationary when its Gauss–Newton step moves no unknown by more
+#: than this fraction of its typical magnitude.
+STATIONARY_STEP = 1e-3
 
 
 def null_detail(null_vectors: torch.Tensor, unknown_names: Sequence[str]) -> str:
@@ -71,7 +77,7 @@ def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequen
 
 def final_status(status: Status, *, rank_deficient: bool, null_text: str, estimates: torch.Tensor,
                  scale: torch.Tensor, unknown_names: Sequence[str], sse: float,
-                 sse_start: float | None) -> tuple[Status, str]:
+                 sse_start: float | None, step: torch.Tensor | None = None) -> tuple[Status, str]:
     """The status of a fit whose iteration ended at ``status``, and the detail to add to its message.
 
     Parameters
@@ -89,6 +95,8 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
         The model's sum of squares at the final estimates.
     sse_start : float or None
         The model's own sum of squares at the guesses, when the iteration started from it.
+    step : Tensor ``(m,)``, optional
+        The minimal-norm Gauss–Newton step at the final estimates (``None``: taken as stationary).
     """
     examined = status.success or status in (Status.MAX_ITER, Status.STALLED)
     if not examined:
@@ -105,6 +113,11 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
     if sse_start is not None and math.isfinite(sse_start) and sse > SSE_GROWTH * max(sse_start, 0.0) and sse > 0:
         return Status.DIVERGED, (f" The sum of squares grew from {sse_start:.6g} at the guesses to {sse:.6g}"
                                  f" before the iteration ended at {status.name}.")
-    if rank_deficient:  # the iteration wandered along directions the data do not determine
+    if rank_deficient and (step is None or bool((step.abs() <= STATIONARY_STEP * scale).all())):
+        # near a stationary point: the iteration wandered along directions the data do not determine
         return Status.NOT_IDENTIFIABLE, null_text + f" The iteration did not converge ({status.name}): it moved along them."
+    if rank_deficient:
+        return status, (" The Jacobian at the last estimates is rank deficient, but they are not near a stationary "
+                        "point (the Gauss-Newton step there is not small), so this need not hold at the optimum."
+                        + null_text)
     return status, ""

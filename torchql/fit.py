@@ -826,8 +826,8 @@ class _Problem:
                 if not math.isfinite(sse):
                     status, detail = Status.DIVERGED, " The fitted trajectory is non-finite."
                 else:
-                    sol = solve_update(jacobian, torch.zeros(L, dtype=self.dtype, device=self.device),
-                                       torch.ones(L, dtype=self.dtype, device=self.device),
+                    # the Gauss-Newton step at the estimates (their stationarity), and the Jacobian's rank
+                    sol = solve_update(jacobian, residuals, torch.ones(L, dtype=self.dtype, device=self.device),
                                        torch.zeros(L, dtype=torch.bool, device=self.device), self.rcond)
                     singular_values = sol.singular_values
                     converged = status.success
@@ -835,7 +835,8 @@ class _Problem:
                     status, more = final_status(
                         status, rank_deficient=sol.rank_deficient, null_text=null_text,
                         estimates=z0[self.unknown_index], scale=typical_magnitudes(self.u_guess, state.scale),
-                        unknown_names=self.unknown_names, sse=sse, sse_start=self._model_sse_at_start(history))
+                        unknown_names=self.unknown_names, sse=sse, sse_start=self._model_sse_at_start(history),
+                        step=sol.alpha)
                     detail = more if converged else detail + more
                     cov = covariance(jacobian, self.exact, sse, self.sigma_known, self.rcond)
                     if not converged:  # error bars about estimates that are not an optimum mean nothing
