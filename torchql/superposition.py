@@ -26,8 +26,9 @@ __all__ = ["LINEAR_SOLVERS", "DEFAULT_LINEAR_SOLVER", "check_linear_solver", "in
 #: The built-in propagators' names (:mod:`torchql.propagators`): ``"taylor"`` (each interval's
 #: Taylor series, exact for its polynomial coefficients, summed to a bounded truncation error),
 #: ``"rk4_doubling"`` (fixed RK4 steps with step doubling and refinement of the intervals that
-#: need it) and ``"torchdiffeq"`` (one adaptive torchdiffeq call over all intervals, with the
-#: solver named by ``solver``).
+#: need it), ``"torchdiffeq"`` (one adaptive torchdiffeq call over all intervals, with the
+#: solver named by ``solver``), and for stiff models ``"radau"`` (Radau IIA collocation) and
+#: ``"exponential"`` (the frozen coefficients' matrix exponential with a Radau correction).
 LINEAR_SOLVERS: tuple[str, ...] = tuple(PROPAGATORS)
 DEFAULT_LINEAR_SOLVER: str = DEFAULT_PROPAGATOR
 
