@@ -41,22 +41,22 @@ from . import _checks
 from .batch_integrate import _last_nodes, integrate_each, dopri_batch, propagate_linear_batch, solve_on_grid_batch
 from .batch_result import BatchFitResult
 from .diagnosis import final_status, null_detail, typical_magnitudes
-from .bounds import Bounds, at_bound_note, moved_guesses_note
+from .bounds import Bounds, at_bound_note, moved_guesses_note, moved_record
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .data_start import data_reference
-from .fit import (METHODS, _INITIAL_TRAJECTORIES, _DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
+from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
                   _MERIT_SLACK)
 from .grid import make_grid
 from .integrate import check_solver
 from .solvers import STIFF_SOLVERS, rodas5p_batch
-from .stiffness import AUTO, EXPLICIT_SOLVER, STIFF_RATIO, STIFF_SOLVER, states_from_data, stiffness_ratio
+from .stiffness import choose_solver, linear_solver_for
 from .linearize import Linearization, linearize
 from .lstsq import solve_update
 from .propagators import PROPAGATORS, LinearPropagator
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
 from .model import AugmentedSystem, ODEModel, coefficient_names, model_dtype_device
 from .observations import ObservationOperator, Observations
-from .options import Limits, Tolerances, check_damping
+from .options import Limits, Tolerances, check_damping, check_scheme
 from .trajectory import DEFECT_TRUST, model_defect
 from .result import Status
 from .uncertainty import covariance
@@ -280,19 +280,11 @@ class _Spec:
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver, auto=True)
         self.damping, self.solver = check_damping(damping), solver
-        if not isinstance(method, str):
-            raise TypeError(f"`method` must be a string, one of {METHODS}; received {type(method).__name__}")
-        if method not in METHODS:
-            raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
-        self.method = method
-        if not isinstance(initial_trajectory, str) or initial_trajectory not in _INITIAL_TRAJECTORIES:
-            raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
-        if initial_trajectory == "data" and method != "kantorovich":
-            raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
-        self.initial_trajectory = initial_trajectory
-        if linear_solver is not None and not check_linear_solver(linear_solver).batched:
+        self.method, self.initial_trajectory = check_scheme(method, initial_trajectory)
+        given = None if linear_solver is None else check_linear_solver(linear_solver)
+        if given is not None and not given.batched:
             batched = tuple(name for name, p in PROPAGATORS.items() if p.batched)
-            raise ValueError(f"`linear_solver` {check_linear_solver(linear_solver).name!r} has no batched form; "
+            raise ValueError(f"`linear_solver` {given.name!r} has no batched form; "
                              f"fit_many takes one of {batched} (torchql.fit takes every propagator)")
         limits = Limits.resolve(max_iter, max_steps)
         self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
@@ -385,31 +377,25 @@ class _Spec:
                              f"{self.unknown_names}" + (f" (samples {short[:10]} alike)" if len(short) > 1 else "")
                              + "; remove it from the batch or fix some unknowns")
         # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
-        groups, k = {}, len(free)
-        for name, size in zip(self.params, system.param_sizes):
-            groups[name] = list(range(k, k + size))
-            k += size
-        self.bounds = Bounds(bounds, self.unknown_names, groups, list(names) + list(available), dtype, device)
+        # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
+        self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free), self.params, system.param_sizes,
+                                          list(names) + list(available), dtype, device)
         self.moved_guesses: dict[int, dict[str, tuple[float, float]]] = {}
         if self.bounds.active:
             given = self.z0[:, self.unknown_index]
             used, moved = self.bounds.move_inside(given)
             for b in moved.any(dim=1).nonzero().flatten().tolist():
-                self.moved_guesses[b] = {self.unknown_names[i]: (float(given[b, i]), float(used[b, i]))
-                                         for i in moved[b].nonzero().flatten().tolist()}
+                self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
             self.z0[:, self.unknown_index] = used
             x0 = self.z0[:, :n]
         self._check_model(x0[0])
 
         # --- the solver ("auto": stiff if some sample's model is stiff along its data)
-        if self.solver == AUTO:
-            y = torch.where(self.mask, self.y, torch.full_like(self.y, float("nan")))
-            x_obs = states_from_data(y, self.operator.observed_states, x0)
-            span = (self.t_obs[..., -1] - self.t0).expand(B)
-            ratio = stiffness_ratio(system, self.t_obs, x_obs, self.z0[:, n:], span)
-            self.solver = STIFF_SOLVER if bool((ratio > STIFF_RATIO).any()) else EXPLICIT_SOLVER
-        self.linear_solver = check_linear_solver(linear_solver if linear_solver is not None
-                                                 else ("radau" if self.solver in STIFF_SOLVERS else DEFAULT_LINEAR_SOLVER))
+        self.solver = choose_solver(self.solver, system, self.t_obs,
+                                    torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
+                                    self.operator.observed_states, x0, self.z0[:, n:],
+                                    (self.t_obs[..., -1] - self.t0).expand(B))
+        self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
 
         # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
         if self.t_obs.dim() == 1:
@@ -1122,9 +1108,9 @@ class _Engine:
             C, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
             w = self.w[rows].reshape(rows.numel(), -1)
             J = C * w.unsqueeze(-1)
-            s = ((resid * w) ** 2).sum(dim=1)
-            sse[rows] = s
             rw = resid * w
+            s = (rw ** 2).sum(dim=1)
+            sse[rows] = s
             residuals[rows], jacobian[rows] = rw, J
             nonfinite = ~torch.isfinite(s)
             for r in rows[nonfinite].tolist():

@@ -41,7 +41,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-__all__ = ["Bounds", "MAX_INTERNAL_STEP", "START_OFFSET", "at_bound_note", "moved_guesses_note"]
+__all__ = ["Bounds", "MAX_INTERNAL_STEP", "START_OFFSET", "at_bound_note", "moved_guesses_note", "moved_record"]
 
 #: Largest move of a bounded unknown's internal variable ``q`` in one step (a factor 1000 in
 #: its distance to a bound).
@@ -100,6 +100,19 @@ class Bounds:
         self.has_lower = torch.isfinite(self.lower)
         self.has_upper = torch.isfinite(self.upper)
         self.active = bool((self.has_lower | self.has_upper).any())
+
+    @classmethod
+    def for_unknowns(cls, bounds: Mapping | None, unknown_names: Sequence[str], n_states: int,
+                     param_names: Sequence[str], param_sizes: Sequence[int], all_names: Sequence[str],
+                     dtype: torch.dtype, device: torch.device) -> "Bounds":
+        """Bounds of a fit's unknowns: ``n_states`` initial states, then the elements of the
+        coefficients ``param_names`` (``param_sizes`` elements each) in order, a coefficient's
+        name bounding all of its elements (the ``groups`` of the constructor)."""
+        groups, k = {}, n_states
+        for name, size in zip(param_names, param_sizes):
+            groups[name] = list(range(k, k + size))
+            k += size
+        return cls(bounds, unknown_names, groups, all_names, dtype, device)
 
     @classmethod
     def of(cls, lower: torch.Tensor, upper: torch.Tensor, names: Sequence[str]) -> "Bounds":
@@ -217,6 +230,13 @@ class Bounds:
         near_lo = self.has_lower & ((u - self.lower).abs() <= rel * torch.maximum(scale, self.lower.abs().nan_to_num(0)))
         near_hi = self.has_upper & ((self.upper - u).abs() <= rel * torch.maximum(scale, self.upper.abs().nan_to_num(0)))
         return [self.names[i] for i in torch.nonzero(near_lo | near_hi).flatten().tolist()]
+
+
+def moved_record(names: Sequence[str], given: torch.Tensor, used: torch.Tensor,
+                 moved: torch.Tensor) -> dict[str, tuple[float, float]]:
+    """``{name: (given, used)}`` of the guesses ``given (m,)`` that :meth:`Bounds.move_inside` moved
+    (``moved (m,)``) to ``used (m,)``, as ``FitResult.moved_guesses`` records them."""
+    return {names[i]: (float(given[i]), float(used[i])) for i in torch.nonzero(moved).flatten().tolist()}
 
 
 def at_bound_note(names: Sequence[str]) -> str:

@@ -25,11 +25,11 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
-from .bounds import Bounds, at_bound_note, moved_guesses_note
+from .bounds import Bounds, at_bound_note, moved_guesses_note, moved_record
 from .budget import TimeBudgetExceeded, time_budget, time_left
 from .integrate import CountedField, IntegrationError, check_solver, solve
 from .solvers import STIFF_SOLVERS
-from .stiffness import AUTO, EXPLICIT_SOLVER, STIFF_RATIO, STIFF_SOLVER, states_from_data, stiffness_ratio
+from .stiffness import choose_solver, linear_solver_for
 from .linearize import linearize
 from .grid import make_grid
 from .grid_solve import IntervalBudgetError, solve_on_grid
@@ -38,7 +38,8 @@ from .lstsq import ExactRowsError, solve_update
 from .model import AugmentedSystem, ODEModel, _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import ObservationOperator, Observations
-from .options import DAMPING_MAX, DAMPING_MIN, DAMPING_START, Limits, Tolerances, check_damping
+from .options import (DAMPING_MAX, DAMPING_MIN, DAMPING_START, METHODS, Limits, Tolerances,
+                      check_damping, check_scheme)
 from .data_start import data_reference
 from .result import FitError, FitResult, IterationRecord, Status
 from .propagators import LinearPropagator
@@ -48,9 +49,6 @@ from .trajectory import DEFECT_TRUST, LinearizedReference, model_defect
 
 __all__ = ["fit", "METHODS"]
 
-#: The iteration schemes ``fit`` offers.
-METHODS: tuple[str, ...] = ("kantorovich", "shooting")
-_INITIAL_TRAJECTORIES = ("integrate", "data")
 
 
 def fit(
@@ -245,19 +243,10 @@ class _Problem:
         if not isinstance(data, Observations):
             raise TypeError(
                 f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
-        for arg, value, allowed in (("method", method, METHODS), ("initial_trajectory", initial_trajectory,
-                                                                   _INITIAL_TRAJECTORIES),
-                                    ("solver", solver, None)):
-            if not isinstance(value, str):
-                raise TypeError(f"`{arg}` must be a string" + (f", one of {allowed}" if allowed else "")
-                                + f"; received {type(value).__name__}")
-        if method not in METHODS:
-            raise ValueError(f"`method` must be one of {METHODS}; received {method!r}")
+        method, initial_trajectory = check_scheme(method, initial_trajectory)
+        if not isinstance(solver, str):
+            raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver, auto=True)
-        if initial_trajectory not in _INITIAL_TRAJECTORIES:
-            raise ValueError(f"`initial_trajectory` must be one of {_INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
-        if initial_trajectory == "data" and method != "kantorovich":
-            raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
         self.damping = check_damping(damping)
         if linear_solver is not None:
             check_linear_solver(linear_solver)
@@ -348,16 +337,11 @@ class _Problem:
             )
 
         # --- bounds (guesses on or outside a bound moved strictly inside; see Bounds.move_inside)
-        n_free = len(free_states)
-        groups, k = {}, n_free
-        for name, size in zip(system.param_names, system.param_sizes):
-            groups[name] = list(range(k, k + size))
-            k += size
-        self.bounds = Bounds(bounds, self.unknown_names, groups, list(names) + list(available), dtype, device)
+        self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free_states), system.param_names,
+                                          system.param_sizes, list(names) + list(available), dtype, device)
         given = self.z0[self.unknown_index]
         used, moved = self.bounds.move_inside(given)
-        self.moved_guesses = {self.unknown_names[i]: (float(given[i]), float(used[i]))
-                              for i in torch.nonzero(moved).flatten().tolist()}
+        self.moved_guesses = moved_record(self.unknown_names, given, used, moved)
         if self.moved_guesses:
             self.z0[self.unknown_index] = used
             x0 = self.z0[:n]
@@ -368,15 +352,12 @@ class _Problem:
         self.operator.check(x0)
 
         # --- the solver ("auto": stiff or not along the data) and the grids
-        if self.solver == AUTO:
-            x_obs = states_from_data(self.y.masked_fill(~self.rows_mask, float("nan")),
-                                     self.operator.observed_states, x0).unsqueeze(0)
-            ratio = stiffness_ratio(system, self.t_obs, x_obs, self.z0[n:].unsqueeze(0), self.t_obs[-1] - self.t0)
-            self.solver = STIFF_SOLVER if float(ratio[0]) > STIFF_RATIO else EXPLICIT_SOLVER
-        stiff = self.solver in STIFF_SOLVERS
-        self.linear_solver = check_linear_solver(linear_solver if linear_solver is not None
-                                                 else ("radau" if stiff else DEFAULT_LINEAR_SOLVER))
-        self.grid = make_grid(grid, self.t0, self.t_obs, stiff=stiff)
+        self.solver = choose_solver(self.solver, system, self.t_obs,
+                                    self.y.masked_fill(~self.rows_mask, float("nan")).unsqueeze(0),
+                                    self.operator.observed_states, x0.unsqueeze(0), self.z0[n:].unsqueeze(0),
+                                    (self.t_obs[-1] - self.t0).reshape(1))
+        self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
+        self.grid = make_grid(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.nfev = 0
 

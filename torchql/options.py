@@ -13,7 +13,8 @@ import torch
 from . import _checks
 from .integrate import default_tolerances
 
-__all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "Tolerances", "Limits", "check_damping"]
+__all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "METHODS", "INITIAL_TRAJECTORIES", "Tolerances",
+           "Limits", "check_damping", "check_scheme"]
 
 #: The damping strategies: ``"lm"`` (Levenberg–Marquardt, default) or ``None`` (the thesis' iteration).
 DAMPINGS = ("lm", None)
@@ -22,6 +23,10 @@ DAMPINGS = ("lm", None)
 DAMPING_START = 1e-3
 DAMPING_MIN = 1e-10
 DAMPING_MAX = 1e12
+#: The iteration schemes.
+METHODS: tuple[str, ...] = ("kantorovich", "shooting")
+#: How the first Kantorovich reference is made: integrated from the guesses, or built from the data.
+INITIAL_TRAJECTORIES: tuple[str, ...] = ("integrate", "data")
 
 
 @dataclass(frozen=True)
@@ -88,3 +93,18 @@ def check_damping(damping) -> str | None:
     if damping is not None and not isinstance(damping, str) or damping not in DAMPINGS:
         raise ValueError(f"`damping` must be one of {DAMPINGS}; received {damping!r}")
     return damping
+
+
+def check_scheme(method, initial_trajectory) -> tuple[str, str]:
+    """``(method, initial_trajectory)`` validated: each a string among :data:`METHODS` and
+    :data:`INITIAL_TRAJECTORIES` (``TypeError``/``ValueError`` naming the valid ones), and the
+    data-built start with Kantorovich only."""
+    for arg, value, allowed in (("method", method, METHODS), ("initial_trajectory", initial_trajectory,
+                                                              INITIAL_TRAJECTORIES)):
+        if not isinstance(value, str):
+            raise TypeError(f"`{arg}` must be a string, one of {allowed}; received {type(value).__name__}")
+        if value not in allowed:
+            raise ValueError(f"`{arg}` must be one of {allowed}; received {value!r}")
+    if initial_trajectory == "data" and method != "kantorovich":
+        raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
+    return method, initial_trajectory

@@ -19,7 +19,10 @@ from __future__ import annotations
 import torch
 from torch.func import jacrev, vmap
 
-__all__ = ["STIFF_RATIO", "AUTO", "STIFF_SOLVER", "EXPLICIT_SOLVER", "stiffness_ratio", "states_from_data"]
+from .solvers import STIFF_SOLVERS
+
+__all__ = ["STIFF_RATIO", "AUTO", "STIFF_SOLVER", "EXPLICIT_SOLVER", "STIFF_LINEAR_SOLVER", "stiffness_ratio",
+           "states_from_data", "choose_solver", "linear_solver_for"]
 
 #: ``max(-Re lambda) * span`` above which ``solver="auto"`` takes the stiff path.
 STIFF_RATIO = 1e4
@@ -27,6 +30,8 @@ STIFF_RATIO = 1e4
 AUTO = "auto"
 #: What ``"auto"`` takes for a stiff model, and for any other.
 STIFF_SOLVER, EXPLICIT_SOLVER = "rodas5p", "dopri5"
+#: The linear propagator a stiff solver gets when none is given.
+STIFF_LINEAR_SOLVER = "radau"
 
 
 def states_from_data(y: torch.Tensor, observed: list, x0: torch.Tensor) -> torch.Tensor:
@@ -71,3 +76,23 @@ def stiffness_ratio(system, t: torch.Tensor, x: torch.Tensor, p: torch.Tensor, s
         jac = torch.where(finite.reshape(-1, 1, 1), jac, torch.zeros_like(jac))
         decay = (-torch.linalg.eigvals(jac).real).clamp(min=0).amax(dim=-1).reshape(S, T)
     return decay.amax(dim=1) * span.to(decay.dtype).abs()
+
+
+def choose_solver(solver: str, system, t: torch.Tensor, y: torch.Tensor, observed: list, x0: torch.Tensor,
+                  p: torch.Tensor, span: torch.Tensor) -> str:
+    """``solver`` itself, or for :data:`AUTO` the solver the data call for: :data:`STIFF_SOLVER` when
+    some sample's :func:`stiffness_ratio` along its data exceeds :data:`STIFF_RATIO`, else
+    :data:`EXPLICIT_SOLVER`. ``y (S, T, K)`` (NaN where missing), ``x0 (S, n)`` and ``p (S, P)``
+    guesses, ``t`` and ``span`` as :func:`stiffness_ratio` takes them."""
+    if solver != AUTO:
+        return solver
+    ratio = stiffness_ratio(system, t, states_from_data(y, observed, x0), p, span)
+    return STIFF_SOLVER if bool((ratio > STIFF_RATIO).any()) else EXPLICIT_SOLVER
+
+
+def linear_solver_for(solver: str, linear_solver, default: str):
+    """The ``linear_solver`` given, or when it is ``None``: :data:`STIFF_LINEAR_SOLVER` for a stiff
+    ``solver``, else ``default``."""
+    if linear_solver is not None:
+        return linear_solver
+    return STIFF_LINEAR_SOLVER if solver in STIFF_SOLVERS else default
