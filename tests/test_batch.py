@@ -94,17 +94,23 @@ def test_oscillators_stop_on_their_own_and_max_iter_is_per_sample():
     assert finished[-1] == 5 and sorted(finished) == finished and len(finished) > 2  # samples finished apart
 
 
-def test_exact_data_recovers_truth():
-    """Exact oscillator data (integrated at rtol 1e-13): the Kantorovich fixed point then has zero
-    residual whatever the storage grid, so the estimates are the truth to about the data's own
-    integration error (1e-13 observed); 1e-10 leaves room for the fit's rtol."""
+def exact_oscillators() -> tuple[torch.Tensor, list, dict, torch.Tensor]:
+    """Three oscillators' exact y data (integrated at rtol 1e-13): their truths ``(3, 4)`` (y0, v0,
+    A, B), the datasets, and guesses of A, B and the initial state off by 5-30 %."""
     truths = torch.tensor([[0.0, 1.0, 0.1, 3.0], [0.2, -0.5, 0.3, 1.5], [-0.1, 0.8, 0.05, 4.0]], dtype=DT)
     data = []
     for row in truths:
         y = torchql.simulate(LinearOscillator(float(row[2]), float(row[3])), row[:2], OSC_T, rtol=1e-13, atol=1e-15)
         data.append(torchql.Observations(OSC_T, y[:, :1], observe=["y"]))
-    guesses = {"A": truths[:, 2] * 1.3, "B": truths[:, 3] * 0.9}
-    batch = torchql.fit_many(LinearOscillator(), data, truths[:, :2] + 0.05, guesses=guesses, grid=100)
+    return truths, data, {"A": truths[:, 2] * 1.3, "B": truths[:, 3] * 0.9}, truths[:, :2] + 0.05
+
+
+def test_exact_data_recovers_truth():
+    """Exact oscillator data (integrated at rtol 1e-13): the Kantorovich fixed point then has zero
+    residual whatever the storage grid, so the estimates are the truth to about the data's own
+    integration error (1e-13 observed); 1e-10 leaves room for the fit's rtol."""
+    truths, data, guesses, x0 = exact_oscillators()
+    batch = torchql.fit_many(LinearOscillator(), data, x0, guesses=guesses, grid=100)
     assert batch.success.all(), batch.summary()
     error = (batch.estimates - truths).abs() / truths.abs().clamp(min=1.0)
     assert error.max() <= 1e-10

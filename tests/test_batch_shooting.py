@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import torchql
-from test_batch import AREA, MASS, OSC_T, assert_same_as_single, car_data
+from test_batch import AREA, MASS, assert_same_as_single, car_data, exact_oscillators
 from torchql.models import CoastingCar, LinearOscillator
 
 DT = torch.float64
@@ -25,13 +25,7 @@ def test_cars_by_shooting_equal_single_shooting_fits():
 def test_oscillators_by_shooting_reach_the_truth():
     """Exact data: every sample's estimates are the truth to 1e-10 (integration error of the
     data, 1e-13, and the fit's rtol 1e-10), in the iterations the single fits take."""
-    truths = torch.tensor([[0.0, 1.0, 0.1, 3.0], [0.2, -0.5, 0.3, 1.5], [-0.1, 0.8, 0.05, 4.0]], dtype=DT)
-    data = []
-    for row in truths:
-        y = torchql.simulate(LinearOscillator(float(row[2]), float(row[3])), row[:2], OSC_T, rtol=1e-13, atol=1e-15)
-        data.append(torchql.Observations(OSC_T, y[:, :1], observe=["y"]))
-    guesses = {"A": truths[:, 2] * 1.3, "B": truths[:, 3] * 0.9}
-    x0 = truths[:, :2] + 0.05
+    truths, data, guesses, x0 = exact_oscillators()
     batch = torchql.fit_many(LinearOscillator(), data, x0, guesses=guesses, grid=100, method="shooting")
     assert batch.success.all(), batch.summary()
     assert ((batch.estimates - truths).abs() / truths.abs().clamp(min=1.0)).max() <= 1e-10
