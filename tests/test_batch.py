@@ -255,12 +255,10 @@ def test_bad_data_is_named():
     other = torchql.Observations(CAR_T, data[1].y, observe=["v"], sigma=0.3)
     with pytest.raises(ValueError, match=r"`data\[1\]` gives `sigma` but `data\[0\]` does not"):
         torchql.fit_many(model, [data[0], other], x0)
-    exact = torchql.Observations(CAR_T, data[1].y, observe=["v"], exact=torch.arange(9) == 0)
-    with pytest.raises(ValueError, match=r"`data\[1\]` marks values `exact`"):
-        torchql.fit_many(model, [data[0], exact], x0)
     marked = torch.zeros(2, 9, 1, dtype=torch.bool)
-    marked[1, 0] = True
-    with pytest.raises(ValueError, match=r"`data\[1\]` marks values `exact`"):
+    marked[1, :4] = True  # four values to meet exactly, three unknowns
+    with pytest.raises(ValueError, match=r"`data\[1\]`: more values are marked `exact` \(4\) than there are "
+                                         r"unknowns \(3\)"):
         torchql.fit_many(model, torchql.Observations(CAR_T, as_batch(data).y, observe=["v"], exact=marked), x0)
     sparse = data[1].y.clone()
     sparse[2:] = float("nan")  # two values left for three unknowns
@@ -384,3 +382,31 @@ def test_fit_and_adjoint_fit_refuse_a_batch_with_per_sample_times():
                                              r"\(B, T, K\) = \(2, 9, 1\)\), but torchql.fit fits one dataset.*"
                                              r"torchql.fit_many\(model, data, x0, ...\)"):
             fit(CoastingCar(AREA, MASS), own, x0=x0[0])
+
+
+def test_values_marked_exact_are_met_in_each_sample_as_fit_meets_them():
+    """Three cars, each with its first speed marked exact (one marks none): each sample's status,
+    iterations, estimates, SSE and covariance are its single fit's, and the exact values are met
+    to 1e-10 of the speed."""
+    data, x0 = car_data(3, seed=11)
+    marked = [torchql.Observations(CAR_T, d.y, observe=["v"], exact=(torch.arange(9) == 0) & (b != 2))
+              for b, d in enumerate(data)]
+    batch = torchql.fit_many(CoastingCar(AREA, MASS), marked, x0, grid=50)
+    singles = [torchql.fit(CoastingCar(AREA, MASS), d, x0[b], grid=50) for b, d in enumerate(marked)]
+    assert_same_as_single(batch, singles)
+    for b in range(3):
+        sample = batch[b]
+        assert torch.equal(sample.exact_mask, singles[b].exact_mask)
+        assert sample.exact_residual == pytest.approx(singles[b].exact_residual, abs=1e-12)
+    assert batch[0].exact_residual < 1e-10 * 117 and batch[0].exact_mask[0] and not batch[2].exact_mask.any()
+
+
+def test_a_propagator_without_a_batched_form_fits_each_sample_as_fit_does():
+    """``linear_solver="rk4_doubling"`` (no batched form): each sample propagated in turn, equal to
+    its single fit."""
+    data, x0 = car_data(2, seed=5)
+    batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20, linear_solver="rk4_doubling")
+    singles = [torchql.fit(CoastingCar(AREA, MASS), d, x0[b], grid=20, linear_solver="rk4_doubling")
+               for b, d in enumerate(data)]
+    assert_same_as_single(batch, singles)
+    assert batch.success.all()

@@ -344,13 +344,25 @@ def test_data_driven_first_trajectory_derives_unobserved_states(linear_data):
     assert result.iterations <= 4
 
 
-def test_shooting_rejects_stiff_trials_instead_of_crawling_through_them():
+def test_shooting_rejects_stiff_trials_instead_of_crawling_through_them(monkeypatch):
     """2-digit oscillator data, bounded rates from A = 0.61, B = 1.14: one trial asks for A ~ 350.
 
     That trial's trajectory needs far more than the grid solver's step budget; it is rejected
     (the damping shortens the step) rather than integrated by the adaptive solver, which took
     more than 500,000 right-hand-side evaluations (over a minute) on the rejected trials alone.
+    The adaptive solvers must run only for the first solution, from the guesses, where no
+    prediction of the trajectory is at hand. (``nfev`` counts every state a right-hand side is
+    evaluated at, about 24,000 per grid solve on this 1,000-interval grid, so it no longer
+    tells the two apart: the test watches the solvers instead.)
     """
+    import torchql.batch as engine
+
+    adaptive = []
+    for name in ("dopri_batch", "integrate_each"):
+        def spy(*args, _name=name, _real=getattr(engine, name), **kwargs):
+            adaptive.append(_name)
+            return _real(*args, **kwargs)
+        monkeypatch.setattr(engine, name, spy)
     times = torch.arange(14, dtype=DT) * 0.5
     y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)[:, 0]
     data = torchql.Observations(times, torch.tensor([[float(f"{v:.1e}")] for v in y.tolist()], dtype=DT),
@@ -359,7 +371,7 @@ def test_shooting_rejects_stiff_trials_instead_of_crawling_through_them():
                          method="shooting", bounds={"A": (0.0, None), "B": (0.0, None)})
     assert result.success, result.message
     assert sum(rec.rejected for rec in result.history) > 0
-    assert result.nfev < 50_000
+    assert adaptive == ["dopri_batch"]  # the first solution only
     assert abs(result.params["A"].item() - 0.102) < 1e-3 and abs(result.params["B"].item() - 3.0009) < 1e-3
 
 

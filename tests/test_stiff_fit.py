@@ -68,12 +68,6 @@ def test_robertson_kantorovich_fit_and_fit_many_agree(robertson_data):
         assert torch.allclose(batch[b].estimates, single.estimates, rtol=1e-6, atol=0)
 
 
-def test_fit_many_refuses_a_propagator_without_a_batched_form(robertson_data):
-    data, x0 = robertson_data
-    with pytest.raises(ValueError, match="`linear_solver` 'rk4_doubling' has no batched form"):
-        torchql.fit_many(Robertson(), [data], x0, linear_solver="rk4_doubling")
-
-
 def test_auto_finds_robertson_stiff_and_an_oscillator_not(robertson_data):
     """The stiffness ratio along the data: Robertson's measured y2 (~4e-5) gives -2 k2 y2 ~ -2e3
     over a span of 1e5 (2e8, far above the 1e4 threshold), though its Jacobian at the initial

@@ -1,13 +1,15 @@
-"""``fit_many``: many independent datasets fitted at once, each sample on its own iteration.
+"""The quasilinearization engine: ``S >= 1`` samples, each on its own iteration, and ``fit_many``.
+
+This module holds the package's one iteration loop (:class:`_Engine`). :func:`torchql.fit` runs
+it with one sample and keeps every iterate's record; :func:`fit_many` runs it over a batch.
 
 A fleet of vehicles each with its coast-down log, a Monte Carlo study of noise, a multi-start,
 a parameter sweep: ``B`` datasets with the same number ``T`` of observation times, shared or
 each its own (one batched :class:`~torchql.Observations`, values ``(B, T, K)`` and times
-``(T,)`` or ``(B, T)``, or a list of them), fitted with one model. The iteration is the one of :func:`torchql.fit` with ``method="kantorovich"`` (first
-reference integrated from the guesses, the undamped quasilinearization step tried first and
-kept when it lowers the sum of squares, re-anchoring and Levenberg–Marquardt damping
-otherwise, the same convergence tests and statuses), vectorized over the samples with
-per-sample masks:
+``(T,)`` or ``(B, T)``, or a list of them), fitted with one model. The iteration (Kantorovich or
+shooting; the undamped quasilinearization step tried first and kept when it lowers the sum of
+squares, re-anchoring and Levenberg–Marquardt damping otherwise; the convergence tests and
+statuses) is vectorized over the samples with per-sample masks:
 
 * every sample has its own coefficients as trailing components of its augmented state, so one
   vmapped Jacobian linearizes all samples at every grid node at once
@@ -18,14 +20,13 @@ per-sample masks:
   with the observation nodes per sample ``(S, T)``;
 * the linear system is propagated with each grid interval of each sample under its own error
   control (:mod:`torchql.batch_integrate`): no sample's error is diluted by another's;
-* the least-squares update is a batched SVD with each sample's own damping;
+* the least-squares update is a batched SVD with each sample's own damping (samples with values
+  marked ``exact``: each by :func:`torchql.lstsq.solve_update`, those rows met exactly);
 * each sample stops when it converges or fails, with its own status and message, and drops out
   of the work (the engine only computes on the samples still running).
 
-A converged sample's estimates equal those of ``torchql.fit`` on that dataset alone (same
-optimum, to the convergence tolerance), bounds included (iterated in the same transformed
-variables). Values marked ``exact`` are not supported here (fit such datasets with
-:func:`torchql.fit`).
+Each sample's result equals that of ``torchql.fit`` on that dataset alone, which is the same
+loop over one sample.
 """
 
 from __future__ import annotations
@@ -44,21 +45,23 @@ from .diagnosis import final_status, null_detail, typical_magnitudes
 from .bounds import Bounds, at_bound_note, moved_guesses_note, moved_record
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .data_start import data_reference
-from .fit import (_DAMPING_MAX, _DAMPING_MIN, _DAMPING_START, _GRID_NEWTON, _GRID_SUBSTEPS, _LOOSE_RTOL,
-                  _MERIT_SLACK)
+from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_MIN as _DAMPING_MIN, DAMPING_START as _DAMPING_START
 from .grid import make_grid
 from .integrate import check_solver
 from .solvers import STIFF_SOLVERS, rodas5p_batch
 from .stiffness import choose_solver, linear_solver_for
 from .linearize import Linearization, linearize
-from .lstsq import solve_update
-from .propagators import PROPAGATORS, LinearPropagator
+from .lstsq import ExactRowsError, solve_update
+from .propagators import LinearPropagator
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
 from .model import AugmentedSystem, ODEModel, coefficient_names, model_dtype_device
 from .observations import ObservationOperator, Observations
 from .options import Limits, Tolerances, check_damping, check_scheme
 from .trajectory import DEFECT_TRUST, model_defect
-from .result import Status
+from .result import IterationRecord, Status
+from .integrate import IntegrationError
+from .superposition import propagate_linear
+from .trajectory import LinearizedReference
 from .uncertainty import covariance
 
 __all__ = ["fit_many"]
@@ -73,6 +76,22 @@ DEFAULT_CHUNK = 4096
 _SHOOTING_POINTS = 20_000
 _STATUSES = list(Status)
 _RUNNING = -1
+#: Newton iterations the grid solver gets from a trajectory's linear prediction before the
+#: adaptive solver takes over (from a good prediction it needs two or three).
+_GRID_NEWTON = 8
+#: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
+#: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
+_GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
+#: RK4 steps over the whole span beyond which a trial step's trajectory counts as a blow-up
+#: (spread over the grid's intervals; on the default grid the per-interval caps above bind).
+_BLOWUP_STEPS = 16384
+#: Tolerance of the first Kantorovich reference, integrated from the guesses.
+_LOOSE_RTOL = 1e-6
+#: A trial step is accepted when its merit is at most ``(1 + _MERIT_SLACK)`` times the current one
+#: (rounding of the sums of squares must not reject a converging step).
+_MERIT_SLACK = 1e-10
+#: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
+_EXACT_PENALTY = 1e6
 
 
 def fit_many(
@@ -101,6 +120,7 @@ def fit_many(
     max_steps: int | None = None,
     chunk_size: int = DEFAULT_CHUNK,
     progress: bool | Callable[[int, int], None] = False,
+    callback: Callable[[int, IterationRecord], None] | None = None,
 ) -> BatchFitResult:
     """Fit ``B`` independent datasets with one model, each to its own estimates.
 
@@ -118,8 +138,8 @@ def fit_many(
         have the same number ``T`` of them, the same ``observe`` specification (the same names,
         matrix, or callable object) and all or none give ``sigma``, as a batch's do. Each sample
         has its own values, missing values (NaN) and ``sigma``; with its own times it is fitted
-        on the grid ``torchql.fit`` builds for it alone. Values marked ``exact`` are not
-        supported (use :func:`torchql.fit`).
+        on the grid ``torchql.fit`` builds for it alone. Values marked ``exact`` are met
+        exactly, as in :func:`torchql.fit`.
     x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
         Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
         every state must be observed directly at ``t0`` in every sample. Its values are copied.
@@ -161,15 +181,18 @@ def fit_many(
         in ``fit``; otherwise ``solver`` integrates a sample on its own only when the batched
         Dormand–Prince cannot (as ``fit`` falls back to it).
     linear_solver : str or LinearPropagator, optional
-        As in :func:`torchql.fit` (default ``"radau"`` with a stiff solver, else ``"taylor"``),
-        among the propagators with a batched form (``LinearPropagator.batched``): ``"taylor"``,
-        ``"radau"`` and ``"exponential"``.
+        As in :func:`torchql.fit` (default ``"radau"`` with a stiff solver, else ``"taylor"``).
+        Propagators with a batched form (``LinearPropagator.batched``: ``"taylor"``, ``"radau"``,
+        ``"exponential"``) take every sample at once; the others each sample in turn.
     chunk_size : int
         Samples fitted together (default 4096); larger batches are fitted chunk after chunk.
         The results do not depend on it.
     progress : bool or callable
         ``True``: a progress bar (``tqdm``, from the extra ``torchql[progress]``) counting the
         samples finished; a callable receives ``(finished, total)`` as samples finish.
+    callback : callable, optional
+        Called as ``callback(sample, record)`` with each sample's :class:`IterationRecord` as it
+        is completed (as :func:`torchql.fit`'s callback, with the sample's index).
 
     Returns
     -------
@@ -186,7 +209,28 @@ def fit_many(
                  damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
-    report = _progress(progress, spec.B)
+    if callback is not None and not callable(callback):
+        raise TypeError("`callback` must be callable (it receives each sample's index and IterationRecord); "
+                        f"received {callback!r}")
+    result = run_engine(spec, chunk_size, max_time, _progress(progress, spec.B), callback=callback)
+    result.data = data
+    result.fit_kwargs = dict(
+        params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
+        t0=t0, method=method, max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
+        xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
+        damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds))
+    return result
+
+
+def run_engine(spec: "_Spec", chunk_size: int, max_time: float | None, report: Callable[[int | None], None],
+               history: bool = False, callback: Callable[[int, IterationRecord], None] | None = None
+               ) -> BatchFitResult:
+    """Fit the validated problem ``spec``, chunk after chunk of samples: the iteration of
+    :func:`torchql.fit` (one sample) and :func:`fit_many` alike.
+
+    ``report`` receives the number of samples finished (``None``: done); ``history`` keeps every
+    iterate's record; ``callback(sample, record)`` receives each record as it is completed.
+    """
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
     R = spec.weights.reshape(B, -1).shape[1]
@@ -196,16 +240,18 @@ def fit_many(
                residuals=torch.empty(B, R, dtype=spec.dtype, device=spec.device),
                jacobian=torch.empty(B, R, m, dtype=spec.dtype, device=spec.device),
                singular_values=torch.empty(B, m, dtype=spec.dtype, device=spec.device),
-               sse_start=torch.empty(B, dtype=spec.dtype, device=spec.device))
+               sse_start=torch.empty(B, dtype=spec.dtype, device=spec.device),
+               exact_residual=torch.empty(B, dtype=spec.dtype, device=spec.device))
     statuses: list[Status] = [Status.MAX_ITER] * B
     messages: list[str] = [""] * B
+    histories: list[list[IterationRecord]] | None = [] if history else None
     nfev = 0
     finished = 0
     try:
         with time_budget(max_time):
             for start in range(0, B, chunk_size):
                 index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
-                engine = _Engine(spec, index, max_time)
+                engine = _Engine(spec, index, max_time, history=history, callback=callback)
 
                 def step(count, offset=finished):
                     report(offset + count)
@@ -216,18 +262,15 @@ def fit_many(
                     out[key][index] = chunk[key]
                 for k, i in enumerate(index.tolist()):
                     statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
+                if histories is not None:
+                    histories.extend(chunk["history"])
                 nfev += engine.nfev
                 finished += index.numel()
                 report(finished)
     finally:
         report(None)
     result = spec.result(out_z0, out, statuses, messages, nfev)
-    result.data = data
-    result.fit_kwargs = dict(
-        params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
-        t0=t0, method=method, max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
-        xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
-        damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds))
+    result.history = histories
     return result
 
 
@@ -272,7 +315,8 @@ class _Spec:
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
                  grid, damping, solver, max_steps, bounds=None, linear_solver=None,
-                 method="kantorovich", initial_trajectory="integrate") -> None:
+                 method="kantorovich", initial_trajectory="integrate", single: bool = False) -> None:
+        self.single = single  # torchql.fit's problem: one dataset, errors worded for it
         _checks.model_class(model)
         names = tuple(model.state_names)
         n = len(names)
@@ -281,11 +325,8 @@ class _Spec:
         check_solver(solver, auto=True)
         self.damping, self.solver = check_damping(damping), solver
         self.method, self.initial_trajectory = check_scheme(method, initial_trajectory)
-        given = None if linear_solver is None else check_linear_solver(linear_solver)
-        if given is not None and not given.batched:
-            batched = tuple(name for name, p in PROPAGATORS.items() if p.batched)
-            raise ValueError(f"`linear_solver` {given.name!r} has no batched form; "
-                             f"fit_many takes one of {batched} (torchql.fit takes every propagator)")
+        if linear_solver is not None:
+            check_linear_solver(linear_solver)
         limits = Limits.resolve(max_iter, max_steps)
         self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
         self.dtype, self.device = dtype, device = model_dtype_device(model)
@@ -328,6 +369,8 @@ class _Spec:
                 raise ValueError(f"`guesses[{name!r}]` must have shape (B, *buffer shape) = {(B, *shape)} or the "
                                  f"buffer's shape {tuple(shape)}; received shape {tuple(value.shape)}")
             bad = ~torch.isfinite(value.reshape(B, -1)).all(dim=1)
+            if bool(bad.any()) and name not in guesses:
+                raise ValueError(f"the guesses of [{name!r}] (the model's buffers) must be finite")
             if bool(bad.any()):
                 raise ValueError(f"`guesses[{name!r}]` must be finite; samples {bad.nonzero().flatten().tolist()[:10]} "
                                  "hold NaN or inf")
@@ -348,8 +391,15 @@ class _Spec:
             try:
                 x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach()
             except (TypeError, ValueError) as exc:
+                if single:
+                    raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); "
+                                    f"received {type(x0).__name__}") from exc
                 raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
                                 f"({n},); received {type(x0).__name__}") from exc
+            if single and x0.shape != (n,):
+                raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
+            if single and not bool(torch.isfinite(x0).all()):
+                raise ValueError("`x0` must be finite; received NaN or inf")
             if x0.shape == (n,):
                 x0 = x0.expand(B, n)
             elif x0.shape != (B, n):
@@ -371,11 +421,22 @@ class _Spec:
         if m == 0:
             raise ValueError("nothing to estimate: every initial state is in `fixed_x0` and `params` is empty")
         short = (self.L < m).nonzero().flatten().tolist()
+        if short and self.single:
+            raise ValueError(
+                f"fewer usable observations ({int(self.L[0])}) than unknowns ({m}: {self.unknown_names}); "
+                "add observations, or fix some unknowns with `params=`/`fixed_x0=`")
         if short:
             i = short[0]
             raise ValueError(f"`data[{i}]` has {int(self.L[i])} usable values, fewer than the {m} unknowns "
                              f"{self.unknown_names}" + (f" (samples {short[:10]} alike)" if len(short) > 1 else "")
                              + "; remove it from the batch or fix some unknowns")
+        marked = self.exact.flatten(1).sum(dim=1)
+        over = (marked > m).nonzero().flatten().tolist()
+        if over:
+            where = "" if self.single else f"`data[{over[0]}]`: "
+            raise ValueError(
+                f"{where}more values are marked `exact` ({int(marked[over[0]])}) than there are unknowns ({m}); "
+                "at most one exact value per unknown can be met")
         # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
         # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
         self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free), self.params, system.param_sizes,
@@ -438,12 +499,9 @@ class _Spec:
             exact = torch.stack([d.exact for d in data])
             y = torch.stack([d.y.to(dtype) for d in data])
             sigma = torch.stack([d.sigma.to(dtype) for d in data])
-            low = [(f"data[{i}]", d.y.dtype) for i, d in enumerate(data) if _coarser(d.y.dtype, dtype)]
+            low = [("data" if self.single else f"data[{i}]", d.y.dtype) for i, d in enumerate(data)
+                   if _coarser(d.y.dtype, dtype)]
         self.B = y.shape[0]
-        if bool(exact.any()):
-            i = int(exact.flatten(1).any(dim=1).nonzero()[0, 0])
-            raise ValueError(f"`data[{i}]` marks values `exact`: fit_many does not support exact values; fit such "
-                             "datasets with torchql.fit")
         if low:
             warnings.warn(f"`{low[0][0]}` holds {low[0][1]} values but the model computes in {dtype}: the data's own "
                           "rounding limits the fit's accuracy; build the Observations from float64 tensors",
@@ -456,6 +514,8 @@ class _Spec:
         self.sigma_known = first.sigma_given
         y = y.to(dtype=dtype, device=device)
         self.mask = ~torch.isnan(y)  # (B, T, K)
+        self.exact = exact.to(device) & self.mask  # (B, T, K): values to be met exactly
+        self.has_exact = bool(self.exact.any())
         self.y = torch.where(self.mask, y, torch.zeros_like(y))
         self.weights = torch.where(self.mask, 1.0 / sigma.to(dtype=dtype, device=device), torch.zeros_like(y))
         self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
@@ -473,6 +533,8 @@ class _Spec:
         if bool(missing.any()):
             b = int(missing.any(dim=1).nonzero()[0, 0])
             states = [names[i] for i in range(len(names)) if bool(missing[b, i])]
+            if self.single:
+                raise ValueError(f"`x0` is required: the states {states} are not observed directly at t0")
             raise ValueError(f"`x0` is required: in `data[{b}]` the states {states} are not observed directly at t0")
         return x0
 
@@ -521,6 +583,7 @@ class _Spec:
             dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
             model=system.user_model(), residuals=out["residuals"], jacobian=out["jacobian"],
             used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
+            exact=self.exact.reshape(B, -1).clone(), exact_residual=out["exact_residual"],
             start_params=self._params_of(self.z0), start_x0=self.z0[:, :n].clone(), sse_start=out["sse_start"],
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
             lower=self.bounds.lower.clone() if self.bounds.active else None,
@@ -632,13 +695,19 @@ def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False
 class _Engine:
     """The iteration of one chunk of samples (indices ``index`` of the batch)."""
 
-    def __init__(self, spec: _Spec, index: torch.Tensor, max_time: float | None = None) -> None:
+    def __init__(self, spec: _Spec, index: torch.Tensor, max_time: float | None = None, history: bool = False,
+                 callback: Callable[[int, IterationRecord], None] | None = None) -> None:
         self.spec, self.max_time, self.index = spec, max_time, index
         self.scale: torch.Tensor | None = None  # (S, m) typical magnitudes, from the first trajectory
         self.sse_start: torch.Tensor | None = None  # (S,) the model's sums of squares at the guesses
         self.system = spec.system
         self.y, self.w, self.mask = spec.y[index], spec.weights[index], spec.mask[index]
+        self.exact = spec.exact[index].reshape(index.numel(), -1)  # (S, R) rows met exactly
         self.L = spec.L[index]
+        #: each sample's iterates (``torchql.fit``'s ``history``), when kept, and the open record
+        self.history: list[list[IterationRecord]] | None = [[] for _ in range(index.numel())] if history else None
+        self.callback = callback
+        self.propagation_errors: dict[int, str] = {}  # chunk row: a per-sample propagator's message
         self.z0_guess = spec.z0[index].clone()
         self.S = index.numel()
         self.nfev = 0
@@ -686,35 +755,85 @@ class _Engine:
         C = torch.where(mask.unsqueeze(-1), C, zero)
         return C.reshape(S, T * K, -1), d.reshape(S, -1), resid.reshape(S, -1)
 
-    def _ssq(self, idx, residual):
-        r = residual * _pick(self.w, idx).reshape(residual.shape)
-        return (r ** 2).sum(dim=1)
+    def _ssq(self, idx, residual, penalty: bool = False):
+        """Weighted sums of squares ``(S,)`` of ``residual (S, R)``, the exact rows left out; with
+        ``penalty``, the merit: plus ``_EXACT_PENALTY`` times their squared misfit."""
+        r2 = (residual * _pick(self.w, idx).reshape(residual.shape)) ** 2
+        if not self.spec.has_exact:
+            return r2.sum(dim=1)
+        exact = _pick(self.exact, idx)
+        zero = torch.zeros((), dtype=r2.dtype, device=r2.device)
+        total = torch.where(exact, zero, r2).sum(dim=1)
+        return total + _EXACT_PENALTY * torch.where(exact, r2, zero).sum(dim=1) if penalty else total
 
-    def _evaluate(self, idx, z0, z, z_dot, lin) -> dict:
-        """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations."""
+    def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False) -> dict:
+        """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
+
+        ``solution``: ``z`` is the model's own solution from ``z0`` (shooting), which then stands
+        for the particular solution (its propagation would only add the propagator's error).
+        """
         spec = self.spec
-        w0 = _initial_columns(z0, spec.unknown_index)
-        W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
-                                                  propagator=spec.linear_solver,
-                                                  atol=spec.atol)
-        self.nfev += evals
+        W, failed = self._propagate(idx, z, z_dot, lin, _initial_columns(z0, spec.unknown_index))
+        if solution:
+            W[..., 0] = z
         W_obs = self._at_obs(W, idx)
         C, d, resid = self._rows(idx, self._at_obs(z, idx), W_obs[..., 0], W_obs[..., 1:])
-        sse, merit = self._ssq(idx, resid), self._ssq(idx, d)
+        sse, merit = self._ssq(idx, resid), self._ssq(idx, d, penalty=True)
         S = idx.numel()
         return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed,
                     anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
                     nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
 
-    def _nonlinear(self, idx, z0, loose: bool, guess=None):
+    def _propagate(self, idx, z, z_dot, lin, w0):
+        """The particular and homogeneous solutions ``W (S, G, M, 1 + m)`` of the chunk's samples
+        ``idx`` about ``z`` from ``w0 (S, M, 1 + m)``, and ``failed (S,)``.
+
+        A propagator with a batched form takes every sample at once
+        (:func:`~torchql.batch_integrate.propagate_linear_batch`); another one each sample in turn
+        (:func:`torchql.superposition.propagate_linear`), a failure marking that sample.
+        """
+        spec = self.spec
+        if spec.linear_solver.batched:
+            W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
+                                                      atol=spec.atol, propagator=spec.linear_solver)
+            self.nfev += evals
+            return W, failed
+        S, G = z.shape[:2]
+        W = z.new_full((S, G, *w0.shape[1:]), float("nan"))
+        failed = torch.zeros(S, dtype=torch.bool, device=z.device)
+        grid = self._grid_of(idx)
+        for k in range(S):
+            t = grid if grid.dim() == 1 else grid[k]
+            reference = LinearizedReference(t, z[k], z_dot[k], Linearization(*(v[k] for v in lin)))
+            try:
+                W[k], evals = propagate_linear(reference, w0[k], solver=spec.solver, rtol=spec.rtol, atol=spec.atol,
+                                               max_steps=spec.max_steps, linear_solver=spec.linear_solver)
+                self.nfev += evals
+            except IntegrationError as exc:
+                failed[k] = True
+                self.propagation_errors[int(idx[k])] = str(exc)
+        return W, failed
+
+    def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False):
         """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
         and error messages (None: ok).
 
-        With a ``guess (S, G, M)`` (the last linear prediction) and a small problem, by multiple
-        shooting (:func:`~torchql.batch_integrate.solve_on_grid_batch`); otherwise, or for the
-        samples where it does not settle, by :func:`~torchql.batch_integrate.dopri_batch`; a sample
-        that one cannot integrate either is integrated on its own by torchdiffeq with ``solver``
-        (as :func:`torchql.fit` does), whose message is kept when it fails too.
+        ``loose`` integrates at ``_LOOSE_RTOL`` (or ``rtol`` if looser): enough for a first
+        reference, or to rank two iterates far from the optimum. With a ``guess (S, G, M)`` (a
+        prediction of the solution at the nodes: the last linear solution) and a problem of at
+        most ``_SHOOTING_POINTS`` sample-intervals, by multiple shooting
+        (:func:`~torchql.batch_integrate.solve_on_grid_batch`: every interval at once by RK4, at
+        most ``_GRID_SUBSTEPS`` steps each, ``_GRID_SUBSTEPS_LOOSE`` when ``loose``, and no more
+        than the user's ``max_steps``). A sample whose interval needs more is, with
+        ``budget_is_final``, a blow-up and fails (a trial step: an adaptive solver would only crawl
+        to the same failure, or through a stiff stretch that a step far from the current iterate
+        led into; the damping shortens the step instead), an interval then being allowed
+        ``_BLOWUP_STEPS / (G - 1)`` steps if that is more, so that a coarse grid does not turn a
+        smooth trial into a blow-up. The other samples, or all without a guess, are integrated by
+        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``), by the implicit
+        :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
+        torchdiffeq with ``solver`` (another method, or where the batched Dormand–Prince fails),
+        whose message is kept when it fails too.
         """
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
@@ -727,34 +846,52 @@ class _Engine:
             return grid if shared else grid[sub]
         traj = torch.full((S, G, self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
         ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
+        errors: list = [None] * S
+        substeps = _GRID_SUBSTEPS_LOOSE if loose else _GRID_SUBSTEPS
+        if budget_is_final and G > 1:
+            substeps = max(substeps, 1 << max(0, (_BLOWUP_STEPS // (G - 1)).bit_length() - 1))
+        if spec.max_steps is not None:  # the user's step budget per grid interval binds this solver too
+            substeps = min(substeps, 1 << (spec.max_steps.bit_length() - 1))
+        stiff = spec.solver in STIFF_SOLVERS
         with torch.no_grad():
-            stiff = spec.solver in STIFF_SOLVERS
-            if guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver and not stiff:
+            if (guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
+                    and not stiff and substeps >= 2):
                 usable = torch.isfinite(guess).flatten(1).all(dim=1)
                 sub = usable.nonzero().flatten()
                 if sub.numel():
-                    tr, good, evals = solve_on_grid_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
-                                                          guess=guess[sub], max_newton=_GRID_NEWTON,
-                                                          max_substeps=_GRID_SUBSTEPS)
+                    tr, good, evals, over = solve_on_grid_batch(
+                        self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, guess=guess[sub],
+                        max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
                     self.nfev += evals
                     traj[sub[good]], ok[sub[good]] = tr[good], True
-            sub = (~ok).nonzero().flatten()
-            if sub.numel():
+                    if budget_is_final:
+                        for s in sub[over & ~good].tolist():
+                            errors[s] = ("a grid interval needed more than the grid solver's "
+                                         f"{substeps} steps (a blow-up)")
+            todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+            sub = todo.nonzero().flatten()
+            if sub.numel() and (stiff or (spec.solver == "dopri5" and spec.max_steps is None)):
                 land = None
-                if loose and shared:  # as fit's adaptive solver: onto the observation times, the rest interpolated
+                if (loose or stiff) and shared:  # onto the observation times, the rest interpolated
                     land = torch.zeros(G, dtype=torch.bool, device=z0.device)
                     land[self.obs] = True
-                elif loose:
+                elif loose or stiff:
                     land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
                     land.scatter_(1, self.obs[idx[sub]], True)
                 if stiff:  # every sample by the implicit solver; its message kept for a failure
-                    sol = rodas5p_batch(self.system.f, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land,
-                                        error_components=self.system.n,
-                                        **({} if spec.max_steps is None else {"max_steps": spec.max_steps}))
+                    budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
+                    n = self.system.n
+                    if sub.numel() == 1:  # one sample: its model with the coefficients bound, no vmap
+                        sol = rodas5p_batch(self.system.model_with(z0[sub[0], n:]), z0[sub, :n], grid_of(sub),
+                                            rtol=rtol, atol=atol, land=land, vectorize=False, **budget)
+                        y = torch.cat([sol.y, z0[sub, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
+                    else:
+                        sol = rodas5p_batch(self.system.f, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land,
+                                            error_components=n, **budget)
+                        y = sol.y
                     self.nfev += sol.n_f
                     good = sol.ok
-                    traj[sub[good]], ok[sub[good]] = sol.y[good], True
-                    errors: list = [None] * S
+                    traj[sub[good]], ok[sub[good]] = y[good], True
                     for k, s in enumerate(sub.tolist()):
                         if not bool(good[k]):
                             errors[s] = sol.message(k)
@@ -762,8 +899,8 @@ class _Engine:
                 tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
                 self.nfev += evals
                 traj[sub[good]], ok[sub[good]] = tr[good], True
-            errors: list = [None] * S
-            sub = (~ok).nonzero().flatten()
+            todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+            sub = todo.nonzero().flatten()
             if sub.numel():
                 hit = self.t_obs if shared else self.t_obs[idx[sub]]
                 tr, errs, evals = integrate_each(self.system, z0[sub], grid_of(sub), solver=spec.solver, rtol=rtol,
@@ -784,12 +921,13 @@ class _Engine:
         """
         need = rows[torch.isnan(it["nl_sse"][rows])]
         if need.numel():
-            traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0])
+            traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
+                                           budget_is_final=True)
             n = self.system.n
             value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
             y, mask = self.y[idx[need]], self.mask[idx[need]]
             resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
-            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1))
+            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1), penalty=True)
             failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
             sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
             it["nl_sse"][need] = sse
@@ -797,6 +935,35 @@ class _Engine:
         return it["nl_sse"][rows]
 
     # --- the least-squares update -------------------------------------------------------------
+    def _solve_exact(self, idx, cur, damping):
+        """:meth:`_solve` for samples with rows met exactly: each sample by
+        :func:`torchql.lstsq.solve_update` (equality-constrained), bounds as there. Also returns
+        ``infeasible (S,)``: exact rows that cannot all be met (NaN updates there)."""
+        spec, bounds = self.spec, self.spec.bounds
+        S = idx.numel()
+        alpha = cur["C"].new_full((S, spec.m), float("nan"))
+        capped = torch.zeros(S, dtype=torch.bool, device=alpha.device)
+        infeasible = torch.zeros_like(capped)
+        for k, r in enumerate(idx.tolist()):
+            used = self.mask[r].reshape(-1)
+            C, d, w, exact = cur["C"][r][used], cur["d"][r][used], self.w[r].reshape(-1)[used], self.exact[r][used]
+            u = cur["z0"][r, spec.unknown_index]
+            Cq = C * bounds.derivative(u) if bounds.active else C
+            lam = float(damping[k])
+            try:
+                a = solve_update(Cq, d, w, exact, spec.rcond, lam).alpha
+                capped[k] = bool(bounds.capped(a))
+                a, blocked = bounds.step(u, a)
+                if bool(blocked.any()):  # moved onto their bounds and held; the others re-solved
+                    move = a.masked_fill(~blocked, 0.0)
+                    rest = solve_update(Cq.masked_fill(blocked, 0.0), d - C @ move, w, exact, spec.rcond, lam).alpha
+                    rest, _ = bounds.step(u, rest.masked_fill(blocked, 0.0))
+                    a = torch.where(blocked, move, rest)
+                alpha[k] = a
+            except ExactRowsError:
+                infeasible[k] = True
+        return alpha, capped, infeasible
+
     def _solve(self, idx, cur, damping):
         """The damped updates of the samples ``idx``: ``alpha (S, m)``, the change of the unknowns,
         and ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``).
@@ -828,6 +995,48 @@ class _Engine:
             alpha[rows] = torch.where(held, move, rest)
         return alpha, capped
 
+    # --- the iterates' records (torchql.fit's history) -----------------------------------------
+    def _record(self, r: int, iteration: int, z0: torch.Tensor, sse: float, traj: torch.Tensor | None = None
+                ) -> IterationRecord:
+        """Sample ``r``'s record of an iterate: its estimates ``z0 (M,)``, ``sse`` and trajectory ``(G, M)``."""
+        n = self.system.n
+        grid = self.grid if self.grid.dim() == 1 else self.grid[r]
+        params = {k: v.detach().clone() for k, v in self.system.unpack_params(z0[n:]).items()}
+        return IterationRecord(iteration=iteration, params=params, x0=z0[:n].detach().clone(), sse=sse,
+                               trajectory=None if traj is None else traj[:, :n].detach().clone(),
+                               trajectory_t=None if traj is None else grid)
+
+    def _open(self, rows: torch.Tensor, cur: dict, iterations: torch.Tensor) -> None:
+        """Start the records of the iterates ``cur`` of samples ``rows``."""
+        if self.history is None:
+            return
+        for r in rows.tolist():
+            record = self._record(r, int(iterations[r]), cur["z0"][r], float(cur["sse"][r]), cur["rz"][r])
+            record.merit = float(cur["merit"][r])
+            self.history[r].append(record)
+
+    def _annotate(self, rows: torch.Tensor, **values) -> None:
+        """Set fields of the open records of samples ``rows`` (per-sample tensors or plain values)."""
+        if self.history is None:
+            return
+        for k, r in enumerate(rows.tolist()):
+            record = self.history[r][-1]
+            for key, value in values.items():
+                if isinstance(value, torch.Tensor):
+                    value = value[k].detach().clone() if value.dim() > 1 else value[k].item()
+                setattr(record, key, value)
+
+    def _model_merit(self, rows: torch.Tensor, cur: dict) -> torch.Tensor:
+        """The model's own merit at the iterates of ``rows`` where known (shooting: the merit), else NaN."""
+        return cur["merit"][rows] if self.spec.method == "shooting" else cur["nl_sse"][rows]
+
+    def _notify(self, rows) -> None:
+        """Hand the open records of samples ``rows`` to the callback."""
+        if self.callback is None or self.history is None:
+            return
+        for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
+            self.callback(int(self.index[r]), self.history[r][-1])
+
     # --- the iteration ------------------------------------------------------------------------
     def run(self, report) -> dict:
         spec, S = self.spec, self.S
@@ -838,6 +1047,7 @@ class _Engine:
         damping = torch.zeros(S, dtype=dtype, device=dev)
         last_damping = torch.zeros(S, dtype=dtype, device=dev)
         fresh = torch.ones(S, dtype=torch.bool, device=dev)
+        rejected_count = torch.zeros(S, dtype=torch.long, device=dev)
         sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         z0 = self.z0_guess.clone()
         all_idx = torch.arange(S, device=dev)
@@ -857,13 +1067,15 @@ class _Engine:
                 lin = self._linearize(all_idx, traj, z_dot)
                 cur = self._evaluate(all_idx, z0, traj, z_dot, lin)
             else:  # first iterate: the model integrated (loosely, for Kantorovich) from the guesses
-                traj, errors = self._nonlinear(all_idx, z0, loose=spec.method == "kantorovich")
+                kantorovich = spec.method == "kantorovich"  # from a constant guess, loosely, as a first reference
+                guess = z0.unsqueeze(1).expand(S, self.G, z0.shape[1]) if kantorovich else None
+                traj, errors = self._nonlinear(all_idx, z0, loose=kantorovich, guess=guess)
                 bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
                 for r in bad.nonzero().flatten().tolist():
                     status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
                     detail[r] = f" The solver said: {errors[r]}."
                 lin = self._linearize(all_idx, traj)
-                cur = self._evaluate(all_idx, z0, traj, lin.f, lin)
+                cur = self._evaluate(all_idx, z0, traj, lin.f, lin, solution=spec.method == "shooting")
             self._fail_integration(cur["failed"] & ~bad, status, detail)
             final_guess = cur["W"][:, :, :, 0].clone()
             typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), z0[:, n:].abs()], dim=1)
@@ -885,16 +1097,26 @@ class _Engine:
                 if bool(maxed.any()):
                     stop(maxed.nonzero().flatten(), Status.MAX_ITER)
                 start &= ~maxed
+                self._open(start.nonzero().flatten(), cur, iterations)
+                rejected_count[start] = 0
                 finite = (torch.isfinite(cur["sse"]) & torch.isfinite(cur["C"]).flatten(1).all(dim=1)
                           & torch.isfinite(cur["d"]).all(dim=1))
                 diverged = start & ~finite
                 if bool(diverged.any()):
                     stop(diverged.nonzero().flatten(), Status.DIVERGED, " The residuals became non-finite.")
+                    self._notify(diverged.nonzero().flatten())
                 fresh &= ~start
                 act = (status == _RUNNING).nonzero().flatten()
                 if not act.numel():
                     break
-                alpha, capped = self._solve(act, cur, damping[act])
+                if spec.has_exact:
+                    alpha, capped, infeasible = self._solve_exact(act, cur, damping[act])
+                    if bool(infeasible.any()):
+                        stop(act[infeasible], Status.EXACT_INFEASIBLE)
+                        keep = ~infeasible
+                        act, alpha, capped = act[keep], alpha[keep], capped[keep]
+                else:
+                    alpha, capped = self._solve(act, cur, damping[act])
                 u = cur["z0"][act][:, spec.unknown_index]
                 scaled = (alpha.abs() / torch.maximum(u.abs(), scale[act])).amax(dim=1)
                 bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
@@ -902,6 +1124,8 @@ class _Engine:
                     stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
                     keep = ~bad
                     act, alpha, scaled, capped = act[keep], alpha[keep], scaled[keep], capped[keep]
+                self._annotate(act, alpha=alpha, alpha_norm=scaled, damping=damping[act],
+                               rejected=rejected_count[act])
                 # convergence, tested on undamped steps only
                 zero = damping[act] == 0
                 sse = cur["sse"][act]
@@ -916,6 +1140,8 @@ class _Engine:
                     z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
                     iterations[rows] += 1
                     final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
+                    self._annotate(rows, model_merit=self._model_merit(rows, cur))
+                    self._notify(rows)
                     if bool(conv.any()):
                         stop(act[conv], Status.CONVERGED)
                     if bool(conv_sse.any()):
@@ -943,6 +1169,8 @@ class _Engine:
                 if bool(accept.any()):
                     rows = accept.nonzero().flatten()
                     target = act[rows]
+                    self._annotate(target, model_merit=self._model_merit(target, cur))
+                    self._notify(target)
                     _put(cur, target, trial, rows)
                     last_damping[target] = damping[target]
                     damping[target] = 0.0
@@ -956,10 +1184,12 @@ class _Engine:
                 if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
                     z0[rejected] = _shifted(cur["z0"][rejected], alpha[~accept], spec.unknown_index)
                     iterations[rejected] += 1
+                    self._notify(rejected)
                     stop(rejected, Status.INTEGRATION_FAILED,
                          " The undamped step led to a trajectory that cannot be integrated; the default "
                          "damping=\"lm\" would have shortened it.")
                     continue
+                rejected_count[rejected] += 1
                 # Kantorovich re-anchors an undamped rejection about the model's own solution
                 candidates = rejected[(damping[rejected] == 0) & ~cur["anchored"][rejected]]
                 if spec.method == "shooting":  # always about the model's own solution already
@@ -981,6 +1211,12 @@ class _Engine:
                             self._fail_integration_rows(anchored_rows[failed], status, detail)
                         keep = (~failed).nonzero().flatten()
                         _put(cur, anchored_rows[keep], anchored, keep)
+                        done_rows = anchored_rows[keep]
+                        if self.history is not None:
+                            for r in done_rows.tolist():
+                                record = self.history[r][-1]
+                                record.sse, record.merit = float(cur["sse"][r]), float(cur["merit"][r])
+                                record.trajectory = cur["rz"][r, :, :n].detach().clone()
                 raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
                 if raise_rows.numel():
                     d = damping[raise_rows]
@@ -990,6 +1226,9 @@ class _Engine:
                     damping[raise_rows] = d
                     stalled = raise_rows[d > _DAMPING_MAX]
                     if stalled.numel():
+                        self._annotate(stalled, rejected=rejected_count[stalled],
+                                       model_merit=self._model_merit(stalled, cur))
+                        self._notify(stalled)
                         stop(stalled, Status.STALLED)
         except TimeBudgetExceeded:  # inside a phase: the samples still running stop where they are
             stop((status == _RUNNING).nonzero().flatten(), Status.MAX_TIME)
@@ -1006,8 +1245,10 @@ class _Engine:
     def _fail_integration_rows(self, rows, status, detail) -> None:
         for r in rows.tolist():
             status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
-            detail[r] = (" The solver said: the transfer of a grid interval did not meet the tolerance or became "
-                         "non-finite.")
+            said = self.propagation_errors.get(r, "the transfer of a grid interval did not meet the tolerance or "
+                                               "became non-finite")
+            detail[r] = f" The solver said: {said}."
+
 
     def _propose(self, act, cur, alpha):
         """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where usable."""
@@ -1056,11 +1297,11 @@ class _Engine:
         """Shooting's trial iterates: each sample's model integrated from ``z0_new (S, M)`` (the
         linear prediction ``z_new`` its guess), with its sensitivities; ``ok`` where it integrates."""
         guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
-        traj, errors = self._nonlinear(act, z0_new, loose=False, guess=guess)
+        traj, errors = self._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True)
         integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
         traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
         lin = self._linearize(act, traj)
-        trial = self._evaluate(act, z0_new, traj, lin.f, lin)
+        trial = self._evaluate(act, z0_new, traj, lin.f, lin, solution=True)
         trial["defect"] = torch.zeros_like(trial["merit"])
         ok = (integrated & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
@@ -1077,6 +1318,7 @@ class _Engine:
         residuals = torch.full((S, R), float("nan"), dtype=dtype, device=dev)
         jacobian = torch.full((S, R, m), float("nan"), dtype=dtype, device=dev)
         singular_values = torch.full((S, m), float("nan"), dtype=dtype, device=dev)
+        exact_residual = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
         final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
@@ -1093,11 +1335,7 @@ class _Engine:
             rows, traj = rows[good], traj[good]
         if rows.numel():
             lin = self._linearize(rows, traj)
-            w0 = _initial_columns(z0[rows], spec.unknown_index)
-            W, failed, evals = propagate_linear_batch(self._grid_of(rows), traj, lin.f, lin, w0, rtol=spec.rtol,
-                                                      propagator=spec.linear_solver,
-                                                      atol=spec.atol)
-            self.nfev += evals
+            W, failed = self._propagate(rows, traj, lin.f, lin, _initial_columns(z0[rows], spec.unknown_index))
             for r in rows[failed].tolist():
                 codes[r] = Status.INTEGRATION_FAILED
                 detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "
@@ -1109,8 +1347,14 @@ class _Engine:
             w = self.w[rows].reshape(rows.numel(), -1)
             J = C * w.unsqueeze(-1)
             rw = resid * w
-            s = (rw ** 2).sum(dim=1)
+            s = self._ssq(rows, resid)
             sse[rows] = s
+            exact = self.exact[rows]
+            exact_residual[rows] = torch.where(exact, resid.abs(), torch.zeros_like(resid)).amax(dim=1)
+            if self.history is not None:
+                for k, r in enumerate(rows.tolist()):
+                    self.history[r].append(self._record(r, int(iterations[r]), z0[r], float(s[k]), traj[k]))
+                    self._notify(r)
             residuals[rows], jacobian[rows] = rw, J
             nonfinite = ~torch.isfinite(s)
             for r in rows[nonfinite].tolist():
@@ -1144,8 +1388,14 @@ class _Engine:
                     sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]),
                     step=step[k])
                 detail[r] = more if code.success else detail[r] + more
-            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec, deficient)
+            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec,
+                                    deficient | self.exact[rows].any(dim=1), self.exact[rows])
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
+        if self.history is not None:  # the estimates returned, unevaluated, where the final pass did not run
+            for r in range(S):
+                last = self.history[r][-1] if self.history[r] else None
+                if last is None or last.iteration != int(iterations[r]) or not torch.equal(last.x0, z0[r, :self.system.n]):
+                    self.history[r].append(self._record(r, int(iterations[r]), z0[r], float("nan")))
         for k, r in enumerate(self.index.tolist()):
             if spec.bounds.active:
                 detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index]))
@@ -1154,6 +1404,7 @@ class _Engine:
         messages = [c.value + d for c, d in zip(codes, detail)]
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
+                    exact_residual=exact_residual, history=self.history,
                     sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
 
 
@@ -1237,8 +1488,9 @@ def _lstsq(C, d, w, rcond: float, damping):
     return alpha, deficient, Sv
 
 
-def _covariance(J, used, sse, L, spec: _Spec, deficient) -> torch.Tensor:
-    """Per-sample covariance ``(S, m, m)`` as :func:`torchql.uncertainty.covariance` (no exact values)."""
+def _covariance(J, used, sse, L, spec: _Spec, deficient, exact) -> torch.Tensor:
+    """Per-sample covariance ``(S, m, m)`` as :func:`torchql.uncertainty.covariance`: batched, and
+    per sample (``deficient``) where a direction is undetermined or values are met ``exact (S, R)``."""
     S, _, m = J.shape
     dof = (L - m).to(J.dtype)
     s2 = (torch.ones_like(sse) if spec.sigma_known
@@ -1252,6 +1504,5 @@ def _covariance(J, used, sse, L, spec: _Spec, deficient) -> torch.Tensor:
     cov = 0.5 * (cov + cov.transpose(1, 2))
     for k in deficient.nonzero().flatten().tolist():  # rare: undetermined unknowns get NaN, as fit reports
         rows = used[k]
-        cov[k] = covariance(J[k][rows], torch.zeros(int(rows.sum()), dtype=torch.bool, device=J.device),
-                            float(sse[k]), spec.sigma_known, spec.rcond).matrix
+        cov[k] = covariance(J[k][rows], exact[k][rows], float(sse[k]), spec.sigma_known, spec.rcond).matrix
     return cov

@@ -242,8 +242,8 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
 
 
 def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
-                        guess: torch.Tensor | None = None, max_newton: int = 25, max_substeps: int = 1024
-                        ) -> tuple[torch.Tensor, torch.Tensor, int]:
+                        guess: torch.Tensor | None = None, max_newton: int = 25, max_substeps: int = 1024,
+                        report_budget: bool = False):
     """The augmented model ``z' = f(t, z)`` from ``z0 (S, M)`` at the nodes of ``grid``, by multiple shooting.
 
     Each sample's coefficients are its trailing components of ``z``, so one vmapped right-hand
@@ -264,6 +264,9 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         Node values to start Newton from (default ``z0`` at every node).
     max_newton, max_substeps : int
         As in :func:`torchql.grid_solve.solve_on_grid`.
+    report_budget : bool
+        Also return ``over_budget (S,)``: samples with an interval that needed more than
+        ``max_substeps`` steps (a blow-up, or a stretch too stiff for RK4).
 
     Returns
     -------
@@ -279,8 +282,9 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
     X = z0.unsqueeze(1).expand(S, G, M).clone() if guess is None else guess.detach().clone()
     X[:, 0] = z0
     ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
+    over_budget = torch.zeros(S, dtype=torch.bool, device=z0.device)
     if G == 1:
-        return X, ~ok, 0
+        return (X, ~ok, 0, over_budget) if report_budget else (X, ~ok, 0)
     N = G - 1
     per_sample = grid.dim() == 2
     if per_sample:  # each sample's tolerances over its own intervals: (S, 1) per interval below
@@ -310,6 +314,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         steps[active] = st.reshape(A, N)
         n_evals += evals
         failed = failed.reshape(A, N).any(dim=1)
+        over_budget[active[failed]] = True
         defect = phi.reshape(A, N, M) - Xa[:, 1:]
         # delta_{j+1} = S_j delta_j + d_j, delta_0 = 0: the affine recurrence, by the prefix scan
         Y = torch.cat([Sj.reshape(A, N, M, M), defect.unsqueeze(-1)], dim=-1).permute(0, 2, 3, 1)  # (A, M, M+1, N)
@@ -323,7 +328,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         ok[active[done]] = True
         active = active[~done & finite & ~failed]
     X[~ok] = float("nan")
-    return X, ok, n_evals
+    return (X, ok, n_evals, over_budget) if report_budget else (X, ok, n_evals)
 
 
 def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, solver: str, rtol: float,

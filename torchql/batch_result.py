@@ -95,6 +95,13 @@ class BatchFitResult:
     moved_guesses : dict of int to dict
         ``{sample: {name: (given, used)}}`` for the samples whose guesses lay on or outside a
         bound and were moved inside (``batch[i].moved_guesses``).
+    exact : bool Tensor ``(B, R)`` or None
+        The value slots each sample marked ``exact`` (met exactly, left out of ``sse``).
+    exact_residual : Tensor ``(B,)`` or None
+        Each sample's largest absolute residual over its exact values (0 without any).
+    history : list of list of IterationRecord, or None
+        Every sample's iterates, when they were kept (:func:`torchql.fit` keeps them; a batch
+        keeps only the guesses and the estimates, see :meth:`sample`).
     """
 
     success: torch.Tensor
@@ -127,6 +134,9 @@ class BatchFitResult:
     lower: torch.Tensor | None = field(default=None, repr=False)
     upper: torch.Tensor | None = field(default=None, repr=False)
     moved_guesses: dict[int, dict[str, tuple[float, float]]] = field(default_factory=dict, repr=False)
+    exact: torch.Tensor | None = field(default=None, repr=False)
+    exact_residual: torch.Tensor | None = field(default=None, repr=False)
+    history: list[list[IterationRecord]] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])
@@ -163,12 +173,19 @@ class BatchFitResult:
             singular_values = singular_values[:0]
         params = {k: v[i].clone() for k, v in self.params.items()}
         history = []
-        if self.start_params is not None:
+        if self.history is not None:
+            history = list(self.history[i])
+        elif self.start_params is not None:
             history.append(IterationRecord(iteration=0, params={k: v[i].clone() for k, v in self.start_params.items()},
                                            x0=self.start_x0[i].clone(), sse=float(self.sse_start[i])))
         iterations = int(self.iterations[i])
-        history.append(IterationRecord(iteration=iterations, params={k: v.clone() for k, v in params.items()},
-                                       x0=self.x0[i].clone(), sse=float(self.sse[i])))
+        if self.history is None:
+            history.append(IterationRecord(iteration=iterations, params={k: v.clone() for k, v in params.items()},
+                                           x0=self.x0[i].clone(), sse=float(self.sse[i])))
+        exact = (self.exact[i][self.used[i]].clone() if self.exact is not None and self.used is not None
+                 else torch.zeros(residuals.shape[0], dtype=torch.bool, device=residuals.device))
+        exact_residual = (float(self.exact_residual[i]) if self.exact_residual is not None
+                          else 0.0 if math.isfinite(float(self.sse[i])) else nan)
         data = self.data
         if data is not None:
             data = data[i]
@@ -176,10 +193,10 @@ class BatchFitResult:
             success=bool(self.success[i]), status=self.status[i], message=self.message[i], params=params,
             x0=self.x0[i].clone(), t0=t0, unknown_names=list(self.unknown_names),
             estimates=self.estimates[i].clone(), iterations=iterations, history=history, sse=float(self.sse[i]),
-            residuals=residuals, jacobian=jacobian, exact_residual=0.0 if math.isfinite(float(self.sse[i])) else nan,
+            residuals=residuals, jacobian=jacobian, exact_residual=exact_residual,
             singular_values=singular_values, covariance=self.covariance[i].clone(), dof=int(self.dof[i]),
             residual_variance=float(self.residual_variance[i]), sigma_known=self.sigma_known,
-            exact_mask=torch.zeros(residuals.shape[0], dtype=torch.bool, device=residuals.device),
+            exact_mask=exact,
             n_observations=int(self.n_observations[i]), nfev=int(self.nfev),
             method=self.fit_kwargs.get("method", "kantorovich"),
             model=self.model_of(i), solver_options=dict(self.solver_options), data=data,

@@ -211,7 +211,8 @@ def _joined_moves(parts: Sequence[BatchFitResult]) -> dict:
 def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
     """The parts' per-sample final evaluations and starts, joined (``None`` unless every part has them)."""
     out = {}
-    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start"):
+    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start", "exact",
+                "exact_residual"):
         values = [getattr(p, key) for p in parts]
         out[key] = torch.cat(values) if all(v is not None for v in values) else None
     starts = [p.start_params for p in parts]

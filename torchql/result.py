@@ -147,7 +147,9 @@ class FitResult:
     n_observations : int
         Number of values used, ``L``.
     nfev : int
-        Number of right-hand-side evaluations of the integrated systems.
+        Right-hand-side evaluations: the number of states the model's ``forward`` (or, for the
+        linear system, one term of its series) was evaluated at, a vectorized call over many
+        grid intervals counting each of them.
     method : str
         ``"kantorovich"`` or ``"shooting"``.
     model : ODEModel

@@ -70,10 +70,11 @@ def test_a_users_propagator_is_used_by_fit_and_can_be_registered_by_name():
     result = torchql.fit(LinearOscillator(0.5, 1.0), data(), x0=X0, linear_solver=mine)
     reference = torchql.fit(LinearOscillator(0.5, 1.0), data(), x0=X0)
     assert mine.calls >= result.iterations + 1  # every propagation went through it
-    assert torch.equal(result.estimates, reference.estimates)
+    # the same series, per sample (a user's propagator) and batched (the built-in one): equal to rounding
+    assert torch.allclose(result.estimates, reference.estimates, rtol=1e-12, atol=1e-15)
     register_propagator(mine)
     try:
         again = torchql.fit(LinearOscillator(0.5, 1.0), data(), x0=X0, linear_solver="counting_taylor")
-        assert torch.equal(again.estimates, reference.estimates)
+        assert torch.equal(again.estimates, result.estimates)  # by name as by object
     finally:
         del PROPAGATORS["counting_taylor"]
