@@ -355,7 +355,7 @@ def test_shooting_rejects_stiff_trials_instead_of_crawling_through_them(monkeypa
     evaluated at, about 24,000 per grid solve on this 1,000-interval grid, so it no longer
     tells the two apart: the test watches the solvers instead.)
     """
-    import torchql.batch as engine
+    import torchql.engine_evaluate as engine
 
     adaptive = []
     for name in ("dopri_batch", "integrate_each"):

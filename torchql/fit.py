@@ -23,7 +23,8 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
-from .batch import _Spec, run_engine
+from .engine import run_engine
+from .problem import Problem
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import Observations
@@ -217,13 +218,13 @@ def fit(
 
 
 def _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
-                 rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None) -> _Spec:
+                 rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None) -> Problem:
     """One dataset's validated problem: the engine's (:mod:`torchql.batch`) with one sample, its
     errors worded for ``fit``."""
     _checks.model_class(model)
     if not isinstance(data, Observations):
         raise TypeError(f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
-    return _Spec(model, [data], x0, params, None, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
+    return Problem(model, [data], x0, params, None, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
                  damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, single=True)
 
 

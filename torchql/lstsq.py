@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["LstsqSolution", "ExactRowsError", "solve_update"]
+__all__ = ["LstsqSolution", "ExactRowsError", "solve_update", "solve_update_batch"]
 
 
 class ExactRowsError(ValueError):
@@ -131,3 +131,32 @@ def _normalize(vectors: torch.Tensor) -> torch.Tensor:
     if vectors.shape[1] == 0:
         return vectors
     return vectors / torch.linalg.vector_norm(vectors, dim=0, keepdim=True).clamp_min(torch.finfo(vectors.dtype).tiny)
+
+
+def solve_update_batch(C, d, w, rcond: float, damping):
+    """Batched weighted least squares by SVD with Levenberg–Marquardt filter factors.
+
+    ``C (S, R, m)``, ``d (S, R)``, weights ``w (S, R)`` (0 for missing values), ``damping (S,)``
+    relative to the largest squared singular value (or ``None``). Returns ``alpha (S, m)``,
+    ``deficient (S,)`` (a singular value below ``rcond`` times the largest, or a zero column)
+    and the singular values ``(S, m)``. Samples with non-finite rows get NaN.
+    """
+    Cw = C * w.unsqueeze(-1)
+    dw = d * w
+    finite = torch.isfinite(Cw).flatten(1).all(dim=1) & torch.isfinite(dw).all(dim=1)
+    Cw = torch.where(finite.reshape(-1, 1, 1), Cw, torch.zeros_like(Cw))
+    dw = torch.where(finite.reshape(-1, 1), dw, torch.zeros_like(dw))
+    scale = torch.linalg.vector_norm(Cw, dim=1)
+    zero_cols = scale == 0
+    scale = torch.where(zero_cols, torch.ones_like(scale), scale)
+    A = Cw / scale.unsqueeze(1)
+    U, Sv, Vh = torch.linalg.svd(A, full_matrices=False)
+    keep = Sv > rcond * Sv[:, :1]
+    safe = torch.where(keep, Sv, torch.ones_like(Sv))
+    if damping is not None:
+        safe = safe + damping.unsqueeze(-1) * Sv[:, :1] ** 2 / safe
+    coeff = torch.where(keep, (U.transpose(1, 2) @ dw.unsqueeze(-1)).squeeze(-1) / safe, torch.zeros_like(Sv))
+    alpha = (Vh.transpose(1, 2) @ coeff.unsqueeze(-1)).squeeze(-1) / scale
+    alpha = torch.where(finite.unsqueeze(-1), alpha, torch.full_like(alpha, float("nan")))
+    deficient = (~keep).any(dim=1) | zero_cols.any(dim=1)
+    return alpha, deficient, Sv

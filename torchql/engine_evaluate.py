@@ -1,0 +1,283 @@
+"""The engine's evaluations: linearizations, linear propagations, rows, nonlinear solutions.
+
+:class:`Evaluation` is the part of :class:`torchql.engine.Engine` that turns iterates into
+numbers for the chunk's samples ``idx``: the model linearized about a trajectory, the particular
+and homogeneous solutions propagated about it, the least-squares rows at the observations, and
+the model's own solution (by the grid solver, batched Dormand–Prince, Rodas5P or torchdiffeq).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .batch_integrate import dopri_batch, integrate_each, propagate_linear_batch, solve_on_grid_batch
+from .integrate import IntegrationError
+from .linearize import Linearization, linearize
+from .solvers import STIFF_SOLVERS, rodas5p_batch
+from .superposition import propagate_linear
+from .trajectory import LinearizedReference
+
+__all__ = ["Evaluation"]
+
+#: Largest ``samples x intervals`` for which the final nonlinear solution is found by multiple
+#: shooting from the last linear prediction (all intervals at once, Newton on the node defects,
+#: with Jacobians); above it the batched Dormand–Prince integrator, whose rounds advance every
+#: sample at once, costs less.
+_SHOOTING_POINTS = 20_000
+#: Newton iterations the grid solver gets from a trajectory's linear prediction before the
+#: adaptive solver takes over (from a good prediction it needs two or three).
+_GRID_NEWTON = 8
+#: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
+#: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
+_GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
+#: RK4 steps over the whole span beyond which a trial step's trajectory counts as a blow-up
+#: (spread over the grid's intervals; on the default grid the per-interval caps above bind).
+_BLOWUP_STEPS = 16384
+#: Tolerance of the first Kantorovich reference, integrated from the guesses.
+_LOOSE_RTOL = 1e-6
+#: A trial step is accepted when its merit is at most ``(1 + _MERIT_SLACK)`` times the current one
+#: (rounding of the sums of squares must not reject a converging step).
+_MERIT_SLACK = 1e-10
+#: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
+_EXACT_PENALTY = 1e6
+
+
+class Evaluation:
+    """Evaluations of a chunk's iterates (mixed into :class:`torchql.engine.Engine`, whose
+    attributes ``spec``, ``system``, ``grid``, ``obs``, ``t_obs``, ``G``, ``y``, ``w``, ``mask``,
+    ``exact``, ``nfev`` and ``propagation_errors`` it uses)."""
+
+    def _grid_of(self, idx: torch.Tensor) -> torch.Tensor:
+        """The grid of the chunk's samples ``idx``: the shared one ``(G,)``, or theirs ``(S, G)``."""
+        return self.grid if self.grid.dim() == 1 else _pick(self.grid, idx)
+
+    def _at_obs(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """Values ``x (S, G, ...)`` of the chunk's samples ``idx`` at their observation nodes: ``(S, T, ...)``."""
+        if self.obs.dim() == 1:
+            return x[:, self.obs]
+        rows = torch.arange(x.shape[0], device=x.device).unsqueeze(1)
+        return x[rows, _pick(self.obs, idx)]
+
+    def _linearize(self, idx: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor | None = None) -> Linearization:
+        """The linearization about ``z (S, G, M)`` (slopes ``z_dot``) of the chunk's samples ``idx``, at their nodes."""
+        S, G, M = z.shape
+        t = self.grid.repeat(S) if self.grid.dim() == 1 else _pick(self.grid, idx).reshape(-1)
+        lin = linearize(self.system, t, z.reshape(-1, M), None if z_dot is None else z_dot.reshape(-1, M))
+        self.nfev += S * G
+        return Linearization(*(v.reshape(S, G, *v.shape[1:]) for v in lin))
+
+    def _rows(self, idx, z_ref_obs, zp_obs, Z_obs):
+        """``C (S, R, m)``, ``d (S, R)``, residuals ``(S, R)`` at the observations (zero where missing)."""
+        n, K = self.system.n, self.spec.K
+        S, T = z_ref_obs.shape[:2]
+        x_ref = z_ref_obs[..., :n]
+        h_ref, H = self.spec.operator.value_and_jacobian(x_ref.reshape(-1, n))
+        h_ref, H = h_ref.reshape(S, T, K), H.reshape(S, T, K, n)
+        predicted = h_ref + torch.einsum("stkn,stn->stk", H, zp_obs[..., :n] - x_ref)
+        C = torch.einsum("stkn,stnm->stkm", H, Z_obs[:, :, :n, :])
+        mask, y = _pick(self.mask, idx), _pick(self.y, idx)
+        zero = torch.zeros((), dtype=y.dtype, device=y.device)
+        d = torch.where(mask, y - predicted, zero)
+        resid = torch.where(mask, y - h_ref, zero)
+        C = torch.where(mask.unsqueeze(-1), C, zero)
+        return C.reshape(S, T * K, -1), d.reshape(S, -1), resid.reshape(S, -1)
+
+    def _ssq(self, idx, residual, penalty: bool = False):
+        """Weighted sums of squares ``(S,)`` of ``residual (S, R)``, the exact rows left out; with
+        ``penalty``, the merit: plus ``_EXACT_PENALTY`` times their squared misfit."""
+        r2 = (residual * _pick(self.w, idx).reshape(residual.shape)) ** 2
+        if not self.spec.has_exact:
+            return r2.sum(dim=1)
+        exact = _pick(self.exact, idx)
+        zero = torch.zeros((), dtype=r2.dtype, device=r2.device)
+        total = torch.where(exact, zero, r2).sum(dim=1)
+        return total + _EXACT_PENALTY * torch.where(exact, r2, zero).sum(dim=1) if penalty else total
+
+    def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False) -> dict:
+        """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
+
+        ``solution``: ``z`` is the model's own solution from ``z0`` (shooting), which then stands
+        for the particular solution (its propagation would only add the propagator's error).
+        """
+        spec = self.spec
+        W, failed = self._propagate(idx, z, z_dot, lin, _initial_columns(z0, spec.unknown_index))
+        if solution:
+            W[..., 0] = z
+        W_obs = self._at_obs(W, idx)
+        C, d, resid = self._rows(idx, self._at_obs(z, idx), W_obs[..., 0], W_obs[..., 1:])
+        sse, merit = self._ssq(idx, resid), self._ssq(idx, d, penalty=True)
+        S = idx.numel()
+        return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed,
+                    anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
+                    nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
+
+    def _propagate(self, idx, z, z_dot, lin, w0):
+        """The particular and homogeneous solutions ``W (S, G, M, 1 + m)`` of the chunk's samples
+        ``idx`` about ``z`` from ``w0 (S, M, 1 + m)``, and ``failed (S,)``.
+
+        A propagator with a batched form takes every sample at once
+        (:func:`~torchql.batch_integrate.propagate_linear_batch`); another one each sample in turn
+        (:func:`torchql.superposition.propagate_linear`), a failure marking that sample.
+        """
+        spec = self.spec
+        if spec.linear_solver.batched:
+            W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
+                                                      atol=spec.atol, propagator=spec.linear_solver)
+            self.nfev += evals
+            return W, failed
+        S, G = z.shape[:2]
+        W = z.new_full((S, G, *w0.shape[1:]), float("nan"))
+        failed = torch.zeros(S, dtype=torch.bool, device=z.device)
+        grid = self._grid_of(idx)
+        for k in range(S):
+            t = grid if grid.dim() == 1 else grid[k]
+            reference = LinearizedReference(t, z[k], z_dot[k], Linearization(*(v[k] for v in lin)))
+            try:
+                W[k], evals = propagate_linear(reference, w0[k], solver=spec.solver, rtol=spec.rtol, atol=spec.atol,
+                                               max_steps=spec.max_steps, linear_solver=spec.linear_solver)
+                self.nfev += evals
+            except IntegrationError as exc:
+                failed[k] = True
+                self.propagation_errors[int(idx[k])] = str(exc)
+        return W, failed
+
+    def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False):
+        """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
+        and error messages (None: ok).
+
+        ``loose`` integrates at ``_LOOSE_RTOL`` (or ``rtol`` if looser): enough for a first
+        reference, or to rank two iterates far from the optimum. With a ``guess (S, G, M)`` (a
+        prediction of the solution at the nodes: the last linear solution) and a problem of at
+        most ``_SHOOTING_POINTS`` sample-intervals, by multiple shooting
+        (:func:`~torchql.batch_integrate.solve_on_grid_batch`: every interval at once by RK4, at
+        most ``_GRID_SUBSTEPS`` steps each, ``_GRID_SUBSTEPS_LOOSE`` when ``loose``, and no more
+        than the user's ``max_steps``). A sample whose interval needs more is, with
+        ``budget_is_final``, a blow-up and fails (a trial step: an adaptive solver would only crawl
+        to the same failure, or through a stiff stretch that a step far from the current iterate
+        led into; the damping shortens the step instead), an interval then being allowed
+        ``_BLOWUP_STEPS / (G - 1)`` steps if that is more, so that a coarse grid does not turn a
+        smooth trial into a blow-up. The other samples, or all without a guess, are integrated by
+        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``), by the implicit
+        :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
+        torchdiffeq with ``solver`` (another method, or where the batched Dormand–Prince fails),
+        whose message is kept when it fails too.
+        """
+        spec = self.spec
+        rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
+        atol = spec.atol * rtol / spec.rtol
+        S, G = z0.shape[0], self.G
+        grid = self._grid_of(idx)
+        shared = grid.dim() == 1
+
+        def grid_of(sub):
+            return grid if shared else grid[sub]
+        traj = torch.full((S, G, self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
+        ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
+        errors: list = [None] * S
+        substeps = _GRID_SUBSTEPS_LOOSE if loose else _GRID_SUBSTEPS
+        if budget_is_final and G > 1:
+            substeps = max(substeps, 1 << max(0, (_BLOWUP_STEPS // (G - 1)).bit_length() - 1))
+        if spec.max_steps is not None:  # the user's step budget per grid interval binds this solver too
+            substeps = min(substeps, 1 << (spec.max_steps.bit_length() - 1))
+        stiff = spec.solver in STIFF_SOLVERS
+        with torch.no_grad():
+            if (guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
+                    and not stiff and substeps >= 2):
+                usable = torch.isfinite(guess).flatten(1).all(dim=1)
+                sub = usable.nonzero().flatten()
+                if sub.numel():
+                    tr, good, evals, over = solve_on_grid_batch(
+                        self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, guess=guess[sub],
+                        max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
+                    self.nfev += evals
+                    traj[sub[good]], ok[sub[good]] = tr[good], True
+                    if budget_is_final:
+                        for s in sub[over & ~good].tolist():
+                            errors[s] = ("a grid interval needed more than the grid solver's "
+                                         f"{substeps} steps (a blow-up)")
+            todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+            sub = todo.nonzero().flatten()
+            if sub.numel() and (stiff or (spec.solver == "dopri5" and spec.max_steps is None)):
+                land = None
+                if (loose or stiff) and shared:  # onto the observation times, the rest interpolated
+                    land = torch.zeros(G, dtype=torch.bool, device=z0.device)
+                    land[self.obs] = True
+                elif loose or stiff:
+                    land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
+                    land.scatter_(1, self.obs[idx[sub]], True)
+                if stiff:  # every sample by the implicit solver; its message kept for a failure
+                    budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
+                    n = self.system.n
+                    if sub.numel() == 1:  # one sample: its model with the coefficients bound, no vmap
+                        sol = rodas5p_batch(self.system.model_with(z0[sub[0], n:]), z0[sub, :n], grid_of(sub),
+                                            rtol=rtol, atol=atol, land=land, vectorize=False, **budget)
+                        y = torch.cat([sol.y, z0[sub, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
+                    else:
+                        sol = rodas5p_batch(self.system.f, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land,
+                                            error_components=n, **budget)
+                        y = sol.y
+                    self.nfev += sol.n_f
+                    good = sol.ok
+                    traj[sub[good]], ok[sub[good]] = y[good], True
+                    for k, s in enumerate(sub.tolist()):
+                        if not bool(good[k]):
+                            errors[s] = sol.message(k)
+                    return traj, errors
+                tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
+                self.nfev += evals
+                traj[sub[good]], ok[sub[good]] = tr[good], True
+            todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+            sub = todo.nonzero().flatten()
+            if sub.numel():
+                hit = self.t_obs if shared else self.t_obs[idx[sub]]
+                tr, errs, evals = integrate_each(self.system, z0[sub], grid_of(sub), solver=spec.solver, rtol=rtol,
+                                                 atol=atol, hit=hit, max_steps=spec.max_steps)
+                self.nfev += evals
+                for k, s in enumerate(sub.tolist()):
+                    if errs[k] is None and bool(torch.isfinite(tr[k]).all()):
+                        traj[s], ok[s] = tr[k], True
+                    else:
+                        errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
+        return traj, errors
+
+    def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor) -> torch.Tensor:
+        """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable).
+
+        As ``torchql.fit``'s second opinion: integrated at the loose tolerance, on the grid from
+        the iterate's particular solution (its prediction of the trajectory) where that settles.
+        """
+        need = rows[torch.isnan(it["nl_sse"][rows])]
+        if need.numel():
+            traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
+                                           budget_is_final=True)
+            n = self.system.n
+            value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
+            y, mask = self.y[idx[need]], self.mask[idx[need]]
+            resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
+            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1), penalty=True)
+            failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
+            sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
+            it["nl_sse"][need] = sse
+            it["nl_traj"][need] = traj
+        return it["nl_sse"][rows]
+
+
+def _initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
+    """``W(t0) = [z0, e_{i_1}, ..., e_{i_m}]`` per sample: ``(S, M, 1 + m)``."""
+    S, M = z0.shape
+    m = unknown_index.numel()
+    E = torch.zeros(M, m, dtype=z0.dtype, device=z0.device)
+    E[unknown_index, torch.arange(m, device=z0.device)] = 1.0
+    return torch.cat([z0.unsqueeze(-1), E.expand(S, M, m)], dim=2)
+
+
+def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``x[index]`` for sorted, distinct sample indices; ``x`` itself (no copy) when they are all of them.
+
+    Most iterations keep every sample of a chunk running, and the gathers of its largest arrays
+    (the propagated columns, the linearization) would copy them whole. The result may be ``x``:
+    callers only read it.
+    """
+    return x if index.numel() == x.shape[0] else x[index]

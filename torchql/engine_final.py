@@ -1,0 +1,143 @@
+"""The engine's final pass: each sample's model integrated at its estimates, with sensitivities.
+
+The reported SSE, residuals, Jacobian, singular values, status diagnosis and covariance are those
+of the fitted model itself, not of the last linear problem.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .bounds import at_bound_note, moved_guesses_note
+from .diagnosis import final_status, null_detail, typical_magnitudes
+from .engine_evaluate import _initial_columns
+from .lstsq import solve_update, solve_update_batch
+from .result import Status
+from .uncertainty import covariance
+
+__all__ = ["FinalPass"]
+
+_STATUSES = list(Status)
+
+
+class FinalPass:
+    """The final evaluation (mixed into :class:`torchql.engine.Engine`)."""
+
+    def _finish(self, z0, status, detail, iterations, final_guess) -> dict:
+        spec, S = self.spec, self.S
+        m = spec.m
+        dtype, dev = spec.dtype, spec.device
+        sse = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        cov = torch.full((S, m, m), float("nan"), dtype=dtype, device=dev)
+        R = self.w.reshape(S, -1).shape[1]
+        residuals = torch.full((S, R), float("nan"), dtype=dtype, device=dev)
+        jacobian = torch.full((S, R, m), float("nan"), dtype=dtype, device=dev)
+        singular_values = torch.full((S, m), float("nan"), dtype=dtype, device=dev)
+        exact_residual = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        codes = [_STATUSES[int(c)] for c in status.tolist()]
+        converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
+        final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
+                             dtype=torch.bool, device=dev)
+        rows = final.nonzero().flatten()
+        if rows.numel():
+            guess = final_guess[rows]
+            traj, errors = self._nonlinear(rows, z0[rows], loose=False, guess=guess)
+            for k, r in enumerate(rows.tolist()):
+                if errors[k] is not None:
+                    codes[r] = Status.INTEGRATION_FAILED
+                    detail[r] = f" The solver said, at the final estimates: {errors[k]}."
+            good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=dev)
+            rows, traj = rows[good], traj[good]
+        if rows.numel():
+            lin = self._linearize(rows, traj)
+            W, failed = self._propagate(rows, traj, lin.f, lin, _initial_columns(z0[rows], spec.unknown_index))
+            for r in rows[failed].tolist():
+                codes[r] = Status.INTEGRATION_FAILED
+                detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "
+                             "meet the tolerance.")
+            rows, traj, W = rows[~failed], traj[~failed], W[~failed]
+        if rows.numel():
+            traj_obs = self._at_obs(traj, rows)
+            C, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
+            w = self.w[rows].reshape(rows.numel(), -1)
+            J = C * w.unsqueeze(-1)
+            rw = resid * w
+            s = self._ssq(rows, resid)
+            sse[rows] = s
+            exact = self.exact[rows]
+            exact_residual[rows] = torch.where(exact, resid.abs(), torch.zeros_like(resid)).amax(dim=1)
+            if self.history is not None:
+                for k, r in enumerate(rows.tolist()):
+                    self.history[r].append(self._record(r, int(iterations[r]), z0[r], float(s[k]), traj[k]))
+                    self._notify(r)
+            residuals[rows], jacobian[rows] = rw, J
+            nonfinite = ~torch.isfinite(s)
+            for r in rows[nonfinite].tolist():
+                codes[r] = Status.DIVERGED
+                detail[r] = " The fitted trajectory is non-finite."
+            keep = ~nonfinite
+            rows, J, s, rw = rows[keep], J[keep], s[keep], rw[keep]
+        if rows.numel():
+            L = self.L[rows]
+            # the Gauss-Newton steps at the estimates (their stationarity), and the Jacobians' ranks
+            step, deficient, sv = solve_update_batch(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
+            singular_values[rows] = sv
+            deficient |= L < m
+            for k, r in enumerate(rows.tolist()):
+                code = codes[r]
+                if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
+                    continue
+                null_text = ""
+                if bool(deficient[k]):
+                    used = self.mask[r].reshape(-1)
+                    sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
+                                       torch.ones(int(L[k]), dtype=dtype, device=dev),
+                                       torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
+                    null_text = null_detail(sol.null_vectors, spec.unknown_names)
+                codes[r], more = final_status(
+                    code, rank_deficient=bool(deficient[k]), null_text=null_text,
+                    estimates=z0[r, spec.unknown_index],
+                    scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
+                                             None if self.scale is None else self.scale[r]),
+                    unknown_names=spec.unknown_names,
+                    sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]),
+                    step=step[k])
+                detail[r] = more if code.success else detail[r] + more
+            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec,
+                                    deficient | self.exact[rows].any(dim=1), self.exact[rows])
+            cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
+        if self.history is not None:  # the estimates returned, unevaluated, where the final pass did not run
+            for r in range(S):
+                last = self.history[r][-1] if self.history[r] else None
+                if last is None or last.iteration != int(iterations[r]) or not torch.equal(last.x0, z0[r, :self.system.n]):
+                    self.history[r].append(self._record(r, int(iterations[r]), z0[r], float("nan")))
+        for k, r in enumerate(self.index.tolist()):
+            if spec.bounds.active:
+                detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index]))
+            if r in spec.moved_guesses:
+                detail[k] += " " + moved_guesses_note(spec.moved_guesses[r])
+        messages = [c.value + d for c, d in zip(codes, detail)]
+        return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
+                    residuals=residuals, jacobian=jacobian, singular_values=singular_values,
+                    exact_residual=exact_residual, history=self.history,
+                    sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
+
+
+def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:
+    """Per-sample covariance ``(S, m, m)`` as :func:`torchql.uncertainty.covariance`: batched, and
+    per sample (``deficient``) where a direction is undetermined or values are met ``exact (S, R)``."""
+    S, _, m = J.shape
+    dof = (L - m).to(J.dtype)
+    s2 = (torch.ones_like(sse) if spec.sigma_known
+          else torch.where(dof > 0, sse / dof.clamp(min=1), torch.full_like(sse, float("nan"))))
+    scale = torch.linalg.vector_norm(J, dim=1)
+    safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    _, Sv, Vh = torch.linalg.svd(J / safe_scale.unsqueeze(1), full_matrices=False)
+    inner = (Vh.transpose(1, 2) / Sv.unsqueeze(1) ** 2) @ Vh
+    inner = inner / safe_scale.unsqueeze(-1) / safe_scale.unsqueeze(-2)
+    cov = s2.reshape(-1, 1, 1) * inner
+    cov = 0.5 * (cov + cov.transpose(1, 2))
+    for k in deficient.nonzero().flatten().tolist():  # rare: undetermined unknowns get NaN, as fit reports
+        rows = used[k]
+        cov[k] = covariance(J[k][rows], exact[k][rows], float(sse[k]), spec.sigma_known, spec.rcond).matrix
+    return cov

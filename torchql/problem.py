@@ -1,0 +1,414 @@
+"""The validated fitting problem: model, data stacked ``(B, T, K)``, unknowns, guesses, bounds, grid.
+
+One class, :class:`Problem`, for one dataset (:func:`torchql.fit`, ``single=True``: its errors
+worded for one dataset) and for ``B`` of them (:func:`torchql.fit_many`); the iteration
+(:mod:`torchql.engine`) runs on it.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch.func import vmap
+
+from . import _checks
+from .batch_result import BatchFitResult
+from .bounds import Bounds, moved_record
+from .grid import make_grid
+from .integrate import check_solver
+from .linearize import linearize
+from .model import AugmentedSystem, coefficient_names, model_dtype_device
+from .observations import ObservationOperator, Observations
+from .options import Limits, Tolerances, check_damping, check_scheme
+from .solvers import STIFF_SOLVERS
+from .stiffness import choose_solver, linear_solver_for
+from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
+
+__all__ = ["Problem", "check_data"]
+
+
+class Problem:
+    """The validated problem shared by every chunk: model, data stacked ``(B, T, K)``, guesses, grid.
+
+    Times: ``t_obs (T,)``, ``t0 ()``, ``grid (G,)`` and ``obs_in_grid (T,)`` when the samples share
+    them (``grid_size`` is ``None``); else ``t_obs (B, T)``, ``t0 ()`` or ``(B,)``, each sample's
+    grid padded ``grid (B, G)`` with its own number of nodes ``grid_size (B,)``, ``obs_in_grid (B, T)``.
+    """
+
+    def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
+                 grid, damping, solver, max_steps, bounds=None, linear_solver=None,
+                 method="kantorovich", initial_trajectory="integrate", single: bool = False) -> None:
+        self.single = single  # torchql.fit's problem: one dataset, errors worded for it
+        _checks.model_class(model)
+        names = tuple(model.state_names)
+        n = len(names)
+        if not isinstance(solver, str):
+            raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
+        check_solver(solver, auto=True)
+        self.damping, self.solver = check_damping(damping), solver
+        self.method, self.initial_trajectory = check_scheme(method, initial_trajectory)
+        if linear_solver is not None:
+            check_linear_solver(linear_solver)
+        limits = Limits.resolve(max_iter, max_steps)
+        self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
+        self.dtype, self.device = dtype, device = model_dtype_device(model)
+        tol = Tolerances.resolve(dtype, rtol, atol, xtol, ftol, rcond)
+        self.rtol, self.atol, self.xtol, self.ftol, self.rcond = tol.rtol, tol.atol, tol.xtol, tol.ftol, tol.rcond
+
+        # --- data: (B, T, K)
+        self._stack(data, dtype, device)
+        B = self.B
+
+        # --- unknowns and per-sample buffers
+        available = coefficient_names(model)
+        if params is None:
+            params = [name for name in available if name not in tuple(model.constants)]
+        else:
+            params = _checks.distinct_names("params", params, available, "buffer", _checks.coefficients_text(model))
+        if guesses is None:
+            guesses = {}
+        if not isinstance(guesses, dict):
+            raise TypeError(f"`guesses` must be a dict {{buffer name: Tensor (B, ...)}}; received {type(guesses).__name__}")
+        for name in guesses:
+            if name not in available:
+                raise ValueError(f"`guesses` names unknown buffer {name!r}; {_checks.coefficients_text(model)}")
+        per_sample = list(params) + [name for name in guesses if name not in params]
+        self.params = list(params)
+        self.system = AugmentedSystem(model, per_sample, dtype, device)
+        system = self.system
+        buffers = dict(system.model.named_buffers())
+        columns = []
+        for name, shape in zip(per_sample, system.param_shapes):
+            value = guesses.get(name, buffers[name])
+            try:
+                value = torch.as_tensor(value, dtype=dtype, device=device).detach()
+            except (TypeError, ValueError) as exc:
+                raise TypeError(f"`guesses[{name!r}]` must be a tensor of shape (B, *{tuple(shape)}) = "
+                                f"{(B, *shape)}; received {type(value).__name__}") from exc
+            if value.shape == shape:
+                value = value.expand(B, *shape)
+            elif value.shape != (B, *shape):
+                raise ValueError(f"`guesses[{name!r}]` must have shape (B, *buffer shape) = {(B, *shape)} or the "
+                                 f"buffer's shape {tuple(shape)}; received shape {tuple(value.shape)}")
+            bad = ~torch.isfinite(value.reshape(B, -1)).all(dim=1)
+            if bool(bad.any()) and name not in guesses:
+                raise ValueError(f"the guesses of [{name!r}] (the model's buffers) must be finite")
+            if bool(bad.any()):
+                raise ValueError(f"`guesses[{name!r}]` must be finite; samples {bad.nonzero().flatten().tolist()[:10]} "
+                                 "hold NaN or inf")
+            columns.append(value.reshape(B, -1))
+        p0 = torch.cat(columns, dim=1) if columns else torch.zeros(B, 0, dtype=dtype, device=device)
+        if not bool(torch.isfinite(p0).all()):
+            raise ValueError(f"the guesses of {self.params} (the model's buffers) must be finite")
+
+        # --- times: t_obs (T,) shared or (B, T) per sample, t0 () shared or (B,) per sample
+        self.t_obs = self.t
+        self.t0 = self._initial_time(t0)
+
+        # --- initial states
+        self.operator = ObservationOperator(self.observe, names, self.K, dtype, device)
+        if x0 is None:
+            x0 = self._x0_from_data(names)
+        else:
+            try:
+                x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach()
+            except (TypeError, ValueError) as exc:
+                if single:
+                    raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); "
+                                    f"received {type(x0).__name__}") from exc
+                raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
+                                f"({n},); received {type(x0).__name__}") from exc
+            if single and x0.shape != (n,):
+                raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
+            if single and not bool(torch.isfinite(x0).all()):
+                raise ValueError("`x0` must be finite; received NaN or inf")
+            if x0.shape == (n,):
+                x0 = x0.expand(B, n)
+            elif x0.shape != (B, n):
+                raise ValueError(f"`x0` must have shape (B, n_states) = ({B}, {n}) or (n_states,) = ({n},); "
+                                 f"received shape {tuple(x0.shape)}")
+            bad = ~torch.isfinite(x0).all(dim=1)
+            if bool(bad.any()):
+                raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
+        self.z0 = torch.cat([x0, p0], dim=1).clone()
+
+        fixed_x0 = _checks.distinct_names("fixed_x0", [] if fixed_x0 is None else fixed_x0, names, "state",
+                                          f"the model's states are {names}")
+        free = [i for i, s in enumerate(names) if s not in fixed_x0]
+        n_unknown_params = sum(size for name, size in zip(per_sample, system.param_sizes) if name in self.params)
+        self.unknown_index = torch.tensor(free + list(range(n, n + n_unknown_params)), dtype=torch.long,
+                                          device=device)
+        self.unknown_names = [f"{names[i]}(t0)" for i in free] + system.element_names[:n_unknown_params]
+        self.m = m = self.unknown_index.numel()
+        if m == 0:
+            raise ValueError("nothing to estimate: every initial state is in `fixed_x0` and `params` is empty")
+        short = (self.L < m).nonzero().flatten().tolist()
+        if short and self.single:
+            raise ValueError(
+                f"fewer usable observations ({int(self.L[0])}) than unknowns ({m}: {self.unknown_names}); "
+                "add observations, or fix some unknowns with `params=`/`fixed_x0=`")
+        if short:
+            i = short[0]
+            raise ValueError(f"`data[{i}]` has {int(self.L[i])} usable values, fewer than the {m} unknowns "
+                             f"{self.unknown_names}" + (f" (samples {short[:10]} alike)" if len(short) > 1 else "")
+                             + "; remove it from the batch or fix some unknowns")
+        marked = self.exact.flatten(1).sum(dim=1)
+        over = (marked > m).nonzero().flatten().tolist()
+        if over:
+            where = "" if self.single else f"`data[{over[0]}]`: "
+            raise ValueError(
+                f"{where}more values are marked `exact` ({int(marked[over[0]])}) than there are unknowns ({m}); "
+                "at most one exact value per unknown can be met")
+        # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
+        # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
+        self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free), self.params, system.param_sizes,
+                                          list(names) + list(available), dtype, device)
+        self.moved_guesses: dict[int, dict[str, tuple[float, float]]] = {}
+        if self.bounds.active:
+            given = self.z0[:, self.unknown_index]
+            used, moved = self.bounds.move_inside(given)
+            for b in moved.any(dim=1).nonzero().flatten().tolist():
+                self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
+            self.z0[:, self.unknown_index] = used
+            x0 = self.z0[:, :n]
+        self._check_model(x0[0])
+
+        # --- the solver ("auto": stiff if some sample's model is stiff along its data)
+        self.solver = choose_solver(self.solver, system, self.t_obs,
+                                    torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
+                                    self.operator.observed_states, x0, self.z0[:, n:],
+                                    (self.t_obs[..., -1] - self.t0).expand(B))
+        self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
+
+        # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
+        if self.t_obs.dim() == 1:
+            self.grid = make_grid(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
+            self.grid_size = None
+        else:
+            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
+        self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
+        self.model = model
+
+    def _initial_time(self, t0) -> torch.Tensor:
+        """``t0``: the first observation time (each sample's own, ``(B,)``, when times are per sample)
+        or the given time, shared ``()``, not later than any sample's first observation."""
+        first = self.t_obs[..., 0]
+        if t0 is None:
+            if first.dim() == 1 and bool((first == first[0]).all()):
+                first = first[0]  # the samples' times differ, not their first: t0 shared
+            return first.clone()
+        value = torch.as_tensor(_checks.finite_number("t0", t0), dtype=self.dtype, device=self.device)
+        late = (value > first).reshape(-1).nonzero().flatten().tolist()
+        if late:
+            if self.t_obs.dim() == 1:
+                raise ValueError(f"`t0` must not be later than the first observation time "
+                                 f"{self.t_obs[0].item():g}; received {float(t0):g}")
+            alike = f" (samples {late[:10]} alike)" if len(late) > 1 else ""
+            raise ValueError(f"`t0` must not be later than the first observation time of any sample; `data[{late[0]}]` "
+                             f"starts at {first[late[0]].item():g}{alike}, received t0 = {float(t0):g}")
+        return value
+
+    # ------------------------------------------------------------------------------------------
+    def _stack(self, data, dtype, device) -> None:
+        data = check_data(data)
+        if isinstance(data, Observations):
+            first, y, sigma, exact = data, data.y, data.sigma, data.exact
+            t = data.t.to(dtype=dtype, device=device)
+            low = [("data", data.y.dtype)] if _coarser(data.y.dtype, dtype) else []
+        else:
+            first = data[0]
+            t = torch.stack([d.t.to(dtype=dtype, device=device) for d in data])
+            exact = torch.stack([d.exact for d in data])
+            y = torch.stack([d.y.to(dtype) for d in data])
+            sigma = torch.stack([d.sigma.to(dtype) for d in data])
+            low = [("data" if self.single else f"data[{i}]", d.y.dtype) for i, d in enumerate(data)
+                   if _coarser(d.y.dtype, dtype)]
+        self.B = y.shape[0]
+        if low:
+            warnings.warn(f"`{low[0][0]}` holds {low[0][1]} values but the model computes in {dtype}: the data's own "
+                          "rounding limits the fit's accuracy; build the Observations from float64 tensors",
+                          UserWarning, stacklevel=4)
+        if t.dim() == 2 and bool((t == t[:1]).all()):
+            t = t[0]  # every sample at the same times: the shared grid serves them all
+        self.t = t  # (T,) or (B, T)
+        self.observe = first.observe
+        self.K = y.shape[-1]
+        self.sigma_known = first.sigma_given
+        y = y.to(dtype=dtype, device=device)
+        self.mask = ~torch.isnan(y)  # (B, T, K)
+        self.exact = exact.to(device) & self.mask  # (B, T, K): values to be met exactly
+        self.has_exact = bool(self.exact.any())
+        self.y = torch.where(self.mask, y, torch.zeros_like(y))
+        self.weights = torch.where(self.mask, 1.0 / sigma.to(dtype=dtype, device=device), torch.zeros_like(y))
+        self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
+
+    def _x0_from_data(self, names) -> torch.Tensor:
+        early = (self.t0 != self.t_obs[..., 0]).reshape(-1)
+        if bool(early.any()):
+            where = "" if self.t_obs.dim() == 1 else f" (as in `data[{int(early.nonzero()[0, 0])}]`)"
+            raise ValueError(f"`x0` is required when `t0` precedes the first observation{where}")
+        x0 = torch.full((self.B, len(names)), float("nan"), dtype=self.dtype, device=self.device)
+        for k, i in enumerate(self.operator.observed_states):
+            if i is not None:
+                x0[:, i] = torch.where(self.mask[:, 0, k], self.y[:, 0, k], x0[:, i])
+        missing = torch.isnan(x0)
+        if bool(missing.any()):
+            b = int(missing.any(dim=1).nonzero()[0, 0])
+            states = [names[i] for i in range(len(names)) if bool(missing[b, i])]
+            if self.single:
+                raise ValueError(f"`x0` is required: the states {states} are not observed directly at t0")
+            raise ValueError(f"`x0` is required: in `data[{b}]` the states {states} are not observed directly at t0")
+        return x0
+
+    def _check_model(self, x0: torch.Tensor) -> None:
+        """The forward on sample 0's guesses (in-place updates, shape, dtype, finite; differentiable
+        with torch.func), then finite on every sample's guesses, vectorized."""
+        system = self.system
+        t0 = self.t0.expand(self.B)
+
+        def check(b: int, sample: str = "") -> None:
+            p = self.z0[b, system.n:]
+            _checks.model_forward(lambda t, x: system.rhs(t, x, p), t0[b], self.z0[b, :system.n],
+                                  system.state_names, dict(zip(system.element_names, p.tolist())), self.dtype,
+                                  sample)
+
+        check(0)
+        try:
+            linearize(system, t0[:1], self.z0[:1])
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
+                             f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
+                             "values.") from exc
+        with torch.no_grad():
+            finite = torch.isfinite(vmap(system.f)(t0, self.z0)).all(dim=1)
+        bad = (~finite).nonzero().flatten().tolist()
+        if bad:
+            check(bad[0], f" of `data[{bad[0]}]`" + (f" (samples {bad[:10]} alike)" if len(bad) > 1 else ""))
+        self.operator.check(x0)
+
+    # ------------------------------------------------------------------------------------------
+    def result(self, z0, out, statuses, messages, nfev) -> BatchFitResult:
+        system, n, B = self.system, self.system.n, self.B
+        params = self._params_of(z0)
+        dof = self.L - self.m
+        if self.sigma_known:
+            variance = torch.ones(B, dtype=self.dtype, device=self.device)
+        else:
+            variance = torch.where(dof > 0, out["sse"] / dof.clamp(min=1).to(self.dtype),
+                                   torch.full_like(out["sse"], float("nan")))
+        return BatchFitResult(
+            success=torch.tensor([s.success for s in statuses], dtype=torch.bool, device=self.device),
+            status=statuses, message=messages, params=params, x0=z0[:, :n].clone(),
+            t0=float(self.t0) if self.t0.dim() == 0 else self.t0.clone(),
+            unknown_names=list(self.unknown_names), estimates=z0[:, self.unknown_index].clone(),
+            iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
+            dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
+            model=system.user_model(), residuals=out["residuals"], jacobian=out["jacobian"],
+            used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
+            exact=self.exact.reshape(B, -1).clone(), exact_residual=out["exact_residual"],
+            start_params=self._params_of(self.z0), start_x0=self.z0[:, :n].clone(), sse_start=out["sse_start"],
+            solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
+            lower=self.bounds.lower.clone() if self.bounds.active else None,
+            upper=self.bounds.upper.clone() if self.bounds.active else None,
+            moved_guesses={b: dict(moved) for b, moved in self.moved_guesses.items()})
+
+
+    def _params_of(self, z0: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every float buffer per sample ``(B, *shape)`` for augmented states ``z0 (B, M)``."""
+        system, B = self.system, self.B
+        per_sample, start = {}, system.n
+        for name, shape, size in zip(system.param_names, system.param_shapes, system.param_sizes):
+            per_sample[name] = z0[:, start:start + size].reshape(B, *shape)
+            start += size
+        params = {}
+        for name, value in system.model.named_buffers():
+            if value.is_floating_point():
+                params[name] = (per_sample[name] if name in per_sample else value.expand(B, *value.shape)).clone()
+        return params
+
+
+def check_data(data) -> Observations | list[Observations]:
+    """``fit_many``'s ``data`` validated: one batched Observations as it is, or a list of datasets.
+
+    A list must hold one-dataset Observations with the same number ``T`` of observation times
+    (each its own times), the same ``observe`` specification and all or none giving ``sigma``
+    (a batched Observations has them in common by construction). Errors name the argument and
+    the dataset.
+    """
+    if isinstance(data, Observations):
+        if data.batch_size is None:
+            raise TypeError("`data` must be a list of torchql.Observations (one per dataset) or one Observations "
+                            "holding a batch, values (B, T, K); received a single dataset, values "
+                            f"{tuple(data.y.shape)} (a single dataset: use torchql.fit, or pass [data])")
+        return data
+    if not isinstance(data, (list, tuple)):
+        raise TypeError("`data` must be a list of torchql.Observations (one per dataset) or one Observations "
+                        f"holding a batch, values (B, T, K); received {type(data).__name__}")
+    if len(data) == 0:
+        raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
+    for i, d in enumerate(data):
+        if not isinstance(d, Observations):
+            raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
+        if d.batch_size is not None:
+            raise ValueError(f"`data[{i}]` holds a batch of {d.batch_size} datasets, values {tuple(d.y.shape)}: "
+                             "pass a batched Observations alone as `data`, not in a list")
+    items = list(data)
+    first = items[0]
+    for i, d in enumerate(items[1:], start=1):
+        if d.n_times != first.n_times:
+            raise ValueError(f"`data[{i}]` has T = {d.n_times} observation times but `data[0]` has "
+                             f"{first.n_times}: fit_many needs the same number of times in every dataset (each "
+                             "may have its own times); fit datasets with other numbers of times in another batch")
+        if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
+            raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
+                             "fit_many needs one observation operator for all datasets (the same names, matrix "
+                             "or callable object)")
+        if d.sigma_given != first.sigma_given:
+            raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
+                             f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
+    return items
+
+
+def _coarser(data_dtype: torch.dtype, dtype: torch.dtype) -> bool:
+    """Whether data of ``data_dtype`` are rounded more coarsely than the computation's ``dtype``."""
+    return torch.finfo(data_dtype).eps > torch.finfo(dtype).eps
+
+
+def _same_observe(a, b) -> bool:
+    if a is b:
+        return True
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape == b.shape and torch.equal(a.to(torch.float64), b.to(torch.float64))
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return list(a) == list(b)
+    try:
+        import numpy as np
+
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            return bool(np.array_equal(np.asarray(a), np.asarray(b)))
+    except ImportError:  # pragma: no cover
+        pass
+    return False
+
+
+#: The storage grid, shared with ``fit`` (:func:`torchql.grid.make_grid`).
+_make_grid = make_grid
+
+
+def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each sample's own grid, as :func:`torchql.fit` builds it for that dataset alone.
+
+    ``t0``: shared ``()`` or per sample ``(B,)``; ``t_obs (B, T)``. Returns the grids ``(B, G)``,
+    each padded at the end by repeating its last node up to the longest one's ``G`` nodes
+    (zero-length intervals), and each grid's own number of nodes ``(B,)``. Samples with the
+    same ``t0`` and times share one construction.
+    """
+    B = t_obs.shape[0]
+    starts = t0.expand(B) if t0.dim() == 0 else t0
+    keys, inverse = torch.unique(torch.cat([starts.unsqueeze(1), t_obs], dim=1), dim=0, return_inverse=True)
+    grids = [make_grid(grid, key[0], key[1:], stiff=stiff) for key in keys]
+    sizes = torch.tensor([g.numel() for g in grids], dtype=torch.long, device=t_obs.device)
+    G = int(sizes.max())
+    padded = torch.stack([torch.cat([g, g[-1:].expand(G - g.numel())]) for g in grids])
+    return padded[inverse], sizes[inverse]
