@@ -207,10 +207,12 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
     return Y, failed, points
 
 
-def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
+def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=None):
     """``phi (N, M)``, ``S (N, M, M)`` of every interval and ``failed (N,)``; ``steps`` updated in place.
 
-    ``rtol``, ``atol``: floats, or Tensors ``(N, 1)`` (each interval its own).
+    ``rtol``, ``atol``: floats, or Tensors ``(N, 1)`` (each interval its own). ``owner (N,)``: each
+    interval's sample; when one interval of a sample exceeds ``max_substeps``, the sample's other
+    intervals stop too (all failed: the sample has failed).
     """
     N, M = x0.shape
     phi = x0.new_empty(N, M)
@@ -234,6 +236,10 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps):
         current = steps[todo]
         capped = 2 * current >= max_substeps
         failed[todo[capped]] = True
+        if owner is not None and bool(capped.any()):
+            dead = torch.isin(owner[todo], owner[todo[capped]])
+            failed[todo[dead]] = True
+            capped = capped | dead
         todo, current = todo[~capped], current[~capped]
         r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
         factor = torch.ceil(torch.log2((_GRID_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
@@ -309,8 +315,9 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
             rt, at = rtol_j[active].repeat_interleave(N, dim=0), atol_j[active].repeat_interleave(N, dim=0)
         else:
             ta, hs, rt, at = t0.repeat(A), h.repeat(A), rtol_j, atol_j
+        owner = torch.arange(A, device=z0.device).repeat_interleave(N) if report_budget else None
         phi, Sj, failed, evals = _integrate_each(field, ta, hs, Xa[:, :-1].reshape(-1, M), st, rt, at,
-                                                 max_substeps)
+                                                 max_substeps, owner)
         steps[active] = st.reshape(A, N)
         n_evals += evals
         failed = failed.reshape(A, N).any(dim=1)

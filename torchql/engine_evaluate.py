@@ -13,7 +13,8 @@ import math
 import torch
 
 from .batch_integrate import dopri_batch, integrate_each, propagate_linear_batch, solve_on_grid_batch
-from .integrate import IntegrationError
+from .grid_solve import IntervalBudgetError, solve_on_grid
+from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
 from .solvers import STIFF_SOLVERS, rodas5p_batch
 from .superposition import propagate_linear
@@ -159,7 +160,8 @@ class Evaluation:
         led into; the damping shortens the step instead), an interval then being allowed
         ``_BLOWUP_STEPS / (G - 1)`` steps if that is more, so that a coarse grid does not turn a
         smooth trial into a blow-up. The other samples, or all without a guess, are integrated by
-        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``), by the implicit
+        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``, more than one
+        sample), by the implicit
         :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
         torchdiffeq with ``solver`` (another method, or where the batched Dormand–Prince fails),
         whose message is kept when it fails too.
@@ -187,6 +189,12 @@ class Evaluation:
                     and not stiff and substeps >= 2):
                 usable = torch.isfinite(guess).flatten(1).all(dim=1)
                 sub = usable.nonzero().flatten()
+                if sub.numel() == 1 and shared:  # one sample: its model with the coefficients bound
+                    s = int(sub[0])
+                    traj[s], ok[s], over = self._grid_solve_one(z0[s], grid, guess[s], rtol, atol, substeps)
+                    if budget_is_final and over:
+                        errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
+                    sub = sub[:0]
                 if sub.numel():
                     tr, good, evals, over = solve_on_grid_batch(
                         self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, guess=guess[sub],
@@ -199,12 +207,13 @@ class Evaluation:
                                          f"{substeps} steps (a blow-up)")
             todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
             sub = todo.nonzero().flatten()
-            if sub.numel() and (stiff or (spec.solver == "dopri5" and spec.max_steps is None)):
-                land = None
-                if (loose or stiff) and shared:  # onto the observation times, the rest interpolated
+            batched = spec.solver == "dopri5" and spec.max_steps is None and S > 1  # one sample: torchdiffeq's
+            if sub.numel() and (stiff or batched):
+                # the steps land on the observation times, the other nodes from the dense output
+                if shared:
                     land = torch.zeros(G, dtype=torch.bool, device=z0.device)
                     land[self.obs] = True
-                elif loose or stiff:
+                else:
                     land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
                     land.scatter_(1, self.obs[idx[sub]], True)
                 if stiff:  # every sample by the implicit solver; its message kept for a failure
@@ -241,6 +250,26 @@ class Evaluation:
                     else:
                         errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
         return traj, errors
+
+    def _grid_solve_one(self, z0, grid, guess, rtol, atol, substeps):
+        """:func:`~torchql.grid_solve.solve_on_grid` for one sample ``z0 (M,)`` on ``grid (G,)``
+        from ``guess (G, M)``, its coefficients bound in its model (no augmented state):
+        ``(traj (G, M), ok, over_budget)``."""
+        n = self.system.n
+        counter = CountedField(self.system.model_with(z0[n:]))
+        traj = torch.full_like(guess, float("nan"))
+        ok = over = False
+        try:
+            x, _ = solve_on_grid(counter, z0[:n], grid, rtol=rtol, atol=atol, guess=guess[:, :n],
+                                 max_newton=_GRID_NEWTON, max_substeps=substeps)
+            traj = torch.cat([x, z0[n:].expand(x.shape[0], -1)], dim=1)
+            ok = True
+        except IntervalBudgetError:
+            over = True
+        except IntegrationError:
+            pass
+        self.nfev += counter.n_evals * (grid.shape[0] - 1)  # each call: one stage of every interval
+        return traj, ok, over
 
     def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor) -> torch.Tensor:
         """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable).
