@@ -224,205 +224,235 @@ class Engine(Evaluation, FinalPass):
             self.callback(int(self.index[r]), self.history[r][-1])
 
     def run(self, report) -> dict:
-        spec, S = self.spec, self.S
-        dev, dtype = spec.device, spec.dtype
-        status = torch.full((S,), _RUNNING, dtype=torch.long, device=dev)
-        detail = [""] * S
-        iterations = torch.zeros(S, dtype=torch.long, device=dev)
-        damping = torch.zeros(S, dtype=dtype, device=dev)
-        last_damping = torch.zeros(S, dtype=dtype, device=dev)
-        fresh = torch.ones(S, dtype=torch.bool, device=dev)
-        rejected_count = torch.zeros(S, dtype=torch.long, device=dev)
-        sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
-        z0 = self.z0_guess.clone()
-        all_idx = torch.arange(S, device=dev)
-
-        def stop(rows, code, text=""):
-            status[rows] = _STATUSES.index(code)
-            for r in rows.tolist():
-                detail[r] = text
-            report(int((status != _RUNNING).sum()))
-
-        final_guess = None
+        """Iterate every sample of the chunk to its status; then the final pass. ``report``
+        receives the number of samples stopped."""
+        st = _Loop(self, report)
         try:
-            n = self.system.n
-            if spec.initial_trajectory == "data":  # first iterate: each sample's data-built reference
-                traj, z_dot, z0 = self._data_start(all_idx, z0)
-                bad = torch.zeros(S, dtype=torch.bool, device=dev)
-                lin = self._linearize(all_idx, traj, z_dot)
-                cur = self._evaluate(all_idx, z0, traj, z_dot, lin)
-            else:  # first iterate: the model integrated (loosely, for Kantorovich) from the guesses
-                kantorovich = spec.method == "kantorovich"  # from a constant guess, loosely, as a first reference
-                guess = z0.unsqueeze(1).expand(S, self.G, z0.shape[1]) if kantorovich else None
-                traj, errors = self._nonlinear(all_idx, z0, loose=kantorovich, guess=guess)
-                bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=dev)
-                for r in bad.nonzero().flatten().tolist():
-                    status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
-                    detail[r] = f" The solver said: {errors[r]}."
-                lin = self._linearize(all_idx, traj)
-                cur = self._evaluate(all_idx, z0, traj, lin.f, lin, solution=spec.method == "shooting")
-            self._fail_integration(cur["failed"] & ~bad, status, detail)
-            final_guess = cur["W"][:, :, :, 0].clone()
-            typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), z0[:, n:].abs()], dim=1)
-            typical = torch.where(typical > 0, typical, torch.ones_like(typical))
-            scale = typical[:, spec.unknown_index]
-            # for the final diagnosis: the model's own SSE at the guesses, when the first iterate is its solution
-            self.scale = scale
-            self.sse_start = None if spec.initial_trajectory == "data" else cur["sse"].clone()
-            report(int((status != _RUNNING).sum()))
-
-            while True:
-                running = status == _RUNNING
-                if time_left() <= 0 and bool(running.any()):
-                    stop(running.nonzero().flatten(), Status.MAX_TIME)
-                    running = status == _RUNNING
-                # the start of an iteration: the budget, then the iterate's rows
-                start = running & fresh
-                maxed = start & (iterations >= spec.max_iter)
-                if bool(maxed.any()):
-                    stop(maxed.nonzero().flatten(), Status.MAX_ITER)
-                start &= ~maxed
-                self._open(start.nonzero().flatten(), cur, iterations)
-                rejected_count[start] = 0
-                finite = (torch.isfinite(cur["sse"]) & torch.isfinite(cur["C"]).flatten(1).all(dim=1)
-                          & torch.isfinite(cur["d"]).all(dim=1))
-                diverged = start & ~finite
-                if bool(diverged.any()):
-                    stop(diverged.nonzero().flatten(), Status.DIVERGED, " The residuals became non-finite.")
-                    self._notify(diverged.nonzero().flatten())
-                fresh &= ~start
-                act = (status == _RUNNING).nonzero().flatten()
-                if not act.numel():
-                    break
-                if spec.has_exact:
-                    alpha, capped, infeasible = self._solve_exact(act, cur, damping[act])
-                    if bool(infeasible.any()):
-                        stop(act[infeasible], Status.EXACT_INFEASIBLE)
-                        keep = ~infeasible
-                        act, alpha, capped = act[keep], alpha[keep], capped[keep]
-                else:
-                    alpha, capped = self._solve(act, cur, damping[act])
-                u = cur["z0"][act][:, spec.unknown_index]
-                scaled = (alpha.abs() / torch.maximum(u.abs(), scale[act])).amax(dim=1)
-                bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
-                if bool(bad.any()):
-                    stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
-                    keep = ~bad
-                    act, alpha, scaled, capped = act[keep], alpha[keep], scaled[keep], capped[keep]
-                self._annotate(act, alpha=alpha, alpha_norm=scaled, damping=damping[act],
-                               rejected=rejected_count[act])
-                # convergence, tested on undamped steps only
-                zero = damping[act] == 0
-                sse = cur["sse"][act]
-                conv = zero & (scaled <= spec.xtol)
-                conv_sse = (zero & ~conv & torch.isfinite(sse_prev[act]) & (sse > 0)
-                            & ((sse - sse_prev[act]).abs() <= spec.ftol * sse) & (scaled <= math.sqrt(spec.xtol)))
-                sse_prev[act[zero & ~conv & ~conv_sse]] = sse[zero & ~conv & ~conv_sse]
-                done = conv | conv_sse
-                if bool(done.any()):
-                    rows = act[done]
-                    W = cur["W"][rows]
-                    z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
-                    iterations[rows] += 1
-                    final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
-                    self._annotate(rows, model_merit=self._model_merit(rows, cur))
-                    self._notify(rows)
-                    if bool(conv.any()):
-                        stop(act[conv], Status.CONVERGED)
-                    if bool(conv_sse.any()):
-                        stop(act[conv_sse], Status.CONVERGED_SSE)
-                    act, alpha, capped = act[~done], alpha[~done], capped[~done]
-                if not act.numel():
-                    continue
-                trial, ok = self._propose(act, cur, alpha)
-                if spec.damping is None:
-                    accept = ok
-                elif spec.method == "shooting":  # the merit is the model's own sum of squares
-                    accept = ok & (trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK))
-                else:
-                    # as fit's _better: the linear merit decides only for trials near solving the model
-                    # whose step was not capped at a bound's largest internal move
-                    better = ((trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK))
-                              & (trial["defect"] <= DEFECT_TRUST) & ~capped)
-                    check = ok & ~better
-                    if bool(check.any()):
-                        rows = check.nonzero().flatten()
-                        t_sse = self._nonlinear_sse(act, trial, rows)
-                        c_sse = self._nonlinear_sse(all_idx, cur, act[rows])
-                        better[rows] = t_sse <= c_sse * (1 + _MERIT_SLACK)
-                    accept = ok & better
-                if bool(accept.any()):
-                    rows = accept.nonzero().flatten()
-                    target = act[rows]
-                    self._annotate(target, model_merit=self._model_merit(target, cur))
-                    self._notify(target)
-                    _put(cur, target, trial, rows)
-                    last_damping[target] = damping[target]
-                    damping[target] = 0.0
-                    iterations[target] += 1
-                    fresh[target] = True
-                    z0[target] = trial["z0"][rows]
-                    final_guess[target] = _pick(trial["W"], rows)[..., 0]
-                rejected = act[~accept]
-                if not rejected.numel():
-                    continue
-                if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
-                    z0[rejected] = _shifted(cur["z0"][rejected], alpha[~accept], spec.unknown_index)
-                    iterations[rejected] += 1
-                    self._notify(rejected)
-                    stop(rejected, Status.INTEGRATION_FAILED,
-                         " The undamped step led to a trajectory that cannot be integrated; the default "
-                         "damping=\"lm\" would have shortened it.")
-                    continue
-                rejected_count[rejected] += 1
-                # Kantorovich re-anchors an undamped rejection about the model's own solution
-                candidates = rejected[(damping[rejected] == 0) & ~cur["anchored"][rejected]]
-                if spec.method == "shooting":  # always about the model's own solution already
-                    candidates = candidates[:0]
-                anchored_rows = candidates[:0]
-                if candidates.numel():
-                    self._nonlinear_sse(all_idx, cur, candidates)
-                    integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
-                    anchored_rows = candidates[integrable]
-                    if anchored_rows.numel():
-                        traj = cur["nl_traj"][anchored_rows]
-                        lin = self._linearize(anchored_rows, traj)
-                        anchored = self._evaluate(anchored_rows, cur["z0"][anchored_rows], traj, lin.f, lin)
-                        anchored["anchored"][:] = True
-                        anchored["nl_sse"] = cur["nl_sse"][anchored_rows]
-                        anchored["nl_traj"] = traj
-                        failed = anchored["failed"]
-                        if bool(failed.any()):
-                            self._fail_integration_rows(anchored_rows[failed], status, detail)
-                        keep = (~failed).nonzero().flatten()
-                        _put(cur, anchored_rows[keep], anchored, keep)
-                        done_rows = anchored_rows[keep]
-                        if self.history is not None:
-                            for r in done_rows.tolist():
-                                record = self.history[r][-1]
-                                record.sse, record.merit = float(cur["sse"][r]), float(cur["merit"][r])
-                                record.trajectory = cur["rz"][r, :, :n].detach().clone()
-                raise_rows = rejected[~torch.isin(rejected, anchored_rows)]
-                if raise_rows.numel():
-                    d = damping[raise_rows]
-                    last = last_damping[raise_rows]
-                    first = torch.where(last > 0, torch.clamp(last / 10, min=_DAMPING_MIN), _DAMPING_START)
-                    d = torch.where(d == 0, first, 10 * d)  # as fit's _first_damping, per sample
-                    damping[raise_rows] = d
-                    stalled = raise_rows[d > _DAMPING_MAX]
-                    if stalled.numel():
-                        self._annotate(stalled, rejected=rejected_count[stalled],
-                                       model_merit=self._model_merit(stalled, cur))
-                        self._notify(stalled)
-                        stop(stalled, Status.STALLED)
+            self._start(st)
+            while self._iteration(st):
+                pass
         except TimeBudgetExceeded:  # inside a phase: the samples still running stop where they are
-            stop((status == _RUNNING).nonzero().flatten(), Status.MAX_TIME)
-        spent = [r for r, c in enumerate(status.tolist()) if c == _STATUSES.index(Status.MAX_TIME)]
+            st.stop((st.status == _RUNNING).nonzero().flatten(), Status.MAX_TIME)
+        spent = [r for r, c in enumerate(st.status.tolist()) if c == _STATUSES.index(Status.MAX_TIME)]
         for r in spent:
-            detail[r] = (f" Stopped after {int(iterations[r])} iterations (max_time = {self.max_time:g} s)."
-                         + detail[r])
+            st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {self.max_time:g} s)."
+                            + st.detail[r])
         with no_time_budget():  # the samples that finished in time get their final evaluation
-            return self._finish(z0, status, detail, iterations, final_guess)
+            return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess)
+
+    def _start(self, st: "_Loop") -> None:
+        """The first iterate of every sample: the data-built reference, or the model integrated
+        from the guesses (loosely, from a constant guess, for Kantorovich); the unknowns' typical
+        magnitudes and the model's sums of squares at the guesses."""
+        spec, S, n, all_idx = self.spec, self.S, self.system.n, st.all_idx
+        if spec.initial_trajectory == "data":
+            traj, z_dot, st.z0 = self._data_start(all_idx, st.z0)
+            bad = torch.zeros(S, dtype=torch.bool, device=spec.device)
+            lin = self._linearize(all_idx, traj, z_dot)
+            st.cur = self._evaluate(all_idx, st.z0, traj, z_dot, lin)
+        else:
+            kantorovich = spec.method == "kantorovich"
+            guess = st.z0.unsqueeze(1).expand(S, self.G, st.z0.shape[1]) if kantorovich else None
+            traj, errors = self._nonlinear(all_idx, st.z0, loose=kantorovich, guess=guess)
+            bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=spec.device)
+            for r in bad.nonzero().flatten().tolist():
+                st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
+                st.detail[r] = f" The solver said: {errors[r]}."
+            lin = self._linearize(all_idx, traj)
+            st.cur = self._evaluate(all_idx, st.z0, traj, lin.f, lin, solution=not kantorovich)
+        self._fail_integration(st.cur["failed"] & ~bad, st.status, st.detail)
+        st.final_guess = st.cur["W"][:, :, :, 0].clone()
+        typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
+        typical = torch.where(typical > 0, typical, torch.ones_like(typical))
+        self.scale = typical[:, spec.unknown_index]
+        # for the final diagnosis: the model's own SSE at the guesses, when the first iterate is its solution
+        self.sse_start = None if spec.initial_trajectory == "data" else st.cur["sse"].clone()
+        st.report_stopped()
+
+    def _iteration(self, st: "_Loop") -> bool:
+        """One round: every running sample tries one step (or starts its next iteration).
+        ``False`` when no sample is running."""
+        act = self._begin(st)
+        if not act.numel():
+            return False
+        act, alpha, capped = self._update(st, act)
+        act, alpha, capped = self._converged(st, act, alpha, capped)
+        if not act.numel():
+            return True
+        trial, ok = self._propose(act, st.cur, alpha)
+        accept = self._accepted(st, act, trial, ok, capped)
+        self._take(st, act, trial, accept)
+        rejected = act[~accept]
+        if rejected.numel():
+            self._reject(st, rejected, alpha[~accept])
+        return True
+
+    def _begin(self, st: "_Loop") -> torch.Tensor:
+        """The time budget; for samples at a fresh iterate, ``max_iter``, the iterate's record and
+        its rows' finiteness. Returns the samples still running."""
+        running = st.status == _RUNNING
+        if time_left() <= 0 and bool(running.any()):
+            st.stop(running.nonzero().flatten(), Status.MAX_TIME)
+            running = st.status == _RUNNING
+        start = running & st.fresh
+        maxed = start & (st.iterations >= self.spec.max_iter)
+        if bool(maxed.any()):
+            st.stop(maxed.nonzero().flatten(), Status.MAX_ITER)
+        start &= ~maxed
+        self._open(start.nonzero().flatten(), st.cur, st.iterations)
+        st.rejected[start] = 0
+        cur = st.cur
+        finite = (torch.isfinite(cur["sse"]) & torch.isfinite(cur["C"]).flatten(1).all(dim=1)
+                  & torch.isfinite(cur["d"]).all(dim=1))
+        diverged = (start & ~finite).nonzero().flatten()
+        if diverged.numel():
+            st.stop(diverged, Status.DIVERGED, " The residuals became non-finite.")
+            self._notify(diverged)
+        st.fresh &= ~start
+        return (st.status == _RUNNING).nonzero().flatten()
+
+    def _update(self, st: "_Loop", act: torch.Tensor):
+        """The damped updates ``alpha`` of samples ``act`` and whether a bounded step was capped;
+        samples whose exact rows cannot be met, or whose update is not finite, stop. Also their
+        scaled sizes ``st.scaled``, recorded."""
+        spec, cur = self.spec, st.cur
+        if spec.has_exact:
+            alpha, capped, infeasible = self._solve_exact(act, cur, st.damping[act])
+            if bool(infeasible.any()):
+                st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
+                act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
+        else:
+            alpha, capped = self._solve(act, cur, st.damping[act])
+        u = cur["z0"][act][:, spec.unknown_index]
+        scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax(dim=1)
+        bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
+        if bool(bad.any()):
+            st.stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
+            act, alpha, scaled, capped = act[~bad], alpha[~bad], scaled[~bad], capped[~bad]
+        self._annotate(act, alpha=alpha, alpha_norm=scaled, damping=st.damping[act], rejected=st.rejected[act])
+        st.scaled = scaled
+        return act, alpha, capped
+
+    def _converged(self, st: "_Loop", act, alpha, capped):
+        """The convergence tests, on undamped steps only: the scaled step below ``xtol``, or the
+        SSE unchanged to ``ftol`` with the step below ``sqrt(xtol)``. Converged samples take
+        their last step and stop; returns the others."""
+        spec, cur, scaled = self.spec, st.cur, st.scaled
+        zero = st.damping[act] == 0
+        sse = cur["sse"][act]
+        conv = zero & (scaled <= spec.xtol)
+        conv_sse = (zero & ~conv & torch.isfinite(st.sse_prev[act]) & (sse > 0)
+                    & ((sse - st.sse_prev[act]).abs() <= spec.ftol * sse) & (scaled <= math.sqrt(spec.xtol)))
+        moving = zero & ~conv & ~conv_sse
+        st.sse_prev[act[moving]] = sse[moving]
+        done = conv | conv_sse
+        if bool(done.any()):
+            rows = act[done]
+            W = cur["W"][rows]
+            st.z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
+            st.iterations[rows] += 1
+            st.final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
+            self._annotate(rows, model_merit=self._model_merit(rows, cur))
+            self._notify(rows)
+            if bool(conv.any()):
+                st.stop(act[conv], Status.CONVERGED)
+            if bool(conv_sse.any()):
+                st.stop(act[conv_sse], Status.CONVERGED_SSE)
+        return act[~done], alpha[~done], capped[~done]
+
+    def _accepted(self, st: "_Loop", act, trial, ok, capped) -> torch.Tensor:
+        """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
+        solutions' sums of squares) for trials near solving the model whose step was not capped
+        at a bound's largest internal move; otherwise the model's own sums of squares, integrated
+        from both estimates. Undamped iteration (``damping=None``): every integrable trial."""
+        spec, cur = self.spec, st.cur
+        if spec.damping is None:
+            return ok
+        lower = trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK)
+        if spec.method == "shooting":  # the merit is the model's own sum of squares
+            return ok & lower
+        better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped
+        check = ok & ~better
+        if bool(check.any()):
+            rows = check.nonzero().flatten()
+            t_sse = self._nonlinear_sse(act, trial, rows)
+            c_sse = self._nonlinear_sse(st.all_idx, cur, act[rows])
+            better[rows] = t_sse <= c_sse * (1 + _MERIT_SLACK)
+        return ok & better
+
+    def _take(self, st: "_Loop", act, trial, accept) -> None:
+        """The accepted trials become their samples' iterates (damping back to 0)."""
+        if not bool(accept.any()):
+            return
+        rows = accept.nonzero().flatten()
+        target = act[rows]
+        self._annotate(target, model_merit=self._model_merit(target, st.cur))
+        self._notify(target)
+        _put(st.cur, target, trial, rows)
+        st.last_damping[target] = st.damping[target]
+        st.damping[target] = 0.0
+        st.iterations[target] += 1
+        st.fresh[target] = True
+        st.z0[target] = trial["z0"][rows]
+        st.final_guess[target] = _pick(trial["W"], rows)[..., 0]
+
+    def _reject(self, st: "_Loop", rejected, alpha) -> None:
+        """Rejected trials: without damping the iteration fails; Kantorovich re-anchors an
+        undamped rejection about the model's own solution once; otherwise the damping rises, to
+        a tenth of the previous iterate's first, then tenfold, and past ``_DAMPING_MAX`` the
+        sample has stalled."""
+        spec = self.spec
+        if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
+            st.z0[rejected] = _shifted(st.cur["z0"][rejected], alpha, spec.unknown_index)
+            st.iterations[rejected] += 1
+            self._notify(rejected)
+            st.stop(rejected, Status.INTEGRATION_FAILED,
+                    " The undamped step led to a trajectory that cannot be integrated; the default "
+                    "damping=\"lm\" would have shortened it.")
+            return
+        st.rejected[rejected] += 1
+        anchored = self._reanchor(st, rejected)
+        raise_rows = rejected[~torch.isin(rejected, anchored)]
+        if not raise_rows.numel():
+            return
+        d, last = st.damping[raise_rows], st.last_damping[raise_rows]
+        first = torch.where(last > 0, torch.clamp(last / 10, min=_DAMPING_MIN), _DAMPING_START)
+        d = torch.where(d == 0, first, 10 * d)
+        st.damping[raise_rows] = d
+        stalled = raise_rows[d > _DAMPING_MAX]
+        if stalled.numel():
+            self._annotate(stalled, rejected=st.rejected[stalled], model_merit=self._model_merit(stalled, st.cur))
+            self._notify(stalled)
+            st.stop(stalled, Status.STALLED)
+
+    def _reanchor(self, st: "_Loop", rejected) -> torch.Tensor:
+        """Kantorovich's undamped rejections, not yet anchored, re-linearized about the model's
+        own solution from their estimates (where it integrates); returns those samples."""
+        cur, n = st.cur, self.system.n
+        candidates = rejected[(st.damping[rejected] == 0) & ~cur["anchored"][rejected]]
+        if self.spec.method == "shooting" or not candidates.numel():  # shooting: anchored always
+            return rejected[:0]
+        self._nonlinear_sse(st.all_idx, cur, candidates)
+        integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
+        rows = candidates[integrable]
+        if not rows.numel():
+            return rows
+        traj = cur["nl_traj"][rows]
+        lin = self._linearize(rows, traj)
+        anchored = self._evaluate(rows, cur["z0"][rows], traj, lin.f, lin)
+        anchored["anchored"][:] = True
+        anchored["nl_sse"], anchored["nl_traj"] = cur["nl_sse"][rows], traj
+        failed = anchored["failed"]
+        if bool(failed.any()):
+            self._fail_integration_rows(rows[failed], st.status, st.detail)
+        keep = (~failed).nonzero().flatten()
+        _put(cur, rows[keep], anchored, keep)
+        if self.history is not None:
+            for r in rows[keep].tolist():
+                record = self.history[r][-1]
+                record.sse, record.merit = float(cur["sse"][r]), float(cur["merit"][r])
+                record.trajectory = cur["rz"][r, :, :n].detach().clone()
+        return rows
 
     def _fail_integration(self, failed, status, detail) -> None:
         self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
@@ -521,3 +551,38 @@ def _put(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None
                 old[target] = fresh[rows]
         else:
             cur[key][target] = value[rows]
+
+
+class _Loop:
+    """The mutable state of one chunk's iteration: per sample ``status`` (a code of
+    ``_STATUSES``, ``_RUNNING`` while iterating) and ``detail``, ``iterations``, ``damping`` and
+    the previous iterate's ``last_damping``, ``fresh`` (at the start of an iteration),
+    ``rejected`` trials at this iterate, ``sse_prev``, the estimates ``z0 (S, M)``, the current
+    iterate ``cur`` and ``final_guess (S, G, M)``, a prediction of the final trajectory."""
+
+    def __init__(self, engine: Engine, report) -> None:
+        S, dev, dtype = engine.S, engine.spec.device, engine.spec.dtype
+        self.report = report
+        self.status = torch.full((S,), _RUNNING, dtype=torch.long, device=dev)
+        self.detail = [""] * S
+        self.iterations = torch.zeros(S, dtype=torch.long, device=dev)
+        self.damping = torch.zeros(S, dtype=dtype, device=dev)
+        self.last_damping = torch.zeros(S, dtype=dtype, device=dev)
+        self.fresh = torch.ones(S, dtype=torch.bool, device=dev)
+        self.rejected = torch.zeros(S, dtype=torch.long, device=dev)
+        self.sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        self.z0 = engine.z0_guess.clone()
+        self.all_idx = torch.arange(S, device=dev)
+        self.cur: dict = {}
+        self.final_guess: torch.Tensor | None = None
+        self.scaled: torch.Tensor | None = None
+
+    def stop(self, rows: torch.Tensor, code: Status, text: str = "") -> None:
+        """Samples ``rows`` end with ``code`` and the detail ``text``."""
+        self.status[rows] = _STATUSES.index(code)
+        for r in rows.tolist():
+            self.detail[r] = text
+        self.report_stopped()
+
+    def report_stopped(self) -> None:
+        self.report(int((self.status != _RUNNING).sum()))
