@@ -92,3 +92,20 @@ def test_a_failed_sample_has_no_evaluation_and_no_intervals():
     assert all(math.isnan(lo) and math.isnan(hi) for lo, hi in bad.confidence_intervals().values())
     assert bad.history[-1].iteration == bad.iterations == 0
     assert float(bad.history[0].params["C_D"]) == -40.0
+
+
+def test_callback_receives_each_samples_records_as_fit_hands_them():
+    """``fit_many(callback=...)`` gets ``(sample, record)`` for every completed iterate of every
+    sample: per sample, the iterations and SSEs ``fit``'s callback sees for that dataset alone."""
+    data, x0 = cars(3, seed=4)
+    seen: dict[int, list] = {0: [], 1: [], 2: []}
+    torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20,
+                     callback=lambda b, record: seen[b].append((record.iteration, record.sse)))
+    for b in range(3):
+        alone = []
+        torchql.fit(CoastingCar(AREA, MASS), data[b], x0[b], grid=20,
+                    callback=lambda record: alone.append((record.iteration, record.sse)))
+        assert [i for i, _ in seen[b]] == [i for i, _ in alone], b
+        assert all(abs(s - t) <= 1e-8 * t for (_, s), (_, t) in zip(seen[b], alone)), b
+    with pytest.raises(TypeError, match="`callback` must be callable"):
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, callback=3)

@@ -156,7 +156,8 @@ def fit_many(
         samples finished; a callable receives ``(finished, total)`` as samples finish.
     callback : callable, optional
         Called as ``callback(sample, record)`` with each sample's :class:`IterationRecord` as it
-        is completed (as :func:`torchql.fit`'s callback, with the sample's index).
+        is completed (as :func:`torchql.fit`'s callback, with the sample's index). Every
+        sample's iterates are then kept too (``batch[i].history`` holds them all).
 
     Returns
     -------
@@ -176,7 +177,8 @@ def fit_many(
     if callback is not None and not callable(callback):
         raise TypeError("`callback` must be callable (it receives each sample's index and IterationRecord); "
                         f"received {callback!r}")
-    result = run_engine(spec, chunk_size, max_time, _progress(progress, spec.B), callback=callback)
+    result = run_engine(spec, chunk_size, max_time, _progress(progress, spec.B), history=callback is not None,
+                        callback=callback)
     result.data = data
     result.fit_kwargs = dict(
         params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
