@@ -17,7 +17,7 @@ from .grid_solve import IntervalBudgetError, solve_on_grid
 from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
 from .solvers import STIFF_SOLVERS, rodas5p_batch
-from .superposition import propagate_linear
+from .superposition import initial_columns, propagate_linear
 from .trajectory import LinearizedReference
 
 __all__ = ["Evaluation"]
@@ -103,7 +103,7 @@ class Evaluation:
         for the particular solution (its propagation would only add the propagator's error).
         """
         spec = self.spec
-        W, failed = self._propagate(idx, z, z_dot, lin, _initial_columns(z0, spec.unknown_index))
+        W, failed = self._propagate(idx, z, z_dot, lin, initial_columns(z0, spec.unknown_index))
         if solution:
             W[..., 0] = z
         W_obs = self._at_obs(W, idx)
@@ -291,15 +291,6 @@ class Evaluation:
             it["nl_sse"][need] = sse
             it["nl_traj"][need] = traj
         return it["nl_sse"][rows]
-
-
-def _initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
-    """``W(t0) = [z0, e_{i_1}, ..., e_{i_m}]`` per sample: ``(S, M, 1 + m)``."""
-    S, M = z0.shape
-    m = unknown_index.numel()
-    E = torch.zeros(M, m, dtype=z0.dtype, device=z0.device)
-    E[unknown_index, torch.arange(m, device=z0.device)] = 1.0
-    return torch.cat([z0.unsqueeze(-1), E.expand(S, M, m)], dim=2)
 
 
 def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

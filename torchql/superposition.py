@@ -39,11 +39,12 @@ def check_linear_solver(linear_solver: "str | LinearPropagator") -> LinearPropag
 
 
 def initial_columns(z0: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
-    """``W(t0) = [z0, e_{i_1}, ..., e_{i_m}]``: shape ``(M, 1 + m)``."""
-    M = z0.shape[0]
-    E = torch.zeros(M, unknown_index.numel(), dtype=z0.dtype, device=z0.device)
-    E[unknown_index, torch.arange(unknown_index.numel(), device=z0.device)] = 1.0
-    return torch.cat([z0.unsqueeze(-1), E], dim=1)
+    """``W(t0) = [z0, e_{i_1}, ..., e_{i_m}]``: shape ``(..., M, 1 + m)`` for ``z0 (..., M)`` (one
+    sample, or a batch of them)."""
+    M, m = z0.shape[-1], unknown_index.numel()
+    E = torch.zeros(M, m, dtype=z0.dtype, device=z0.device)
+    E[unknown_index, torch.arange(m, device=z0.device)] = 1.0
+    return torch.cat([z0.unsqueeze(-1), E.expand(*z0.shape[:-1], M, m)], dim=-1)
 
 
 def propagate_linear(reference: LinearizedReference, w0: torch.Tensor, *, solver: str = "dopri5", rtol: float,
