@@ -122,65 +122,57 @@ class Engine(Evaluation, FinalPass):
             self.grid, self.obs, self.t_obs = spec.grid[index, :G], spec.obs_in_grid[index], spec.t_obs[index]
         self.G = self.grid.shape[-1]
 
-    def _solve_exact(self, idx, cur, damping):
-        """:meth:`_solve` for samples with rows met exactly: each sample by
-        :func:`torchql.lstsq.solve_update` (equality-constrained), bounds as there. Also returns
-        ``infeasible (S,)``: exact rows that cannot all be met (NaN updates there)."""
-        spec, bounds = self.spec, self.spec.bounds
-        S = idx.numel()
-        alpha = cur["C"].new_full((S, spec.m), float("nan"))
-        capped = torch.zeros(S, dtype=torch.bool, device=alpha.device)
-        infeasible = torch.zeros_like(capped)
-        for k, r in enumerate(idx.tolist()):
-            used = self.mask[r].reshape(-1)
-            C, d, w, exact = cur["C"][r][used], cur["d"][r][used], self.w[r].reshape(-1)[used], self.exact[r][used]
-            u = cur["z0"][r, spec.unknown_index]
-            Cq = C * bounds.derivative(u) if bounds.active else C
-            lam = float(damping[k])
+    def _lstsq(self, idx, C, d, w, damping):
+        """Damped weighted least squares of the chunk's samples ``idx``: ``alpha (S, m)`` and
+        ``infeasible (S,)``. Batched (:func:`torchql.lstsq.solve_update_batch`); a sample with
+        values marked ``exact`` by :func:`torchql.lstsq.solve_update` on its used rows, those
+        rows met exactly, and ``infeasible`` (NaN update) where they cannot all be met."""
+        spec = self.spec
+        alpha, _, _ = solve_update_batch(C, d, w, spec.rcond, damping)
+        infeasible = torch.zeros(idx.numel(), dtype=torch.bool, device=alpha.device)
+        if not spec.has_exact:
+            return alpha, infeasible
+        exact, mask = self.exact[idx], self.mask[idx].reshape(idx.numel(), -1)
+        for k in exact.any(dim=1).nonzero().flatten().tolist():
+            used = mask[k]
             try:
-                a = solve_update(Cq, d, w, exact, spec.rcond, lam).alpha
-                capped[k] = bool(bounds.capped(a))
-                a, blocked = bounds.step(u, a)
-                if bool(blocked.any()):  # moved onto their bounds and held; the others re-solved
-                    move = a.masked_fill(~blocked, 0.0)
-                    rest = solve_update(Cq.masked_fill(blocked, 0.0), d - C @ move, w, exact, spec.rcond, lam).alpha
-                    rest, _ = bounds.step(u, rest.masked_fill(blocked, 0.0))
-                    a = torch.where(blocked, move, rest)
-                alpha[k] = a
+                alpha[k] = solve_update(C[k][used], d[k][used], w[k][used], exact[k][used], spec.rcond,
+                                        float(damping[k])).alpha
             except ExactRowsError:
-                infeasible[k] = True
-        return alpha, capped, infeasible
+                alpha[k], infeasible[k] = float("nan"), True
+        return alpha, infeasible
 
     def _solve(self, idx, cur, damping):
         """The damped updates of the samples ``idx``: ``alpha (S, m)``, the change of the unknowns,
-        and ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``).
+        ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``), and
+        ``infeasible (S,)``, samples whose exact values cannot all be met (:meth:`_lstsq`).
 
-        Without bounds, batched :func:`torchql.lstsq.solve_update` (no exact rows). With bounds,
-        solved for the internal variables (columns times ``du/dq``) and mapped back; the unknowns
-        that the step pushes onto a bound or whose step is capped are held at their move while
-        the others are re-solved, as ``fit`` does.
+        With bounds, solved for the internal variables (columns times ``du/dq``) and mapped back;
+        the unknowns that the step pushes onto a bound or whose step is capped are held at their
+        move while the others are re-solved, as ``fit`` does.
         """
         spec = self.spec
         C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(self.w, idx).reshape(idx.numel(), -1)
         bounds = spec.bounds
         if not bounds.active:
-            alpha, _, _ = solve_update_batch(C, d, w, spec.rcond, damping)
-            return alpha, torch.zeros(idx.numel(), dtype=torch.bool, device=alpha.device)
+            alpha, infeasible = self._lstsq(idx, C, d, w, damping)
+            return alpha, torch.zeros_like(infeasible), infeasible
         u = _pick(cur["z0"], idx)[:, spec.unknown_index]
         Cq = C * bounds.derivative(u).unsqueeze(1)
-        alpha_q, _, _ = solve_update_batch(Cq, d, w, spec.rcond, damping)
+        alpha_q, infeasible = self._lstsq(idx, Cq, d, w, damping)
         capped = bounds._capped(alpha_q).any(dim=1)
         alpha, blocked = bounds.step(u, alpha_q)
-        rows = blocked.any(dim=1).nonzero().flatten()
+        rows = (blocked.any(dim=1) & ~infeasible).nonzero().flatten()
         if rows.numel():  # moved onto their bounds (or capped) and held; the others re-solved
             held = blocked[rows]
             move = alpha[rows].masked_fill(~held, 0.0)
             rhs = d[rows] - (C[rows] @ move.unsqueeze(-1)).squeeze(-1)
-            rest_q, _, _ = solve_update_batch(Cq[rows].masked_fill(held.unsqueeze(1), 0.0), rhs, w[rows], spec.rcond,
-                                  damping[rows])
+            rest_q, stuck = self._lstsq(idx[rows], Cq[rows].masked_fill(held.unsqueeze(1), 0.0), rhs, w[rows],
+                                        damping[rows])
             rest, _ = bounds.step(u[rows], rest_q.masked_fill(held, 0.0))
             alpha[rows] = torch.where(held, move, rest)
-        return alpha, capped
+            infeasible[rows] |= stuck
+        return alpha, capped, infeasible
 
     def _record(self, r: int, iteration: int, z0: torch.Tensor, sse: float, traj: torch.Tensor | None = None
                 ) -> IterationRecord:
@@ -316,13 +308,10 @@ class Engine(Evaluation, FinalPass):
         samples whose exact rows cannot be met, or whose update is not finite, stop. Also their
         scaled sizes ``st.scaled``, recorded."""
         spec, cur = self.spec, st.cur
-        if spec.has_exact:
-            alpha, capped, infeasible = self._solve_exact(act, cur, st.damping[act])
-            if bool(infeasible.any()):
-                st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
-                act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
-        else:
-            alpha, capped = self._solve(act, cur, st.damping[act])
+        alpha, capped, infeasible = self._solve(act, cur, st.damping[act])
+        if bool(infeasible.any()):
+            st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
+            act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
         u = cur["z0"][act][:, spec.unknown_index]
         scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax(dim=1)
         bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
