@@ -43,7 +43,7 @@ from .grid import make_grid
 from .model import ODEModel
 from .observations import Observations
 from .options import Limits
-from .problem import Problem, check_data
+from .problem import Problem, check_data, recorded_options
 from .propagators import LinearPropagator
 from .result import IterationRecord
 
@@ -180,11 +180,11 @@ def fit_many(
     result = run_engine(spec, chunk_size, max_time, _progress(progress, spec.B), history=callback is not None,
                         callback=callback)
     result.data = data
-    result.fit_kwargs = dict(
-        params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
-        t0=t0, method=method, max_iter=max_iter, max_time=max_time, solver=solver, rtol=rtol, atol=atol,
-        xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
-        damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds))
+    result.fit_kwargs = recorded_options(
+        params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
+        solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
+        initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
+        bounds=bounds)
     return result
 
 

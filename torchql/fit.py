@@ -24,7 +24,7 @@ import torch
 
 from . import _checks
 from .engine import run_engine
-from .problem import Problem
+from .problem import Problem, recorded_options
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
 from .observations import Observations
@@ -205,13 +205,11 @@ def fit(
                        callback=None if callback is None else lambda sample, record: callback(record))
     result = batch.sample(0)
     result.index, result.method, result.data = None, spec.method, data
-    result.fit_kwargs = dict(
-        x0=None if x0 is None else torch.as_tensor(x0).detach().clone(), params=None if params is None else list(params),
-        fixed_x0=None if fixed_x0 is None else list(fixed_x0), t0=t0, method=method, max_iter=max_iter,
-        max_time=max_time, solver=solver,
-        rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory,
-        max_steps=max_steps, damping=damping, linear_solver=linear_solver, bounds=None if bounds is None else dict(bounds),
-    )
+    result.fit_kwargs = recorded_options(
+        x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
+        solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
+        initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
+        bounds=bounds)
     if throw and not result.success:
         raise FitError(result)
     return result
@@ -324,10 +322,8 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     result.x0 = result.x0.reshape(E, n)
     result.experiment_t0 = [float(v) for v in t0s]
     result.data = datasets
-    result.fit_kwargs = dict(
-        x0=None if x0 is None else torch.as_tensor(x0).detach().clone(),
-        params=None if params is None else list(params), fixed_x0=None if fixed_x0 is None else list(fixed_x0),
-        t0=t0, grid=grid, bounds=None if bounds is None else dict(bounds), **options)
+    result.fit_kwargs = recorded_options(x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, grid=grid, bounds=bounds,
+                                         **options)
     if throw and not result.success:
         raise FitError(result)
     return result

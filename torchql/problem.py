@@ -25,7 +25,19 @@ from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
 
-__all__ = ["Problem", "check_data"]
+__all__ = ["Problem", "check_data", "recorded_options"]
+
+
+def recorded_options(*, params, fixed_x0, bounds, **options) -> dict:
+    """A fit's options as ``result.fit_kwargs`` keeps them for a re-fit (``profile``,
+    ``multistart``): copies of the lists, dicts and tensor (``x0``, when given) the user passed,
+    the other options as given."""
+    record = dict(params=None if params is None else list(params),
+                  fixed_x0=None if fixed_x0 is None else list(fixed_x0),
+                  bounds=None if bounds is None else dict(bounds), **options)
+    if record.get("x0") is not None:
+        record["x0"] = torch.as_tensor(record["x0"]).detach().clone()
+    return record
 
 
 class Problem:
