@@ -170,11 +170,6 @@ class Evaluation:
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
         atol = spec.atol * rtol / spec.rtol
         S, G = z0.shape[0], self.G
-        grid = self._grid_of(idx)
-        shared = grid.dim() == 1
-
-        def grid_of(sub):
-            return grid if shared else grid[sub]
         traj = torch.full((S, G, self.system.M), float("nan"), dtype=z0.dtype, device=z0.device)
         ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
         errors: list = [None] * S
@@ -183,73 +178,94 @@ class Evaluation:
             substeps = max(substeps, 1 << max(0, (_BLOWUP_STEPS // (G - 1)).bit_length() - 1))
         if spec.max_steps is not None:  # the user's step budget per grid interval binds this solver too
             substeps = min(substeps, 1 << (spec.max_steps.bit_length() - 1))
-        stiff = spec.solver in STIFF_SOLVERS
         with torch.no_grad():
             if (guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
-                    and not stiff and substeps >= 2):
-                usable = torch.isfinite(guess).flatten(1).all(dim=1)
-                sub = usable.nonzero().flatten()
-                if sub.numel() == 1 and shared:  # one sample: its model with the coefficients bound
-                    s = int(sub[0])
-                    traj[s], ok[s], over = self._grid_solve_one(z0[s], grid, guess[s], rtol, atol, substeps)
-                    if budget_is_final and over:
-                        errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
-                    sub = sub[:0]
-                if sub.numel():
-                    tr, good, evals, over = solve_on_grid_batch(
-                        self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, guess=guess[sub],
-                        max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
-                    self.nfev += evals
-                    traj[sub[good]], ok[sub[good]] = tr[good], True
-                    if budget_is_final:
-                        for s in sub[over & ~good].tolist():
-                            errors[s] = ("a grid interval needed more than the grid solver's "
-                                         f"{substeps} steps (a blow-up)")
-            todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
-            sub = todo.nonzero().flatten()
-            batched = spec.solver == "dopri5" and spec.max_steps is None and S > 1  # one sample: torchdiffeq's
-            if sub.numel() and (stiff or batched):
-                # the steps land on the observation times, the other nodes from the dense output
-                if shared:
-                    land = torch.zeros(G, dtype=torch.bool, device=z0.device)
-                    land[self.obs] = True
-                else:
-                    land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
-                    land.scatter_(1, self.obs[idx[sub]], True)
-                if stiff:  # every sample by the implicit solver; its message kept for a failure
-                    budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
-                    n = self.system.n
-                    if sub.numel() == 1:  # one sample: its model with the coefficients bound, no vmap
-                        sol = rodas5p_batch(self.system.model_with(z0[sub[0], n:]), z0[sub, :n], grid_of(sub),
-                                            rtol=rtol, atol=atol, land=land, vectorize=False, **budget)
-                        y = torch.cat([sol.y, z0[sub, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
-                    else:
-                        sol = rodas5p_batch(self.system.f, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land,
-                                            error_components=n, **budget)
-                        y = sol.y
-                    self.nfev += sol.n_f
-                    good = sol.ok
-                    traj[sub[good]], ok[sub[good]] = y[good], True
-                    for k, s in enumerate(sub.tolist()):
-                        if not bool(good[k]):
-                            errors[s] = sol.message(k)
-                    return traj, errors
-                tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
-                self.nfev += evals
-                traj[sub[good]], ok[sub[good]] = tr[good], True
-            todo = ~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
-            sub = todo.nonzero().flatten()
-            if sub.numel():
-                hit = self.t_obs if shared else self.t_obs[idx[sub]]
-                tr, errs, evals = integrate_each(self.system, z0[sub], grid_of(sub), solver=spec.solver, rtol=rtol,
-                                                 atol=atol, hit=hit, max_steps=spec.max_steps)
-                self.nfev += evals
-                for k, s in enumerate(sub.tolist()):
-                    if errs[k] is None and bool(torch.isfinite(tr[k]).all()):
-                        traj[s], ok[s] = tr[k], True
-                    else:
-                        errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
+                    and spec.solver not in STIFF_SOLVERS and substeps >= 2):
+                self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors)
+            self._adaptive(idx, z0, rtol, atol, traj, ok, errors)
         return traj, errors
+
+    def _on_grid(self, idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors) -> None:
+        """:meth:`_nonlinear`'s grid solver, from ``guess``, for the samples whose guess is finite;
+        fills ``traj`` and ``ok`` in place, and with ``budget_is_final`` the blow-ups' ``errors``."""
+        grid = self._grid_of(idx)
+        sub = torch.isfinite(guess).flatten(1).all(dim=1).nonzero().flatten()
+        over = torch.zeros_like(ok)
+        if sub.numel() == 1 and grid.dim() == 1:  # one sample: its model with the coefficients bound
+            s = int(sub[0])
+            traj[s], ok[s], over[s] = self._grid_solve_one(z0[s], grid, guess[s], rtol, atol, substeps)
+        elif sub.numel():
+            tr, good, evals, over[sub] = solve_on_grid_batch(
+                self.system, z0[sub], grid if grid.dim() == 1 else grid[sub], rtol=rtol, atol=atol, guess=guess[sub],
+                max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
+            self.nfev += evals
+            traj[sub[good]], ok[sub[good]] = tr[good], True
+        if budget_is_final:
+            for s in (over & ~ok).nonzero().flatten().tolist():
+                errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
+
+    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors) -> None:
+        """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
+        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``, several samples,
+        no ``max_steps``), then torchdiffeq per sample; fills ``traj``, ``ok`` and ``errors`` in place."""
+        spec = self.spec
+        S, G = z0.shape[0], self.G
+        grid = self._grid_of(idx)
+        shared = grid.dim() == 1
+
+        def grid_of(sub):
+            return grid if shared else grid[sub]
+
+        def pending():
+            return (~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=ok.device)).nonzero().flatten()
+        sub = pending()
+        stiff = spec.solver in STIFF_SOLVERS
+        batched = spec.solver == "dopri5" and spec.max_steps is None and S > 1  # one sample: torchdiffeq's
+        if sub.numel() and (stiff or batched):
+            # the steps land on the observation times, the other nodes from the dense output
+            if shared:
+                land = torch.zeros(G, dtype=torch.bool, device=z0.device)
+                land[self.obs] = True
+            else:
+                land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
+                land.scatter_(1, self.obs[idx[sub]], True)
+            if stiff:  # every sample by the implicit solver; its message kept for a failure
+                self._rodas(sub, z0, grid_of(sub), rtol, atol, land, traj, ok, errors)
+                return
+            tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
+            self.nfev += evals
+            traj[sub[good]], ok[sub[good]] = tr[good], True
+            sub = pending()
+        if sub.numel():
+            hit = self.t_obs if shared else self.t_obs[idx[sub]]
+            tr, errs, evals = integrate_each(self.system, z0[sub], grid_of(sub), solver=spec.solver, rtol=rtol,
+                                             atol=atol, hit=hit, max_steps=spec.max_steps)
+            self.nfev += evals
+            for k, s in enumerate(sub.tolist()):
+                if errs[k] is None and bool(torch.isfinite(tr[k]).all()):
+                    traj[s], ok[s] = tr[k], True
+                else:
+                    errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
+
+    def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors) -> None:
+        """Samples ``sub`` by :func:`~torchql.solvers.rodas5p_batch` on ``grid``; one sample with its
+        model's coefficients bound (no vmap over the augmented state)."""
+        spec, n, G = self.spec, self.system.n, self.G
+        budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
+        if sub.numel() == 1:
+            sol = rodas5p_batch(self.system.model_with(z0[sub[0], n:]), z0[sub, :n], grid, rtol=rtol, atol=atol,
+                                land=land, vectorize=False, **budget)
+            y = torch.cat([sol.y, z0[sub, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
+        else:
+            sol = rodas5p_batch(self.system.f, z0[sub], grid, rtol=rtol, atol=atol, land=land, error_components=n,
+                                **budget)
+            y = sol.y
+        self.nfev += sol.n_f
+        good = sol.ok
+        traj[sub[good]], ok[sub[good]] = y[good], True
+        for k, s in enumerate(sub.tolist()):
+            if not bool(good[k]):
+                errors[s] = sol.message(k)
 
     def _grid_solve_one(self, z0, grid, guess, rtol, atol, substeps):
         """:func:`~torchql.grid_solve.solve_on_grid` for one sample ``z0 (M,)`` on ``grid (G,)``
