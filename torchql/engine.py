@@ -252,7 +252,7 @@ class Engine(Evaluation, FinalPass):
                 st.detail[r] = f" The solver said: {errors[r]}."
             lin = self._linearize(all_idx, traj)
             st.cur = self._evaluate(all_idx, st.z0, traj, lin.f, lin, solution=not kantorovich)
-        self._fail_integration(st.cur["failed"] & ~bad, st.status, st.detail)
+        self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
         typical = torch.where(typical > 0, typical, torch.ones_like(typical))
@@ -442,9 +442,6 @@ class Engine(Evaluation, FinalPass):
                 record.sse, record.merit = float(cur["sse"][r]), float(cur["merit"][r])
                 record.trajectory = cur["rz"][r, :, :n].detach().clone()
         return rows
-
-    def _fail_integration(self, failed, status, detail) -> None:
-        self._fail_integration_rows(failed.nonzero().flatten(), status, detail)
 
     def _fail_integration_rows(self, rows, status, detail) -> None:
         for r in rows.tolist():

@@ -78,32 +78,8 @@ class FinalPass:
             keep = ~nonfinite
             rows, J, s, rw = rows[keep], J[keep], s[keep], rw[keep]
         if rows.numel():
-            L = self.L[rows]
-            # the Gauss-Newton steps at the estimates (their stationarity), and the Jacobians' ranks
-            step, deficient, sv = solve_update_batch(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond, None)
-            singular_values[rows] = sv
-            deficient |= L < m
-            for k, r in enumerate(rows.tolist()):
-                code = codes[r]
-                if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
-                    continue
-                null_text = ""
-                if bool(deficient[k]):
-                    used = self.mask[r].reshape(-1)
-                    sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
-                                       torch.ones(int(L[k]), dtype=dtype, device=dev),
-                                       torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
-                    null_text = null_detail(sol.null_vectors, spec.unknown_names)
-                codes[r], more = final_status(
-                    code, rank_deficient=bool(deficient[k]), null_text=null_text,
-                    estimates=z0[r, spec.unknown_index],
-                    scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
-                                             None if self.scale is None else self.scale[r]),
-                    unknown_names=spec.unknown_names,
-                    sse=float(s[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]),
-                    step=step[k])
-                detail[r] = more if code.success else detail[r] + more
-            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, L, spec,
+            deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail)
+            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, self.L[rows], spec,
                                     deficient | self.exact[rows].any(dim=1), self.exact[rows])
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
         if self.history is not None:  # the estimates returned, unevaluated, where the final pass did not run
@@ -121,6 +97,40 @@ class FinalPass:
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
+
+    def _diagnose(self, rows, J, rw, sse, z0, codes, detail):
+        """The final statuses of samples ``rows`` from their weighted Jacobians ``J (S, R, m)`` and
+        residuals ``rw`` at the estimates: the Gauss–Newton step there (stationarity) and the
+        Jacobian's rank (:func:`torchql.diagnosis.final_status`), for samples that converged or
+        ran out of iterations or stalled. Updates ``codes`` and ``detail``; returns ``deficient
+        (S,)`` and the singular values ``(S, m)``."""
+        spec = self.spec
+        dtype, dev, m = spec.dtype, spec.device, spec.m
+        L = self.L[rows]
+        step, deficient, sv = solve_update_batch(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond,
+                                                 None)
+        deficient |= L < m
+        for k, r in enumerate(rows.tolist()):
+            code = codes[r]
+            if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
+                continue
+            null_text = ""
+            if bool(deficient[k]):
+                used = self.mask[r].reshape(-1)
+                sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
+                                   torch.ones(int(L[k]), dtype=dtype, device=dev),
+                                   torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
+                null_text = null_detail(sol.null_vectors, spec.unknown_names)
+            codes[r], more = final_status(
+                code, rank_deficient=bool(deficient[k]), null_text=null_text,
+                estimates=z0[r, spec.unknown_index],
+                scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
+                                         None if self.scale is None else self.scale[r]),
+                unknown_names=spec.unknown_names,
+                sse=float(sse[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]),
+                step=step[k])
+            detail[r] = more if code.success else detail[r] + more
+        return deficient, sv
 
 
 def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:
