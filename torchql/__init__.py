@@ -4,6 +4,7 @@ from . import baselines, models, propagators
 from .batch import fit_many
 from .batch_result import BatchFitResult
 from .fit import METHODS, fit
+from .inputs import Inputs
 from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
 from .multistart import MultiStartResult, multistart
@@ -19,6 +20,7 @@ __version__ = "0.1.0"
 __all__ = [
     "ODEModel",
     "Observations",
+    "Inputs",
     "fit",
     "fit_many",
     "fit_many_ray",

@@ -365,7 +365,8 @@ def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor
         try:
             with torch.no_grad():
                 x = solve(counter, z0[s, :n], own, solver=solver, rtol=rtol, atol=atol,
-                          hit=hit[s] if hit is not None and hit.dim() == 2 else hit, max_steps=max_steps)
+                          hit=hit[s] if hit is not None and hit.dim() == 2 else hit, max_steps=max_steps,
+                          jumps=model.input_jumps() if hasattr(model, "input_jumps") else None)
             out[s, :end, :n] = x
             out[s, end:, :n] = x[-1]
             out[s, :, n:] = z0[s, n:]

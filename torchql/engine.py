@@ -115,6 +115,9 @@ class Engine(Evaluation, FinalPass):
         self.z0_guess = spec.z0[index].clone()
         self.S = index.numel()
         self.nfev = 0
+        #: samples whose current iterate needs more grid-solver steps than a trial may take (their
+        #: trials are integrated by the adaptive solvers; see Evaluation._nonlinear)
+        self.coarse_grid: set[int] = set()
         if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)
             self.grid, self.obs, self.t_obs = spec.grid, spec.obs_in_grid, spec.t_obs
         else:  # per sample: grids (S, G), trimmed to the chunk's longest, nodes (S, T)
@@ -457,7 +460,7 @@ class Engine(Evaluation, FinalPass):
         z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
         z0_new = _shifted(_pick(cur["z0"], act), alpha, spec.unknown_index)
         if spec.method == "shooting":
-            return self._shoot(act, z0_new, z_new)
+            return self._shoot(act, z0_new, z_new, (_pick(cur["z0"], act), _pick(cur["rz"], act)))
         finite = torch.isfinite(z_new).flatten(1).all(dim=1)
         z_ref = _pick(cur["rz"], act)
         z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, z_ref)
@@ -493,11 +496,13 @@ class Engine(Evaluation, FinalPass):
             z_dot[k, :ends[k]] = slope
         return z_ref, z_dot, z0
 
-    def _shoot(self, act, z0_new, z_new):
+    def _shoot(self, act, z0_new, z_new, reference):
         """Shooting's trial iterates: each sample's model integrated from ``z0_new (S, M)`` (the
-        linear prediction ``z_new`` its guess), with its sensitivities; ``ok`` where it integrates."""
+        linear prediction ``z_new`` its guess), with its sensitivities; ``ok`` where it integrates.
+        ``reference``: the current iterates' ``(z0, trajectory)``."""
         guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
-        traj, errors = self._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True)
+        traj, errors = self._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True,
+                                       reference=reference)
         integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
         traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
         lin = self._linearize(act, traj)

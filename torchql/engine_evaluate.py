@@ -48,7 +48,7 @@ _EXACT_PENALTY = 1e6
 class Evaluation:
     """Evaluations of a chunk's iterates (mixed into :class:`torchql.engine.Engine`, whose
     attributes ``spec``, ``system``, ``grid``, ``obs``, ``t_obs``, ``G``, ``y``, ``w``, ``mask``,
-    ``exact``, ``nfev`` and ``propagation_errors`` it uses)."""
+    ``exact``, ``nfev``, ``propagation_errors`` and ``coarse_grid`` it uses)."""
 
     def _grid_of(self, idx: torch.Tensor) -> torch.Tensor:
         """The grid of the chunk's samples ``idx``: the shared one ``(G,)``, or theirs ``(S, G)``."""
@@ -144,7 +144,7 @@ class Evaluation:
                 self.propagation_errors[int(idx[k])] = str(exc)
         return W, failed
 
-    def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False):
+    def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False, reference=None):
         """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
         and error messages (None: ok).
 
@@ -159,7 +159,11 @@ class Evaluation:
         to the same failure, or through a stiff stretch that a step far from the current iterate
         led into; the damping shortens the step instead), an interval then being allowed
         ``_BLOWUP_STEPS / (G - 1)`` steps if that is more, so that a coarse grid does not turn a
-        smooth trial into a blow-up. The other samples, or all without a guess, are integrated by
+        smooth trial into a blow-up. Unless the current iterate needs more steps too (its
+        ``reference = (z0 (S, M), traj (S, G, M))`` solved on the grid with the same budget): then
+        the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
+        the trial divergent, and the sample's trials are integrated by the adaptive solvers from
+        then on. The other samples, or all without a guess, are integrated by
         :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``, more than one
         sample), by the implicit
         :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
@@ -181,13 +185,38 @@ class Evaluation:
         with torch.no_grad():
             if (guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
                     and spec.solver not in STIFF_SOLVERS and substeps >= 2):
-                self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors)
+                coarse = torch.tensor([int(i) in self.coarse_grid for i in idx.tolist()], dtype=torch.bool,
+                                      device=z0.device)
+                if bool(coarse.any()):
+                    guess = torch.where(coarse.reshape(-1, 1, 1), torch.full_like(guess, float("nan")), guess)
+                self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference)
             self._adaptive(idx, z0, rtol, atol, traj, ok, errors)
         return traj, errors
 
-    def _on_grid(self, idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors) -> None:
+    def _on_grid(self, idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors,
+                 reference=None) -> None:
         """:meth:`_nonlinear`'s grid solver, from ``guess``, for the samples whose guess is finite;
-        fills ``traj`` and ``ok`` in place, and with ``budget_is_final`` the blow-ups' ``errors``."""
+        fills ``traj`` and ``ok`` in place, and with ``budget_is_final`` the blow-ups' ``errors``
+        (not where the ``reference`` needs more steps too: see :meth:`_nonlinear`)."""
+        over = self._grid_solve(idx, z0, guess, rtol, atol, substeps, traj, ok)
+        if not budget_is_final:
+            return
+        over &= ~ok
+        if reference is not None and bool(over.any()):
+            rows = over.nonzero().flatten()
+            ref_traj = torch.full_like(traj[rows], float("nan"))
+            ref_ok = torch.zeros_like(ok[rows])
+            ref_over = self._grid_solve(idx[rows], reference[0][rows], reference[1][rows], rtol, atol, substeps,
+                                        ref_traj, ref_ok)
+            for k in ref_over.nonzero().flatten().tolist():
+                self.coarse_grid.add(int(idx[rows[k]]))
+                over[rows[k]] = False  # the adaptive solvers take it
+        for s in over.nonzero().flatten().tolist():
+            errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
+
+    def _grid_solve(self, idx, z0, guess, rtol, atol, substeps, traj, ok) -> torch.Tensor:
+        """The grid solver from ``guess`` for the samples whose guess is finite; fills ``traj`` and
+        ``ok`` in place and returns ``over (S,)``: the samples that exceeded ``substeps``."""
         grid = self._grid_of(idx)
         sub = torch.isfinite(guess).flatten(1).all(dim=1).nonzero().flatten()
         over = torch.zeros_like(ok)
@@ -200,9 +229,7 @@ class Evaluation:
                 max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
-        if budget_is_final:
-            for s in (over & ~ok).nonzero().flatten().tolist():
-                errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
+        return over
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:

@@ -290,7 +290,7 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     if isinstance(grid, torch.Tensor):
         raise ValueError("`grid` must be a number of intervals (per experiment) with several experiments; "
                          "received a tensor of times")
-    stacked = StackedModel(model, t0s, span)
+    stacked = StackedModel(model, t0s, span, _experiment_inputs(model, datasets, t0s, last, dtype, device))
     data = stack_observations(datasets, names, t0s, span, dtype, device)
     if isinstance(fixed_x0, str):
         raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
@@ -327,3 +327,26 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     if throw and not result.success:
         raise FitError(result)
     return result
+
+
+def _experiment_inputs(model, datasets: list, t0s: torch.Tensor, last: torch.Tensor, dtype, device) -> list | None:
+    """Each experiment's inputs in the model's order, checked as one dataset's are (names, times)."""
+    names = tuple(getattr(model, "input_names", ()))
+    given = [d.inputs is not None for d in datasets]
+    if not names and not any(given):
+        return None
+    if not names:
+        e = given.index(True)
+        raise ValueError(f"`data[{e}]` carries inputs {list(datasets[e].inputs.names)} but `model` declares none: "
+                         "set its `input_names` and take them in forward(t, x, u)")
+    signals = []
+    for e, d in enumerate(datasets):
+        if d.inputs is None:
+            raise ValueError(f"`model` takes inputs {names} (its `input_names`) but `data[{e}]` carries none: give "
+                             f"them as Observations(t, y, observe, inputs=torchql.Inputs(t_u, u, names={list(names)}))")
+        signal = d.inputs.select(names, f"data[{e}].inputs").to(dtype, device)
+        if not signal.covers(float(t0s[e]), float(last[e])):
+            raise ValueError(f"`data[{e}].inputs` must cover the experiment's times [{float(t0s[e]):g}, "
+                             f"{float(last[e]):g}]; its samples span [{signal.t[0].item():g}, {signal.t[-1].item():g}]")
+        signals.append(signal)
+    return signals

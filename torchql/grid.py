@@ -28,7 +28,8 @@ NODES_PER_DECADE = 10
 EARLIEST = 1e-13
 
 
-def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = False) -> torch.Tensor:
+def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = False,
+              breakpoints: torch.Tensor | None = None) -> torch.Tensor:
     """The storage grid ``(G,)``: sorted, distinct, from ``t0`` to the last observation time.
 
     Parameters
@@ -42,6 +43,9 @@ def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = Fals
         Observation times, increasing, none before ``t0``.
     stiff : bool
         Add geometrically spaced early nodes (see the module's description).
+    breakpoints : Tensor ``(N,)``, optional
+        Times where the right-hand side is not smooth (a measured input's
+        :attr:`~torchql.inputs.Inputs.nodes`), made nodes.
     """
     dtype, device = t_obs.dtype, t_obs.device
     t_end = t_obs[-1]
@@ -69,4 +73,7 @@ def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = Fals
     # drop free nodes that nearly coincide with a fixed node (tiny intervals help nothing)
     gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
     uniform = uniform[gap > 1e-6 * (uniform - t0).clamp(min=0).clamp(max=span / intervals)]
+    if breakpoints is not None:
+        nodes = breakpoints.to(dtype=dtype, device=device)
+        extra = torch.cat([extra, nodes[(nodes > t0) & (nodes < t_end)]])
     return torch.unique(torch.cat([fixed, uniform, extra]))

@@ -9,6 +9,7 @@ from torchdiffeq._impl.odeint import SOLVERS
 
 from . import _checks
 from .budget import check_time
+from .inputs import Inputs
 from .model import ODEModel, model_dtype_device
 from .solvers import STIFF_SOLVERS, JacobianError, rodas5p_solve
 
@@ -66,7 +67,7 @@ def interval_tolerances(rtol: float, atol: float, intervals: int, dtype: torch.d
 
 def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, atol: float,
           hit: torch.Tensor | None = None, max_steps: int | None = None, norm=None,
-          first_step: float | None = None) -> torch.Tensor:
+          first_step: float | None = None, jumps: torch.Tensor | None = None) -> torch.Tensor:
     """``odeint`` with our conventions; solver failures become :class:`IntegrationError`.
 
     Parameters
@@ -90,6 +91,9 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
         Error norm of adaptive solvers (torchdiffeq's RMS norm by default).
     first_step : float, optional
         First step tried by adaptive solvers (default: torchdiffeq's estimate).
+    jumps : Tensor, optional
+        Times where ``func`` is not smooth (a measured input's samples): adaptive torchdiffeq
+        solvers restart there instead of rejecting steps across them.
 
     Returns
     -------
@@ -112,6 +116,11 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
             options["norm"] = norm
         if first_step is not None:
             options["first_step"] = first_step
+        if jumps is not None:
+            low, high = torch.minimum(t[0], t[-1]), torch.maximum(t[0], t[-1])
+            inner = jumps.to(t)[(jumps.to(t) > low) & (jumps.to(t) < high)]
+            if inner.numel():
+                options["jump_t"] = inner
     try:
         out = odeint(func, y0, t, rtol=rtol, atol=atol, method=solver, options=options)
     except AssertionError as exc:  # torchdiffeq reports solver failures by assert
@@ -133,7 +142,7 @@ def _solve_stiff(func, y0, t, **options) -> torch.Tensor:
 
 
 def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "dopri5",
-             rtol: float | None = None, atol: float | None = None) -> torch.Tensor:
+             rtol: float | None = None, atol: float | None = None, inputs: Inputs | None = None) -> torch.Tensor:
     """Integrate ``model`` from ``x0`` at time ``t0`` and return the states at times ``t``.
 
     Parameters
@@ -152,6 +161,10 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
         method, see :mod:`torchql.solvers`.
     rtol, atol
         As in :func:`torchql.fit`.
+    inputs : Inputs, optional
+        Measured inputs ``u(t)`` for a model with ``input_names``; default the inputs attached to
+        the model (a fitted model, ``result.model``, holds its data's). They must cover ``t0`` and
+        ``t``.
 
     Returns
     -------
@@ -176,24 +189,52 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     rtol, atol = default_tolerances(dtype, rtol, atol)
     rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
     t0_ = t[0] if t0 is None else torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
+    func = _with_inputs(model, inputs, min(float(t0_), float(t[0])), float(t[-1]), dtype, device)
     # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is the
     # solver's to report, as IntegrationError, like one met later on)
-    _checks.model_forward(model, t0_, x0, model.state_names, {}, dtype, finite=False)
+    _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
     with torch.no_grad():
-        return _integrate_both_ways(model, x0, t, t0_, solver, rtol, atol)
+        return _integrate_both_ways(func, x0, t, t0_, solver, rtol, atol)
+
+
+def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: float, dtype, device):
+    """The right-hand side ``f(t, x)`` of ``model`` with its inputs (the given ones, else those it
+    holds), checked against its ``input_names`` and the span ``[start, end]``; the model itself
+    when it has none."""
+    names = tuple(getattr(model, "input_names", ()))
+    if inputs is not None and not isinstance(inputs, Inputs):
+        raise TypeError(f"`inputs` must be a torchql.Inputs; received {type(inputs).__name__}")
+    if not names:
+        if inputs is not None:
+            raise ValueError(f"`inputs` {list(inputs.names)} given but `model` declares no `input_names`")
+        return model
+    signals = inputs if inputs is not None else model.inputs
+    if signals is None:
+        raise ValueError(f"`model` takes inputs {names} (its `input_names`): pass `inputs=torchql.Inputs(t_u, u, "
+                         f"names={list(names)})`")
+    signals = signals.select(names).to(dtype, device)
+    if not signals.covers(start, end):
+        raise ValueError(f"`inputs` must cover the simulated times [{start:g}, {end:g}]; its samples span "
+                         f"[{signals.t[0].item():g}, {signals.t[-1].item():g}]")
+
+    def func(t, x):
+        return model(t, x, signals(t))
+
+    func.jumps = signals.jumps
+    return func
 
 
 def _integrate_both_ways(func, x0, t, t0, solver, rtol, atol):
     """States at ``t`` from ``x0`` at ``t0``, integrating forward and backward as needed."""
-    pieces = []
+    pieces, jumps = [], getattr(func, "jumps", None)
     before = t[t < t0]
     if before.numel():
         times = torch.cat([t0.reshape(1), before.flip(0)])
-        pieces.append(solve(func, x0, times, solver=solver, rtol=rtol, atol=atol)[1:].flip(0))
+        pieces.append(solve(func, x0, times, solver=solver, rtol=rtol, atol=atol, jumps=jumps)[1:].flip(0))
     after = t[t >= t0]
     if after.numel():
         starts_at_t0 = bool(after[0] == t0)
         times = after if starts_at_t0 else torch.cat([t0.reshape(1), after])
-        out = solve(func, x0, times, solver=solver, rtol=rtol, atol=atol)
+        out = solve(func, x0, times, solver=solver, rtol=rtol, atol=atol, jumps=jumps)
         pieces.append(out if starts_at_t0 else out[1:])
     return torch.cat(pieces)

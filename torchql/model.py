@@ -13,12 +13,16 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.func import functional_call
 
-__all__ = ["ODEModel", "AugmentedSystem", "coefficient_names", "coefficients"]
+if TYPE_CHECKING:
+    from .inputs import Inputs
+
+__all__ = ["ODEModel", "AugmentedSystem", "coefficient_names", "coefficients", "attach_inputs"]
 
 
 class ODEModel(nn.Module):
@@ -38,6 +42,10 @@ class ODEModel(nn.Module):
         Buffers that are fixed physical constants (a mass, a density). They are excluded from
         the default set of unknowns of :func:`torchql.fit`, but may still be named in
         ``params=`` explicitly.
+    input_names : tuple of str
+        Names of measured inputs ``u(t)`` (a force, a voltage, a dose rate), empty by default.
+        A model with inputs implements ``forward(t, x, u)``; the values come from the data's
+        :class:`torchql.Inputs`, interpolated at each evaluation (see :mod:`torchql.inputs`).
 
     Examples
     --------
@@ -52,6 +60,37 @@ class ODEModel(nn.Module):
 
     state_names: tuple[str, ...] = ()
     constants: tuple[str, ...] = ()
+    input_names: tuple[str, ...] = ()
+
+    def __call__(self, t: torch.Tensor, x: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+        """``forward(t, x)``, or for a model with inputs ``forward(t, x, u)`` with ``u`` the attached
+        signals at ``t`` (unless given): every evaluation a fit or a simulation makes goes through here."""
+        if self.input_names and not args and "u" not in kwargs:
+            signals = self.__dict__.get(_INPUTS)
+            if signals is None:
+                raise ValueError(
+                    f"`model` takes inputs {tuple(self.input_names)} (its `input_names`) but none were given: pass "
+                    "them with the data, Observations(..., inputs=torchql.Inputs(t, u, names=...)), or to "
+                    "torchql.simulate(..., inputs=...)")
+            args = (signals(t),)
+        return super().__call__(t, x, *args, **kwargs)
+
+    @property
+    def inputs(self) -> "Inputs | None":
+        """The input signals attached to this model (a fitted model holds its data's), or ``None``."""
+        return self.__dict__.get(_INPUTS)
+
+    def input_nodes(self) -> torch.Tensor | None:
+        """Times where the right-hand side is not smooth, for a fit's grid (the attached inputs'
+        :attr:`~torchql.inputs.Inputs.nodes`), or ``None``."""
+        signals = self.inputs
+        return None if signals is None else signals.nodes
+
+    def input_jumps(self) -> torch.Tensor | None:
+        """Times where an adaptive solver should restart (the attached inputs'
+        :attr:`~torchql.inputs.Inputs.jumps`), or ``None``."""
+        signals = self.inputs
+        return None if signals is None else signals.jumps
 
     @property
     def n_states(self) -> int:
@@ -68,12 +107,30 @@ class ODEModel(nn.Module):
         x : Tensor, shape ``(..., n_states)``
             State.
 
+        u : Tensor, shape ``(n_inputs,)`` (models with ``input_names`` only)
+            The measured inputs at ``t``, in the order of ``input_names`` (a third argument
+            ``forward(t, x, u)``; see :mod:`torchql.inputs`).
+
         Returns
         -------
         Tensor, shape ``(..., n_states)``
             Time derivative of the state.
         """
         raise NotImplementedError(f"{type(self).__name__} must implement forward(t, x)")
+
+
+#: Where a model holds its attached input signals (a plain attribute: not a buffer, so never an
+#: unknown, and deep-copied with the model).
+_INPUTS = "_torchql_inputs"
+
+
+def attach_inputs(model: nn.Module, signals: "Inputs | None") -> None:
+    """Attach ``signals`` (already in the model's input order, dtype and device) to ``model`` (the
+    library's own copy; modified in place), or detach with ``None``."""
+    if signals is None:
+        model.__dict__.pop(_INPUTS, None)
+    else:
+        model.__dict__[_INPUTS] = signals
 
 
 def coefficients(model: nn.Module) -> dict[str, torch.Tensor]:

@@ -39,9 +39,12 @@ class StackedModel(ODEModel):
         Initial time of each experiment.
     span : Tensor ``(E,)``
         Time span ``T_e > 0`` of each experiment.
+    inputs : list of ``E`` Inputs, optional
+        Each experiment's measured inputs, in the model's ``input_names`` order (for a model with
+        inputs): experiment ``e``'s copy is evaluated with its own signals at its own time.
     """
 
-    def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor) -> None:
+    def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor, inputs: list | None = None) -> None:
         super().__init__()
         tensors = list(model.named_buffers()) + list(model.named_parameters())  # parameters held as buffers
         names = [name for name, _ in tensors]
@@ -59,6 +62,7 @@ class StackedModel(ODEModel):
         self.constants = tuple(getattr(model, "constants", ())) + ("_t0", "_span")
         self.register_buffer("_t0", t0.clone(), persistent=False)
         self.register_buffer("_span", span.clone(), persistent=False)
+        self._signals = inputs
 
     def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         buffers = {name: getattr(self, name) for name in self._buffer_names}
@@ -66,8 +70,22 @@ class StackedModel(ODEModel):
         for e in range(self.E):
             xe = x[..., e * self.n:(e + 1) * self.n]
             te = self._t0[e] + self._span[e] * t
-            out.append(self._span[e] * functional_call(self.inner.model, buffers, (te, xe)))
+            args = (te, xe) if self._signals is None else (te, xe, self._signals[e](te))
+            out.append(self._span[e] * functional_call(self.inner.model, buffers, args))
         return torch.cat(out, dim=-1)
+
+    def input_nodes(self) -> torch.Tensor | None:
+        """The experiments' input nodes in normalized time (``None`` without inputs)."""
+        return self._normalized("nodes")
+
+    def input_jumps(self) -> torch.Tensor | None:
+        """The experiments' input jumps in normalized time (``None`` without any)."""
+        return self._normalized("jumps")
+
+    def _normalized(self, kind: str) -> torch.Tensor | None:
+        pieces = [(getattr(s, kind).to(self._t0) - self._t0[e]) / self._span[e]
+                  for e, s in enumerate(self._signals or ()) if getattr(s, kind) is not None]
+        return torch.cat(pieces) if pieces else None
 
 
 class _Frozen(nn.Module):

@@ -10,6 +10,9 @@ import numpy as np
 import torch
 from torch.func import jacrev, vmap
 
+from ._arrays import float_tensor
+from .inputs import Inputs
+
 __all__ = ["Observations", "ObservationOperator"]
 
 ObserveSpec = Union[Sequence[str], torch.Tensor, np.ndarray, Callable[[torch.Tensor], torch.Tensor]]
@@ -35,26 +38,8 @@ def _fits(shape: tuple[int, ...], target: tuple[int, ...], shared: tuple[tuple[i
         return False
 
 
-def _as_float_tensor(value, name: str, dtype: torch.dtype | None = None) -> torch.Tensor:
-    """Convert array-likes to a floating tensor; a clear error for anything else.
-
-    A tensor that requires grad is read detached (its values; measurements are not differentiated
-    through), never modified: callers copy before writing.
-    """
-    if isinstance(value, torch.Tensor):
-        tensor = value.detach()
-    else:
-        try:
-            tensor = torch.as_tensor(np.asarray(value, dtype=np.float64))
-        except (TypeError, ValueError) as exc:
-            raise TypeError(
-                f"`{name}` must be a tensor or array of real numbers; received {type(value).__name__}"
-            ) from exc
-    if tensor.is_complex() or tensor.dtype == torch.bool:
-        raise TypeError(f"`{name}` must be real-valued; received dtype {tensor.dtype}")
-    if not tensor.is_floating_point():
-        tensor = tensor.to(torch.float64)
-    return tensor if dtype is None else tensor.to(dtype)
+#: Array-likes as floating tensors (one conversion for every entry point).
+_as_float_tensor = float_tensor
 
 
 def _check_shapes(t: torch.Tensor, y: torch.Tensor) -> None:
@@ -145,6 +130,10 @@ class Observations:
         Values to be met exactly (equality-constrained least squares) rather than in the
         least-squares sense. One dataset: shape ``(T, K)``, or ``(T,)`` marking every value at
         those times. A batch: those shapes (shared) or any shape that broadcasts to ``(B, T, K)``.
+    inputs : Inputs, or for a batch a sequence of ``B`` Inputs, optional
+        The experiment's measured inputs ``u(t)`` (:class:`torchql.Inputs`), for a model with
+        ``input_names``; their samples must cover the data's times. A batch takes one
+        ``Inputs`` shared by its samples or one per sample (``obs[b].inputs`` is sample ``b``'s).
 
     Attributes
     ----------
@@ -155,6 +144,7 @@ class Observations:
     sigma_given : bool
         Whether ``sigma`` was given (then it is taken as the known standard deviation of the
         values; otherwise the residual variance is estimated from the fit).
+    inputs : Inputs, tuple of Inputs (a batch's, one per sample) or None
     """
 
     def __init__(
@@ -164,6 +154,7 @@ class Observations:
         observe: ObserveSpec,
         sigma=None,
         exact=None,
+        inputs: "Inputs | Sequence[Inputs] | None" = None,
     ) -> None:
         t = _as_float_tensor(t, "t")
         y = _as_float_tensor(y, "y")
@@ -229,14 +220,20 @@ class Observations:
             if ex.shape == (T,):  # every value at those times
                 ex = ex.unsqueeze(-1)
         self.exact = ex.expand(shape).clone(memory_format=torch.contiguous_format)
+        self.inputs = _check_inputs(inputs, shape[0] if batched else None)
 
     @classmethod
     def _validated(cls, t: torch.Tensor, y: torch.Tensor, observe, sigma: torch.Tensor, exact: torch.Tensor,
-                   sigma_given: bool) -> "Observations":
+                   sigma_given: bool, inputs=None) -> "Observations":
         """An instance from tensors already validated (a sample or slice of a batch): no checks, no copies."""
         obs = cls.__new__(cls)
         obs.t, obs.y, obs.observe, obs.sigma, obs.exact, obs.sigma_given = t, y, observe, sigma, exact, sigma_given
+        obs.inputs = inputs
         return obs
+
+    def inputs_of(self, b: int) -> Inputs | None:
+        """Sample ``b``'s inputs (a batch's shared ones, or its own), or ``None``."""
+        return self.inputs[b] if isinstance(self.inputs, tuple) else self.inputs
 
     @staticmethod
     def _check_observe_spec(observe, K: int) -> None:
@@ -319,8 +316,12 @@ class Observations:
                 raise IndexError(f"sample index {i} is out of range for a batch of {B}")
             rows = i % B
         t = self.t[rows].clone() if self.per_sample_times else self.t.clone()
+        if isinstance(self.inputs, tuple):
+            inputs = tuple(self.inputs[r] for r in rows.tolist()) if isinstance(index, slice) else self.inputs[rows]
+        else:
+            inputs = self.inputs
         return Observations._validated(t, self.y[rows].clone(), self.observe, self.sigma[rows].clone(),
-                                       self.exact[rows].clone(), self.sigma_given)
+                                       self.exact[rows].clone(), self.sigma_given, inputs)
 
     def __iter__(self) -> Iterator["Observations"]:
         """The samples of a batch in order, each one dataset (``TypeError`` for one dataset)."""
@@ -333,7 +334,28 @@ class Observations:
             times = f"t per sample in [{self.t[:, 0].min().item():g}, {self.t[:, -1].max().item():g}]"
         else:
             times = f"t=[{self.t[0].item():g}, {self.t[-1].item():g}]"
-        return f"Observations({batch}T={self.n_times}, K={self.n_outputs}, {times})"
+        names = self.inputs.names if isinstance(self.inputs, Inputs) else (
+            self.inputs[0].names if self.inputs else None)
+        inputs = f", inputs={list(names)}" if names else ""
+        return f"Observations({batch}T={self.n_times}, K={self.n_outputs}, {times}{inputs})"
+
+
+def _check_inputs(inputs, B: int | None) -> Inputs | tuple[Inputs, ...] | None:
+    """``inputs`` validated: ``None``, one :class:`Inputs`, or for a batch of ``B`` one per sample."""
+    if inputs is None or isinstance(inputs, Inputs):
+        return inputs
+    if B is not None and isinstance(inputs, Sequence) and not isinstance(inputs, str):
+        items = tuple(inputs)
+        if len(items) != B:
+            raise ValueError(f"`inputs` must be one torchql.Inputs (shared) or one per sample ({B}); received {len(items)}")
+        for b, item in enumerate(items):
+            if not isinstance(item, Inputs):
+                raise TypeError(f"`inputs[{b}]` must be a torchql.Inputs; received {type(item).__name__}")
+        if all(item.same_as(items[0]) for item in items[1:]):
+            return items[0]
+        return items
+    expected = "a torchql.Inputs" + (f" or a sequence of {B} of them (one per sample)" if B is not None else "")
+    raise TypeError(f"`inputs` must be {expected}; received {type(inputs).__name__}")
 
 
 class ObservationOperator:

@@ -18,7 +18,7 @@ from .bounds import Bounds, moved_record
 from .grid import make_grid
 from .integrate import check_solver
 from .linearize import linearize
-from .model import AugmentedSystem, coefficient_names, model_dtype_device
+from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
 from .observations import ObservationOperator, Observations
 from .options import Limits, Tolerances, check_damping, check_scheme
 from .solvers import STIFF_SOLVERS
@@ -184,6 +184,7 @@ class Problem:
                 self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
             self.z0[:, self.unknown_index] = used
             x0 = self.z0[:, :n]
+        self.breakpoints = self._attach_inputs(model)
         self._check_model(x0[0])
 
         # --- the solver ("auto": stiff if some sample's model is stiff along its data)
@@ -194,11 +195,13 @@ class Problem:
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
 
         # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
+        stiff = self.solver in STIFF_SOLVERS
         if self.t_obs.dim() == 1:
-            self.grid = make_grid(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
+            self.grid = make_grid(grid, self.t0, self.t_obs, stiff=stiff, breakpoints=self.breakpoints)
             self.grid_size = None
         else:
-            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs, stiff=self.solver in STIFF_SOLVERS)
+            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs, stiff=stiff,
+                                                    breakpoints=self.breakpoints)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.model = model
 
@@ -225,11 +228,13 @@ class Problem:
     def _stack(self, data, dtype, device) -> None:
         data = check_data(data)
         if isinstance(data, Observations):
+            self.inputs = _shared_inputs([data.inputs_of(b) for b in range(data.batch_size)], self.single)
             first, y, sigma, exact = data, data.y, data.sigma, data.exact
             t = data.t.to(dtype=dtype, device=device)
             low = [("data", data.y.dtype)] if _coarser(data.y.dtype, dtype) else []
         else:
             first = data[0]
+            self.inputs = _shared_inputs([d.inputs for d in data], self.single)
             t = torch.stack([d.t.to(dtype=dtype, device=device) for d in data])
             exact = torch.stack([d.exact for d in data])
             y = torch.stack([d.y.to(dtype) for d in data])
@@ -254,6 +259,29 @@ class Problem:
         self.y = torch.where(self.mask, y, torch.zeros_like(y))
         self.weights = torch.where(self.mask, 1.0 / sigma.to(dtype=dtype, device=device), torch.zeros_like(y))
         self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
+
+    def _attach_inputs(self, model) -> torch.Tensor | None:
+        """The data's inputs checked against the model's ``input_names`` and the data's times, and
+        attached to the fit's copy of the model; returns their breakpoints (``None`` without inputs)."""
+        names = tuple(getattr(model, "input_names", ()))
+        where = "data.inputs" if self.single else "data's inputs"
+        if self.inputs is None:
+            if names:
+                raise ValueError(
+                    f"`model` takes inputs {names} (its `input_names`) but `data` carries none: give them as "
+                    f"Observations(t, y, observe, inputs=torchql.Inputs(t_u, u, names={list(names)}))")
+            return self.system.model.input_nodes()
+        if not names:
+            raise ValueError(f"`data` carries inputs {list(self.inputs.names)} but `model` declares none: set its "
+                             "`input_names` and take them in forward(t, x, u)")
+        signals = self.inputs.select(names, where).to(self.dtype, self.device)
+        start = float(torch.as_tensor(self.t0).min())
+        end = float(self.t_obs[..., -1].max())
+        if not signals.covers(start, end):
+            raise ValueError(f"`{where}` must cover the data's times [{start:g}, {end:g}] (from t0 to the last "
+                             f"observation); its samples span [{signals.t[0].item():g}, {signals.t[-1].item():g}]")
+        attach_inputs(self.system.model, signals)
+        return signals.nodes
 
     def _x0_from_data(self, names) -> torch.Tensor:
         early = (self.t0 != self.t_obs[..., 0]).reshape(-1)
@@ -382,6 +410,21 @@ def check_data(data) -> Observations | list[Observations]:
     return items
 
 
+def _shared_inputs(inputs: list, single: bool):
+    """The samples' one input signal (``None`` without inputs); an error when they differ."""
+    first = inputs[0]
+    if all(first.same_as(item) if first is not None else item is None for item in inputs[1:]):
+        return first
+    given = [item is not None for item in inputs]
+    if any(given) and not all(given):
+        b = given.index(not given[0])
+        raise ValueError(f"`data[{b}]` {'carries' if given[b] else 'carries no'} inputs but `data[0]` "
+                         f"{'does' if given[0] else 'does not'}: give inputs for every dataset or for none")
+    b = next(i for i, item in enumerate(inputs) if not first.same_as(item))
+    raise ValueError(f"`data[{b}]` has other inputs than `data[0]`: one problem takes one input signal for all its "
+                     "samples (torchql.fit_many groups samples by their inputs)")
+
+
 def _coarser(data_dtype: torch.dtype, dtype: torch.dtype) -> bool:
     """Whether data of ``data_dtype`` are rounded more coarsely than the computation's ``dtype``."""
     return torch.finfo(data_dtype).eps > torch.finfo(dtype).eps
@@ -408,7 +451,8 @@ def _same_observe(a, b) -> bool:
 _make_grid = make_grid
 
 
-def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False,
+                breakpoints: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Each sample's own grid, as :func:`torchql.fit` builds it for that dataset alone.
 
     ``t0``: shared ``()`` or per sample ``(B,)``; ``t_obs (B, T)``. Returns the grids ``(B, G)``,
@@ -419,7 +463,7 @@ def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False
     B = t_obs.shape[0]
     starts = t0.expand(B) if t0.dim() == 0 else t0
     keys, inverse = torch.unique(torch.cat([starts.unsqueeze(1), t_obs], dim=1), dim=0, return_inverse=True)
-    grids = [make_grid(grid, key[0], key[1:], stiff=stiff) for key in keys]
+    grids = [make_grid(grid, key[0], key[1:], stiff=stiff, breakpoints=breakpoints) for key in keys]
     sizes = torch.tensor([g.numel() for g in grids], dtype=torch.long, device=t_obs.device)
     G = int(sizes.max())
     padded = torch.stack([torch.cat([g, g[-1:].expand(G - g.numel())]) for g in grids])

@@ -275,7 +275,7 @@ class FitResult:
 
         return plot_convergence(self, ax=ax, values=values)
 
-    def predict(self, t, experiment: int | None = None) -> torch.Tensor:
+    def predict(self, t, experiment: int | None = None, inputs=None) -> torch.Tensor:
         """The fitted trajectory: the model with the estimated coefficients, integrated from ``x0``.
 
         Parameters
@@ -284,6 +284,9 @@ class FitResult:
             Strictly increasing times; times before ``t0`` are integrated backwards.
         experiment : int, optional
             With several experiments, which one (its initial state and time); required then.
+        inputs : Inputs, optional
+            For a model with inputs: new input signals (default: the fitted data's, of that
+            experiment with several).
 
         Returns
         -------
@@ -294,12 +297,15 @@ class FitResult:
         if self.experiment_t0 is None:
             if experiment is not None:
                 raise ValueError("`experiment` applies only to fits of several experiments")
-            return simulate(self.model, self.x0, t, t0=self.t0, **self.solver_options)
+            return simulate(self.model, self.x0, t, t0=self.t0, inputs=inputs, **self.solver_options)
         E = len(self.experiment_t0)
         if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
             raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments); "
                              f"received {experiment!r}")
-        return simulate(self.model, self.x0[experiment], t, t0=self.experiment_t0[experiment], **self.solver_options)
+        if inputs is None and isinstance(self.data, (list, tuple)):
+            inputs = self.data[experiment].inputs
+        return simulate(self.model, self.x0[experiment], t, t0=self.experiment_t0[experiment], inputs=inputs,
+                        **self.solver_options)
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))

@@ -19,8 +19,9 @@ give piecewise-constant slopes and derivatives that vanish between the samples.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
+
+from .splines import hermite, knot_slopes
 
 __all__ = ["smooth", "interpolate", "MAX_SMOOTHED_POINTS"]
 
@@ -94,41 +95,6 @@ def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None
     return best
 
 
-def _knot_slopes(t: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Slopes ``(T,)`` at the knots of the not-a-knot cubic spline through ``(t, y)``, ``T >= 2``.
-
-    Two points: the chord; three: the interpolating parabola (not-a-knot with one interior
-    knot); more: the tridiagonal system of slope continuity with not-a-knot ends (the third
-    derivative continuous at the second and the second-to-last knot), by the Thomas algorithm.
-    """
-    T = t.shape[0]
-    h = np.diff(t)
-    delta = np.diff(y) / h
-    if T == 2:
-        return np.array([delta[0], delta[0]])
-    if T == 3:
-        curvature = (delta[1] - delta[0]) / (t[2] - t[0])  # half the parabola's second derivative
-        return np.array([delta[0] - curvature * h[0], delta[0] + curvature * h[0], delta[1] + curvature * h[1]])
-    lower, diag, upper, rhs = np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T)
-    lower[1:-1], diag[1:-1], upper[1:-1] = h[1:], 2 * (h[:-1] + h[1:]), h[:-1]
-    rhs[1:-1] = 3 * (h[1:] * delta[:-1] + h[:-1] * delta[1:])
-    span = t[2] - t[0]
-    diag[0], upper[0] = h[1], span
-    rhs[0] = ((h[0] + 2 * span) * h[1] * delta[0] + h[0] ** 2 * delta[1]) / span
-    span = t[-1] - t[-3]
-    diag[-1], lower[-1] = h[-2], span
-    rhs[-1] = (h[-1] ** 2 * delta[-2] + (2 * span + h[-1]) * h[-2] * delta[-1]) / span
-    for i in range(1, T):  # forward elimination
-        factor = lower[i] / diag[i - 1]
-        diag[i] -= factor * upper[i - 1]
-        rhs[i] -= factor * rhs[i - 1]
-    slopes = np.empty(T)
-    slopes[-1] = rhs[-1] / diag[-1]
-    for i in range(T - 2, -1, -1):
-        slopes[i] = (rhs[i] - upper[i] * slopes[i + 1]) / diag[i]
-    return slopes
-
-
 def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:
     """Not-a-knot cubic spline through ``(t, y)``, evaluated at ``tq``.
 
@@ -149,12 +115,8 @@ def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Ten
     """
     if t.shape[0] == 1:
         return y.expand(tq.shape[0]).clone()
-    slopes = torch.as_tensor(_knot_slopes(t.detach().cpu().double().numpy(), y.detach().cpu().double().numpy()),
+    slopes = torch.as_tensor(knot_slopes(t.detach().cpu().double().numpy(), y.detach().cpu().double().numpy()),
                              dtype=y.dtype, device=y.device)
     inside = tq.clamp(t[0], t[-1])
     j = (torch.searchsorted(t, inside, right=True) - 1).clamp(0, t.shape[0] - 2)
-    h = t[j + 1] - t[j]
-    s = (inside - t[j]) / h
-    s2, s3 = s * s, s * s * s
-    return ((2 * s3 - 3 * s2 + 1) * y[j] + (s3 - 2 * s2 + s) * h * slopes[j]
-            + (-2 * s3 + 3 * s2) * y[j + 1] + (s3 - s2) * h * slopes[j + 1])
+    return hermite(t, y.unsqueeze(-1), slopes.unsqueeze(-1), j, inside).squeeze(-1)

@@ -1,0 +1,72 @@
+"""Cubic splines shared by the data smoother and the inputs' interpolation: the not-a-knot knot
+slopes, and cubic Hermite evaluation written with ``index_select`` (differentiable, vmap-safe)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+__all__ = ["knot_slopes", "hermite"]
+
+
+def knot_slopes(t: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Slopes ``(T,)`` at the knots of the not-a-knot cubic spline through ``(t, y)``, ``T >= 2``.
+
+    Two points: the chord; three: the interpolating parabola (not-a-knot with one interior
+    knot); more: the tridiagonal system of slope continuity with not-a-knot ends (the third
+    derivative continuous at the second and the second-to-last knot), by the Thomas algorithm.
+    """
+    T = t.shape[0]
+    h = np.diff(t)
+    delta = np.diff(y) / h
+    if T == 2:
+        return np.array([delta[0], delta[0]])
+    if T == 3:
+        curvature = (delta[1] - delta[0]) / (t[2] - t[0])  # half the parabola's second derivative
+        return np.array([delta[0] - curvature * h[0], delta[0] + curvature * h[0], delta[1] + curvature * h[1]])
+    lower, diag, upper, rhs = np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T)
+    lower[1:-1], diag[1:-1], upper[1:-1] = h[1:], 2 * (h[:-1] + h[1:]), h[:-1]
+    rhs[1:-1] = 3 * (h[1:] * delta[:-1] + h[:-1] * delta[1:])
+    span = t[2] - t[0]
+    diag[0], upper[0] = h[1], span
+    rhs[0] = ((h[0] + 2 * span) * h[1] * delta[0] + h[0] ** 2 * delta[1]) / span
+    span = t[-1] - t[-3]
+    diag[-1], lower[-1] = h[-2], span
+    rhs[-1] = (h[-1] ** 2 * delta[-2] + (2 * span + h[-1]) * h[-2] * delta[-1]) / span
+    for i in range(1, T):  # forward elimination
+        factor = lower[i] / diag[i - 1]
+        diag[i] -= factor * upper[i - 1]
+        rhs[i] -= factor * rhs[i - 1]
+    slopes = np.empty(T)
+    slopes[-1] = rhs[-1] / diag[-1]
+    for i in range(T - 2, -1, -1):
+        slopes[i] = (rhs[i] - upper[i] * slopes[i + 1]) / diag[i]
+    return slopes
+
+
+def hermite(knots: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, index: torch.Tensor,
+            tq: torch.Tensor) -> torch.Tensor:
+    """Cubic Hermite interpolation on interval ``index`` of ``knots``, at times ``tq``.
+
+    Parameters
+    ----------
+    knots : Tensor ``(N,)``
+        Increasing knots, ``N >= 2``.
+    values, slopes : Tensor ``(N, m)``
+        Values and first derivatives at the knots.
+    index : long Tensor ``(Q,)``
+        The interval ``[knots[i], knots[i+1]]`` of each query, ``0 <= i <= N - 2``.
+    tq : Tensor ``(Q,)``
+        Query times (any; outside the interval the cubic is extrapolated).
+
+    Returns
+    -------
+    Tensor ``(Q, m)``
+    """
+    k0, k1 = knots.index_select(0, index), knots.index_select(0, index + 1)
+    h = (k1 - k0).unsqueeze(-1)
+    s = ((tq - k0) / (k1 - k0)).unsqueeze(-1)
+    s2, s3 = s * s, s * s * s
+    return ((2 * s3 - 3 * s2 + 1) * values.index_select(0, index) + (s3 - 2 * s2 + s) * h * slopes.index_select(0, index)
+            + (-2 * s3 + 3 * s2) * values.index_select(0, index + 1)
+            + (s3 - s2) * h * slopes.index_select(0, index + 1))
