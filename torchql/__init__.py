@@ -4,6 +4,7 @@ from . import baselines, models, propagators
 from .batch import fit_many
 from .batch_result import BatchFitResult
 from .fit import METHODS, fit
+from .compare import Comparison, compare
 from .inputs import Inputs
 from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
@@ -21,6 +22,8 @@ __all__ = [
     "ODEModel",
     "Observations",
     "Inputs",
+    "compare",
+    "Comparison",
     "fit",
     "fit_many",
     "fit_many_ray",

@@ -31,14 +31,16 @@ loop over one sample.
 
 from __future__ import annotations
 
+import time
 import warnings
 from collections.abc import Callable, Sequence
 
 import torch
 
 from . import _checks
-from .batch_result import BatchFitResult
+from .batch_result import BatchFitResult, concatenate
 from .engine import run_engine
+from .noise import run_with_noise
 from .grid import make_grid
 from .model import ODEModel
 from .observations import Observations
@@ -170,6 +172,13 @@ def fit_many(
     TypeError, ValueError
         For invalid arguments (naming the argument, the sample, what was expected and received).
     """
+    runs = _input_runs(data)
+    if runs is not None:
+        return _fit_runs(runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress,
+                         callback=callback, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
+                         initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol,
+                         ftol=ftol, rcond=rcond, grid=grid, damping=damping, solver=solver,
+                         linear_solver=linear_solver, max_steps=max_steps, chunk_size=chunk_size)
     spec = Problem(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
                  damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
@@ -177,14 +186,63 @@ def fit_many(
     if callback is not None and not callable(callback):
         raise TypeError("`callback` must be callable (it receives each sample's index and IterationRecord); "
                         f"received {callback!r}")
-    result = run_engine(spec, chunk_size, max_time, _progress(progress, spec.B), history=callback is not None,
-                        callback=callback)
+    result = run_with_noise(spec, lambda problem: run_engine(
+        problem, chunk_size, max_time, _progress(progress, spec.B), history=callback is not None, callback=callback))
     result.data = data
     result.fit_kwargs = recorded_options(
         params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
         solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
         bounds=bounds)
+    return result
+
+
+def _input_runs(data) -> list[tuple[int, int]] | None:
+    """Runs ``[start, stop)`` of consecutive samples that share their inputs, when there are
+    several (samples with other inputs are other problems); ``None`` when one problem serves."""
+    if isinstance(data, Observations):
+        inputs = list(data.inputs) if isinstance(data.inputs, tuple) else None
+    elif isinstance(data, (list, tuple)) and data and all(isinstance(d, Observations) for d in data):
+        inputs = [d.inputs for d in data]
+    else:
+        return None  # Problem reports what is wrong with it
+    if inputs is None or all(item is None for item in inputs):
+        return None
+    if any(item is None for item in inputs):
+        b = next(i for i, item in enumerate(inputs) if (item is None) != (inputs[0] is None))
+        raise ValueError(f"`data[{b}]` {'carries no' if inputs[b] is None else 'carries'} inputs but `data[0]` "
+                         f"{'does' if inputs[0] is not None else 'does not'}: give inputs for every dataset or for none")
+    runs, start = [], 0
+    for b in range(1, len(inputs) + 1):
+        if b == len(inputs) or not inputs[b].same_as(inputs[start]):
+            runs.append((start, b))
+            start = b
+    return runs if len(runs) > 1 else None
+
+
+def _fit_runs(runs, model, data, x0, *, guesses, max_time, progress, callback, **options) -> BatchFitResult:
+    """``fit_many`` over samples whose inputs differ: one batched problem per run of samples sharing
+    their inputs, the results joined in the samples' order (each sample's fit is the one it gets
+    alone; the runs share the time budget, the progress count and the callback's indices)."""
+    B = runs[-1][1]
+    report = _progress(progress, B)
+    limit = Limits.resolve(max_time=max_time).max_time
+    deadline = None if limit is None else time.monotonic() + limit
+    parts = []
+    for start, stop in runs:
+        left = None if deadline is None else max(deadline - time.monotonic(), 1e-9)
+        part = fit_many(model, data[start:stop], sample_rows(x0, B, start, stop),
+                        guesses=sample_rows_dict(guesses, B, start, stop), max_time=left,
+                        progress=lambda done, total, offset=start: report(offset + done),
+                        callback=None if callback is None else (
+                            lambda sample, record, offset=start: callback(offset + sample, record)),
+                        **options)
+        report(stop)
+        parts.append(part)
+    report(None)
+    result = concatenate(parts)
+    result.data = data
+    result.fit_kwargs = dict(parts[0].fit_kwargs, max_time=limit)
     return result
 
 
@@ -216,3 +274,22 @@ def _progress(progress, total: int) -> Callable[[int | None], None]:
         elif done > bar.n:
             bar.update(done - bar.n)
     return update
+
+
+def sample_rows(x0, B: int, start: int, stop: int):
+    """Rows ``start:stop`` of a per-sample ``x0 (B, n)``; a shared ``(n,)`` or ``None`` as it is."""
+    if x0 is None:
+        return None
+    x = torch.as_tensor(x0)
+    return x[start:stop] if x.dim() == 2 and x.shape[0] == B else x
+
+
+def sample_rows_dict(guesses, B: int, start: int, stop: int):
+    """Rows ``start:stop`` of each per-sample guess ``(B, ...)``; shared values as they are."""
+    if guesses is None or not isinstance(guesses, dict):
+        return guesses
+    out = {}
+    for name, value in guesses.items():
+        v = torch.as_tensor(value)
+        out[name] = v[start:stop] if v.dim() >= 1 and v.shape[0] == B else v
+    return out

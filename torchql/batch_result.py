@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -19,7 +20,7 @@ from .result import FitResult, IterationRecord, Status
 if TYPE_CHECKING:  # pragma: no cover
     from .model import ODEModel
 
-__all__ = ["BatchFitResult", "SampleResult"]
+__all__ = ["BatchFitResult", "SampleResult", "concatenate"]
 
 
 #: One sample of a :class:`BatchFitResult` is a :class:`torchql.FitResult` (the former name of its type).
@@ -102,6 +103,12 @@ class BatchFitResult:
     history : list of list of IterationRecord, or None
         Every sample's iterates, when they were kept (:func:`torchql.fit` keeps them; a batch
         keeps only the guesses and the estimates, see :meth:`sample`).
+    nll : Tensor ``(B,)`` or None
+        Each sample's negative log-likelihood at its estimates (:mod:`torchql.noise`).
+    sigma : Tensor ``(B, G)`` or None
+        The estimated standard deviations (``sigma="estimate"``), one per group ``sigma_names``.
+    noise : str
+        The data's noise distribution.
     """
 
     success: torch.Tensor
@@ -137,6 +144,10 @@ class BatchFitResult:
     exact: torch.Tensor | None = field(default=None, repr=False)
     exact_residual: torch.Tensor | None = field(default=None, repr=False)
     history: list[list[IterationRecord]] | None = field(default=None, repr=False)
+    nll: torch.Tensor | None = field(default=None, repr=False)
+    sigma: torch.Tensor | None = field(default=None, repr=False)
+    sigma_names: list[str] | None = field(default=None, repr=False)
+    noise: str = field(default="normal", repr=False)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])
@@ -203,7 +214,10 @@ class BatchFitResult:
             fit_kwargs=dict(self.fit_kwargs), index=i,
             lower=None if self.lower is None else self.lower.clone(),
             upper=None if self.upper is None else self.upper.clone(),
-            moved_guesses=dict(self.moved_guesses.get(i, {})))
+            moved_guesses=dict(self.moved_guesses.get(i, {})),
+            nll=math.nan if self.nll is None else float(self.nll[i]),
+            sigma=None if self.sigma is None else dict(zip(self.sigma_names, self.sigma[i].tolist())),
+            noise=self.noise)
 
     def __getitem__(self, i: int) -> FitResult:
         return self.sample(i)
@@ -220,13 +234,24 @@ class BatchFitResult:
         """A copy of the model whose buffers hold sample ``i``'s estimates."""
         import copy
 
-        from .model import _set_buffer
+        from .model import _set_buffer, attach_inputs
 
         i = self._index(i)
         fitted = copy.deepcopy(self.model)
         for name, value in self.params.items():
             _set_buffer(fitted, name, value[i].clone())
+        inputs = self._inputs_of(i)
+        if inputs is not None and getattr(fitted, "input_names", ()):  # sample i's own inputs
+            dtype, device = self.x0.dtype, self.x0.device
+            attach_inputs(fitted, inputs.select(fitted.input_names).to(dtype, device))
         return fitted
+
+    def _inputs_of(self, i: int):
+        """Sample ``i``'s measured inputs from the fitted data, or ``None``."""
+        data = self.data
+        if isinstance(data, (list, tuple)):
+            return data[i].inputs
+        return data.inputs_of(i) if data is not None else None
 
     def summary(self) -> str:
         """A short text summary: statuses counted, iterations, and the spread of the estimates."""
@@ -254,3 +279,67 @@ class BatchFitResult:
     def __repr__(self) -> str:
         return (f"BatchFitResult(B={len(self)}, converged={int(self.success.sum())}, "
                 f"unknowns={self.unknown_names})")
+
+
+def _initial_times(parts: Sequence[BatchFitResult]) -> float | torch.Tensor:
+    """The parts' ``t0``: a float when every sample of every part shares it, else one per sample ``(B,)``."""
+    if all(not isinstance(p.t0, torch.Tensor) for p in parts) and len({p.t0 for p in parts}) == 1:
+        return parts[0].t0
+    return torch.cat([p.t0 if isinstance(p.t0, torch.Tensor)
+                      else torch.full((len(p.status),), p.t0, dtype=p.x0.dtype, device=p.x0.device) for p in parts])
+
+
+def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
+    """One :class:`BatchFitResult` from consecutive parts (same model, unknowns and settings), in order."""
+    first = parts[0]
+    return BatchFitResult(
+        success=torch.cat([p.success for p in parts]),
+        status=[s for p in parts for s in p.status],
+        message=[m for p in parts for m in p.message],
+        params={name: torch.cat([p.params[name] for p in parts]) for name in first.params},
+        x0=torch.cat([p.x0 for p in parts]),
+        t0=_initial_times(parts),
+        unknown_names=list(first.unknown_names),
+        estimates=torch.cat([p.estimates for p in parts]),
+        iterations=torch.cat([p.iterations for p in parts]),
+        sse=torch.cat([p.sse for p in parts]),
+        covariance=torch.cat([p.covariance for p in parts]),
+        n_observations=torch.cat([p.n_observations for p in parts]),
+        dof=torch.cat([p.dof for p in parts]),
+        residual_variance=torch.cat([p.residual_variance for p in parts]),
+        sigma_known=first.sigma_known,
+        nfev=int(math.fsum(p.nfev for p in parts)),
+        model=first.model,
+        **_joined_evaluations(parts),
+        solver_options=dict(first.solver_options),
+        fit_kwargs=dict(first.fit_kwargs),
+        lower=first.lower,
+        upper=first.upper,
+        moved_guesses=_joined_moves(parts),
+        nll=None if any(p.nll is None for p in parts) else torch.cat([p.nll for p in parts]),
+        sigma=None if any(p.sigma is None for p in parts) else torch.cat([p.sigma for p in parts]),
+        sigma_names=first.sigma_names,
+        noise=first.noise,
+    )
+
+
+def _joined_moves(parts: Sequence[BatchFitResult]) -> dict:
+    """The parts' moved guesses, keyed by each sample's index in the joined batch."""
+    out, offset = {}, 0
+    for p in parts:
+        out.update({offset + b: moved for b, moved in p.moved_guesses.items()})
+        offset += len(p)
+    return out
+
+
+def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
+    """The parts' per-sample final evaluations and starts, joined (``None`` unless every part has them)."""
+    out = {}
+    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start", "exact",
+                "exact_residual"):
+        values = [getattr(p, key) for p in parts]
+        out[key] = torch.cat(values) if all(v is not None for v in values) else None
+    starts = [p.start_params for p in parts]
+    out["start_params"] = ({name: torch.cat([s[name] for s in starts]) for name in starts[0]}
+                           if all(s is not None for s in starts) else None)
+    return out

@@ -24,6 +24,7 @@ import torch
 
 from . import _checks
 from .engine import run_engine
+from .noise import run_with_noise
 from .problem import Problem, recorded_options
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .multi import StackedModel, experiment_state_name, stack_observations
@@ -201,8 +202,9 @@ def fit(
     spec = _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol,
                         ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver)
     max_time = Limits.resolve(max_time=max_time).max_time
-    batch = run_engine(spec, 1, max_time, lambda done: None, history=True,
-                       callback=None if callback is None else lambda sample, record: callback(record))
+    batch = run_with_noise(spec, lambda problem: run_engine(
+        problem, 1, max_time, lambda done: None, history=True,
+        callback=None if callback is None else lambda sample, record: callback(record)))
     result = batch.sample(0)
     result.index, result.method, result.data = None, spec.method, data
     result.fit_kwargs = recorded_options(
@@ -236,6 +238,9 @@ class _Problem:
                  ftol, rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None) -> None:
         spec = _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
                             xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver)
+        if spec.sigma_estimated:
+            raise ValueError("`data` asks to estimate sigma (sigma='estimate'), which gradient fitting does not do: "
+                             "give sigma, or fit with torchql.fit")
         self.system, self.operator, self.dtype, self.device = spec.system, spec.operator, spec.dtype, spec.device
         self.rtol, self.atol, self.rcond, self.solver = spec.rtol, spec.atol, spec.rcond, spec.solver
         self.t0, self.t_obs = spec.t0, spec.t_obs

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from ._arrays import float_tensor
-from .splines import hermite, knot_slopes
+from .splines import knot_slopes
 
 __all__ = ["Inputs", "INTERPOLATIONS", "RAMP", "BRACKET"]
 
@@ -169,6 +169,7 @@ class Inputs:
         out.t, out.u = self.t.to(dtype=dtype, device=device), self.u.to(dtype=dtype, device=device)
         out.names, out.kind, out.ramp = self.names, self.kind, self.ramp
         out._slopes = None if self._slopes is None else self._slopes.to(dtype=dtype, device=device)
+        out._tables = {}
         return out
 
     def select(self, names: Sequence[str], where: str = "inputs") -> "Inputs":
@@ -187,6 +188,7 @@ class Inputs:
         out = self.to()
         out.u, out.names = self.u[:, order], tuple(names)
         out._slopes = None if self._slopes is None else self._slopes[:, order]
+        out._tables = {}
         return out
 
     def same_as(self, other: "Inputs | None") -> bool:
@@ -199,35 +201,61 @@ class Inputs:
 
     def __call__(self, t: torch.Tensor) -> torch.Tensor:
         """The inputs at times ``t``: shape ``(*t.shape, m)``; differentiable in ``t``, vmap-safe."""
-        knots, N = self.t, self.t.shape[0]
-        if knots.dtype != t.dtype or knots.device != t.device:
-            knots = knots.to(dtype=t.dtype, device=t.device)
-        values = self.u.to(dtype=t.dtype, device=t.device)
-        flat = t.reshape(-1)
+        table = self._table(t.dtype, t.device)
+        flat = t.reshape(-1).clone()  # a physical copy: under vmap `t` may be an expanded view
         if self.kind == "zoh":
-            out = self._held(flat, knots, values)
-            return out.reshape(*t.shape, self.n_inputs)
-        index = ((flat.unsqueeze(-1) >= knots).sum(-1) - 1).clamp(0, N - 2)
-        inside = flat.clamp(knots[0], knots[-1])  # the end values held outside (clamp: a full derivative at the ends)
-        if self.kind == "linear":
-            k0, k1 = knots.index_select(0, index), knots.index_select(0, index + 1)
-            v0, v1 = values.index_select(0, index), values.index_select(0, index + 1)
-            out = v0 + ((inside - k0) / (k1 - k0)).unsqueeze(-1) * (v1 - v0)
+            out = self._held(flat, table)
         else:
-            out = hermite(knots, values, self._slopes.to(dtype=t.dtype, device=t.device), index, inside)
+            knots = table["knots"]
+            index = (torch.searchsorted(knots, flat, right=True) - 1).clamp(0, knots.shape[0] - 2)
+            inside = flat.clamp(knots[0], knots[-1])  # the end values held outside (clamp: a full slope at the ends)
+            s = ((inside - knots.index_select(0, index)) * table["inverse_width"].index_select(0, index)).unsqueeze(-1)
+            piece = table["pieces"].index_select(0, index)  # (Q, 2 or 4, m)
+            if self.kind == "linear":
+                out = torch.lerp(piece[:, 0], piece[:, 1], s)  # exact at both samples
+            else:  # cubic Hermite: values and width-scaled slopes at both ends
+                s2 = s * s
+                s3 = s2 * s
+                out = ((2 * s3 - 3 * s2 + 1) * piece[:, 0] + (s3 - 2 * s2 + s) * piece[:, 1]
+                       + (3 * s2 - 2 * s3) * piece[:, 2] + (s3 - s2) * piece[:, 3])
         return out.reshape(*t.shape, self.n_inputs)
 
-    def _held(self, flat: torch.Tensor, knots: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    def _table(self, dtype: torch.dtype, device: torch.device) -> dict:
+        """The interpolation's tables in ``dtype`` on ``device``, built once (per dtype and device)."""
+        cache = self.__dict__.setdefault("_tables", {})
+        key = (dtype, device)
+        if key not in cache:
+            knots = self.t.to(dtype=dtype, device=device)
+            values = self.u.to(dtype=dtype, device=device)
+            table = {"knots": knots, "values": values}
+            if knots.shape[0] > 1:
+                width = knots[1:] - knots[:-1]
+                table["inverse_width"] = 1.0 / width
+                if self.kind == "zoh":
+                    table["starts"] = knots - self.ramp / 2
+                    table["pieces"] = torch.stack([values[:-1], values[1:]], dim=1)
+                elif self.kind == "linear":
+                    table["pieces"] = torch.stack([values[:-1], values[1:]], dim=1)
+                else:
+                    scaled = self._slopes.to(dtype=dtype, device=device)
+                    w = width.unsqueeze(-1)
+                    table["pieces"] = torch.stack([values[:-1], w * scaled[:-1], values[1:], w * scaled[1:]], dim=1)
+            cache[key] = table
+        return cache[key]
+
+    def _held(self, flat: torch.Tensor, table: dict) -> torch.Tensor:
         """The zero-order hold at times ``flat (Q,)``: ``(Q, m)``, its steps smoothed over :attr:`ramp`."""
-        N = knots.shape[0]
+        values = table["values"]
+        N = values.shape[0]
         if N == 1:
             return values.expand(flat.shape[0], self.n_inputs)
+        starts = table["starts"]
+        # the step into sample j: the last one begun (sample 0's counted too), or the first before any
+        j = (torch.searchsorted(starts, flat, right=True) - 1).clamp(1, N - 1)
+        piece = table["pieces"].index_select(0, j - 1)  # (Q, 2, m): u_{j-1}, u_j
         half = self.ramp / 2
-        # the step towards sample j: the last one begun (sample 0 counted too), the first before any
-        j = ((flat.unsqueeze(-1) >= knots - half).sum(-1) - 1).clamp(1, N - 1)
-        before, after = values.index_select(0, j - 1), values.index_select(0, j)
-        s = ((flat - knots.index_select(0, j) + half) / self.ramp).clamp(0.0, 1.0).unsqueeze(-1)
-        return before + (after - before) * s * s * s * (10.0 + s * (6.0 * s - 15.0))
+        s = ((flat - table["knots"].index_select(0, j) + half) / self.ramp).clamp(0.0, 1.0).unsqueeze(-1)
+        return torch.lerp(piece[:, 0], piece[:, 1], s * s * s * (10.0 + s * (6.0 * s - 15.0)))  # exact where held
 
     def __repr__(self) -> str:
         return (f"Inputs(names={list(self.names)}, N={self.t.shape[0]}, t=[{self.t[0].item():g}, "

@@ -106,8 +106,16 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
                             first_step=first_step)
     options = {}
     if solver in ADAPTIVE_SOLVERS:
+        if jumps is not None:
+            low, high = torch.minimum(t[0], t[-1]), torch.maximum(t[0], t[-1])
+            jumps = jumps.to(t)
+            jumps = jumps[(jumps > low) & (jumps < high)]
+            if jumps.numel():
+                options["jump_t"] = jumps  # the solver lands on these too
         if hit is not None:
             inner = hit[(hit > t[0]) & (hit < t[-1])]
+            if "jump_t" in options:
+                inner = inner[~torch.isin(inner, options["jump_t"])]  # torchdiffeq takes a time once
             if inner.numel():
                 options["step_t"] = inner
         if max_steps is not None:
@@ -116,11 +124,6 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
             options["norm"] = norm
         if first_step is not None:
             options["first_step"] = first_step
-        if jumps is not None:
-            low, high = torch.minimum(t[0], t[-1]), torch.maximum(t[0], t[-1])
-            inner = jumps.to(t)[(jumps.to(t) > low) & (jumps.to(t) < high)]
-            if inner.numel():
-                options["jump_t"] = inner
     try:
         out = odeint(func, y0, t, rtol=rtol, atol=atol, method=solver, options=options)
     except AssertionError as exc:  # torchdiffeq reports solver failures by assert

@@ -131,7 +131,27 @@ def stack_observations(datasets: list[Observations], state_names: list[str], t0:
     sigma_given = all(d.sigma_given for d in datasets)
     if not sigma_given and any(d.sigma_given for d in datasets):
         raise ValueError("`sigma` must be given for every experiment or for none (the residual variance is shared)")
-    return Observations(tau, y, observe=observe, sigma=sigma if sigma_given else None, exact=exact)
+    first = datasets[0]
+    for e, d in enumerate(datasets[1:], start=1):
+        if (d.noise, d.sigma_estimated) != (first.noise, first.sigma_estimated):
+            raise ValueError(f"`data[{e}]` has another noise model than `data[0]` (`noise` or sigma='estimate' "
+                             "differ): the experiments of one fit share it")
+    if first.sigma_estimated:
+        return Observations(tau, y, observe=observe, sigma="estimate", exact=exact, noise=first.noise,
+                            sigma_groups=[label for d in datasets for label in _sigma_labels(d)])
+    return Observations(tau, y, observe=observe, sigma=sigma if sigma_given else None, exact=exact, noise=first.noise)
+
+
+def _sigma_labels(data: Observations) -> list[str]:
+    """Each output's sigma group: the same label, or the same observed state by default, is one
+    sigma across experiments."""
+    K, groups = data.n_outputs, data.sigma_groups
+    if groups == "shared":
+        return ["sigma"] * K
+    if groups is not None:
+        return [str(g) for g in groups]
+    names = data.observe if isinstance(data.observe, (list, tuple)) else None
+    return [str(names[k]) if names is not None else f"y[{k}]" for k in range(K)]
 
 
 class _BlockObservation:

@@ -12,8 +12,9 @@ from torch.func import jacrev, vmap
 
 from ._arrays import float_tensor
 from .inputs import Inputs
+from .noise import NOISE_MODELS, sigma_group_index
 
-__all__ = ["Observations", "ObservationOperator"]
+__all__ = ["Observations", "ObservationOperator", "LogObservation"]
 
 ObserveSpec = Union[Sequence[str], torch.Tensor, np.ndarray, Callable[[torch.Tensor], torch.Tensor]]
 
@@ -121,15 +122,23 @@ class Observations:
         What each of the ``K`` columns of ``y`` measures: state names; a matrix ``Q`` so that
         ``y = Q x``; or a differentiable function ``h(x) -> (..., K)`` of the state
         ``x (..., n_states)``, linearized like the right-hand side. The same for every sample.
-    sigma : float or Tensor, optional
-        Standard deviation of each value (same unit as ``y``). Residuals are divided by it.
-        Default 1 for every value. One dataset: a scalar, shape ``(K,)`` or ``(T, K)``, and with
+    sigma : float, Tensor or "estimate", optional
+        Standard deviation of each value (same unit as ``y``; of ``log y`` with
+        ``noise="lognormal"``). Residuals are divided by it. ``"estimate"``: unknown, one per group
+        of outputs (``sigma_groups``), estimated with the unknowns by maximum likelihood
+        (:mod:`torchql.noise`). Default: 1 for every value, the residual variance estimated
+        from the fit. One dataset: a scalar, shape ``(K,)`` or ``(T, K)``, and with
         ``K == 1`` shape ``(T,)`` too. A batch: those shapes (shared by the samples) or any
         shape that broadcasts to ``(B, T, K)``, such as ``(B, 1, K)`` or ``(B, T, K)``.
     exact : bool Tensor, optional
         Values to be met exactly (equality-constrained least squares) rather than in the
         least-squares sense. One dataset: shape ``(T, K)``, or ``(T,)`` marking every value at
         those times. A batch: those shapes (shared) or any shape that broadcasts to ``(B, T, K)``.
+    noise : {"normal", "lognormal"}
+        The values' noise: additive Gaussian (default), or log-normal (``log y`` Gaussian about
+        ``log h(x)``; every present value must be positive).
+    sigma_groups : None, "shared" or sequence of ``K`` labels
+        With ``sigma="estimate"``: one sigma per output (default), one for all, or one per label.
     inputs : Inputs, or for a batch a sequence of ``B`` Inputs, optional
         The experiment's measured inputs ``u(t)`` (:class:`torchql.Inputs`), for a model with
         ``input_names``; their samples must cover the data's times. A batch takes one
@@ -145,6 +154,10 @@ class Observations:
         Whether ``sigma`` was given (then it is taken as the known standard deviation of the
         values; otherwise the residual variance is estimated from the fit).
     inputs : Inputs, tuple of Inputs (a batch's, one per sample) or None
+    noise : str
+    sigma_estimated : bool
+        Whether ``sigma`` is to be estimated (``sigma="estimate"``); ``sigma`` is then 1.
+    sigma_groups : the ``sigma_groups`` argument as given.
     """
 
     def __init__(
@@ -155,6 +168,8 @@ class Observations:
         sigma=None,
         exact=None,
         inputs: "Inputs | Sequence[Inputs] | None" = None,
+        noise: str = "normal",
+        sigma_groups=None,
     ) -> None:
         t = _as_float_tensor(t, "t")
         y = _as_float_tensor(y, "y")
@@ -183,6 +198,21 @@ class Observations:
         self.observe = observe
         self._check_observe_spec(observe, K)
 
+        if not isinstance(noise, str) or noise not in NOISE_MODELS:
+            raise ValueError(f"`noise` must be one of {list(NOISE_MODELS)}; received {noise!r}")
+        if noise == "lognormal" and bool((self.y[~torch.isnan(self.y)] <= 0).any()):
+            raise ValueError("`y` must be positive with noise='lognormal' (its logarithm is fitted); received a value "
+                             "<= 0: mark it missing (NaN) or use noise='normal'")
+        self.noise = noise
+        self.sigma_estimated = isinstance(sigma, str)
+        if self.sigma_estimated and sigma != "estimate":
+            raise ValueError(f"`sigma` must be a number, a tensor or 'estimate'; received {sigma!r}")
+        if sigma_groups is not None and not self.sigma_estimated:
+            raise ValueError("`sigma_groups` applies only with sigma='estimate'")
+        self.sigma_groups = sigma_groups
+        if self.sigma_estimated:
+            sigma_group_index(sigma_groups, K, [f"y[{k}]" for k in range(K)])  # validated here
+            sigma = None
         if sigma is None:
             sig = torch.ones(shape, dtype=self.y.dtype)
         else:
@@ -229,7 +259,13 @@ class Observations:
         obs = cls.__new__(cls)
         obs.t, obs.y, obs.observe, obs.sigma, obs.exact, obs.sigma_given = t, y, observe, sigma, exact, sigma_given
         obs.inputs = inputs
+        obs.noise, obs.sigma_estimated, obs.sigma_groups = "normal", False, None
         return obs
+
+    def _same_noise(self, source: "Observations") -> "Observations":
+        """This instance with ``source``'s noise model (for samples and slices of a batch)."""
+        self.noise, self.sigma_estimated, self.sigma_groups = source.noise, source.sigma_estimated, source.sigma_groups
+        return self
 
     def inputs_of(self, b: int) -> Inputs | None:
         """Sample ``b``'s inputs (a batch's shared ones, or its own), or ``None``."""
@@ -321,7 +357,7 @@ class Observations:
         else:
             inputs = self.inputs
         return Observations._validated(t, self.y[rows].clone(), self.observe, self.sigma[rows].clone(),
-                                       self.exact[rows].clone(), self.sigma_given, inputs)
+                                       self.exact[rows].clone(), self.sigma_given, inputs)._same_noise(self)
 
     def __iter__(self) -> Iterator["Observations"]:
         """The samples of a batch in order, each one dataset (``TypeError`` for one dataset)."""
@@ -433,3 +469,24 @@ class ObservationOperator:
 
         jac, val = vmap(jacrev(h, has_aux=True))(x)
         return val, jac
+
+
+class LogObservation:
+    """``log h(x)``: the observation operator of log-normal data (fitted on ``log y``)."""
+
+    def __init__(self, operator: ObservationOperator) -> None:
+        self.inner, self.n, self.K = operator, operator.n, operator.K
+        self.matrix, self.function = None, operator.function
+
+    @property
+    def observed_states(self) -> list[None]:
+        """No output is a state itself (it is the logarithm of one)."""
+        return [None] * self.K
+
+    def check(self, x: torch.Tensor) -> None:
+        self.inner.check(x)
+
+    def value_and_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``log h(x) (T, K)`` and its Jacobian ``(T, K, n)``."""
+        h, H = self.inner.value_and_jacobian(x)
+        return torch.log(h), H / h.unsqueeze(-1)

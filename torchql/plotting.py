@@ -8,11 +8,12 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .compare import Comparison
     from .observations import Observations
     from .profile import ProfileResult
     from .result import FitResult
 
-__all__ = ["plot_fit", "plot_convergence", "plot_profile"]
+__all__ = ["plot_fit", "plot_convergence", "plot_profile", "plot_comparison"]
 
 
 def _pyplot():
@@ -196,3 +197,47 @@ def plot_profile(profile: "ProfileResult", ax=None):
     ax.set_ylabel("optimal SSE")
     ax.legend(fontsize="small")
     return fig, ax
+
+
+def plot_comparison(comparison: "Comparison", ax=None, n_points: int = 400):
+    """Measured and simulated outputs of :func:`torchql.compare`, one panel per output, each
+    labelled with its fit percentage (NRMSE).
+
+    Parameters
+    ----------
+    comparison : Comparison
+    ax : matplotlib Axes or sequence of ``K`` Axes, optional
+        ``None``: a new figure with one panel per output.
+    n_points : int
+        Points of the simulated curve.
+
+    Returns
+    -------
+    (Figure, list of Axes)
+    """
+    plt = _pyplot()
+    K = comparison.y.shape[1]
+    if ax is None:
+        fig, axes = plt.subplots(K, 1, sharex=True, figsize=(7, 2.6 * K + 0.6), squeeze=False)
+        axes = list(axes[:, 0])
+    else:
+        axes = [ax] if hasattr(ax, "plot") else list(ax)
+        if len(axes) != K:
+            raise ValueError(f"`ax` must be one Axes per output ({K}); received {len(axes)}")
+        fig = axes[0].figure
+    t = comparison.t.cpu().numpy()
+    t_curve, curve = comparison.t, comparison.predicted
+    if comparison.curve is not None and comparison.t.numel() > 1:  # the simulation between the samples too
+        t_curve = torch.linspace(float(comparison.t[0]), float(comparison.t[-1]), n_points, dtype=comparison.t.dtype,
+                                 device=comparison.t.device)
+        with torch.no_grad():
+            curve = comparison.curve(t_curve)
+    for k, axis in enumerate(axes):
+        name = comparison.output_names[k]
+        axis.plot(t, comparison.y[:, k].cpu().numpy(), ".", color="0.35", label=f"{name} measured")
+        axis.plot(t_curve.cpu().numpy(), curve[:, k].cpu().numpy(), "-",
+                  label=f"{name} simulated: fit {comparison.fit_percent[k].item():.2f}%")
+        axis.set_ylabel(name)
+        axis.legend(loc="best", fontsize="small")
+    axes[-1].set_xlabel("t")
+    return fig, axes

@@ -19,7 +19,8 @@ from .grid import make_grid
 from .integrate import check_solver
 from .linearize import linearize
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
-from .observations import ObservationOperator, Observations
+from .noise import sigma_group_index
+from .observations import LogObservation, ObservationOperator, Observations
 from .options import Limits, Tolerances, check_damping, check_scheme
 from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
@@ -144,6 +145,7 @@ class Problem:
             if bool(bad.any()):
                 raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
         self.z0 = torch.cat([x0, p0], dim=1).clone()
+        self._noise_model(names)
 
         fixed_x0 = _checks.distinct_names("fixed_x0", [] if fixed_x0 is None else fixed_x0, names, "state",
                                           f"the model's states are {names}")
@@ -252,6 +254,9 @@ class Problem:
         self.observe = first.observe
         self.K = y.shape[-1]
         self.sigma_known = first.sigma_given
+        self.noise, self.sigma_estimated, self.sigma_groups = first.noise, first.sigma_estimated, first.sigma_groups
+        if self.sigma_estimated:
+            self.sigma_known = True  # the weights at the estimated sigmas are the covariance's
         y = y.to(dtype=dtype, device=device)
         self.mask = ~torch.isnan(y)  # (B, T, K)
         self.exact = exact.to(device) & self.mask  # (B, T, K): values to be met exactly
@@ -259,6 +264,33 @@ class Problem:
         self.y = torch.where(self.mask, y, torch.zeros_like(y))
         self.weights = torch.where(self.mask, 1.0 / sigma.to(dtype=dtype, device=device), torch.zeros_like(y))
         self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
+
+    def _noise_model(self, names) -> None:
+        """The sigma groups (``sigma_group (K,)``, ``sigma_names``) and, for log-normal data, the
+        logarithms: ``y`` becomes ``log y``, the operator ``log h``, and ``log_y_sum (B,)`` the
+        likelihood's change of variable."""
+        labels = [names[i] if i is not None else f"y[{k}]" for k, i in enumerate(self.operator.observed_states)]
+        self.sigma_names, group = sigma_group_index(self.sigma_groups, self.K, labels)
+        self.sigma_group = torch.tensor(group, dtype=torch.long, device=self.device)
+        self.sigma_per_group = None
+        self.log_y_sum = torch.zeros(self.B, dtype=self.dtype, device=self.device)
+        if self.noise == "lognormal":
+            counted = self.mask & ~self.exact
+            log_y = torch.log(torch.where(self.mask, self.y, torch.ones_like(self.y)))
+            self.log_y_sum = torch.where(counted, log_y, torch.zeros_like(log_y)).flatten(1).sum(dim=1)
+            self.y = log_y
+            self.operator = LogObservation(self.operator)
+
+    def set_sigma(self, sigma: torch.Tensor) -> None:
+        """Weigh every value by ``1 / sigma`` of its group: ``sigma (B, G)``."""
+        per_output = sigma[:, self.sigma_group].unsqueeze(1)  # (B, 1, K)
+        self.weights = torch.where(self.mask, 1.0 / per_output, torch.zeros_like(self.weights))
+        self.sigma_per_group = sigma.clone()
+
+    def warm_start(self, estimates: torch.Tensor) -> None:
+        """Start from ``estimates (B, m)`` where they are finite (the next round of a noise estimate)."""
+        current = self.z0[:, self.unknown_index]
+        self.z0[:, self.unknown_index] = torch.where(torch.isfinite(estimates), estimates, current)
 
     def _attach_inputs(self, model) -> torch.Tensor | None:
         """The data's inputs checked against the model's ``input_names`` and the data's times, and
@@ -404,6 +436,9 @@ def check_data(data) -> Observations | list[Observations]:
             raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
                              "fit_many needs one observation operator for all datasets (the same names, matrix "
                              "or callable object)")
+        if (d.noise, d.sigma_estimated, d.sigma_groups) != (first.noise, first.sigma_estimated, first.sigma_groups):
+            raise ValueError(f"`data[{i}]` has another noise model than `data[0]` (`noise`, sigma='estimate' or "
+                             "`sigma_groups` differ): one batch has one noise model")
         if d.sigma_given != first.sigma_given:
             raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
                              f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")

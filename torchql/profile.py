@@ -28,6 +28,7 @@ from typing import NamedTuple
 import torch
 
 from .model import _set_buffer, coefficients
+from .noise import estimate_sigma, negative_log_likelihood, sigma_group_index
 from .observations import ObservationOperator, Observations
 from .result import FitResult, Status
 from .uncertainty import normal_quantile, student_t_quantile
@@ -250,9 +251,13 @@ def profile(
                              if k not in (name, name.removesuffix("(t0)"))}
     options.update(fit_options)
 
-    # --- threshold
+    # --- threshold: on the SSE, or with estimated sigmas or log-normal noise on 2 NLL (the profile
+    # likelihood: 2 (NLL - NLL_min) is chi-square with one degree of freedom)
+    likelihood = result.sigma is not None or result.noise != "normal"
     p = 0.5 + 0.5 * level
-    if result.sigma_known:
+    if likelihood:
+        s2, q2 = 1.0, normal_quantile(p) ** 2
+    elif result.sigma_known:
         s2 = 1.0
         q2 = normal_quantile(p) ** 2
     else:
@@ -260,7 +265,7 @@ def profile(
             raise ValueError(f"no degrees of freedom are left to estimate the residual variance (dof = {result.dof})")
         s2 = result.sse / result.dof
         q2 = student_t_quantile(p, result.dof) ** 2
-    sse_min = result.sse
+    sse_min = 2 * result.nll if likelihood else result.sse
     delta = s2 * q2
     threshold = sse_min + delta
     if s2 <= 0:
@@ -288,7 +293,7 @@ def profile(
         else:
             x0[state_index] = value
         if m == 1:  # nothing left to fit: the SSE of the model itself
-            sse = _sse_of(model, x0, result.t0, data, options)
+            sse = _sse_of(model, x0, result.t0, data, options, likelihood)
             if not math.isfinite(sse):
                 failures.append((value, "INTEGRATION_FAILED"))
                 return None
@@ -307,7 +312,7 @@ def profile(
         by_name = dict(zip(r.unknown_names, r.estimates.tolist()))
         by_name[name] = value
         est = torch.tensor([by_name[u] for u in names], dtype=result.estimates.dtype)
-        return _Point(value, r.sse, est, r.model, r.x0)
+        return _Point(value, 2 * r.nll if likelihood else r.sse, est, r.model, r.x0)
 
     center = evaluate(theta_hat, result)
     if center is None:
@@ -463,8 +468,10 @@ def _sse_noise(result: FitResult, data: Observations, options: dict) -> float:
     return 100.0 * rtol**2 * float((yw.to(torch.float64) ** 2).sum())
 
 
-def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dict) -> float:
-    """Weighted SSE over the least-squares values of ``model`` integrated from ``x0`` (no fitting)."""
+def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dict, likelihood: bool = False) -> float:
+    """Weighted SSE over the least-squares values of ``model`` integrated from ``x0`` (no fitting);
+    with ``likelihood``, twice the negative log-likelihood (sigmas at their maximum-likelihood
+    values when estimated, log-normal values in log space; see :mod:`torchql.noise`)."""
     from .integrate import IntegrationError, simulate
 
     dtype, device = x0.dtype, x0.device
@@ -475,7 +482,21 @@ def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dic
         return math.nan
     operator = ObservationOperator(data.observe, model.state_names, data.n_outputs, dtype, device)
     value, _ = operator.value_and_jacobian(x)
-    mask = data.mask.to(device)
-    r = ((data.y.to(dtype=dtype, device=device) - value) / data.sigma.to(dtype=dtype, device=device))[mask]
-    r = r[~data.exact.to(device)[mask]]
-    return float((r ** 2).sum())
+    y = data.y.to(dtype=dtype, device=device)
+    counted = data.mask.to(device) & ~data.exact.to(device)
+    log_y = torch.zeros((), dtype=dtype, device=device)
+    if data.noise == "lognormal":
+        log_y = torch.log(y)[counted].sum()
+        y, value = torch.log(y), torch.log(value)
+    sigma = data.sigma.to(dtype=dtype, device=device)
+    if likelihood and data.sigma_estimated:
+        labels = [model.state_names[i] if i is not None else f"y[{k}]" for k, i in enumerate(operator.observed_states)]
+        _, group = sigma_group_index(data.sigma_groups, data.n_outputs, labels)
+        group = torch.tensor(group, dtype=torch.long, device=device)
+        sigma = estimate_sigma((y - value).unsqueeze(0), counted.unsqueeze(0), group, int(group.max()) + 1)[0]
+        sigma = sigma[group].expand_as(y)
+    r = ((y - value) / sigma)[counted]
+    if not likelihood:
+        return float((r ** 2).sum())
+    n = torch.tensor(float(r.numel()), dtype=dtype)
+    return 2 * float(negative_log_likelihood((r ** 2).sum(), torch.log(sigma[counted]).sum(), n, log_y))

@@ -10,14 +10,13 @@ Ray is an optional dependency: ``pip install "torchql[ray]"``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import torch
 
 from . import _checks
-from .batch import check_data, fit_many
-from .batch_result import BatchFitResult
+from .batch import check_data, fit_many, sample_rows, sample_rows_dict
+from .batch_result import BatchFitResult, concatenate
 from .model import ODEModel
 from .observations import Observations
 
@@ -92,7 +91,7 @@ def fit_many_ray(
     datasets = check_data(data)  # a batched Observations or a list: both are sliced into batches below
     B = len(datasets)
     # validate the other arguments once, here, so that a bad one fails before the cluster is used
-    fit_many(model, datasets[:1], _rows(x0, B, 0, 1), guesses=_rows_dict(guesses, B, 0, 1),
+    fit_many(model, datasets[:1], sample_rows(x0, B, 0, 1), guesses=sample_rows_dict(guesses, B, 0, 1),
              **{**options, "max_iter": 0})
 
     started = False
@@ -108,8 +107,8 @@ def fit_many_ray(
         pending = {}
         for start in range(0, B, batch_size):
             stop = min(B, start + batch_size)
-            ref = task.remote(model_ref, datasets[start:stop], _rows(x0, B, start, stop),
-                              _rows_dict(guesses, B, start, stop), options, torch_threads)
+            ref = task.remote(model_ref, datasets[start:stop], sample_rows(x0, B, start, stop),
+                              sample_rows_dict(guesses, B, start, stop), options, torch_threads)
             pending[ref] = (start, stop)
         report = _reporter(progress, B)
         parts: dict[int, BatchFitResult] = {}
@@ -137,85 +136,7 @@ def _fit_batch(model, datasets, x0, guesses, options, torch_threads) -> BatchFit
     return fit_many(model, datasets, x0, guesses=guesses, **options)
 
 
-def _rows(x0, B: int, start: int, stop: int):
-    """Rows ``start:stop`` of a per-sample ``x0 (B, n)``; a shared ``(n,)`` or ``None`` as it is."""
-    if x0 is None:
-        return None
-    x = torch.as_tensor(x0)
-    return x[start:stop] if x.dim() == 2 and x.shape[0] == B else x
-
-
-def _rows_dict(guesses, B: int, start: int, stop: int):
-    if guesses is None or not isinstance(guesses, dict):
-        return guesses
-    out = {}
-    for name, value in guesses.items():
-        v = torch.as_tensor(value)
-        out[name] = v[start:stop] if v.dim() >= 1 and v.shape[0] == B else v
-    return out
-
-
 def _reporter(progress, total: int):
     from .batch import _progress
 
     return _progress(progress, total)
-
-
-def _initial_times(parts: Sequence[BatchFitResult]) -> float | torch.Tensor:
-    """The parts' ``t0``: a float when every sample of every part shares it, else one per sample ``(B,)``."""
-    if all(not isinstance(p.t0, torch.Tensor) for p in parts) and len({p.t0 for p in parts}) == 1:
-        return parts[0].t0
-    return torch.cat([p.t0 if isinstance(p.t0, torch.Tensor)
-                      else torch.full((len(p.status),), p.t0, dtype=p.x0.dtype, device=p.x0.device) for p in parts])
-
-
-def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
-    """One :class:`BatchFitResult` from consecutive parts (same model, unknowns and settings), in order."""
-    first = parts[0]
-    return BatchFitResult(
-        success=torch.cat([p.success for p in parts]),
-        status=[s for p in parts for s in p.status],
-        message=[m for p in parts for m in p.message],
-        params={name: torch.cat([p.params[name] for p in parts]) for name in first.params},
-        x0=torch.cat([p.x0 for p in parts]),
-        t0=_initial_times(parts),
-        unknown_names=list(first.unknown_names),
-        estimates=torch.cat([p.estimates for p in parts]),
-        iterations=torch.cat([p.iterations for p in parts]),
-        sse=torch.cat([p.sse for p in parts]),
-        covariance=torch.cat([p.covariance for p in parts]),
-        n_observations=torch.cat([p.n_observations for p in parts]),
-        dof=torch.cat([p.dof for p in parts]),
-        residual_variance=torch.cat([p.residual_variance for p in parts]),
-        sigma_known=first.sigma_known,
-        nfev=int(math.fsum(p.nfev for p in parts)),
-        model=first.model,
-        **_joined_evaluations(parts),
-        solver_options=dict(first.solver_options),
-        fit_kwargs=dict(first.fit_kwargs),
-        lower=first.lower,
-        upper=first.upper,
-        moved_guesses=_joined_moves(parts),
-    )
-
-
-def _joined_moves(parts: Sequence[BatchFitResult]) -> dict:
-    """The parts' moved guesses, keyed by each sample's index in the joined batch."""
-    out, offset = {}, 0
-    for p in parts:
-        out.update({offset + b: moved for b, moved in p.moved_guesses.items()})
-        offset += len(p)
-    return out
-
-
-def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
-    """The parts' per-sample final evaluations and starts, joined (``None`` unless every part has them)."""
-    out = {}
-    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start", "exact",
-                "exact_residual"):
-        values = [getattr(p, key) for p in parts]
-        out[key] = torch.cat(values) if all(v is not None for v in values) else None
-    starts = [p.start_params for p in parts]
-    out["start_params"] = ({name: torch.cat([s[name] for s in starts]) for name in starts[0]}
-                           if all(s is not None for s in starts) else None)
-    return out

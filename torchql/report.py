@@ -57,10 +57,17 @@ def information_criteria(result: "FitResult") -> tuple[float, float]:
 
     ``N ln(SSE/N) + 2 m`` and ``N ln(SSE/N) + ln(N) m``, ``N`` the least-squares values (the
     values marked exact are met exactly and do not count), ``m`` the number of unknowns.
-    ``nan`` when the SSE is not finite, ``-inf`` when it is zero.
+    ``nan`` when the SSE is not finite, ``-inf`` when it is zero. With estimated sigmas or
+    log-normal noise, from the negative log-likelihood instead: ``2 NLL + 2 k`` and
+    ``2 NLL + ln(N) k``, ``k`` the unknowns and the estimated sigmas (:mod:`torchql.noise`).
     """
     n = result.n_observations - int(result.exact_mask.sum())
     m = len(result.unknown_names)
+    if result.sigma is not None or result.noise != "normal":  # the likelihood's own: 2 NLL + penalty
+        k = m + (len(result.sigma) if result.sigma is not None else 0)
+        if not math.isfinite(result.nll) or n <= 0:
+            return math.nan, math.nan
+        return 2 * result.nll + 2 * k, 2 * result.nll + math.log(n) * k
     sse = result.sse
     if not math.isfinite(sse) or n <= 0:
         return math.nan, math.nan
@@ -167,13 +174,19 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
     add(f"    unknowns           = {m}")
     add(f"    degrees of freedom = {result.dof}")
     add(f"    SSE (chi-square)   = {_g(result.sse)}")
-    if result.sigma_known:
+    if result.noise != "normal":
+        add(f"    noise              = {result.noise} (fitted on log y; sigma is that of log y)")
+    if result.sigma is not None:
+        add("    sigma (estimated)  = " + ", ".join(f"{name}: {_g(value)}" for name, value in result.sigma.items())
+            + " (maximum likelihood; the residuals are in units of it)")
+    elif result.sigma_known:
         red = result.sse / result.dof if result.dof > 0 else math.nan
         add(f"    reduced chi-square = {_g(red)}")
         add("    residual std       = 1 (sigma given: the residuals are in units of sigma)")
     else:
         rv = result.residual_variance
         add(f"    residual std       = {_g(math.sqrt(rv) if rv >= 0 else math.nan)} (estimated, sqrt(SSE / dof))")
+    add(f"    -log likelihood    = {_g(result.nll)}")
     add(f"    AIC                = {_g(aic)}")
     add(f"    BIC                = {_g(bic)}")
     add(f"    condition number   = {_g(condition_number(result), 4)} (column-scaled weighted Jacobian)")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -176,6 +178,14 @@ class FitResult:
         ``{name: (given, used)}`` for every guess that lay on or outside its ``bounds`` and was
         moved strictly inside before the iteration (see :meth:`torchql.bounds.Bounds.move_inside`);
         ``history[0]`` holds the guesses used. Empty when none was moved.
+    nll : float
+        The negative log-likelihood of the data at the estimates (:mod:`torchql.noise`; for
+        log-normal noise, of ``y`` itself). AIC and BIC in :meth:`report` follow from it.
+    sigma : dict of str to float, or None
+        The estimated standard deviations by group (``sigma="estimate"``); ``None`` otherwise.
+        The weights, residuals, ``sse`` and covariance are then at these sigmas.
+    noise : str
+        The data's noise distribution, ``"normal"`` or ``"lognormal"``.
     """
 
     success: bool
@@ -210,6 +220,9 @@ class FitResult:
     upper: torch.Tensor | None = field(default=None, repr=False)
     moved_guesses: dict[str, tuple[float, float]] = field(default_factory=dict, repr=False)
     index: int | None = field(default=None, repr=False)
+    nll: float = field(default=math.nan, repr=False)
+    sigma: dict[str, float] | None = field(default=None, repr=False)
+    noise: str = field(default="normal", repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:

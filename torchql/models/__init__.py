@@ -1,14 +1,15 @@
-"""Ready-to-use models: the thesis' oscillators and coasting car, FitzHugh–Nagumo, A -> B -> C kinetics,
-and stiff ones (Robertson, van der Pol, HIRES, enzyme kinetics; simulate them with ``solver="rodas5p"``)."""
+"""Ready-to-use models: the thesis' oscillators and coasting car, a driven oscillator (a measured
+input), FitzHugh–Nagumo, A -> B -> C kinetics, and stiff ones (Robertson, van der Pol, HIRES, enzyme
+kinetics; simulate them with ``solver="rodas5p"``)."""
 
 from .car import AIR_DENSITY, GRAVITY, CoastingCar
 from .fitzhugh_nagumo import FitzHughNagumo
-from .oscillators import HarmonicOscillator, LinearOscillator, NonlinearOscillator
+from .oscillators import DrivenOscillator, HarmonicOscillator, LinearOscillator, NonlinearOscillator
 from .reactions import BranchedReactions, FirstOrderReactions
 from .stiff import HIRES, MichaelisMentenEnzyme, Robertson, VanDerPol
 
 __all__ = [
-    "HarmonicOscillator", "LinearOscillator", "NonlinearOscillator", "CoastingCar", "AIR_DENSITY", "GRAVITY",
+    "HarmonicOscillator", "LinearOscillator", "NonlinearOscillator", "DrivenOscillator", "CoastingCar", "AIR_DENSITY", "GRAVITY",
     "FitzHughNagumo", "FirstOrderReactions", "BranchedReactions", "Robertson", "VanDerPol", "HIRES",
     "MichaelisMentenEnzyme",
 ]

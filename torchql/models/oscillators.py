@@ -1,4 +1,4 @@
-"""The oscillators of the thesis: eq. 3.23 and eqs. 4.1/4.2."""
+"""The oscillators of the thesis (eq. 3.23 and eqs. 4.1/4.2), and a forced one with a measured input."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import torch
 
 from ..model import ODEModel
 
-__all__ = ["HarmonicOscillator", "LinearOscillator", "NonlinearOscillator"]
+__all__ = ["HarmonicOscillator", "LinearOscillator", "NonlinearOscillator", "DrivenOscillator"]
 
 
 def _scalar(value: float) -> torch.Tensor:
@@ -55,3 +55,23 @@ class NonlinearOscillator(ODEModel):
     def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         y, v = x.unbind(-1)
         return torch.stack((v, -self.A * v - self.B * y - self.C * v**3 - self.D * y**3), dim=-1)
+
+
+class DrivenOscillator(ODEModel):
+    """``y'' + c y' + k y = u(t)``, a mass-spring-damper per unit mass driven by a measured force.
+
+    States ``(y, v = y')``; coefficients ``c`` (1/s) and ``k`` (1/s^2); input ``u`` (force per
+    unit mass, the unit of ``y`` per s^2), given with the data as a :class:`torchql.Inputs`.
+    """
+
+    state_names = ("y", "v")
+    input_names = ("u",)
+
+    def __init__(self, c: float = 0.5, k: float = 2.0) -> None:
+        super().__init__()
+        self.register_buffer("c", _scalar(c))
+        self.register_buffer("k", _scalar(k))
+
+    def forward(self, t: torch.Tensor, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        y, v = x.unbind(-1)
+        return torch.stack((v, u[..., 0] - self.c * v - self.k * y), dim=-1)

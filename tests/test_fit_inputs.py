@@ -1,0 +1,169 @@
+"""Fits of a model with a measured input: fit, several experiments, fit_many, predict and simulate."""
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+from scipy.interpolate import CubicSpline
+
+import torchql
+from torchql.models import DrivenOscillator
+
+DT = torch.float64
+TRUTH = {"c": 0.3, "k": 4.0}
+X0 = torch.tensor([0.5, 0.0], dtype=DT)
+
+
+@functools.lru_cache(maxsize=None)
+def force(seed: int, kind: str = "zoh", span: float = 12.0, samples: int = 49) -> torchql.Inputs:
+    """A random force sampled every ``span / (samples - 1)``."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.linspace(0, span, samples, dtype=DT)
+    return torchql.Inputs(t, torch.randn(samples, generator=g, dtype=DT), names="u", kind=kind)
+
+
+@functools.lru_cache(maxsize=None)
+def _positions(inputs, x0: tuple, times: tuple) -> torch.Tensor:
+    """The true oscillator's positions ``(T, 1)`` from ``x0`` at ``times[0]``, exact: between the input's samples the force is a
+    polynomial in the time since the last sample, and the oscillator with that polynomial's powers
+    as extra states is linear with constant coefficients, so each stretch is one matrix exponential.
+    (The zero-order hold's smoothed steps keep the held signal's integral: they change the solution
+    by O(ramp^2), far below the tolerances asserted.)"""
+    knots = inputs.t.numpy()
+    u = inputs.u[:, 0].numpy()
+    if inputs.kind == "cubic":
+        coefficients = np.ascontiguousarray(CubicSpline(knots, u, bc_type="not-a-knot").c[::-1].T)  # powers 0..3
+    else:
+        slope = np.diff(u) / np.diff(knots) if inputs.kind == "linear" else np.zeros(len(knots) - 1)
+        coefficients = np.stack([u[:-1], slope, np.zeros_like(slope), np.zeros_like(slope)], axis=1)
+    A = torch.zeros(6, 6, dtype=DT)  # (y, v, 1, s, s^2, s^3), s the time since the last sample
+    A[0, 1], A[1, 0], A[1, 1] = 1.0, -TRUTH["k"], -TRUTH["c"]
+    A[3, 2], A[4, 3], A[5, 4] = 1.0, 2.0, 3.0
+    state = torch.tensor([*x0, 1.0, 0.0, 0.0, 0.0], dtype=DT)
+    now, out = times[0], []
+    for target in times:
+        while now < target:
+            j = min(int(np.searchsorted(knots, now, side="right")) - 1, len(knots) - 2)
+            step = min(target, float(knots[j + 1])) - now
+            A[1, 2:] = torch.tensor(coefficients[j], dtype=DT)
+            state[2:] = torch.tensor([(now - knots[j]) ** p for p in range(4)], dtype=DT)
+            state = torch.linalg.matrix_exp(A * step) @ state
+            now += step
+        out.append(float(state[0]))
+    return torch.tensor(out, dtype=DT).unsqueeze(-1)
+
+
+def measured(inputs, *, noise: float = 0.0, seed: int = 0, x0=X0, times=None) -> torchql.Observations:
+    """Positions of the true oscillator driven by ``inputs`` (exact), with Gaussian noise."""
+    t = torch.linspace(0, 12, 41, dtype=DT) if times is None else times
+    y = _positions(inputs, tuple(x0.tolist()), tuple(t.tolist()))
+    if noise:
+        y = y + noise * torch.randn(y.shape, generator=torch.Generator().manual_seed(seed), dtype=DT)
+    return torchql.Observations(t, y, observe=["y"], sigma=noise or None, inputs=inputs)
+
+
+GUESS_X0 = torch.tensor([0.0, 0.0], dtype=DT)
+
+
+@pytest.mark.parametrize("method, kind", [("kantorovich", "zoh"), ("kantorovich", "linear"), ("kantorovich", "cubic"),
+                                          ("shooting", "zoh"), ("shooting", "linear")])
+def test_exact_data_recover_the_truth(kind, method):
+    # the data are exact; the fit's default tolerances are 1e-10 (rtol) and 1e-12 (atol)
+    data = measured(force(0, kind))
+    result = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0, method=method)
+    assert result.success, result.message
+    for name, value in TRUTH.items():
+        assert abs(float(result.params[name]) - value) < 1e-8, (name, result.params)
+    torch.testing.assert_close(result.x0, X0, rtol=0, atol=1e-8)
+
+
+def test_noisy_data_give_intervals_that_hold_the_truth():
+    data = measured(force(1), noise=0.02, seed=3)
+    result = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0)
+    assert result.success, result.message
+    intervals = result.confidence_intervals(0.99)
+    for name, value in TRUTH.items():
+        low, high = intervals[name]
+        assert low < value < high, (name, intervals[name])
+        assert high - low < 0.2 * value  # informative: the input excites the oscillator
+    # the reduced chi-square of a correct model with the right sigma is near 1
+    assert 0.5 < result.sse / result.dof < 1.6
+
+
+def test_predict_and_simulate_use_the_fit_inputs_or_new_ones():
+    data = measured(force(0))
+    result = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0)
+    t = torch.linspace(0, 6, 7, dtype=DT)
+    other = force(5)
+    assert result.model.inputs is not None  # the fitted model holds its data's inputs
+    torch.testing.assert_close(result.predict(t, inputs=other),
+                               torchql.simulate(DrivenOscillator(**TRUTH), X0, t, inputs=other), rtol=0, atol=1e-7)
+    torch.testing.assert_close(torchql.simulate(result.model, result.x0, t, **result.solver_options),
+                               result.predict(t), rtol=0, atol=0)
+    assert DrivenOscillator().inputs is None  # the user's model is left as it was
+
+
+def test_two_experiments_with_their_own_inputs_share_the_coefficients():
+    first = measured(force(0))
+    x0_second = torch.tensor([-0.2, 0.4], dtype=DT)
+    second = measured(force(7), x0=x0_second, times=torch.linspace(1, 9, 30, dtype=DT))
+    result = torchql.fit(DrivenOscillator(), [first, second], x0=torch.zeros(2, 2, dtype=DT), t0=[0.0, 1.0])
+    assert result.success, result.message
+    for name, value in TRUTH.items():
+        assert abs(float(result.params[name]) - value) < 1e-8
+    t = torch.linspace(1, 9, 5, dtype=DT)
+    expected = torchql.simulate(DrivenOscillator(**TRUTH), x0_second, t, t0=1.0, inputs=second.inputs)
+    torch.testing.assert_close(result.predict(t, experiment=1), expected, rtol=0, atol=1e-7)
+
+
+def test_fit_many_with_shared_inputs_equals_fit():
+    inputs = force(0)
+    datasets = [measured(inputs, noise=0.01, seed=s) for s in range(3)]
+    batch = torchql.fit_many(DrivenOscillator(), datasets, x0=GUESS_X0)
+    for b, data in enumerate(datasets):
+        alone = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0)
+        assert batch[b].status == alone.status
+        torch.testing.assert_close(batch.estimates[b], alone.estimates, rtol=1e-9, atol=1e-12)
+
+
+def test_fit_many_with_per_sample_inputs_equals_per_sample_fits():
+    a, b = force(0), force(2)
+    datasets = [measured(a, noise=0.01, seed=0), measured(b, noise=0.01, seed=1), measured(a, noise=0.01, seed=2)]
+    seen = set()
+    batch = torchql.fit_many(DrivenOscillator(), datasets, x0=GUESS_X0,
+                             callback=lambda sample, record: seen.add(sample))
+    assert seen == {0, 1, 2}
+    for i, data in enumerate(datasets):
+        alone = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0)
+        assert batch[i].status == alone.status and batch[i].iterations == alone.iterations
+        torch.testing.assert_close(batch.estimates[i], alone.estimates, rtol=1e-9, atol=1e-12)
+        assert batch[i].model.inputs.same_as(data.inputs)  # each sample predicts with its own input
+    # one batched Observations with an Inputs per sample is the same problem
+    y = torch.stack([d.y for d in datasets])
+    stacked = torchql.Observations(datasets[0].t, y, observe=["y"], sigma=0.01, inputs=[a, b, a])
+    again = torchql.fit_many(DrivenOscillator(), stacked, x0=GUESS_X0)
+    torch.testing.assert_close(again.estimates, batch.estimates, rtol=0, atol=0)
+
+
+def test_inputs_that_do_not_fit_the_model_or_the_data_are_named():
+    data = measured(force(0))
+    bare = torchql.Observations(data.t, data.y, observe=["y"])
+    with pytest.raises(ValueError, match="`model` takes inputs \\('u',\\).*`data` carries none"):
+        torchql.fit(DrivenOscillator(), bare, x0=GUESS_X0)
+    with pytest.raises(ValueError, match="`data` carries inputs \\['u'\\] but `model` declares none"):
+        torchql.fit(torchql.models.LinearOscillator(), data, x0=GUESS_X0)
+    wrong = torchql.Observations(data.t, data.y, observe=["y"], inputs=torchql.Inputs(data.t, data.t, "force"))
+    with pytest.raises(ValueError, match="`data.inputs` names unknown input 'force'; the model's inputs are"):
+        torchql.fit(DrivenOscillator(), wrong, x0=GUESS_X0)
+    short = torchql.Observations(data.t, data.y, observe=["y"], inputs=force(0, span=6.0))
+    with pytest.raises(ValueError, match="`data.inputs` must cover the data's times \\[0, 12\\]"):
+        torchql.fit(DrivenOscillator(), short, x0=GUESS_X0)
+    with pytest.raises(ValueError, match="`data\\[1\\]` carries no inputs but `data\\[0\\]` does"):
+        torchql.fit_many(DrivenOscillator(), [data, bare], x0=GUESS_X0)
+    with pytest.raises(ValueError, match="`data\\[1\\].inputs` must cover the experiment's times"):
+        torchql.fit(DrivenOscillator(), [data, short], x0=torch.zeros(2, 2, dtype=DT))
+    with pytest.raises(ValueError, match="`model` takes inputs \\('u',\\).*pass `inputs="):
+        torchql.simulate(DrivenOscillator(), X0, data.t)
+    with pytest.raises(ValueError, match="`inputs` must cover the simulated times \\[0, 12\\]"):
+        torchql.simulate(DrivenOscillator(), X0, data.t, inputs=force(0, span=6.0))
