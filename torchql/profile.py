@@ -71,7 +71,8 @@ class ProfileResult:
         The fixed values of the unknown at which the profile was evaluated, increasing
         (the estimate and the root-finding evaluations included).
     sse : Tensor ``(K,)``
-        The optimal SSE at each value.
+        The optimal SSE at each value; for a fit with estimated sigmas or log-normal noise, twice
+        its negative log-likelihood (so are ``sse_min`` and ``threshold``: a likelihood profile).
     estimates : Tensor ``(K, m)``
         The optimal unknowns at each value, in :attr:`unknown_names` order (the profiled
         unknown's column holds :attr:`values`).
