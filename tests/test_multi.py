@@ -86,3 +86,81 @@ def test_bad_data_lists(experiments):
         torchql.fit(LinearOscillator(), [], x0=torch.zeros(0, 2))
     with pytest.raises(TypeError, match=r"`data\[1\]` must be a torchql.Observations"):
         torchql.fit(LinearOscillator(), [d1, "data"], x0=torch.zeros(2, 2))
+
+
+class _Chain(torchql.ODEModel):
+    """a -> b -> (out), the first rate scaled by a per-experiment multiplier."""
+
+    state_names = ("a", "b")
+    constants = ("mult",)
+
+    def __init__(self, k1=1.0, k2=0.5, mult=1.0, s=1.0):
+        super().__init__()
+        for name, value in dict(k1=k1, k2=k2, mult=mult, s=s).items():
+            self.register_buffer(name, torch.tensor(value, dtype=torch.float64))
+
+    def forward(self, t, x):
+        a, b = x.unbind(-1)
+        r = self.k1 * self.mult * a
+        return torch.stack((-r, r - self.k2 * b), dim=-1)
+
+
+def _chain_experiments():
+    t = torch.linspace(0, 8, 17, dtype=torch.float64)
+    cases = [(1.0, [2.0, 0.1]), (2.5, [1.0, 0.6]), (0.0, [0.0, 1.1])]  # multiplier 1, s = 2.5, switched off
+    datasets, x0 = [], []
+    for mult, start in cases:
+        state = torch.tensor(start, dtype=torch.float64)
+        x = torchql.simulate(_Chain(0.7, 0.3, mult=mult), state, t, rtol=1e-12, atol=1e-14)
+        datasets.append(torchql.Observations(t, x, observe=["a", "b"]))
+        x0.append(state)
+    return datasets, torch.stack(x0)
+
+
+def test_conditions_set_constants_and_local_parameters_per_experiment():
+    datasets, x0 = _chain_experiments()
+    conditions = [{"mult": 1.0}, {"mult": "s"}, {"mult": 0.0}]
+    guess = torch.ones(3, 2, dtype=torch.float64)
+    guess[2, 0] = 0.0  # known: nothing of 'a' in the third experiment
+    result = torchql.fit(_Chain(), datasets, x0=guess, conditions=conditions, fixed_x0=[[], [], ["a"]])
+    assert result.success, result.message
+    assert "a[2](t0)" not in result.unknown_names and "s" in result.unknown_names
+    for name, value in {"k1": 0.7, "k2": 0.3, "s": 2.5}.items():
+        assert float(result.params[name]) == pytest.approx(value, rel=1e-8)
+    torch.testing.assert_close(result.x0, x0, rtol=0, atol=1e-8)
+    t = torch.linspace(0, 3, 4, dtype=torch.float64)
+    expected = torchql.simulate(_Chain(0.7, 0.3, mult=2.5), x0[1], t, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(result.predict(t, experiment=1), expected, rtol=0, atol=1e-7)
+    assert float(result.experiment_model(2).mult) == 0.0 and float(result.experiment_model(1).mult) == pytest.approx(2.5)
+
+
+def test_conditions_recover_the_truth_with_known_initial_states():
+    datasets, x0 = _chain_experiments()
+    conditions = [{"mult": 1.0}, {"mult": "s"}, {"mult": 0.0}]
+    result = torchql.fit(_Chain(), datasets, x0=x0, conditions=conditions, fixed_x0=["a"])
+    assert result.success, result.message
+    for name, value in {"k1": 0.7, "k2": 0.3, "s": 2.5}.items():
+        assert float(result.params[name]) == pytest.approx(value, rel=1e-8)
+    assert "mult" not in result.unknown_names  # set in every experiment: not an unknown
+
+
+@pytest.mark.parametrize("conditions, error, match", [
+    ([{"mult": 1.0}], ValueError, "one dict per experiment \\(3\\); received 1 entries"),
+    ([{"rate": 1.0}, {}, {}], ValueError, "`conditions\\[0\\]` names unknown coefficient 'rate'"),
+    ([{}, {"mult": "q"}, {}], ValueError, "`conditions\\[1\\]\\['mult'\\]` = 'q' must name another coefficient"),
+    ([{}, {}, {"mult": float("nan")}], ValueError, "must be finite"),
+    ([{}, {}, {"mult": object()}], TypeError, "must be a number, a tensor of shape"),
+    ([{}, 3, {}], TypeError, "`conditions\\[1\\]` must be a dict"),
+])
+def test_bad_conditions_are_named(conditions, error, match):
+    datasets, x0 = _chain_experiments()
+    with pytest.raises(error, match=match):
+        torchql.fit(_Chain(), datasets, x0=x0, conditions=conditions)
+
+
+def test_conditions_need_several_experiments_and_fixed_x0_lists_are_checked():
+    datasets, x0 = _chain_experiments()
+    with pytest.raises(ValueError, match="`conditions` applies to several experiments"):
+        torchql.fit(_Chain(), datasets[0], x0=x0[0], conditions=[{}])
+    with pytest.raises(ValueError, match="`fixed_x0\\[2\\]` names unknown state 'c'"):
+        torchql.fit(_Chain(), datasets, x0=x0, fixed_x0=[[], [], ["c"]])

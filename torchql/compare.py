@@ -100,7 +100,8 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
     t0 : float, optional
         Time of ``x0``; default the data's first time when ``x0`` is given, else the fit's ``t0``.
     experiment : int, optional
-        With a fit of several experiments, whose initial state is the default ``x0``.
+        With a fit of several experiments, whose initial state is the default ``x0`` and whose
+        ``conditions`` (coefficient values) apply.
 
     Returns
     -------
@@ -126,12 +127,15 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
                 raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments) when `x0` "
                                  f"is not given; received {experiment!r}")
             x0, start = result.x0[experiment], result.experiment_t0[experiment]
+            model = result.experiment_model(experiment)
         else:
             x0, start = result.x0, result.t0
         if t0 is not None:
             start = finite_number("t0", t0)
     else:
         start = float(data.t[0]) if t0 is None else finite_number("t0", t0)
+        if experiment is not None and result.experiment_t0 is not None:
+            model = result.experiment_model(experiment)
     t = data.t.to(dtype=dtype, device=device)
     names = list(model.state_names)
     operator = ObservationOperator(data.observe, names, data.n_outputs, dtype, device)

@@ -27,7 +27,7 @@ from .engine import run_engine
 from .noise import run_with_noise
 from .problem import Problem, recorded_options
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
-from .multi import StackedModel, experiment_state_name, stack_observations
+from .multi import StackedModel, check_conditions, experiment_state_name, stack_observations
 from .observations import Observations
 from .options import METHODS, Limits
 from .result import FitError, FitResult, IterationRecord
@@ -62,6 +62,7 @@ def fit(
     damping: str | None = "lm",
     linear_solver: "str | LinearPropagator | None" = None,
     callback: Callable[[IterationRecord], None] | None = None,
+    conditions: Sequence[dict] | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
 
@@ -75,8 +76,9 @@ def fit(
         share the coefficients, each with its own times and initial state, fitted as one problem
         (each experiment on its own normalized time ``(t - t0_e) / span_e``, see
         :mod:`torchql.multi`). ``x0`` is then ``(E, n_states)``, ``t0`` one time or one per
-        experiment, ``fixed_x0`` and state ``bounds`` apply to every experiment, and the
-        result's ``x0`` is ``(E, n_states)`` (``result.predict(t, experiment=e)``).
+        experiment, ``fixed_x0`` (names, or one list of names per experiment) and state
+        ``bounds`` apply to every experiment, ``conditions`` sets coefficients per experiment,
+        and the result's ``x0`` is ``(E, n_states)`` (``result.predict(t, experiment=e)``).
     x0 : Tensor ``(n_states,)``, optional
         Initial-state guess at ``t0`` (exact values for the states in ``fixed_x0``). If
         omitted, every state must be observed directly at ``t0`` and the data are used. Its
@@ -178,6 +180,13 @@ def fit(
         :class:`torchql.propagators.LinearPropagator` object is used as given (its ``grid_solver`` says whether the grid solver may be used).
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.
+    conditions : list of dict, optional
+        With several experiments: one dict per experiment, ``{coefficient: value}``, the
+        experiment's own value of a coefficient: a number (a constant of that experiment, such
+        as a dose, or 0 to switch a reaction off) or another coefficient's name (a parameter of
+        that experiment: ``{"k_mult": "s_high"}`` in two experiments and ``{"k_mult": 1.0}`` in
+        the others makes ``s_high`` an unknown that only those two determine). A coefficient
+        that every experiment sets is not an unknown by default.
 
     Returns
     -------
@@ -198,7 +207,9 @@ def fit(
             model, list(data), x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
             max_iter=max_iter, max_time=max_time, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol,
             ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
-            damping=damping, linear_solver=linear_solver, callback=callback)
+            damping=damping, linear_solver=linear_solver, callback=callback, conditions=conditions)
+    if conditions is not None:
+        raise ValueError("`conditions` applies to several experiments (`data` a list of Observations)")
     spec = _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol,
                         ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver)
     max_time = Limits.resolve(max_time=max_time).max_time
@@ -250,7 +261,7 @@ class _Problem:
         self.unknown_index, self.unknown_names = spec.unknown_index, list(spec.unknown_names)
 
 
-def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, grid, throw, callback,
+def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, grid, throw, callback, conditions,
                      **options) -> FitResult:
     """Several experiments sharing the coefficients: the stacked problem of :mod:`torchql.multi`."""
     _checks.model_class(model)
@@ -295,16 +306,10 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     if isinstance(grid, torch.Tensor):
         raise ValueError("`grid` must be a number of intervals (per experiment) with several experiments; "
                          "received a tensor of times")
-    stacked = StackedModel(model, t0s, span, _experiment_inputs(model, datasets, t0s, last, dtype, device))
+    checked = check_conditions(model, conditions, E)
+    stacked = StackedModel(model, t0s, span, _experiment_inputs(model, datasets, t0s, last, dtype, device), checked)
     data = stack_observations(datasets, names, t0s, span, dtype, device)
-    if isinstance(fixed_x0, str):
-        raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
-    fixed = None
-    if fixed_x0 is not None:
-        for name in fixed_x0:
-            if name not in names:
-                raise ValueError(f"`fixed_x0` names unknown state {name!r}; the model's states are {tuple(names)}")
-        fixed = [experiment_state_name(s, e) for e in range(E) for s in fixed_x0]
+    fixed = _experiment_fixed(fixed_x0, names, E)
     stacked_bounds = None
     if bounds is not None:
         if not isinstance(bounds, dict):
@@ -312,8 +317,9 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
         stacked_bounds = {}
         for key, pair in bounds.items():
             state = key.removesuffix("(t0)") if isinstance(key, str) else key
-            if state in names:
-                stacked_bounds.update({experiment_state_name(state, e): pair for e in range(E)})
+            if state in names:  # the experiments where that state's initial value is an unknown
+                stacked_bounds.update({experiment_state_name(state, e): pair for e in range(E)
+                                       if experiment_state_name(state, e) not in (fixed or ())})
             else:
                 stacked_bounds[key] = pair
     result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds, grid=grid,
@@ -326,8 +332,10 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     result.model = fitted
     result.x0 = result.x0.reshape(E, n)
     result.experiment_t0 = [float(v) for v in t0s]
+    result.conditions = checked
     result.data = datasets
     result.fit_kwargs = recorded_options(x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, grid=grid, bounds=bounds,
+                                         conditions=conditions,
                                          **options)
     if throw and not result.success:
         raise FitError(result)
@@ -355,3 +363,26 @@ def _experiment_inputs(model, datasets: list, t0s: torch.Tensor, last: torch.Ten
                              f"{float(last[e]):g}]; its samples span [{signal.t[0].item():g}, {signal.t[-1].item():g}]")
         signals.append(signal)
     return signals
+
+
+def _experiment_fixed(fixed_x0, names: list, E: int) -> list[str] | None:
+    """``fixed_x0`` of several experiments as the stacked model's state names: state names fixed in
+    every experiment, or one list of names per experiment."""
+    if fixed_x0 is None:
+        return None
+    if isinstance(fixed_x0, str):
+        raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
+    items = list(fixed_x0)
+    per_experiment = len(items) == E and all(isinstance(item, (list, tuple)) for item in items)
+    if not per_experiment and any(not isinstance(item, str) for item in items):
+        raise TypeError(f"`fixed_x0` must be state names, or one list of state names per experiment ({E}); "
+                        f"received {fixed_x0!r}")
+    lists = items if per_experiment else [items] * E
+    fixed = []
+    for e, own in enumerate(lists):
+        for name in own:
+            if name not in names:
+                where = f"`fixed_x0[{e}]`" if per_experiment else "`fixed_x0`"
+                raise ValueError(f"{where} names unknown state {name!r}; the model's states are {tuple(names)}")
+            fixed.append(experiment_state_name(name, e))
+    return fixed

@@ -13,14 +13,16 @@ experiment's initial state and the shared coefficients together, and one covaria
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import nn
 from torch.func import functional_call
 
-from .model import ODEModel
+from .model import ODEModel, _set_buffer, coefficients
 from .observations import ObservationOperator, Observations
 
-__all__ = ["StackedModel", "stack_observations", "experiment_state_name"]
+__all__ = ["StackedModel", "stack_observations", "experiment_state_name", "check_conditions", "with_condition"]
 
 
 def experiment_state_name(name: str, e: int) -> str:
@@ -42,9 +44,13 @@ class StackedModel(ODEModel):
     inputs : list of ``E`` Inputs, optional
         Each experiment's measured inputs, in the model's ``input_names`` order (for a model with
         inputs): experiment ``e``'s copy is evaluated with its own signals at its own time.
+    conditions : list of ``E`` dicts, optional
+        Validated by :func:`check_conditions`: experiment ``e``'s copy takes coefficient ``k``'s
+        value from ``conditions[e][k]``, a constant tensor or the name of another coefficient.
     """
 
-    def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor, inputs: list | None = None) -> None:
+    def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor, inputs: list | None = None,
+                 conditions: list | None = None) -> None:
         super().__init__()
         tensors = list(model.named_buffers()) + list(model.named_parameters())  # parameters held as buffers
         names = [name for name, _ in tensors]
@@ -63,6 +69,10 @@ class StackedModel(ODEModel):
         self.register_buffer("_t0", t0.clone(), persistent=False)
         self.register_buffer("_span", span.clone(), persistent=False)
         self._signals = inputs
+        self._conditions = conditions
+        if conditions:  # a coefficient that every experiment replaces is no unknown by default
+            replaced = set.intersection(*(set(c) for c in conditions))
+            self.constants = self.constants + tuple(sorted(replaced))
 
     def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         buffers = {name: getattr(self, name) for name in self._buffer_names}
@@ -71,7 +81,11 @@ class StackedModel(ODEModel):
             xe = x[..., e * self.n:(e + 1) * self.n]
             te = self._t0[e] + self._span[e] * t
             args = (te, xe) if self._signals is None else (te, xe, self._signals[e](te))
-            out.append(self._span[e] * functional_call(self.inner.model, buffers, args))
+            own = buffers
+            if self._conditions and self._conditions[e]:
+                own = dict(buffers)
+                own.update((k, buffers[v] if isinstance(v, str) else v) for k, v in self._conditions[e].items())
+            out.append(self._span[e] * functional_call(self.inner.model, own, args))
         return torch.cat(out, dim=-1)
 
     def input_nodes(self) -> torch.Tensor | None:
@@ -86,6 +100,65 @@ class StackedModel(ODEModel):
         pieces = [(getattr(s, kind).to(self._t0) - self._t0[e]) / self._span[e]
                   for e, s in enumerate(self._signals or ()) if getattr(s, kind) is not None]
         return torch.cat(pieces) if pieces else None
+
+
+def check_conditions(model: ODEModel, conditions, E: int) -> list[dict] | None:
+    """``fit``'s ``conditions`` validated: one dict per experiment ``{coefficient: value}``, a value
+    being a number (a constant of that experiment) or another coefficient's name (its value: an
+    unknown, or a constant, shared by the experiments that name it). Numbers become tensors of the
+    coefficient's shape, dtype and device."""
+    if conditions is None:
+        return None
+    if not isinstance(conditions, (list, tuple)) or len(conditions) != E:
+        received = f"{len(conditions)} entries" if isinstance(conditions, (list, tuple)) else type(conditions).__name__
+        raise ValueError(f"`conditions` must be a list of one dict per experiment ({E}); received {received}")
+    available = coefficients(model)
+    out = []
+    for e, condition in enumerate(conditions):
+        if condition is None:
+            out.append({})
+            continue
+        if not isinstance(condition, dict):
+            raise TypeError(f"`conditions[{e}]` must be a dict {{coefficient: number or coefficient name}}; "
+                            f"received {type(condition).__name__}")
+        own = {}
+        for key, value in condition.items():
+            if key not in available:
+                raise ValueError(f"`conditions[{e}]` names unknown coefficient {key!r}; the model's are "
+                                 f"{list(available)}")
+            target = available[key]
+            if isinstance(value, str):
+                if value not in available or value == key:
+                    raise ValueError(f"`conditions[{e}][{key!r}]` = {value!r} must name another coefficient of the "
+                                     f"model; its coefficients are {list(available)}")
+                if available[value].shape != target.shape:
+                    raise ValueError(f"`conditions[{e}][{key!r}]` = {value!r} has shape {tuple(available[value].shape)}"
+                                     f", {key!r} has {tuple(target.shape)}")
+                own[key] = value
+                continue
+            try:
+                tensor = torch.as_tensor(value, dtype=target.dtype, device=target.device).detach().clone()
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise TypeError(f"`conditions[{e}][{key!r}]` must be a number, a tensor of shape "
+                                f"{tuple(target.shape)} or a coefficient's name; received {type(value).__name__}") from exc
+            if tensor.shape != target.shape:
+                tensor = tensor.expand(target.shape).clone() if tensor.dim() == 0 else tensor
+            if tensor.shape != target.shape or not bool(torch.isfinite(tensor).all()):
+                raise ValueError(f"`conditions[{e}][{key!r}]` must be finite, of shape {tuple(target.shape)}; "
+                                 f"received {value!r}")
+            own[key] = tensor
+        out.append(own)
+    return out
+
+
+def with_condition(model: ODEModel, condition: dict | None) -> ODEModel:
+    """A copy of ``model`` with one experiment's ``condition`` applied (see :func:`check_conditions`)."""
+    fitted = copy.deepcopy(model)
+    if condition:
+        values = coefficients(model)
+        for key, value in condition.items():
+            _set_buffer(fitted, key, (values[value] if isinstance(value, str) else value).detach().clone())
+    return fitted
 
 
 class _Frozen(nn.Module):

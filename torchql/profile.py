@@ -37,7 +37,7 @@ __all__ = ["profile", "ProfileResult"]
 
 #: fit() keyword arguments a profile re-fit inherits from the original fit.
 _INHERITED = ("t0", "method", "max_iter", "solver", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
-              "initial_trajectory", "max_steps", "damping", "linear_solver")
+              "initial_trajectory", "max_steps", "damping", "linear_solver", "conditions")
 #: Halvings of a step towards the last good point when a re-fit fails.
 _FAIL_HALVINGS = 3
 

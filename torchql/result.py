@@ -163,6 +163,9 @@ class FitResult:
         The keyword arguments :func:`torchql.fit` was called with (``x0``, ``params``,
         ``fixed_x0``, ``t0``, ``method``, tolerances, ``grid``, ...; not ``callback``/``throw``),
         so that a re-fit (a profile) reproduces the fit's settings.
+    conditions : list of dict or None
+        With several experiments fitted with ``conditions``: each experiment's own coefficient
+        values (numbers as tensors, or other coefficients' names); ``predict`` applies them.
     experiment_t0 : list of float or None
         With several experiments (``data`` a list): each one's initial time; ``x0`` is then
         ``(E, n_states)``, one row per experiment, and ``t0`` is 0 (the normalized time of the
@@ -216,6 +219,7 @@ class FitResult:
     data: "Observations | None" = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
     experiment_t0: list[float] | None = field(default=None, repr=False)
+    conditions: list[dict] | None = field(default=None, repr=False)
     lower: torch.Tensor | None = field(default=None, repr=False)
     upper: torch.Tensor | None = field(default=None, repr=False)
     moved_guesses: dict[str, tuple[float, float]] = field(default_factory=dict, repr=False)
@@ -317,8 +321,17 @@ class FitResult:
                              f"received {experiment!r}")
         if inputs is None and isinstance(self.data, (list, tuple)):
             inputs = self.data[experiment].inputs
-        return simulate(self.model, self.x0[experiment], t, t0=self.experiment_t0[experiment], inputs=inputs,
-                        **self.solver_options)
+        return simulate(self.experiment_model(experiment), self.x0[experiment], t, t0=self.experiment_t0[experiment],
+                        inputs=inputs, **self.solver_options)
+
+    def experiment_model(self, experiment: int) -> "ODEModel":
+        """The fitted model as experiment ``experiment`` sees it: :attr:`model` with that
+        experiment's ``conditions`` applied (the model itself without conditions)."""
+        from .multi import with_condition
+
+        if not self.conditions:
+            return self.model
+        return with_condition(self.model, self.conditions[experiment])
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))
