@@ -97,3 +97,11 @@ def test_max_time_must_be_a_positive_number(value):
         torchql.fit(Decay(), data, x0=torch.tensor([1.0], dtype=DT), max_time=value)
     with pytest.raises((TypeError, ValueError), match="max_time"):
         torchql.fit_many(Decay(), [data, data], x0=torch.tensor([1.0], dtype=DT), max_time=value)
+
+
+def test_a_fit_estimating_sigma_that_runs_out_of_time_says_so():
+    data = torchql.Observations(T, Y, observe=["y"], sigma="estimate")
+    result = torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5)
+    assert result.status is torchql.Status.MAX_TIME and not result.success
+    assert set(result.sigma) == {"y"} and math.isnan(result.sigma["y"])  # not estimated: no round finished
+    assert math.isnan(result.nll)

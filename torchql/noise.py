@@ -108,7 +108,11 @@ def run_with_noise(spec, run):
             rounds += 1
         result.iterations = total
         result.start_params, result.start_x0, result.sse_start = first.start_params, first.start_x0, first.sse_start
-        result.sigma = spec.sigma_per_group.clone()
+        if spec.sigma_per_group is None:  # out of time in the first, unweighted, round: no estimate
+            result.sigma = torch.full((spec.B, len(spec.sigma_names)), float("nan"), dtype=spec.dtype,
+                                      device=spec.device)
+        else:
+            result.sigma = spec.sigma_per_group.clone()
         result.sigma_names = list(spec.sigma_names)
     result.noise = spec.noise
     _set_likelihood(spec, result)

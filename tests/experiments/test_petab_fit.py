@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import pytest
 import torch
+
+import torchql
 from test_petab import PETAB  # skips this module too without ../shared/petab; puts the repository on the path
 
 from experiments.petab import PROBLEMS, load_problem, nominal_values
+from experiments.petab.boehm_fit import boehm_experiment
 from experiments.petab.bruno_fit import bruno_experiments, fit_bruno
 from experiments.petab_fit import perturbed
+from torchql.noise import negative_log_likelihood
 
 
 def test_bruno_returns_to_the_reference_from_a_start_20_percent_off():
@@ -35,3 +39,21 @@ def test_bruno_problem_has_its_thirteen_unknowns():
     free = sum(7 - len(f) for f in fixed)
     assert free + len(params) == len(problem.estimated) == 13
     assert sum(int((~torch.isnan(d.y)).sum()) for d in datasets) == len(problem.measurements)
+
+
+def test_boehm_problem_built_for_torchql_gives_the_reference_likelihood():
+    """The data, observables and initial state that ``fit_boehm`` fits, at the nominal parameters and
+    the nominal sigmas, give the reference negative log-likelihood (its fit itself, stiff and with
+    three sigmas estimated, takes minutes per iteration today)."""
+    problem = load_problem(PROBLEMS["Boehm_JProteomeRes2014"], PETAB)
+    values = nominal_values(problem)
+    model, data, x0 = boehm_experiment(problem, values)
+    x = torchql.simulate(model, x0, data.t, solver="rodas5p", rtol=1e-8, atol=1e-10)
+    predicted = data.observe(x)
+    sigma = torch.tensor([values[f"sd_{name}"] for name in ("pSTAT5A_rel", "pSTAT5B_rel", "rSTAT5A_rel")],
+                         dtype=torch.float64).expand_as(data.y)
+    present = ~torch.isnan(data.y)
+    r = ((data.y - predicted) / sigma)[present]
+    nll = negative_log_likelihood((r**2).sum(), torch.log(sigma[present]).sum(), torch.tensor(float(r.numel())))
+    assert abs(float(nll) - problem.reference_nllh) < 1e-3
+    assert data.sigma_estimated and int(present.sum()) == len(problem.measurements) == 48
