@@ -118,6 +118,8 @@ class Engine(Evaluation, FinalPass):
         #: samples whose current iterate needs more grid-solver steps than a trial may take (their
         #: trials are integrated by the adaptive solvers; see Evaluation._nonlinear)
         self.coarse_grid: set[int] = set()
+        #: per sample, the current iterate (its initial state's bytes) seen to fit in that budget
+        self.fits_grid: dict[int, bytes] = {}
         if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)
             self.grid, self.obs, self.t_obs = spec.grid, spec.obs_in_grid, spec.t_obs
         else:  # per sample: grids (S, G), trimmed to the chunk's longest, nodes (S, T)

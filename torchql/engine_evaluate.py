@@ -48,7 +48,7 @@ _EXACT_PENALTY = 1e6
 class Evaluation:
     """Evaluations of a chunk's iterates (mixed into :class:`torchql.engine.Engine`, whose
     attributes ``spec``, ``system``, ``grid``, ``obs``, ``t_obs``, ``G``, ``y``, ``w``, ``mask``,
-    ``exact``, ``nfev``, ``propagation_errors`` and ``coarse_grid`` it uses)."""
+    ``exact``, ``nfev``, ``propagation_errors``, ``coarse_grid`` and ``fits_grid`` it uses)."""
 
     def _grid_of(self, idx: torch.Tensor) -> torch.Tensor:
         """The grid of the chunk's samples ``idx``: the shared one ``(G,)``, or theirs ``(S, G)``."""
@@ -203,14 +203,21 @@ class Evaluation:
             return
         over &= ~ok
         if reference is not None and bool(over.any()):
-            rows = over.nonzero().flatten()
-            ref_traj = torch.full_like(traj[rows], float("nan"))
-            ref_ok = torch.zeros_like(ok[rows])
-            ref_over = self._grid_solve(idx[rows], reference[0][rows], reference[1][rows], rtol, atol, substeps,
-                                        ref_traj, ref_ok)
-            for k in ref_over.nonzero().flatten().tolist():
-                self.coarse_grid.add(int(idx[rows[k]]))
-                over[rows[k]] = False  # the adaptive solvers take it
+            # the current iterates not yet seen to fit in the budget (one check per accepted iterate)
+            keys = {int(r): reference[0][r].detach().cpu().numpy().tobytes() for r in over.nonzero().flatten()}
+            rows = torch.tensor([r for r, key in keys.items() if self.fits_grid.get(int(idx[r])) != key],
+                                dtype=torch.long, device=over.device)
+            if rows.numel():
+                ref_traj = torch.full_like(traj[rows], float("nan"))
+                ref_ok = torch.zeros_like(ok[rows])
+                ref_over = self._grid_solve(idx[rows], reference[0][rows], reference[1][rows], rtol, atol, substeps,
+                                            ref_traj, ref_ok)
+                for k, r in enumerate(rows.tolist()):
+                    if bool(ref_over[k]):
+                        self.coarse_grid.add(int(idx[r]))
+                        over[r] = False  # the adaptive solvers take it
+                    else:
+                        self.fits_grid[int(idx[r])] = keys[r]
         for s in over.nonzero().flatten().tolist():
             errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
 

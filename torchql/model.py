@@ -43,7 +43,8 @@ class ODEModel(nn.Module):
         the default set of unknowns of :func:`torchql.fit`, but may still be named in
         ``params=`` explicitly.
     input_names : tuple of str
-        Names of measured inputs ``u(t)`` (a force, a voltage, a dose rate), empty by default.
+        Names of measured inputs ``u(t)`` (a force, a voltage, a dose rate), empty by default; a
+        class attribute.
         A model with inputs implements ``forward(t, x, u)``; the values come from the data's
         :class:`torchql.Inputs`, interpolated at each evaluation (see :mod:`torchql.inputs`).
 
@@ -62,18 +63,12 @@ class ODEModel(nn.Module):
     constants: tuple[str, ...] = ()
     input_names: tuple[str, ...] = ()
 
-    def __call__(self, t: torch.Tensor, x: torch.Tensor, *args, **kwargs) -> torch.Tensor:
-        """``forward(t, x)``, or for a model with inputs ``forward(t, x, u)`` with ``u`` the attached
-        signals at ``t`` (unless given): every evaluation a fit or a simulation makes goes through here."""
-        if self.input_names and not args and "u" not in kwargs:
-            signals = self.__dict__.get(_INPUTS)
-            if signals is None:
-                raise ValueError(
-                    f"`model` takes inputs {tuple(self.input_names)} (its `input_names`) but none were given: pass "
-                    "them with the data, Observations(..., inputs=torchql.Inputs(t, u, names=...)), or to "
-                    "torchql.simulate(..., inputs=...)")
-            args = (signals(t),)
-        return super().__call__(t, x, *args, **kwargs)
+    def __init_subclass__(cls, **kwargs) -> None:
+        """A model class with ``input_names`` is called through :func:`_call_with_inputs`; the
+        others keep ``nn.Module``'s call, with nothing added to each evaluation."""
+        super().__init_subclass__(**kwargs)
+        if cls.input_names and "__call__" not in cls.__dict__:
+            cls.__call__ = _call_with_inputs
 
     @property
     def inputs(self) -> "Inputs | None":
@@ -122,6 +117,20 @@ class ODEModel(nn.Module):
 #: Where a model holds its attached input signals (a plain attribute: not a buffer, so never an
 #: unknown, and deep-copied with the model).
 _INPUTS = "_torchql_inputs"
+
+
+def _call_with_inputs(self, t: torch.Tensor, x: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+    """``forward(t, x, u)`` with ``u`` the attached signals at ``t`` (unless given): every evaluation a
+    fit or a simulation makes of a model with inputs goes through here."""
+    if not args and "u" not in kwargs:
+        signals = self.__dict__.get(_INPUTS)
+        if signals is None:
+            raise ValueError(
+                f"`model` takes inputs {tuple(self.input_names)} (its `input_names`) but none were given: pass "
+                "them with the data, Observations(..., inputs=torchql.Inputs(t, u, names=...)), or to "
+                "torchql.simulate(..., inputs=...)")
+        args = (signals(t),)
+    return nn.Module.__call__(self, t, x, *args, **kwargs)
 
 
 def attach_inputs(model: nn.Module, signals: "Inputs | None") -> None:

@@ -2,7 +2,7 @@
 by torchql from a start 20 % off in every parameter returns to the published optimum: its negative
 log-likelihood equals the reference to 1e-3 (the tolerance of AMICI's benchmark tests; the fit's own
 integration at rtol 1e-8 puts it 4e-6 from the reference, see ``test_petab.py``). ``python
-experiments/petab_fit.py`` runs eight such starts (all return). About 10 s."""
+experiments/petab_fit.py`` runs eight such starts (all return). About 20 s with the Boehm check."""
 
 from __future__ import annotations
 
