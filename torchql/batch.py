@@ -45,7 +45,7 @@ from .grid import make_grid
 from .model import ODEModel
 from .observations import Observations
 from .options import Limits
-from .problem import Problem, check_data, recorded_options
+from .problem import Problem, check_data, inputs_all_or_none, recorded_options
 from .propagators import LinearPropagator
 from .result import IterationRecord
 
@@ -208,10 +208,7 @@ def _input_runs(data) -> list[tuple[int, int]] | None:
         return None  # Problem reports what is wrong with it
     if inputs is None or all(item is None for item in inputs):
         return None
-    if any(item is None for item in inputs):
-        b = next(i for i, item in enumerate(inputs) if (item is None) != (inputs[0] is None))
-        raise ValueError(f"`data[{b}]` {'carries no' if inputs[b] is None else 'carries'} inputs but `data[0]` "
-                         f"{'does' if inputs[0] is not None else 'does not'}: give inputs for every dataset or for none")
+    inputs_all_or_none(inputs)
     runs, start = [], 0
     for b in range(1, len(inputs) + 1):
         if b == len(inputs) or not inputs[b].same_as(inputs[start]):

@@ -146,6 +146,5 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
 
     states, predicted = outputs(t)
     y = data.y.to(dtype=dtype, device=device)
-    labels = [names[i] if i is not None else f"y[{k}]" for k, i in enumerate(operator.observed_states)]
     return Comparison(fit_percent=fit_percent(y, predicted), t=t, y=y, predicted=predicted, states=states,
-                      output_names=labels, curve=lambda times: outputs(times)[1])
+                      output_names=operator.labels(), curve=lambda times: outputs(times)[1])

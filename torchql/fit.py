@@ -357,11 +357,8 @@ def _experiment_inputs(model, datasets: list, t0s: torch.Tensor, last: torch.Ten
         if d.inputs is None:
             raise ValueError(f"`model` takes inputs {names} (its `input_names`) but `data[{e}]` carries none: give "
                              f"them as Observations(t, y, observe, inputs=torchql.Inputs(t_u, u, names={list(names)}))")
-        signal = d.inputs.select(names, f"data[{e}].inputs").to(dtype, device)
-        if not signal.covers(float(t0s[e]), float(last[e])):
-            raise ValueError(f"`data[{e}].inputs` must cover the experiment's times [{float(t0s[e]):g}, "
-                             f"{float(last[e]):g}]; its samples span [{signal.t[0].item():g}, {signal.t[-1].item():g}]")
-        signals.append(signal)
+        signals.append(d.inputs.for_model(names, float(t0s[e]), float(last[e]), dtype, device,
+                                          where=f"data[{e}].inputs", span="the experiment's times"))
     return signals
 
 

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from ._arrays import float_tensor
-from .splines import knot_slopes
+from .splines import hermite_basis, knot_slopes
 
 __all__ = ["Inputs", "INTERPOLATIONS", "RAMP", "BRACKET"]
 
@@ -191,6 +191,17 @@ class Inputs:
         out._tables = {}
         return out
 
+    def for_model(self, names: Sequence[str], start: float, end: float, dtype: torch.dtype, device: torch.device,
+                  *, where: str, span: str, note: str = "") -> "Inputs":
+        """The signals a model with ``input_names = names`` is evaluated with: in that order
+        (:meth:`select`), in ``dtype`` on ``device``, checked to cover ``[start, end]``. Errors name
+        the argument ``where`` and say what must be covered (``span``, then ``note``)."""
+        signals = self.select(names, where).to(dtype, device)
+        if not signals.covers(start, end):
+            raise ValueError(f"`{where}` must cover {span} [{start:g}, {end:g}]{note}; its samples span "
+                             f"[{signals.t[0].item():g}, {signals.t[-1].item():g}]")
+        return signals
+
     def same_as(self, other: "Inputs | None") -> bool:
         """Whether ``other`` holds the same signals (names, kind, times and values)."""
         if other is self:
@@ -214,10 +225,8 @@ class Inputs:
             if self.kind == "linear":
                 out = torch.lerp(piece[:, 0], piece[:, 1], s)  # exact at both samples
             else:  # cubic Hermite: values and width-scaled slopes at both ends
-                s2 = s * s
-                s3 = s2 * s
-                out = ((2 * s3 - 3 * s2 + 1) * piece[:, 0] + (s3 - 2 * s2 + s) * piece[:, 1]
-                       + (3 * s2 - 2 * s3) * piece[:, 2] + (s3 - s2) * piece[:, 3])
+                b00, b10, b01, b11 = hermite_basis(s)
+                out = b00 * piece[:, 0] + b10 * piece[:, 1] + b01 * piece[:, 2] + b11 * piece[:, 3]
         return out.reshape(*t.shape, self.n_inputs)
 
     def _table(self, dtype: torch.dtype, device: torch.device) -> dict:

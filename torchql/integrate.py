@@ -215,10 +215,7 @@ def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: floa
     if signals is None:
         raise ValueError(f"`model` takes inputs {names} (its `input_names`): pass `inputs=torchql.Inputs(t_u, u, "
                          f"names={list(names)})`")
-    signals = signals.select(names).to(dtype, device)
-    if not signals.covers(start, end):
-        raise ValueError(f"`inputs` must cover the simulated times [{start:g}, {end:g}]; its samples span "
-                         f"[{signals.t[0].item():g}, {signals.t[-1].item():g}]")
+    signals = signals.for_model(names, start, end, dtype, device, where="inputs", span="the simulated times")
 
     def func(t, x):
         return model(t, x, signals(t))

@@ -20,6 +20,7 @@ from torch import nn
 from torch.func import functional_call
 
 from .model import ODEModel, _set_buffer, coefficients
+from .noise import sigma_group_index
 from .observations import ObservationOperator, Observations
 
 __all__ = ["StackedModel", "stack_observations", "experiment_state_name", "check_conditions", "with_condition"]
@@ -211,20 +212,15 @@ def stack_observations(datasets: list[Observations], state_names: list[str], t0:
                              "differ): the experiments of one fit share it")
     if first.sigma_estimated:
         return Observations(tau, y, observe=observe, sigma="estimate", exact=exact, noise=first.noise,
-                            sigma_groups=[label for d in datasets for label in _sigma_labels(d)])
+                            sigma_groups=[label for d, op in zip(datasets, operators) for label in _sigma_labels(d, op)])
     return Observations(tau, y, observe=observe, sigma=sigma if sigma_given else None, exact=exact, noise=first.noise)
 
 
-def _sigma_labels(data: Observations) -> list[str]:
-    """Each output's sigma group: the same label, or the same observed state by default, is one
-    sigma across experiments."""
-    K, groups = data.n_outputs, data.sigma_groups
-    if groups == "shared":
-        return ["sigma"] * K
-    if groups is not None:
-        return [str(g) for g in groups]
-    names = data.observe if isinstance(data.observe, (list, tuple)) else None
-    return [str(names[k]) if names is not None else f"y[{k}]" for k in range(K)]
+def _sigma_labels(data: Observations, operator: ObservationOperator) -> list[str]:
+    """Each output's sigma group, by name, as one experiment's fit groups them: the same label, or
+    the same observed state by default, is one sigma across experiments."""
+    names, group = sigma_group_index(data.sigma_groups, data.n_outputs, operator.labels())
+    return [names[g] for g in group]
 
 
 class _BlockObservation:

@@ -411,7 +411,7 @@ class ObservationOperator:
 
     def __init__(self, observe, state_names: Sequence[str], K: int, dtype: torch.dtype, device: torch.device):
         n = len(state_names)
-        self.n, self.K = n, K
+        self.n, self.K, self.state_names = n, K, list(state_names)
         self.function: Callable[[torch.Tensor], torch.Tensor] | None = None
         self.matrix: torch.Tensor | None = None
         if isinstance(observe, (torch.Tensor, np.ndarray)):
@@ -432,6 +432,10 @@ class ObservationOperator:
                     raise ValueError(f"`observe` names unknown state {name!r}; the model's states are {tuple(state_names)}")
                 Q[k, list(state_names).index(name)] = 1.0
             self.matrix = Q
+
+    def labels(self) -> list[str]:
+        """A label per output: the state it reads directly, else ``"y[k]"``."""
+        return [self.state_names[i] if i is not None else f"y[{k}]" for k, i in enumerate(self.observed_states)]
 
     @property
     def observed_states(self) -> list[int | None]:

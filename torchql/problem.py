@@ -145,7 +145,7 @@ class Problem:
             if bool(bad.any()):
                 raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
         self.z0 = torch.cat([x0, p0], dim=1).clone()
-        self._noise_model(names)
+        self._noise_model()
 
         fixed_x0 = _checks.distinct_names("fixed_x0", [] if fixed_x0 is None else fixed_x0, names, "state",
                                           f"the model's states are {names}")
@@ -230,13 +230,13 @@ class Problem:
     def _stack(self, data, dtype, device) -> None:
         data = check_data(data)
         if isinstance(data, Observations):
-            self.inputs = _shared_inputs([data.inputs_of(b) for b in range(data.batch_size)], self.single)
+            self.inputs = _shared_inputs([data.inputs_of(b) for b in range(data.batch_size)])
             first, y, sigma, exact = data, data.y, data.sigma, data.exact
             t = data.t.to(dtype=dtype, device=device)
             low = [("data", data.y.dtype)] if _coarser(data.y.dtype, dtype) else []
         else:
             first = data[0]
-            self.inputs = _shared_inputs([d.inputs for d in data], self.single)
+            self.inputs = _shared_inputs([d.inputs for d in data])
             t = torch.stack([d.t.to(dtype=dtype, device=device) for d in data])
             exact = torch.stack([d.exact for d in data])
             y = torch.stack([d.y.to(dtype) for d in data])
@@ -265,12 +265,11 @@ class Problem:
         self.weights = torch.where(self.mask, 1.0 / sigma.to(dtype=dtype, device=device), torch.zeros_like(y))
         self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
 
-    def _noise_model(self, names) -> None:
+    def _noise_model(self) -> None:
         """The sigma groups (``sigma_group (K,)``, ``sigma_names``) and, for log-normal data, the
         logarithms: ``y`` becomes ``log y``, the operator ``log h``, and ``log_y_sum (B,)`` the
         likelihood's change of variable."""
-        labels = [names[i] if i is not None else f"y[{k}]" for k, i in enumerate(self.operator.observed_states)]
-        self.sigma_names, group = sigma_group_index(self.sigma_groups, self.K, labels)
+        self.sigma_names, group = sigma_group_index(self.sigma_groups, self.K, self.operator.labels())
         self.sigma_group = torch.tensor(group, dtype=torch.long, device=self.device)
         self.sigma_per_group = None
         self.log_y_sum = torch.zeros(self.B, dtype=self.dtype, device=self.device)
@@ -306,12 +305,9 @@ class Problem:
         if not names:
             raise ValueError(f"`data` carries inputs {list(self.inputs.names)} but `model` declares none: set its "
                              "`input_names` and take them in forward(t, x, u)")
-        signals = self.inputs.select(names, where).to(self.dtype, self.device)
-        start = float(torch.as_tensor(self.t0).min())
-        end = float(self.t_obs[..., -1].max())
-        if not signals.covers(start, end):
-            raise ValueError(f"`{where}` must cover the data's times [{start:g}, {end:g}] (from t0 to the last "
-                             f"observation); its samples span [{signals.t[0].item():g}, {signals.t[-1].item():g}]")
+        signals = self.inputs.for_model(names, float(torch.as_tensor(self.t0).min()), float(self.t_obs[..., -1].max()),
+                                        self.dtype, self.device, where=where, span="the data's times",
+                                        note=" (from t0 to the last observation)")
         attach_inputs(self.system.model, signals)
         return signals.nodes
 
@@ -445,16 +441,21 @@ def check_data(data) -> Observations | list[Observations]:
     return items
 
 
-def _shared_inputs(inputs: list, single: bool):
-    """The samples' one input signal (``None`` without inputs); an error when they differ."""
-    first = inputs[0]
-    if all(first.same_as(item) if first is not None else item is None for item in inputs[1:]):
-        return first
+def inputs_all_or_none(inputs: list) -> None:
+    """An error naming the first dataset that has inputs where ``data[0]`` has none, or the reverse."""
     given = [item is not None for item in inputs]
     if any(given) and not all(given):
         b = given.index(not given[0])
         raise ValueError(f"`data[{b}]` {'carries' if given[b] else 'carries no'} inputs but `data[0]` "
                          f"{'does' if given[0] else 'does not'}: give inputs for every dataset or for none")
+
+
+def _shared_inputs(inputs: list):
+    """The samples' one input signal (``None`` without inputs); an error when they differ."""
+    first = inputs[0]
+    if all(first.same_as(item) if first is not None else item is None for item in inputs[1:]):
+        return first
+    inputs_all_or_none(inputs)
     b = next(i for i, item in enumerate(inputs) if not first.same_as(item))
     raise ValueError(f"`data[{b}]` has other inputs than `data[0]`: one problem takes one input signal for all its "
                      "samples (torchql.fit_many groups samples by their inputs)")

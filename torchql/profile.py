@@ -491,8 +491,7 @@ def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dic
         y, value = torch.log(y), torch.log(value)
     sigma = data.sigma.to(dtype=dtype, device=device)
     if likelihood and data.sigma_estimated:
-        labels = [model.state_names[i] if i is not None else f"y[{k}]" for k, i in enumerate(operator.observed_states)]
-        _, group = sigma_group_index(data.sigma_groups, data.n_outputs, labels)
+        _, group = sigma_group_index(data.sigma_groups, data.n_outputs, operator.labels())
         group = torch.tensor(group, dtype=torch.long, device=device)
         sigma = estimate_sigma((y - value).unsqueeze(0), counted.unsqueeze(0), group, int(group.max()) + 1)[0]
         sigma = sigma[group].expand_as(y)

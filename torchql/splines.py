@@ -6,7 +6,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["knot_slopes", "hermite"]
+__all__ = ["knot_slopes", "hermite", "hermite_basis"]
+
+
+def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cubic Hermite basis ``(h00, h10, h01, h11)`` at local coordinate ``s`` in ``[0, 1]``."""
+    s2 = s * s
+    s3 = s2 * s
+    return 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
 
 
 def knot_slopes(t: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -65,8 +72,6 @@ def hermite(knots: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, ind
     """
     k0, k1 = knots.index_select(0, index), knots.index_select(0, index + 1)
     h = (k1 - k0).unsqueeze(-1)
-    s = ((tq - k0) / (k1 - k0)).unsqueeze(-1)
-    s2, s3 = s * s, s * s * s
-    return ((2 * s3 - 3 * s2 + 1) * values.index_select(0, index) + (s3 - 2 * s2 + s) * h * slopes.index_select(0, index)
-            + (-2 * s3 + 3 * s2) * values.index_select(0, index + 1)
-            + (s3 - s2) * h * slopes.index_select(0, index + 1))
+    b00, b10, b01, b11 = hermite_basis(((tq - k0) / (k1 - k0)).unsqueeze(-1))
+    return (b00 * values.index_select(0, index) + b10 * h * slopes.index_select(0, index)
+            + b01 * values.index_select(0, index + 1) + b11 * h * slopes.index_select(0, index + 1))

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import torch
 
+from .splines import hermite_basis
+
 __all__ = ["LinearizedReference", "IntervalSystem", "hermite_basis", "model_defect"]
 
 #: A superposed trajectory whose :func:`model_defect` exceeds this is too far from solving the
@@ -37,13 +39,6 @@ def model_defect(f: torch.Tensor, z_dot: torch.Tensor, n: int) -> torch.Tensor:
     scale = slopes.abs().amax(dim=-2, keepdim=True)
     scale = torch.where(scale > 0, scale, torch.ones_like(scale))
     return ((f[..., :n] - slopes).abs() / scale).amax(dim=(-2, -1))
-
-
-def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Cubic Hermite basis ``(h00, h10, h01, h11)`` at local coordinate ``s`` in ``[0, 1]``."""
-    s2 = s * s
-    s3 = s2 * s
-    return 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
 
 
 class LinearizedReference:
