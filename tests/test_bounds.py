@@ -399,3 +399,91 @@ def test_sir_shooting_trial_that_overflows_the_grid_solver_is_rejected_not_raise
     fitted = _fit_sir(sir_data["exact"], (0.6, 1.2, 3.0), {"gamma": (0, None)}, "shooting")
     assert fitted.success, fitted.message
     assert torch.allclose(fitted.estimates, torch.tensor([1.0, 1.66, 0.44], dtype=DT), rtol=1e-8, atol=0)
+
+
+# --- unknowns on a logarithmic scale (``scale=``): iterated in s = log u, bounds applying to s
+
+def make_log(lower, upper):
+    names = ["a", "b", "c", "d"]
+    return Bounds({n: (lo, hi) for n, lo, hi in zip(names, lower, upper)}, names, {}, names, DT,
+                  torch.device("cpu"), scale={n: "log" for n in names})
+
+
+def test_log_scale_transform_round_trip_and_derivative():
+    """No bound: u = exp(q); lower bound 0 is open on the log scale (the same); lower 1e-5: log u - log 1e-5 =
+    exp(q); both: logistic between log 1e-5 and log 1e5."""
+    b = make_log([None, 0.0, 1e-5, 1e-5], [None, None, None, 1e5])
+    u = torch.tensor([2e-7, 3.0, 0.5, 40.0], dtype=DT)
+    q = b.internal(u)
+    assert torch.allclose(b.external(q), u, rtol=1e-13, atol=0)
+    assert torch.allclose(q[:2], u[:2].log(), rtol=1e-15, atol=0)
+    assert q[2] == pytest.approx(math.log(math.log(0.5 / 1e-5)), rel=1e-14)
+    h = 1e-6
+    numeric = (b.external(q + h) - b.external(q - h)) / (2 * h)
+    assert torch.allclose(b.derivative(u), numeric, rtol=1e-8)
+
+
+def test_log_scale_step_is_a_relative_change_capped_at_a_factor_1000():
+    b = make_log([None, None, 1e-5, None], [None, None, 1e5, None])
+    u = torch.tensor([2.0, 2.0, 1.0, 1e-300], dtype=DT)
+    change, blocked = b.step(u, torch.tensor([math.log(1.5), 50.0, 40.0, -800.0], dtype=DT))
+    new = u + change
+    assert new[0] == pytest.approx(3.0, rel=1e-14)  # a step of log 1.5 multiplies by 1.5
+    assert new[1] == pytest.approx(2000.0, rel=1e-12)  # capped: a factor 1000
+    # bounded on the log scale: ds/dq = (log 1e5 - log 1e-5) / 4 at the middle; capped at the q-step that
+    # moves s by log 1000 to first order (the logistic bends, so less: at most a factor 1000, at least 100)
+    assert 100.0 < new[2] <= 1000.0 and blocked[2]
+    assert new[3] > 0 and torch.isfinite(new).all()  # stays positive, however small
+
+
+def test_log_scale_fit_recovers_the_truth_and_its_interval_is_of_the_logarithm(data):
+    """The oscillator's A and B on a log scale: the truth of exact data (to 1e-8), as on the linear scale;
+    the Wald interval is that of log u mapped back, u * exp(-/+ q se / u)."""
+    free = torchql.fit(LinearOscillator(**GUESS), data, x0=X0)
+    logged = torchql.fit(LinearOscillator(**GUESS), data, x0=X0, scale={"A": "log", "B": "log10"})
+    assert logged.success, logged.message
+    assert logged.log_scaled == ["A", "B"]
+    scale = torch.where(TRUTH == 0, torch.ones_like(TRUTH), TRUTH.abs())
+    assert ((logged.estimates - TRUTH).abs() / scale).max() < 1e-8
+    assert free.success and torch.allclose(logged.estimates[2:], free.estimates[2:], rtol=1e-8, atol=0)
+    noisy = torchql.Observations(data.t, data.y * (1 + 0.01 * torch.randn(data.y.shape, dtype=DT,
+                                                                          generator=torch.Generator().manual_seed(3))),
+                                 observe=["y"])
+    r = torchql.fit(LinearOscillator(**GUESS), noisy, x0=X0, scale={"B": "log"})
+    assert r.success, r.message
+    b, se = r.params["B"].item(), r.stderr["B"]
+    q = torchql.uncertainty.student_t_quantile(0.975, r.dof)
+    lo, hi = r.confidence_intervals()["B"]
+    assert lo == pytest.approx(b * math.exp(-q * se / b), rel=1e-10)
+    assert hi == pytest.approx(b * math.exp(q * se / b), rel=1e-10)
+    y_lo, y_hi = r.confidence_intervals()["y(t0)"]  # the linear-scale unknowns keep their symmetric intervals
+    assert (y_lo + y_hi) / 2 == pytest.approx(r.x0[0].item(), rel=1e-12)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(scale={"A": "ln"}), ValueError, r"`scale\['A'\]` must be one of \['lin', 'log', 'log10'\]; received 'ln'"),
+    (dict(scale={"A": "log"}, bounds={"A": (-1.0, 1.0)}), ValueError, r"its bounds must lie in \[0, inf\)"),
+    (dict(scale={"Q": "log"}), ValueError, r"`scale` names unknown 'Q'"),
+    (dict(scale={"A": "log"}, params=["B"]), ValueError, r"`scale` names 'A', which is not estimated"),
+    (dict(scale=["A"]), TypeError, r"`scale` must be a dict"),
+])
+def test_bad_scales_are_named(data, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        torchql.fit(LinearOscillator(**GUESS), data, x0=X0, **kwargs)
+
+
+def test_log_scale_needs_a_positive_guess(data):
+    with pytest.raises(ValueError, match=r"the guess of 'A' is -0.5, but it is on a log scale"):
+        torchql.fit(LinearOscillator(A=-0.5, B=1.0), data, x0=X0, scale={"A": "log"})
+    # with a lower bound 0 a guess of 0 is moved inside, as on the linear scale
+    r = torchql.fit(LinearOscillator(A=0.0, B=1.0), data, x0=X0, scale={"A": "log"}, bounds={"A": (0.0, None)})
+    assert r.success and r.moved_guesses == {"A": (0.0, START_OFFSET)}
+
+
+def test_log_scale_in_fit_many_equals_fit(data):
+    batch = torchql.Observations(data.t, torch.stack([data.y, data.y * 1.01]), observe=["y"])
+    many = torchql.fit_many(LinearOscillator(**GUESS), batch, X0, scale={"A": "log"})
+    for i in range(2):
+        one = torchql.fit(LinearOscillator(**GUESS), batch[i], X0, scale={"A": "log"})
+        assert many[i].log_scaled == ["A"] and many[i].iterations == one.iterations
+        assert torch.allclose(many[i].estimates, one.estimates, rtol=1e-9, atol=1e-12)

@@ -6,6 +6,7 @@ from .batch_result import BatchFitResult
 from .fit import METHODS, fit
 from .compare import Comparison, compare
 from .inputs import Inputs
+from .parameters import Parameter
 from .integrate import SOLVER_NAMES, IntegrationError, simulate
 from .model import ODEModel
 from .multistart import MultiStartResult, multistart
@@ -22,6 +23,7 @@ __all__ = [
     "ODEModel",
     "Observations",
     "Inputs",
+    "Parameter",
     "compare",
     "Comparison",
     "fit",

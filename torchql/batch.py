@@ -45,6 +45,7 @@ from .grid import make_grid
 from .model import ODEModel
 from .observations import Observations
 from .options import Limits
+from .parameters import apply_parameters
 from .problem import Problem, check_data, inputs_all_or_none, recorded_options
 from .propagators import LinearPropagator
 from .result import IterationRecord
@@ -71,6 +72,8 @@ def fit_many(
     t0: float | None = None,
     method: str = "kantorovich",
     bounds: dict | None = None,
+    scale: dict | None = None,
+    parameters: dict | None = None,
     initial_trajectory: str = "integrate",
     max_iter: int = 50,
     max_time: float | None = None,
@@ -124,6 +127,11 @@ def fit_many(
         unknowns are iterated in the same transformed variables, each sample's guesses on or
         outside a bound are moved inside as ``fit`` moves them (``batch[i].moved_guesses``), and
         an estimate at a bound is named in that sample's message.
+    scale : dict, optional
+        ``{name: "lin" | "log" | "log10"}`` as in :func:`torchql.fit`, the same for every sample.
+    parameters : dict, optional
+        ``{name: torchql.Parameter or number}`` as in :func:`torchql.fit`, the same for every
+        sample (``guesses`` still give per-sample values).
     guesses : dict of str to Tensor, optional
         Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
         ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
@@ -172,15 +180,21 @@ def fit_many(
     TypeError, ValueError
         For invalid arguments (naming the argument, the sample, what was expected and received).
     """
+    if parameters is not None:
+        _checks.model_class(model)
+        given = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
+                                 scale=scale)
+        model, x0, params, fixed_x0, bounds, scale = (given[k] for k in ("model", "x0", "params", "fixed_x0",
+                                                                          "bounds", "scale"))
     runs = _input_runs(data)
     if runs is not None:
         return _fit_runs(runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress,
                          callback=callback, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
-                         initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol,
+                         scale=scale, initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol,
                          ftol=ftol, rcond=rcond, grid=grid, damping=damping, solver=solver,
                          linear_solver=linear_solver, max_steps=max_steps, chunk_size=chunk_size)
     spec = Problem(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory)
+                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, scale=scale)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     if callback is not None and not callable(callback):
@@ -193,7 +207,7 @@ def fit_many(
         params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
         solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
-        bounds=bounds)
+        bounds=bounds, scale=scale)
     return result
 
 

@@ -93,6 +93,8 @@ class BatchFitResult:
     lower, upper : Tensor ``(m,)`` or None
         The ``bounds`` of the unknowns (every sample's), as :attr:`torchql.FitResult.lower`;
         ``None``: no bounds.
+    log_scaled : list of str
+        The unknowns iterated on a logarithmic scale, as :attr:`torchql.FitResult.log_scaled`.
     moved_guesses : dict of int to dict
         ``{sample: {name: (given, used)}}`` for the samples whose guesses lay on or outside a
         bound and were moved inside (``batch[i].moved_guesses``).
@@ -140,6 +142,7 @@ class BatchFitResult:
     fit_kwargs: dict = field(default_factory=dict, repr=False)
     lower: torch.Tensor | None = field(default=None, repr=False)
     upper: torch.Tensor | None = field(default=None, repr=False)
+    log_scaled: list[str] = field(default_factory=list, repr=False)
     moved_guesses: dict[int, dict[str, tuple[float, float]]] = field(default_factory=dict, repr=False)
     exact: torch.Tensor | None = field(default=None, repr=False)
     exact_residual: torch.Tensor | None = field(default=None, repr=False)
@@ -214,6 +217,7 @@ class BatchFitResult:
             fit_kwargs=dict(self.fit_kwargs), index=i,
             lower=None if self.lower is None else self.lower.clone(),
             upper=None if self.upper is None else self.upper.clone(),
+            log_scaled=list(self.log_scaled),
             moved_guesses=dict(self.moved_guesses.get(i, {})),
             nll=math.nan if self.nll is None else float(self.nll[i]),
             sigma=None if self.sigma is None else dict(zip(self.sigma_names, self.sigma[i].tolist())),
@@ -315,6 +319,7 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         fit_kwargs=dict(first.fit_kwargs),
         lower=first.lower,
         upper=first.upper,
+        log_scaled=list(first.log_scaled),
         moved_guesses=_joined_moves(parts),
         nll=None if any(p.nll is None for p in parts) else torch.cat([p.nll for p in parts]),
         sigma=None if any(p.sigma is None for p in parts) else torch.cat([p.sigma for p in parts]),

@@ -32,6 +32,14 @@ With :data:`START_OFFSET` ``= 1e-3`` rates guessed 0 cost 3 to 5 iterations more
 inside (``experiments/bound_start.py``); a point ``1e-10`` above the bound would cost several
 capped steps to climb out (from there 4 of the 6 fits of that script stalled or ran out of
 iterations). Guesses strictly inside are kept as given, however close to a bound.
+
+An unknown on a logarithmic scale (``scale={"k": "log"}``, or ``"log10"``, the same iteration)
+is iterated in ``s = log u``, and its bounds bound ``s`` (``log lo``, ``log hi``; a lower bound 0
+leaves ``s`` open below): ``u = exp(q)`` without bounds, ``u = exp(log lo + exp(q))`` with a
+lower bound, ``u = exp(log lo + (log hi - log lo) / (1 + exp(-q)))`` with both. A rate known only
+to lie between ``1e-5`` and ``1e5`` is then iterated evenly over its ten decades, not squeezed
+against the lower bound of a linear logistic, and its intervals are intervals of ``log u``.
+Its values must be positive.
 """
 
 from __future__ import annotations
@@ -41,7 +49,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-__all__ = ["Bounds", "MAX_INTERNAL_STEP", "START_OFFSET", "at_bound_note", "moved_guesses_note", "moved_record"]
+__all__ = ["Bounds", "MAX_INTERNAL_STEP", "SCALES", "START_OFFSET", "at_bound_note", "moved_guesses_note", "moved_record"]
 
 #: Largest move of a bounded unknown's internal variable ``q`` in one step (a factor 1000 in
 #: its distance to a bound).
@@ -51,6 +59,9 @@ MAX_INTERNAL_STEP = math.log(1000.0)
 #: fraction of ``max(1, |bound|)`` from a one-sided bound, of the width from the nearer of two.
 #: It equals ``exp(-MAX_INTERNAL_STEP)``: one capped step from the unknown's scale.
 START_OFFSET = 1e-3
+
+#: The scales an unknown may be iterated on (``"log"`` and ``"log10"`` give the same iteration).
+SCALES = ("lin", "log", "log10")
 
 
 class Bounds:
@@ -73,38 +84,58 @@ class Bounds:
     """
 
     def __init__(self, bounds: Mapping | None, unknown_names: Sequence[str], groups: Mapping[str, list[int]],
-                 all_names: Sequence[str], dtype: torch.dtype, device: torch.device) -> None:
+                 all_names: Sequence[str], dtype: torch.dtype, device: torch.device,
+                 scale: Mapping | None = None) -> None:
         m = len(unknown_names)
         lower = [-math.inf] * m
         upper = [math.inf] * m
+        index = {name: [i] for i, name in enumerate(unknown_names)}
+        index.update({name[:-4]: [i] for i, name in enumerate(unknown_names) if name.endswith("(t0)")})
+        index.update({k: list(v) for k, v in groups.items()})
         if bounds is not None:
             if not isinstance(bounds, Mapping):
                 raise TypeError(
                     f"`bounds` must be a dict {{name: (lower, upper)}}; received {type(bounds).__name__}")
-            index = {name: [i] for i, name in enumerate(unknown_names)}
-            index.update({name[:-4]: [i] for i, name in enumerate(unknown_names) if name.endswith("(t0)")})
-            index.update({k: list(v) for k, v in groups.items()})
             for name, pair in bounds.items():
-                if name not in index:
-                    if name in all_names or (isinstance(name, str) and name.removesuffix("(t0)") in all_names):
-                        raise ValueError(
-                            f"`bounds` names {name!r}, which is not estimated in this fit (add it to `params=`, "
-                            "or remove it from `fixed_x0=`)")
-                    raise ValueError(f"`bounds` names unknown {name!r}; the unknowns are {list(unknown_names)}")
                 lo, hi = _pair(name, pair)
-                for i in index[name]:
+                for i in _named(index, "bounds", name, all_names, unknown_names):
                     lower[i], upper[i] = lo, hi
+        log = [False] * m
+        if scale is not None:
+            if not isinstance(scale, Mapping):
+                raise TypeError(f"`scale` must be a dict {{name: 'lin' | 'log' | 'log10'}}; received "
+                                f"{type(scale).__name__}")
+            for name, kind in scale.items():
+                if kind not in SCALES:
+                    raise ValueError(f"`scale[{name!r}]` must be one of {list(SCALES)}; received {kind!r}")
+                for i in _named(index, "scale", name, all_names, unknown_names):
+                    log[i] = kind != "lin"
+                    if log[i] and (-math.inf < lower[i] < 0 or upper[i] <= 0):
+                        raise ValueError(f"`scale[{name!r}]` is {kind!r}, so {unknown_names[i]} is positive; its "
+                                         f"bounds must lie in [0, inf), received ({lower[i]:g}, {upper[i]:g})")
         self.lower = torch.tensor(lower, dtype=dtype, device=device)
         self.upper = torch.tensor(upper, dtype=dtype, device=device)
+        self.log = torch.tensor(log, dtype=torch.bool, device=device)
         self.names = list(unknown_names)
+        self._derive()
+
+    def _derive(self) -> None:
+        """The bounds' masks, and their values on the iterated scale ``s`` (``log u`` where :attr:`log`)."""
         self.has_lower = torch.isfinite(self.lower)
         self.has_upper = torch.isfinite(self.upper)
-        self.active = bool((self.has_lower | self.has_upper).any())
+        with torch.no_grad():
+            positive = self.lower > 0
+            self._lo = torch.where(self.log, torch.where(positive, self.lower.clamp_min(1e-300).log(),
+                                                         torch.full_like(self.lower, -math.inf)), self.lower)
+            self._hi = torch.where(self.log, self.upper.log(), self.upper)
+        self._has_lo, self._has_hi = torch.isfinite(self._lo), torch.isfinite(self._hi)
+        self.transformed = self._has_lo | self._has_hi | self.log
+        self.active = bool(self.transformed.any())
 
     @classmethod
     def for_unknowns(cls, bounds: Mapping | None, unknown_names: Sequence[str], n_states: int,
                      param_names: Sequence[str], param_sizes: Sequence[int], all_names: Sequence[str],
-                     dtype: torch.dtype, device: torch.device) -> "Bounds":
+                     dtype: torch.dtype, device: torch.device, scale: Mapping | None = None) -> "Bounds":
         """Bounds of a fit's unknowns: ``n_states`` initial states, then the elements of the
         coefficients ``param_names`` (``param_sizes`` elements each) in order, a coefficient's
         name bounding all of its elements (the ``groups`` of the constructor)."""
@@ -112,16 +143,19 @@ class Bounds:
         for name, size in zip(param_names, param_sizes):
             groups[name] = list(range(k, k + size))
             k += size
-        return cls(bounds, unknown_names, groups, all_names, dtype, device)
+        return cls(bounds, unknown_names, groups, all_names, dtype, device, scale)
 
     @classmethod
-    def of(cls, lower: torch.Tensor, upper: torch.Tensor, names: Sequence[str]) -> "Bounds":
-        """Bounds from their values ``lower``, ``upper`` ``(m,)`` (infinite where a side is open),
-        as a :class:`torchql.FitResult` stores them, for the change of variables they define."""
+    def of(cls, lower: torch.Tensor, upper: torch.Tensor, names: Sequence[str],
+           log: torch.Tensor | None = None) -> "Bounds":
+        """Bounds from their values ``lower``, ``upper`` ``(m,)`` (infinite where a side is open) and
+        the log-scale mask ``log (m,)``, as a :class:`torchql.FitResult` stores them, for the change
+        of variables they define."""
         bounds = cls(None, names, {}, names, lower.dtype, lower.device)
         bounds.lower, bounds.upper = lower.clone(), upper.clone()
-        bounds.has_lower, bounds.has_upper = torch.isfinite(bounds.lower), torch.isfinite(bounds.upper)
-        bounds.active = bool((bounds.has_lower | bounds.has_upper).any())
+        if log is not None:
+            bounds.log = log.to(device=lower.device, dtype=torch.bool).clone()
+        bounds._derive()
         return bounds
 
     def move_inside(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -142,7 +176,7 @@ class Bounds:
         moved = low | (self.has_upper & ~(u < self.upper))
         if not bool(moved.any()):
             return u.clone(), moved
-        both = self._both()
+        both = self.has_lower & self.has_upper
         lo = torch.where(self.has_lower, self.lower, torch.zeros_like(u))
         hi = torch.where(self.has_upper, self.upper, torch.zeros_like(u))
         width = START_OFFSET * hi - START_OFFSET * lo  # START_OFFSET * (hi - lo), which cannot overflow
@@ -155,37 +189,45 @@ class Bounds:
         return used, moved
 
     def _both(self) -> torch.Tensor:
-        return self.has_lower & self.has_upper
+        return self._has_lo & self._has_hi
+
+    def _iterated(self, u: torch.Tensor) -> torch.Tensor:
+        """``s``: ``log u`` for the log-scale unknowns, ``u`` for the others."""
+        return torch.where(self.log, torch.log(u.clamp_min(torch.finfo(u.dtype).tiny)), u)
 
     def internal(self, u: torch.Tensor) -> torch.Tensor:
         """``q(u)``: shape ``(m,)``."""
-        both, lo_only, hi_only = self._both(), self.has_lower & ~self.has_upper, self.has_upper & ~self.has_lower
-        q = u.clone()
-        lo = torch.where(self.has_lower, self.lower, torch.zeros_like(u))
-        hi = torch.where(self.has_upper, self.upper, torch.ones_like(u))
-        q = torch.where(lo_only, torch.log((u - lo).clamp_min(torch.finfo(u.dtype).tiny)), q)
-        q = torch.where(hi_only, torch.log((hi - u).clamp_min(torch.finfo(u.dtype).tiny)), q)
-        frac = ((u - lo) / (hi - lo)).clamp(torch.finfo(u.dtype).tiny, 1 - torch.finfo(u.dtype).eps)
+        s = self._iterated(u)
+        both, lo_only, hi_only = self._both(), self._has_lo & ~self._has_hi, self._has_hi & ~self._has_lo
+        tiny = torch.finfo(u.dtype).tiny
+        lo = torch.where(self._has_lo, self._lo, torch.zeros_like(s))
+        hi = torch.where(self._has_hi, self._hi, torch.ones_like(s))
+        q = torch.where(lo_only, torch.log((s - lo).clamp_min(tiny)), s)
+        q = torch.where(hi_only, torch.log((hi - s).clamp_min(tiny)), q)
+        frac = ((s - lo) / (hi - lo)).clamp(tiny, 1 - torch.finfo(u.dtype).eps)
         return torch.where(both, torch.log(frac) - torch.log1p(-frac), q)
 
     def external(self, q: torch.Tensor) -> torch.Tensor:
         """``u(q)``: shape ``(m,)``."""
-        both, lo_only, hi_only = self._both(), self.has_lower & ~self.has_upper, self.has_upper & ~self.has_lower
-        lo = torch.where(self.has_lower, self.lower, torch.zeros_like(q))
-        hi = torch.where(self.has_upper, self.upper, torch.ones_like(q))
-        u = torch.where(lo_only, lo + torch.exp(q), q)
-        u = torch.where(hi_only, hi - torch.exp(q), u)
-        return torch.where(both, lo + (hi - lo) * torch.sigmoid(q), u)
+        both, lo_only, hi_only = self._both(), self._has_lo & ~self._has_hi, self._has_hi & ~self._has_lo
+        lo = torch.where(self._has_lo, self._lo, torch.zeros_like(q))
+        hi = torch.where(self._has_hi, self._hi, torch.ones_like(q))
+        s = torch.where(lo_only, lo + torch.exp(q), q)
+        s = torch.where(hi_only, hi - torch.exp(q), s)
+        s = torch.where(both, lo + (hi - lo) * torch.sigmoid(q), s)
+        return torch.where(self.log, torch.exp(s), s)
 
     def derivative(self, u: torch.Tensor) -> torch.Tensor:
-        """``du/dq`` at ``u``: shape ``(m,)`` (ones where unbounded)."""
-        both, lo_only, hi_only = self._both(), self.has_lower & ~self.has_upper, self.has_upper & ~self.has_lower
-        lo = torch.where(self.has_lower, self.lower, torch.zeros_like(u))
-        hi = torch.where(self.has_upper, self.upper, torch.ones_like(u))
-        d = torch.ones_like(u)
-        d = torch.where(lo_only, u - lo, d)
-        d = torch.where(hi_only, u - hi, d)
-        return torch.where(both, (u - lo) * (hi - u) / (hi - lo), d)
+        """``du/dq`` at ``u``: shape ``(m,)`` (ones where neither bounded nor on a log scale)."""
+        s = self._iterated(u)
+        both, lo_only, hi_only = self._both(), self._has_lo & ~self._has_hi, self._has_hi & ~self._has_lo
+        lo = torch.where(self._has_lo, self._lo, torch.zeros_like(s))
+        hi = torch.where(self._has_hi, self._hi, torch.ones_like(s))
+        d = torch.ones_like(s)
+        d = torch.where(lo_only, s - lo, d)
+        d = torch.where(hi_only, s - hi, d)
+        d = torch.where(both, (s - lo) * (hi - s) / (hi - lo), d)
+        return torch.where(self.log, d * u, d)
 
     def step(self, u: torch.Tensor, alpha_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The change of ``u`` when ``q`` moves by ``alpha_q``; the result stays strictly inside.
@@ -203,26 +245,40 @@ class Bounds:
         """
         if not self.active:
             return alpha_q, torch.zeros_like(alpha_q, dtype=torch.bool)
-        bounded = self.has_lower | self.has_upper
-        capped = self._capped(alpha_q)
-        alpha_q = torch.where(capped, alpha_q.nan_to_num(0.0).clamp(-MAX_INTERNAL_STEP, MAX_INTERNAL_STEP), alpha_q)
+        limit = self._limit(u)
+        capped = self._capped(alpha_q, u)
+        alpha_q = torch.where(capped, torch.maximum(torch.minimum(alpha_q.nan_to_num(0.0), limit), -limit), alpha_q)
         u_new = self.external(self.internal(u) + alpha_q)
         inf = torch.full_like(u, math.inf)
         low = self.has_lower & (u_new <= self.lower)
         high = self.has_upper & (u_new >= self.upper)
         u_new = torch.where(low, torch.nextafter(self.lower, inf), u_new)
         u_new = torch.where(high, torch.nextafter(self.upper, -inf), u_new)
-        return torch.where(bounded, u_new - u, alpha_q), low | high | capped
+        u_new = torch.where(self.log & (u_new <= 0), torch.full_like(u, torch.finfo(u.dtype).tiny), u_new)
+        return torch.where(self.transformed, u_new - u, alpha_q), low | high | capped
 
-    def capped(self, alpha_q: torch.Tensor) -> bool:
-        """Whether :meth:`step` caps some bounded unknown's internal step ``alpha_q (m,)`` at
-        :data:`MAX_INTERNAL_STEP`: the linearization then asked for a move beyond where it can
-        be trusted."""
-        return self.active and bool(self._capped(alpha_q).any())
+    def capped(self, alpha_q: torch.Tensor, u: torch.Tensor) -> bool:
+        """Whether :meth:`step` caps some transformed unknown's internal step ``alpha_q (m,)`` at
+        ``u``: the linearization then asked for a move beyond where it can be trusted."""
+        return self.active and bool(self._capped(alpha_q, u).any())
 
-    def _capped(self, alpha_q: torch.Tensor) -> torch.Tensor:
-        """Bounded unknowns whose internal step exceeds :data:`MAX_INTERNAL_STEP` (NaN counts as capped)."""
-        return (self.has_lower | self.has_upper) & ~(alpha_q.abs() <= MAX_INTERNAL_STEP)
+    def _capped(self, alpha_q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Transformed unknowns whose internal step exceeds its limit (NaN counts as capped)."""
+        return self.transformed & ~(alpha_q.abs() <= self._limit(u))
+
+    def _limit(self, u: torch.Tensor) -> torch.Tensor:
+        """The largest internal step of each unknown at ``u``: :data:`MAX_INTERNAL_STEP`, and for a
+        log-scale unknown whose ``s = log u`` moves faster than ``q`` (bounded in ``s``) the step
+        that moves ``s`` by about that much (a factor 1000 in ``u``)."""
+        limit = torch.full_like(u, MAX_INTERNAL_STEP)
+        if not bool(self.log.any()):
+            return limit
+        rate = (self.derivative(u) / u).abs()  # ds/dq on the log scale
+        return torch.where(self.log & (rate > 1), MAX_INTERNAL_STEP / rate, limit)
+
+    def nonpositive(self, u: torch.Tensor) -> list[str]:
+        """Names of the log-scale unknowns whose value in ``u (m,)`` is not positive."""
+        return [self.names[i] for i in torch.nonzero(self.log & ~(u > 0)).flatten().tolist()]
 
     def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
         """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""
@@ -230,6 +286,18 @@ class Bounds:
         near_lo = self.has_lower & ((u - self.lower).abs() <= rel * torch.maximum(scale, self.lower.abs().nan_to_num(0)))
         near_hi = self.has_upper & ((self.upper - u).abs() <= rel * torch.maximum(scale, self.upper.abs().nan_to_num(0)))
         return [self.names[i] for i in torch.nonzero(near_lo | near_hi).flatten().tolist()]
+
+
+def _named(index: Mapping[str, list[int]], argument: str, name, all_names: Sequence[str],
+           unknown_names: Sequence[str]) -> list[int]:
+    """The unknowns that ``name`` (a key of ``bounds`` or ``scale``) stands for; a clear error for a
+    name that is not estimated or not known."""
+    if name in index:
+        return index[name]
+    if name in all_names or (isinstance(name, str) and name.removesuffix("(t0)") in all_names):
+        raise ValueError(f"`{argument}` names {name!r}, which is not estimated in this fit (add it to `params=`, "
+                         "or remove it from `fixed_x0=`)")
+    raise ValueError(f"`{argument}` names unknown {name!r}; the unknowns are {list(unknown_names)}")
 
 
 def moved_record(names: Sequence[str], given: torch.Tensor, used: torch.Tensor,

@@ -165,7 +165,7 @@ class Engine(Evaluation, FinalPass):
         u = _pick(cur["z0"], idx)[:, spec.unknown_index]
         Cq = C * bounds.derivative(u).unsqueeze(1)
         alpha_q, infeasible = self._lstsq(idx, Cq, d, w, damping)
-        capped = bounds._capped(alpha_q).any(dim=1)
+        capped = bounds._capped(alpha_q, u).any(dim=1)
         alpha, blocked = bounds.step(u, alpha_q)
         rows = (blocked.any(dim=1) & ~infeasible).nonzero().flatten()
         if rows.numel():  # moved onto their bounds (or capped) and held; the others re-solved

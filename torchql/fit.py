@@ -30,6 +30,7 @@ from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .multi import StackedModel, check_conditions, experiment_state_name, stack_observations
 from .observations import Observations
 from .options import METHODS, Limits
+from .parameters import apply_parameters
 from .result import FitError, FitResult, IterationRecord
 from .propagators import LinearPropagator
 
@@ -47,6 +48,7 @@ def fit(
     t0: float | None = None,
     method: str = "kantorovich",
     bounds: dict | None = None,
+    scale: dict | None = None,
     max_iter: int = 50,
     max_time: float | None = None,
     throw: bool = False,
@@ -63,6 +65,7 @@ def fit(
     linear_solver: "str | LinearPropagator | None" = None,
     callback: Callable[[IterationRecord], None] | None = None,
     conditions: Sequence[dict] | None = None,
+    parameters: dict | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
 
@@ -108,6 +111,12 @@ def fit(
         upper bound), or to ``1e-3`` of the width inside the nearer of two bounds (see
         :mod:`torchql.bounds`). The result's ``moved_guesses`` and message name each moved
         guess and where it went; the model and ``x0`` keep their values.
+    scale : dict, optional
+        ``{name: "lin" | "log" | "log10"}`` (names as in ``bounds``): the unknowns to iterate on a
+        logarithmic scale (``"log"`` and ``"log10"`` iterate alike), for positive rates spanning
+        decades. The step is then a relative change (capped at a factor 1000), the unknown stays
+        positive, its ``bounds`` apply to its logarithm, and its confidence interval is that of
+        its logarithm mapped back (``result.log_scaled`` names them). Its guess must be positive.
     max_iter : int
         Maximum number of updates.
     max_time : float, optional
@@ -187,6 +196,12 @@ def fit(
         that experiment: ``{"k_mult": "s_high"}`` in two experiments and ``{"k_mult": 1.0}`` in
         the others makes ``s_high`` an unknown that only those two determine). A coefficient
         that every experiment sets is not an unknown by default.
+    parameters : dict, optional
+        ``{name: torchql.Parameter(value, vary, min, max, scale) or number}`` for coefficients
+        and states (:mod:`torchql.parameters`): each one's value, whether it is estimated, its
+        bounds and scale in one place, written into ``params``, ``fixed_x0``, ``x0``, ``bounds``
+        and ``scale`` (a name may not be given in both); with several experiments a state's
+        value and role apply to every experiment.
 
     Returns
     -------
@@ -202,16 +217,22 @@ def fit(
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
     _checks.single_observations("data", data)
+    if parameters is not None:
+        _checks.model_class(model)
+        spec = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
+                                scale=scale, rows=len(data) if isinstance(data, (list, tuple)) else None)
+        model, x0, params, fixed_x0, bounds, scale = (spec[k] for k in ("model", "x0", "params", "fixed_x0",
+                                                                         "bounds", "scale"))
     if isinstance(data, (list, tuple)):
         return _fit_experiments(
             model, list(data), x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
-            max_iter=max_iter, max_time=max_time, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol,
+            scale=scale, max_iter=max_iter, max_time=max_time, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol,
             ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
             damping=damping, linear_solver=linear_solver, callback=callback, conditions=conditions)
     if conditions is not None:
         raise ValueError("`conditions` applies to several experiments (`data` a list of Observations)")
     spec = _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol,
-                        ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver)
+                        ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver, scale)
     max_time = Limits.resolve(max_time=max_time).max_time
     batch = run_with_noise(spec, lambda problem: run_engine(
         problem, 1, max_time, lambda done: None, history=True,
@@ -222,21 +243,22 @@ def fit(
         x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
         solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
-        bounds=bounds)
+        bounds=bounds, scale=scale)
     if throw and not result.success:
         raise FitError(result)
     return result
 
 
 def _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
-                 rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None) -> Problem:
+                 rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None, scale=None) -> Problem:
     """One dataset's validated problem: the engine's (:mod:`torchql.batch`) with one sample, its
     errors worded for ``fit``."""
     _checks.model_class(model)
     if not isinstance(data, Observations):
         raise TypeError(f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
     return Problem(model, [data], x0, params, None, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, single=True)
+                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, single=True,
+                   scale=scale)
 
 
 class _Problem:
@@ -261,8 +283,8 @@ class _Problem:
         self.unknown_index, self.unknown_names = spec.unknown_index, list(spec.unknown_names)
 
 
-def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, grid, throw, callback, conditions,
-                     **options) -> FitResult:
+def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, scale, grid, throw, callback,
+                     conditions, **options) -> FitResult:
     """Several experiments sharing the coefficients: the stacked problem of :mod:`torchql.multi`."""
     _checks.model_class(model)
     if not datasets:
@@ -310,19 +332,10 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     stacked = StackedModel(model, t0s, span, _experiment_inputs(model, datasets, t0s, last, dtype, device), checked)
     data = stack_observations(datasets, names, t0s, span, dtype, device)
     fixed = _experiment_fixed(fixed_x0, names, E)
-    stacked_bounds = None
-    if bounds is not None:
-        if not isinstance(bounds, dict):
-            raise TypeError(f"`bounds` must be a dict {{name: (lower, upper)}}; received {type(bounds).__name__}")
-        stacked_bounds = {}
-        for key, pair in bounds.items():
-            state = key.removesuffix("(t0)") if isinstance(key, str) else key
-            if state in names:  # the experiments where that state's initial value is an unknown
-                stacked_bounds.update({experiment_state_name(state, e): pair for e in range(E)
-                                       if experiment_state_name(state, e) not in (fixed or ())})
-            else:
-                stacked_bounds[key] = pair
-    result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds, grid=grid,
+    stacked_bounds = _per_experiment("bounds", bounds, "{name: (lower, upper)}", names, fixed, E)
+    stacked_scale = _per_experiment("scale", scale, "{name: 'lin' | 'log' | 'log10'}", names, fixed, E)
+    result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds,
+                 scale=stacked_scale, grid=grid,
                  throw=False, callback=callback, **options)
     fitted = copy.deepcopy(model)
     own = coefficients(model)
@@ -335,11 +348,29 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     result.conditions = checked
     result.data = datasets
     result.fit_kwargs = recorded_options(x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, grid=grid, bounds=bounds,
-                                         conditions=conditions,
+                                         scale=scale, conditions=conditions,
                                          **options)
     if throw and not result.success:
         raise FitError(result)
     return result
+
+
+def _per_experiment(argument: str, given, expected: str, names: list, fixed, E: int) -> dict | None:
+    """``bounds`` or ``scale`` of several experiments for the stacked model: a state's entry applies
+    to its initial value in every experiment where that is an unknown; a coefficient's as given."""
+    if given is None:
+        return None
+    if not isinstance(given, dict):
+        raise TypeError(f"`{argument}` must be a dict {expected}; received {type(given).__name__}")
+    stacked = {}
+    for key, value in given.items():
+        state = key.removesuffix("(t0)") if isinstance(key, str) else key
+        if state in names:  # the experiments where that state's initial value is an unknown
+            stacked.update({experiment_state_name(state, e): value for e in range(E)
+                            if experiment_state_name(state, e) not in (fixed or ())})
+        else:
+            stacked[key] = value
+    return stacked
 
 
 def _experiment_inputs(model, datasets: list, t0s: torch.Tensor, last: torch.Tensor, dtype, device) -> list | None:

@@ -29,13 +29,14 @@ from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
 __all__ = ["Problem", "check_data", "recorded_options"]
 
 
-def recorded_options(*, params, fixed_x0, bounds, **options) -> dict:
+def recorded_options(*, params, fixed_x0, bounds, scale=None, **options) -> dict:
     """A fit's options as ``result.fit_kwargs`` keeps them for a re-fit (``profile``,
     ``multistart``): copies of the lists, dicts and tensor (``x0``, when given) the user passed,
     the other options as given."""
     record = dict(params=None if params is None else list(params),
                   fixed_x0=None if fixed_x0 is None else list(fixed_x0),
-                  bounds=None if bounds is None else dict(bounds), **options)
+                  bounds=None if bounds is None else dict(bounds), scale=None if scale is None else dict(scale),
+                  **options)
     if record.get("x0") is not None:
         record["x0"] = torch.as_tensor(record["x0"]).detach().clone()
     return record
@@ -51,7 +52,7 @@ class Problem:
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
                  grid, damping, solver, max_steps, bounds=None, linear_solver=None,
-                 method="kantorovich", initial_trajectory="integrate", single: bool = False) -> None:
+                 method="kantorovich", initial_trajectory="integrate", single: bool = False, scale=None) -> None:
         self.single = single  # torchql.fit's problem: one dataset, errors worded for it
         _checks.model_class(model)
         names = tuple(model.state_names)
@@ -177,13 +178,14 @@ class Problem:
         # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
         # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
         self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free), self.params, system.param_sizes,
-                                          list(names) + list(available), dtype, device)
+                                          list(names) + list(available), dtype, device, scale)
         self.moved_guesses: dict[int, dict[str, tuple[float, float]]] = {}
         if self.bounds.active:
             given = self.z0[:, self.unknown_index]
             used, moved = self.bounds.move_inside(given)
             for b in moved.any(dim=1).nonzero().flatten().tolist():
                 self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
+            self._check_positive(used)
             self.z0[:, self.unknown_index] = used
             x0 = self.z0[:, :n]
         self.breakpoints = self._attach_inputs(model)
@@ -206,6 +208,16 @@ class Problem:
                                                     breakpoints=self.breakpoints)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
         self.model = model
+
+    def _check_positive(self, guesses: torch.Tensor) -> None:
+        """The guesses ``(B, m)`` of the log-scale unknowns are positive (a clear error otherwise)."""
+        bad = self.bounds.log & ~(guesses > 0)
+        if bool(bad.any()):
+            b, i = (int(v) for v in bad.nonzero()[0])
+            where = "" if self.single else f" (sample {b})"
+            raise ValueError(f"the guess of {self.unknown_names[i]!r} is {float(guesses[b, i]):g}{where}, but it is on "
+                             "a log scale (`scale=`), which needs a positive value: give a positive guess, or a lower "
+                             "bound 0 to have a guess of 0 moved inside")
 
     def _initial_time(self, t0) -> torch.Tensor:
         """``t0``: the first observation time (each sample's own, ``(B,)``, when times are per sample)
@@ -377,10 +389,16 @@ class Problem:
             exact=self.exact.reshape(B, -1).clone(), exact_residual=out["exact_residual"],
             start_params=self._params_of(self.z0), start_x0=self.z0[:, :n].clone(), sse_start=out["sse_start"],
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
-            lower=self.bounds.lower.clone() if self.bounds.active else None,
-            upper=self.bounds.upper.clone() if self.bounds.active else None,
+            lower=self.bounds.lower.clone() if self._bounded else None,
+            upper=self.bounds.upper.clone() if self._bounded else None,
+            log_scaled=[name for name, log in zip(self.unknown_names, self.bounds.log.tolist()) if log],
             moved_guesses={b: dict(moved) for b, moved in self.moved_guesses.items()})
 
+
+    @property
+    def _bounded(self) -> bool:
+        """Whether some unknown has a finite bound."""
+        return bool((self.bounds.has_lower | self.bounds.has_upper).any())
 
     def _params_of(self, z0: torch.Tensor) -> dict[str, torch.Tensor]:
         """Every float buffer per sample ``(B, *shape)`` for augmented states ``z0 (B, M)``."""

@@ -214,7 +214,7 @@ def profile(
             raise ValueError(f"`{label}` must be a finite number > {lo:g}; received {value!r}")
     if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < 1:
         raise ValueError(f"`max_points` must be a positive int; received {max_points!r}")
-    for bad in ("params", "fixed_x0", "x0", "callback", "throw", "bounds"):
+    for bad in ("params", "fixed_x0", "x0", "callback", "throw", "bounds", "scale"):
         if bad in fit_options:
             raise ValueError(f"`{bad}` cannot be overridden in a profile: it is set by the profile itself")
 
@@ -247,9 +247,9 @@ def profile(
     options["t0"] = result.t0
     if options.get("solver") == "auto" and "solver" in result.solver_options:  # the fit's choice, kept
         options["solver"] = result.solver_options["solver"]
-    if result.fit_kwargs.get("bounds"):  # the profiled unknown is held fixed: its own bound goes
-        options["bounds"] = {k: v for k, v in result.fit_kwargs["bounds"].items()
-                             if k not in (name, name.removesuffix("(t0)"))}
+    for key in ("bounds", "scale"):  # the profiled unknown is held fixed: its own bound and scale go
+        if result.fit_kwargs.get(key):
+            options[key] = {k: v for k, v in result.fit_kwargs[key].items() if k not in (name, name.removesuffix("(t0)"))}
     options.update(fit_options)
 
     # --- threshold: on the SSE, or with estimated sigmas or log-normal noise on 2 NLL (the profile

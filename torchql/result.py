@@ -177,6 +177,9 @@ class FitResult:
     index : int or None
         For one sample of a :func:`torchql.fit_many` batch (``batch[i]``), its position ``i``;
         ``None`` for :func:`torchql.fit`.
+    log_scaled : list of str
+        The unknowns iterated on a logarithmic scale (``scale=``); their intervals are intervals
+        of ``log u`` mapped back.
     moved_guesses : dict of str to (float, float)
         ``{name: (given, used)}`` for every guess that lay on or outside its ``bounds`` and was
         moved strictly inside before the iteration (see :meth:`torchql.bounds.Bounds.move_inside`);
@@ -222,6 +225,7 @@ class FitResult:
     conditions: list[dict] | None = field(default=None, repr=False)
     lower: torch.Tensor | None = field(default=None, repr=False)
     upper: torch.Tensor | None = field(default=None, repr=False)
+    log_scaled: list[str] = field(default_factory=list, repr=False)
     moved_guesses: dict[str, tuple[float, float]] = field(default_factory=dict, repr=False)
     index: int | None = field(default=None, repr=False)
     nll: float = field(default=math.nan, repr=False)
@@ -260,7 +264,8 @@ class FitResult:
 
         valid = self.success or self.status is Status.NOT_IDENTIFIABLE
         return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
-                              lower=self.lower, upper=self.upper, valid=valid)
+                              lower=self.lower, upper=self.upper, valid=valid,
+                              log=torch.tensor([u in self.log_scaled for u in self.unknown_names], dtype=torch.bool))
 
     @property
     def condition_number(self) -> float:

@@ -166,7 +166,7 @@ def student_t_quantile(p: float, dof: float) -> float:
 
 def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, level: float,
                    lower: torch.Tensor | None = None, upper: torch.Tensor | None = None,
-                   valid: bool = True) -> dict[str, tuple[float, float]]:
+                   valid: bool = True, log: torch.Tensor | None = None) -> dict[str, tuple[float, float]]:
     """Wald intervals at confidence ``level``, by name.
 
     An unbounded unknown gets ``estimate -/+ q * stderr``. A bounded one (``lower``/``upper``,
@@ -174,7 +174,8 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     unbounded) gets the Wald interval of its internal variable ``q`` of
     :class:`torchql.bounds.Bounds` (``log(u - lo)``, ``log(hi - u)`` or ``logit((u - lo) / (hi - lo))``),
     ``q_hat -/+ q * stderr / |du/dq|``, mapped back to ``u``: it lies inside the bounds and is
-    asymmetric about the estimate (the delta method's standard error of ``q``).
+    asymmetric about the estimate (the delta method's standard error of ``q``). So does an
+    unknown on a log scale (``log (m,)`` bool, ``None``: none), whose ``q`` is in ``log u``.
 
     ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual variance
     was estimated (NaN without degrees of freedom), the normal quantile when ``sigma`` was
@@ -196,12 +197,13 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     u = torch.as_tensor(estimates).detach().reshape(-1)
     ses = [float(stderr[name]) for name in names]
     out = {name: (float(v) - q * s, float(v) + q * s) for name, v, s in zip(names, u, ses)}
-    if lower is not None or upper is not None:
+    if lower is not None or upper is not None or (log is not None and bool(log.any())):
         from .bounds import Bounds
 
         inf = torch.full_like(u, math.inf)
-        bounds = Bounds.of(-inf if lower is None else lower.to(u), inf if upper is None else upper.to(u), names)
-        bounded = bounds.has_lower | bounds.has_upper
+        bounds = Bounds.of(-inf if lower is None else lower.to(u), inf if upper is None else upper.to(u), names,
+                           log)
+        bounded = bounds.transformed
         if bool(bounded.any()):
             se = torch.tensor(ses, dtype=u.dtype, device=u.device)
             slope = bounds.derivative(u).abs()

@@ -1,0 +1,104 @@
+"""``parameters=``: one lmfit-like specification (value, vary, min, max, scale) per coefficient or state.
+
+SIR with N = 763 known, only I observed, exact data (beta = 1.66, gamma = 0.44, I0 = 1): the
+specification gives the same fit as the keywords it stands for (``params``, ``fixed_x0``, ``x0``,
+``bounds``, ``scale``), bit for bit, and the truth to 1e-8; the user's model and its values are
+left as they were.
+"""
+
+import pytest
+import torch
+
+import torchql
+from testmodels import SIR
+from torchql import Parameter
+
+DT = torch.float64
+TRUTH = torch.tensor([1.0, 1.66, 0.44], dtype=DT)
+
+
+@pytest.fixture(scope="module")
+def data():
+    t = torch.arange(14, dtype=DT)
+    x = torchql.simulate(SIR(), torch.tensor([762.0, 1.0, 0.0], dtype=DT), t, rtol=1e-12, atol=1e-12)
+    return torchql.Observations(t, x[:, 1:2], observe=["I"])
+
+
+SPEC = {"beta": Parameter(3.0, min=0.0, scale="log"), "gamma": Parameter(1.0, min=0.0), "N": Parameter(763.0, vary=False),
+        "S": Parameter(762.0, vary=False), "I": Parameter(0.5, min=0.0), "R(t0)": Parameter(0.0, vary=False)}
+
+
+def test_specification_equals_the_keywords_it_stands_for(data):
+    model = SIR(beta=9.0, gamma=9.0)
+    spec = torchql.fit(model, data, parameters=SPEC)
+    keywords = torchql.fit(SIR(3.0, 1.0), data, torch.tensor([762.0, 0.5, 0.0], dtype=DT), fixed_x0=["S", "R"],
+                           bounds={"beta": (0.0, None), "gamma": (0.0, None), "I": (0.0, None)},
+                           scale={"beta": "log"})
+    assert spec.success, spec.message
+    assert spec.unknown_names == keywords.unknown_names == ["I(t0)", "beta", "gamma"]
+    assert torch.equal(spec.estimates, keywords.estimates) and spec.iterations == keywords.iterations
+    assert torch.allclose(spec.estimates, TRUTH, rtol=1e-8, atol=0)
+    assert spec.log_scaled == ["beta"] and spec.lower.tolist() == [0.0, 0.0, 0.0]
+    assert model.beta.item() == 9.0 and model.gamma.item() == 9.0  # the user's model keeps its values
+    assert spec.fit_kwargs["fixed_x0"] == ["S", "R"] and spec.fit_kwargs["scale"] == {"beta": "log"}
+    profile = torchql.profile(spec, "gamma")  # a re-fit from the recorded keywords
+    assert profile.interval[0] <= 0.44 <= profile.interval[1]
+
+
+def test_vary_false_holds_a_coefficient_at_its_value_and_numbers_are_guesses(data):
+    r = torchql.fit(SIR(), data, parameters={"gamma": Parameter(0.44, vary=False), "beta": 2.5, "S": Parameter(
+        762.0, vary=False), "I": 0.7, "R": Parameter(0.0, vary=False)})
+    assert r.success, r.message
+    assert r.unknown_names == ["I(t0)", "beta"] and r.params["gamma"].item() == 0.44
+    assert torch.allclose(r.estimates, TRUTH[:2], rtol=1e-8, atol=0)
+    # vary=True estimates a coefficient that the model lists among its constants (beta held: only beta / N
+    # is identifiable)
+    r = torchql.fit(SIR(), data, torch.tensor([762.0, 1.0, 0.0], dtype=DT), fixed_x0=["S", "R"],
+                    parameters={"N": Parameter(700.0, min=1.0), "beta": Parameter(1.66, vary=False)})
+    assert r.unknown_names == ["I(t0)", "gamma", "N"] and r.success, r.message
+    assert r.params["N"].item() == pytest.approx(763.0, rel=1e-7)
+
+
+def test_fit_many_takes_the_specification(data):
+    batch = torchql.Observations(data.t, torch.stack([data.y, data.y * 1.02]), observe=["I"])
+    many = torchql.fit_many(SIR(), batch, parameters=SPEC)
+    for i in range(2):
+        one = torchql.fit(SIR(), batch[i], parameters=SPEC)
+        assert many[i].log_scaled == ["beta"] and many[i].iterations == one.iterations
+        assert torch.allclose(many[i].estimates, one.estimates, rtol=1e-9, atol=0)
+
+
+def test_several_experiments_share_a_state_specification(data):
+    """Two experiments: a state's value and role apply to each one (x0 of shape (E, n) built from them)."""
+    r = torchql.fit(SIR(), [data, data], parameters=SPEC)
+    assert r.success, r.message
+    assert r.unknown_names == ["I[0](t0)", "I[1](t0)", "beta", "gamma"]
+    assert torch.allclose(r.params["beta"], torch.tensor(1.66, dtype=DT), rtol=1e-8)
+    assert torch.allclose(r.x0[:, 1], torch.ones(2, dtype=DT), rtol=1e-8)
+
+
+@pytest.mark.parametrize("parameters, kwargs, error, match", [
+    ({"bogus": 1.0}, {}, ValueError, r"`parameters` names 'bogus', which is neither a coefficient nor a state"),
+    ({"beta": "x"}, {}, TypeError, r"`parameters\['beta'\]` must be a torchql.Parameter or a number"),
+    ({"beta": Parameter(1.0, min=0.0)}, dict(bounds={"beta": (0.0, None)}), ValueError,
+     r"`parameters\['beta'\]` gives bounds that `bounds` gives too"),
+    ({"beta": Parameter(1.0, scale="log")}, dict(scale={"beta": "log"}), ValueError,
+     r"`parameters\['beta'\]` gives a scale that `scale` gives too"),
+    ({"S": Parameter(700.0)}, {}, ValueError, r"gives the initial values of \['S'\] but not of \['I', 'R'\]"),
+    ({"beta": Parameter(float("nan"))}, {}, ValueError, r"`parameters\['beta'\].value` must be finite"),
+    ({"beta": Parameter(torch.ones(2))}, {}, ValueError, r"must be a number or of the coefficient's shape \(\)"),
+    ([("beta", 1.0)], {}, TypeError, r"`parameters` must be a dict"),
+])
+def test_bad_specifications_are_named(data, parameters, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        torchql.fit(SIR(), data, parameters=parameters, **kwargs)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(scale="ln"), ValueError, r"`Parameter.scale` must be one of \['lin', 'log', 'log10'\]; received 'ln'"),
+    (dict(vary=1), TypeError, r"`Parameter.vary` must be True or False"),
+    (dict(min="0"), TypeError, r"`Parameter.min` must be a number or None"),
+])
+def test_bad_parameter_fields_are_named(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        Parameter(1.0, **kwargs)
