@@ -509,3 +509,80 @@ def test_single_observations_check_points_to_fit_many():
         _checks.single_observations("data", batch)
     with pytest.raises(ValueError, match=r"`data\[1\]` holds a batch of 4"):
         _checks.single_observations("data", [single, batch])
+
+
+# --- observation functions with unknowns of their own: h(x, p) = scale * x + offset
+
+class _ScaledDecay(torchql.ODEModel):
+    """x' = -k x, observed as scale * x + offset; ``scale`` and ``offset`` are coefficients that only the
+    observation reads (and ``unused`` one that nothing reads)."""
+
+    state_names = ("x",)
+
+    def __init__(self, k=0.5, scale=1.0, offset=0.0, unused=1.0, scale_2=1.0):
+        super().__init__()
+        for name, value in dict(k=k, scale=scale, offset=offset, unused=unused, scale_2=scale_2).items():
+            self.register_buffer(name, torch.tensor(value, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return -self.k * x
+
+
+def _scaled(x, p):
+    return p["scale"] * x + p["offset"]
+
+
+T_DECAY = torch.linspace(0, 4, 20, dtype=torch.float64)
+ONE = torch.tensor([1.0], dtype=torch.float64)
+OBSERVED = ["k", "scale", "offset"]
+
+
+def _decay_data(scale=2.5, offset=0.3):
+    return torchql.Observations(T_DECAY, (scale * torch.exp(-0.8 * T_DECAY) + offset).unsqueeze(-1), observe=_scaled)
+
+
+@pytest.mark.parametrize("method", torchql.METHODS)
+def test_observation_parameters_are_estimated_with_the_rest(method):
+    """Exact data of 2.5 exp(-0.8 t) + 0.3: k, scale and offset to 1e-8. The Jacobian's columns are
+    dh/dscale = x(t) and dh/doffset = 1, exactly as h(x, p) says."""
+    r = torchql.fit(_ScaledDecay(), _decay_data(), ONE, fixed_x0=["x"], params=OBSERVED, method=method)
+    assert r.success, r.message
+    assert torch.allclose(r.estimates, torch.tensor([0.8, 2.5, 0.3], dtype=torch.float64), rtol=1e-8, atol=0)
+    torch.testing.assert_close(r.jacobian[:, 1], torch.exp(-0.8 * T_DECAY), rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(r.jacobian[:, 2], torch.ones(20, dtype=torch.float64), rtol=0, atol=1e-12)
+    assert torchql.compare(r, _decay_data()).fit_percent.item() == pytest.approx(100.0, abs=1e-6)
+
+
+def test_observation_parameter_that_nothing_reads_is_named_not_identifiable():
+    r = torchql.fit(_ScaledDecay(), _decay_data(), ONE, fixed_x0=["x"], params=OBSERVED + ["unused"])
+    assert r.status is torchql.Status.NOT_IDENTIFIABLE
+    assert "{unused}" in r.message
+
+
+def test_observation_parameters_per_experiment_and_batched():
+    """Two gels scale the same decay differently: ``conditions`` gives the second its own scale; and a
+    batch of two datasets fitted by ``fit_many`` equals the fits one by one."""
+    r = torchql.fit(_ScaledDecay(), [_decay_data(2.5), _decay_data(1.5)], torch.stack([ONE, ONE]),
+                    fixed_x0=["x"], params=OBSERVED + ["scale_2"], conditions=[{}, {"scale": "scale_2"}])
+    assert r.success, r.message
+    for name, truth in dict(k=0.8, scale=2.5, scale_2=1.5, offset=0.3).items():
+        assert r.params[name].item() == pytest.approx(truth, rel=1e-8)
+    batch = torchql.Observations(T_DECAY, torch.stack([_decay_data(2.5).y, _decay_data(1.2, 0.1).y]), observe=_scaled)
+    many = torchql.fit_many(_ScaledDecay(), batch, ONE, fixed_x0=["x"], params=OBSERVED)
+    for i in range(2):
+        one = torchql.fit(_ScaledDecay(), batch[i], ONE, fixed_x0=["x"], params=OBSERVED)
+        assert many[i].iterations == one.iterations
+        assert torch.allclose(many[i].estimates, one.estimates, rtol=1e-9, atol=0)
+
+
+def test_lognormal_values_of_a_scaled_observation():
+    data = torchql.Observations(T_DECAY, _decay_data().y, observe=_scaled, noise="lognormal", sigma=0.1)
+    r = torchql.fit(_ScaledDecay(), data, ONE, fixed_x0=["x"], params=OBSERVED)
+    assert r.success, r.message
+    assert torch.allclose(r.estimates, torch.tensor([0.8, 2.5, 0.3], dtype=torch.float64), rtol=1e-8, atol=0)
+
+
+def test_observation_with_parameters_that_fails_is_named():
+    data = torchql.Observations(T_DECAY, _decay_data().y, observe=lambda x, p: p["gain"] * x)
+    with pytest.raises(ValueError, match=r"`observe` callable failed on a state of shape \(1,\): KeyError: 'gain'"):
+        torchql.fit(_ScaledDecay(), data, ONE, fixed_x0=["x"], params=["k"])

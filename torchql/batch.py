@@ -74,6 +74,7 @@ def fit_many(
     bounds: dict | None = None,
     scale: dict | None = None,
     parameters: dict | None = None,
+    x0_expr: dict | None = None,
     initial_trajectory: str = "integrate",
     max_iter: int = 50,
     max_time: float | None = None,
@@ -132,6 +133,9 @@ def fit_many(
     parameters : dict, optional
         ``{name: torchql.Parameter or number}`` as in :func:`torchql.fit`, the same for every
         sample (``guesses`` still give per-sample values).
+    x0_expr : dict, optional
+        ``{state: callable(values) -> scalar}`` as in :func:`torchql.fit`: initial states that
+        follow each sample's estimates.
     guesses : dict of str to Tensor, optional
         Per-sample values of buffers: ``{name: (B, *shape) or (*shape)}``. For a buffer in
         ``params`` they are the guesses; for another buffer (a vehicle's mass) they are that
@@ -183,18 +187,20 @@ def fit_many(
     if parameters is not None:
         _checks.model_class(model)
         given = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
-                                 scale=scale)
-        model, x0, params, fixed_x0, bounds, scale = (given[k] for k in ("model", "x0", "params", "fixed_x0",
-                                                                          "bounds", "scale"))
+                                 scale=scale, x0_expr=x0_expr)
+        model, x0, params, fixed_x0, bounds, scale, x0_expr = (
+            given[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
     runs = _input_runs(data)
     if runs is not None:
         return _fit_runs(runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress,
                          callback=callback, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
-                         scale=scale, initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol,
+                         scale=scale, x0_expr=x0_expr, initial_trajectory=initial_trajectory, max_iter=max_iter,
+                         rtol=rtol, atol=atol, xtol=xtol,
                          ftol=ftol, rcond=rcond, grid=grid, damping=damping, solver=solver,
                          linear_solver=linear_solver, max_steps=max_steps, chunk_size=chunk_size)
     spec = Problem(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, scale=scale)
+                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, scale=scale,
+                   x0_expr=x0_expr)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     if callback is not None and not callable(callback):
@@ -207,7 +213,7 @@ def fit_many(
         params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
         solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
-        bounds=bounds, scale=scale)
+        bounds=bounds, scale=scale, x0_expr=x0_expr)
     return result
 
 

@@ -20,6 +20,7 @@ import torch
 
 from ._checks import finite_number
 from .integrate import simulate
+from .model import coefficients
 from .observations import ObservationOperator, Observations
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -142,7 +143,7 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
 
     def outputs(times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         states = simulate(model, x0, times, t0=float(start), inputs=data.inputs, **result.solver_options)
-        return states, operator.value_and_jacobian(states)[0].detach()
+        return states, operator.values(states, coefficients(model)).detach()
 
     states, predicted = outputs(t)
     y = data.y.to(dtype=dtype, device=device)

@@ -343,7 +343,7 @@ class Engine(Evaluation, FinalPass):
         if bool(done.any()):
             rows = act[done]
             W = cur["W"][rows]
-            st.z0[rows] = _shifted(cur["z0"][rows], alpha[done], spec.unknown_index)
+            st.z0[rows] = spec.shifted(cur["z0"][rows], alpha[done])
             st.iterations[rows] += 1
             st.final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
             self._annotate(rows, model_merit=self._model_merit(rows, cur))
@@ -397,7 +397,7 @@ class Engine(Evaluation, FinalPass):
         sample has stalled."""
         spec = self.spec
         if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
-            st.z0[rejected] = _shifted(st.cur["z0"][rejected], alpha, spec.unknown_index)
+            st.z0[rejected] = spec.shifted(st.cur["z0"][rejected], alpha)
             st.iterations[rejected] += 1
             self._notify(rejected)
             st.stop(rejected, Status.INTEGRATION_FAILED,
@@ -460,7 +460,7 @@ class Engine(Evaluation, FinalPass):
         spec = self.spec
         W = _pick(cur["W"], act)
         z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
-        z0_new = _shifted(_pick(cur["z0"], act), alpha, spec.unknown_index)
+        z0_new = spec.shifted(_pick(cur["z0"], act), alpha)
         if spec.method == "shooting":
             return self._shoot(act, z0_new, z_new, (_pick(cur["z0"], act), _pick(cur["rz"], act)))
         finite = torch.isfinite(z_new).flatten(1).all(dim=1)
@@ -496,7 +496,7 @@ class Engine(Evaluation, FinalPass):
                                                spec.bounds, spec.rcond)
             z_ref[k, :ends[k]], z_ref[k, ends[k]:] = ref, ref[-1]
             z_dot[k, :ends[k]] = slope
-        return z_ref, z_dot, z0
+        return z_ref, z_dot, spec.initial.complete(z0)
 
     def _shoot(self, act, z0_new, z_new, reference):
         """Shooting's trial iterates: each sample's model integrated from ``z0_new (S, M)`` (the
@@ -513,12 +513,6 @@ class Engine(Evaluation, FinalPass):
         ok = (integrated & ~trial["failed"] & torch.isfinite(trial["merit"])
               & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
         return trial, ok
-
-
-def _shifted(z0: torch.Tensor, alpha: torch.Tensor, unknown_index: torch.Tensor) -> torch.Tensor:
-    z = z0.clone()
-    z[:, unknown_index] = z0[:, unknown_index] + alpha
-    return z
 
 
 #: Entries of a trial iterate that only decide its acceptance and are not kept.

@@ -17,7 +17,7 @@ from .grid_solve import IntervalBudgetError, solve_on_grid
 from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
 from .solvers import STIFF_SOLVERS, rodas5p_batch
-from .superposition import initial_columns, propagate_linear
+from .superposition import propagate_linear
 from .trajectory import LinearizedReference
 
 __all__ = ["Evaluation"]
@@ -73,6 +73,7 @@ class Evaluation:
         """``C (S, R, m)``, ``d (S, R)``, residuals ``(S, R)`` at the observations (zero where missing)."""
         n, K = self.system.n, self.spec.K
         S, T = z_ref_obs.shape[:2]
+        n = z_ref_obs.shape[-1] if self.spec.operator.takes_params else n  # h(x, p): over the augmented state
         x_ref = z_ref_obs[..., :n]
         h_ref, H = self.spec.operator.value_and_jacobian(x_ref.reshape(-1, n))
         h_ref, H = h_ref.reshape(S, T, K), H.reshape(S, T, K, n)
@@ -103,7 +104,7 @@ class Evaluation:
         for the particular solution (its propagation would only add the propagator's error).
         """
         spec = self.spec
-        W, failed = self._propagate(idx, z, z_dot, lin, initial_columns(z0, spec.unknown_index))
+        W, failed = self._propagate(idx, z, z_dot, lin, spec.columns(z0))
         if solution:
             W[..., 0] = z
         W_obs = self._at_obs(W, idx)
@@ -331,7 +332,7 @@ class Evaluation:
         if need.numel():
             traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
                                            budget_is_final=True)
-            n = self.system.n
+            n = traj.shape[-1] if self.spec.operator.takes_params else self.system.n
             value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
             y, mask = self.y[idx[need]], self.mask[idx[need]]
             resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))

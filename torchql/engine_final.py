@@ -12,7 +12,6 @@ from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, null_detail, typical_magnitudes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
-from .superposition import initial_columns
 from .uncertainty import covariance
 
 __all__ = ["FinalPass"]
@@ -50,7 +49,7 @@ class FinalPass:
             rows, traj = rows[good], traj[good]
         if rows.numel():
             lin = self._linearize(rows, traj)
-            W, failed = self._propagate(rows, traj, lin.f, lin, initial_columns(z0[rows], spec.unknown_index))
+            W, failed = self._propagate(rows, traj, lin.f, lin, spec.columns(z0[rows]))
             for r in rows[failed].tolist():
                 codes[r] = Status.INTEGRATION_FAILED
                 detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "

@@ -27,7 +27,8 @@ from .engine import run_engine
 from .noise import run_with_noise
 from .problem import Problem, recorded_options
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
-from .multi import StackedModel, check_conditions, experiment_state_name, stack_observations
+from .initial_state import check_expressions
+from .multi import StackedModel, check_conditions, experiment_expressions, experiment_state_name, stack_observations
 from .observations import Observations
 from .options import METHODS, Limits
 from .parameters import apply_parameters
@@ -66,6 +67,7 @@ def fit(
     callback: Callable[[IterationRecord], None] | None = None,
     conditions: Sequence[dict] | None = None,
     parameters: dict | None = None,
+    x0_expr: dict | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
 
@@ -202,6 +204,12 @@ def fit(
         bounds and scale in one place, written into ``params``, ``fixed_x0``, ``x0``, ``bounds``
         and ``scale`` (a name may not be given in both); with several experiments a state's
         value and role apply to every experiment.
+    x0_expr : dict, optional
+        ``{state: callable(values) -> scalar}``: initial states given as expressions of the other
+        values (:mod:`torchql.initial_state`), e.g. ``{"S": lambda v: v["N"] - v["I"]}``: ``values``
+        holds the coefficients and the initial states by name. Such a state is neither an unknown
+        nor fixed: it follows the estimates (its value in ``x0`` is ignored). With several
+        experiments it applies to each, with that experiment's values.
 
     Returns
     -------
@@ -219,20 +227,22 @@ def fit(
     _checks.single_observations("data", data)
     if parameters is not None:
         _checks.model_class(model)
+        rows = len(data) if isinstance(data, (list, tuple)) else None
         spec = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
-                                scale=scale, rows=len(data) if isinstance(data, (list, tuple)) else None)
-        model, x0, params, fixed_x0, bounds, scale = (spec[k] for k in ("model", "x0", "params", "fixed_x0",
-                                                                         "bounds", "scale"))
+                                scale=scale, x0_expr=x0_expr, rows=rows)
+        model, x0, params, fixed_x0, bounds, scale, x0_expr = (
+            spec[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
     if isinstance(data, (list, tuple)):
         return _fit_experiments(
             model, list(data), x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
-            scale=scale, max_iter=max_iter, max_time=max_time, throw=throw, solver=solver, rtol=rtol, atol=atol, xtol=xtol,
-            ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory, max_steps=max_steps,
-            damping=damping, linear_solver=linear_solver, callback=callback, conditions=conditions)
+            scale=scale, x0_expr=x0_expr, max_iter=max_iter, max_time=max_time, throw=throw, solver=solver, rtol=rtol,
+            atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid, initial_trajectory=initial_trajectory,
+            max_steps=max_steps, damping=damping, linear_solver=linear_solver, callback=callback,
+            conditions=conditions)
     if conditions is not None:
         raise ValueError("`conditions` applies to several experiments (`data` a list of Observations)")
     spec = _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol,
-                        ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver, scale)
+                        ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver, scale, x0_expr)
     max_time = Limits.resolve(max_time=max_time).max_time
     batch = run_with_noise(spec, lambda problem: run_engine(
         problem, 1, max_time, lambda done: None, history=True,
@@ -243,14 +253,15 @@ def fit(
         x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,
         solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
-        bounds=bounds, scale=scale)
+        bounds=bounds, scale=scale, x0_expr=x0_expr)
     if throw and not result.success:
         raise FitError(result)
     return result
 
 
 def _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol, ftol,
-                 rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None, scale=None) -> Problem:
+                 rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None, scale=None,
+                 x0_expr=None) -> Problem:
     """One dataset's validated problem: the engine's (:mod:`torchql.batch`) with one sample, its
     errors worded for ``fit``."""
     _checks.model_class(model)
@@ -258,7 +269,7 @@ def _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter
         raise TypeError(f"`data` must be a torchql.Observations or a list of them; received {type(data).__name__}")
     return Problem(model, [data], x0, params, None, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
                  damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, single=True,
-                   scale=scale)
+                   scale=scale, x0_expr=x0_expr)
 
 
 class _Problem:
@@ -283,8 +294,8 @@ class _Problem:
         self.unknown_index, self.unknown_names = spec.unknown_index, list(spec.unknown_names)
 
 
-def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, scale, grid, throw, callback,
-                     conditions, **options) -> FitResult:
+def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, scale, x0_expr, grid, throw,
+                     callback, conditions, **options) -> FitResult:
     """Several experiments sharing the coefficients: the stacked problem of :mod:`torchql.multi`."""
     _checks.model_class(model)
     if not datasets:
@@ -330,12 +341,13 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
                          "received a tensor of times")
     checked = check_conditions(model, conditions, E)
     stacked = StackedModel(model, t0s, span, _experiment_inputs(model, datasets, t0s, last, dtype, device), checked)
-    data = stack_observations(datasets, names, t0s, span, dtype, device)
+    data = stack_observations(datasets, names, t0s, span, dtype, device, checked)
     fixed = _experiment_fixed(fixed_x0, names, E)
     stacked_bounds = _per_experiment("bounds", bounds, "{name: (lower, upper)}", names, fixed, E)
     stacked_scale = _per_experiment("scale", scale, "{name: 'lin' | 'log' | 'log10'}", names, fixed, E)
     result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds,
                  scale=stacked_scale, grid=grid,
+                 x0_expr=experiment_expressions(check_expressions(x0_expr, names, None), names, E, checked),
                  throw=False, callback=callback, **options)
     fitted = copy.deepcopy(model)
     own = coefficients(model)
@@ -348,7 +360,7 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     result.conditions = checked
     result.data = datasets
     result.fit_kwargs = recorded_options(x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, grid=grid, bounds=bounds,
-                                         scale=scale, conditions=conditions,
+                                         scale=scale, x0_expr=x0_expr, conditions=conditions,
                                          **options)
     if throw and not result.success:
         raise FitError(result)

@@ -31,6 +31,25 @@ def experiment_state_name(name: str, e: int) -> str:
     return f"{name}[{e}]"
 
 
+def experiment_expressions(expressions: dict, names: list[str], E: int, conditions: list | None) -> dict | None:
+    """``x0_expr`` of several experiments for the stacked model: each state's expression in every
+    experiment, seeing that experiment's initial states by their own names and its coefficient
+    values (its ``conditions`` applied)."""
+    if not expressions:
+        return None
+
+    def own(fn, e: int):
+        def expression(values: dict) -> torch.Tensor:
+            mine = {k: v for k, v in values.items() if "[" not in k or k.rsplit("[", 1)[0] not in names}
+            mine.update({s: values[experiment_state_name(s, e)] for s in names})
+            for k, v in (conditions[e] if conditions else {}).items():
+                mine[k] = values[v] if isinstance(v, str) else v
+            return fn(mine)
+        return expression
+
+    return {experiment_state_name(state, e): own(fn, e) for e in range(E) for state, fn in expressions.items()}
+
+
 class StackedModel(ODEModel):
     """``E`` copies of ``model`` in normalized time, sharing its buffers (the coefficients).
 
@@ -171,12 +190,13 @@ class _Frozen(nn.Module):
 
 
 def stack_observations(datasets: list[Observations], state_names: list[str], t0: torch.Tensor, span: torch.Tensor,
-                       dtype: torch.dtype, device: torch.device) -> Observations:
+                       dtype: torch.dtype, device: torch.device, conditions: list | None = None) -> Observations:
     """The experiments' observations as one :class:`Observations` of the stacked model.
 
     Times become normalized times (their union); each experiment's values fill its own
     columns and are missing (NaN) at the others' times. Observation operators given as state
-    names or matrices become one block-diagonal matrix; callables are applied block by block.
+    names or matrices become one block-diagonal matrix; callables are applied block by block
+    (``h(x, p)`` reading each experiment's own coefficient values, its ``conditions`` applied).
     """
     n = len(state_names)
     E = len(datasets)
@@ -201,7 +221,7 @@ def stack_observations(datasets: list[Observations], state_names: list[str], t0:
             Q[offsets[e]:offsets[e] + K[e], e * n:(e + 1) * n] = op.matrix
         observe = Q
     else:
-        observe = _BlockObservation([d.observe for d in datasets], operators, n)
+        observe = _BlockObservation([d.observe for d in datasets], operators, n, conditions)
     sigma_given = all(d.sigma_given for d in datasets)
     if not sigma_given and any(d.sigma_given for d in datasets):
         raise ValueError("`sigma` must be given for every experiment or for none (the residual variance is shared)")
@@ -226,12 +246,22 @@ def _sigma_labels(data: Observations, operator: ObservationOperator) -> list[str
 class _BlockObservation:
     """``h(X) = [h_1(X_1), ..., h_E(X_E)]`` for the stacked state ``X``."""
 
-    def __init__(self, specs, operators: list[ObservationOperator], n: int) -> None:
-        self.specs, self.operators, self.n = specs, operators, n
+    def __init__(self, specs, operators: list[ObservationOperator], n: int, conditions: list | None = None) -> None:
+        self.specs, self.operators, self.n, self.conditions = specs, operators, n, conditions
+        #: ``h(X, p)`` when some experiment's observation reads the coefficients
+        self.takes_params = any(op.takes_params for op in operators)
 
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+    def __call__(self, x: torch.Tensor, p: dict | None = None) -> torch.Tensor:
         out = []
         for e, (spec, op) in enumerate(zip(self.specs, self.operators)):
             xe = x[..., e * self.n:(e + 1) * self.n]
-            out.append(spec(xe) if op.matrix is None else xe @ op.matrix.T)
+            if op.matrix is not None:
+                out.append(xe @ op.matrix.T)
+            elif op.takes_params:
+                own = dict(p)
+                for k, v in (self.conditions[e] if self.conditions else {}).items():
+                    own[k] = p[v] if isinstance(v, str) else v
+                out.append(spec(xe, own))
+            else:
+                out.append(spec(xe))
         return torch.cat(out, dim=-1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import operator
 from collections.abc import Callable, Iterator, Sequence
 from typing import Union
@@ -14,7 +15,7 @@ from ._arrays import float_tensor
 from .inputs import Inputs
 from .noise import NOISE_MODELS, sigma_group_index
 
-__all__ = ["Observations", "ObservationOperator", "LogObservation"]
+__all__ = ["Observations", "ObservationOperator", "LogObservation", "takes_params"]
 
 ObserveSpec = Union[Sequence[str], torch.Tensor, np.ndarray, Callable[[torch.Tensor], torch.Tensor]]
 
@@ -121,7 +122,10 @@ class Observations:
     observe : sequence of str, Tensor of shape ``(K, n_states)``, or callable
         What each of the ``K`` columns of ``y`` measures: state names; a matrix ``Q`` so that
         ``y = Q x``; or a differentiable function ``h(x) -> (..., K)`` of the state
-        ``x (..., n_states)``, linearized like the right-hand side. The same for every sample.
+        ``x (..., n_states)``, linearized like the right-hand side; or ``h(x, p)``, which also reads
+        the model's coefficients ``p`` by name (``p["scale"] * x[1] + p["offset"]``): observation
+        parameters are coefficients of the model (buffers its ``forward`` need not use), estimated
+        with the rest. The same for every sample.
     sigma : float, Tensor or "estimate", optional
         Standard deviation of each value (same unit as ``y``; of ``log y`` with
         ``noise="lognormal"``). Residuals are divided by it. ``"estimate"``: unknown, one per group
@@ -394,8 +398,29 @@ def _check_inputs(inputs, B: int | None) -> Inputs | tuple[Inputs, ...] | None:
     raise TypeError(f"`inputs` must be {expected}; received {type(inputs).__name__}")
 
 
+def takes_params(observe) -> bool:
+    """Whether a callable ``observe`` is ``h(x, p)``, taking the coefficients as well as the state (two
+    positional parameters, or a ``takes_params`` attribute saying so)."""
+    flag = getattr(observe, "takes_params", None)
+    if flag is not None:
+        return bool(flag)
+    try:
+        signature = inspect.signature(observe)
+    except (TypeError, ValueError):
+        return False
+    kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    positional = [p for p in signature.parameters.values() if p.kind in kinds]
+    return len(positional) >= 2
+
+
 class ObservationOperator:
-    """``h(x)``: what the data measure, with its Jacobian ``dh/dx``, for a given model.
+    """``h(x)`` or ``h(x, p)``: what the data measure, with its Jacobian, for a given model.
+
+    A callable of two arguments, ``h(x, p)``, also reads the coefficients ``p`` (a dict of the
+    model's coefficients by name: scales, offsets and other observation parameters, which are
+    coefficients of the model that its ``forward`` need not use). Its Jacobian is then taken with
+    respect to the whole augmented state ``z = (x, p)`` (:meth:`bind` gives the layout), so the
+    coefficients that only the observation reads are estimated like any other.
 
     Parameters
     ----------
@@ -412,8 +437,10 @@ class ObservationOperator:
     def __init__(self, observe, state_names: Sequence[str], K: int, dtype: torch.dtype, device: torch.device):
         n = len(state_names)
         self.n, self.K, self.state_names = n, K, list(state_names)
-        self.function: Callable[[torch.Tensor], torch.Tensor] | None = None
+        self.function: Callable[..., torch.Tensor] | None = None
         self.matrix: torch.Tensor | None = None
+        self.takes_params = False
+        self.system = None
         if isinstance(observe, (torch.Tensor, np.ndarray)):
             Q = _as_float_tensor(observe, "observe", dtype).to(device)
             if Q.shape != (K, n):
@@ -425,6 +452,7 @@ class ObservationOperator:
             self.matrix = Q
         elif callable(observe):
             self.function = observe
+            self.takes_params = takes_params(observe)
         else:
             Q = torch.zeros(K, n, dtype=dtype, device=device)
             for k, name in enumerate(observe):
@@ -432,6 +460,19 @@ class ObservationOperator:
                     raise ValueError(f"`observe` names unknown state {name!r}; the model's states are {tuple(state_names)}")
                 Q[k, list(state_names).index(name)] = 1.0
             self.matrix = Q
+
+    def bind(self, system) -> "ObservationOperator":
+        """Read the coefficients of ``h(x, p)`` from augmented states of ``system`` (an
+        :class:`torchql.model.AugmentedSystem`): its unknowns from ``z``, the others from its model."""
+        self.system = system
+        self._constants = {name: value for name, value in system.model.named_buffers()
+                           if value.is_floating_point() and name not in system.param_names}
+        return self
+
+    def _params(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
+        values = dict(self._constants)
+        values.update(self.system.unpack_params(z[self.n:]))
+        return values
 
     def labels(self) -> list[str]:
         """A label per output: the state it reads directly, else ``"y[k]"``."""
@@ -448,28 +489,46 @@ class ObservationOperator:
             out.append(int(nz[0]) if nz.numel() == 1 and row[nz[0]] == 1 else None)
         return out
 
-    def check(self, x: torch.Tensor) -> None:
-        """Validate a callable operator on one state ``x (n,)``: output shape ``(K,)``, same dtype."""
+    def check(self, x: torch.Tensor, params: dict | None = None) -> None:
+        """Validate a callable operator on one state ``x (n,)`` (and the coefficients ``params`` for
+        ``h(x, p)``): output shape ``(K,)``, same dtype."""
         if self.function is None:
             return
         try:
-            out = self.function(x)
+            out = self.function(x, params) if self.takes_params else self.function(x)
         except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
-            raise ValueError(f"`observe` callable failed on a state of shape ({self.n},): {exc}") from exc
+            raise ValueError(f"`observe` callable failed on a state of shape ({self.n},): "
+                             f"{type(exc).__name__}: {exc}") from exc
         if not isinstance(out, torch.Tensor) or out.shape != (self.K,):
             shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
             raise ValueError(f"`observe` callable must return shape (K,) = ({self.K},) for x of shape ({self.n},); received {shape}")
         if out.dtype != x.dtype:
             raise TypeError(f"`observe` callable must return dtype {x.dtype}; received {out.dtype}")
 
+    def values(self, x: torch.Tensor, params: dict | None = None) -> torch.Tensor:
+        """``h(x)`` for states ``x (T, n)`` (``h(x, params)`` with the coefficients by name): ``(T, K)``."""
+        if self.matrix is not None:
+            return x @ self.matrix.T
+        if self.takes_params:
+            return vmap(lambda xi: self.function(xi, params))(x)
+        return vmap(self.function)(x)
+
     def value_and_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``h(x)`` and ``dh/dx`` for states ``x (T, n)``: shapes ``(T, K)`` and ``(T, K, n)``."""
+        """``h(x)`` and ``dh/dx`` for states ``x (T, n)``: shapes ``(T, K)`` and ``(T, K, n)``.
+
+        For ``h(x, p)`` (bound to a system), ``x`` is the augmented state ``z (T, M)`` and the
+        Jacobian ``dh/dz`` has shape ``(T, K, M)``."""
         if self.matrix is not None:
             return x @ self.matrix.T, self.matrix.expand(x.shape[0], self.K, self.n)
 
-        def h(xi):
-            out = self.function(xi)
-            return out, out
+        if self.takes_params:
+            def h(zi):
+                out = self.function(zi[:self.n], self._params(zi))
+                return out, out
+        else:
+            def h(xi):
+                out = self.function(xi)
+                return out, out
 
         jac, val = vmap(jacrev(h, has_aux=True))(x)
         return val, jac
@@ -480,15 +539,19 @@ class LogObservation:
 
     def __init__(self, operator: ObservationOperator) -> None:
         self.inner, self.n, self.K = operator, operator.n, operator.K
-        self.matrix, self.function = None, operator.function
+        self.matrix, self.function, self.takes_params = None, operator.function, operator.takes_params
 
     @property
     def observed_states(self) -> list[None]:
         """No output is a state itself (it is the logarithm of one)."""
         return [None] * self.K
 
-    def check(self, x: torch.Tensor) -> None:
-        self.inner.check(x)
+    def check(self, x: torch.Tensor, params: dict | None = None) -> None:
+        self.inner.check(x, params)
+
+    def values(self, x: torch.Tensor, params: dict | None = None) -> torch.Tensor:
+        """``log h``: ``(T, K)``."""
+        return torch.log(self.inner.values(x, params))
 
     def value_and_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``log h(x) (T, K)`` and its Jacobian ``(T, K, n)``."""

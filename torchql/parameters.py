@@ -9,10 +9,11 @@ varies, its bounds and its scale in one place::
         "S": Parameter(762.0, vary=False),              # a known initial state
         "I": Parameter(1.0, min=0.0),                   # an unknown initial state, guess 1
         "gamma": 0.2,                                   # a number: an unknown with that guess
+        "R": Parameter(expr=lambda v: v["N"] - v["S"] - v["I"]),  # follows the others
     }
 
 It is written into the keywords the fit already takes (``params``, ``fixed_x0``, ``x0``, ``bounds``,
-``scale``) and a copy of the model holding the given coefficient values, so everything else
+``scale``, ``x0_expr``) and a copy of the model holding the given coefficient values, so everything else
 (profiles, multistart, reports, ``result.fit_kwargs``) sees one ordinary fit. Names not in the
 specification keep their defaults: the model's buffers and ``constants``, ``x0``, and the other
 keywords as given. A name given both here and in ``bounds`` or ``scale`` is an error, not a
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -53,6 +54,9 @@ class Parameter:
     scale : {"lin", "log", "log10"}
         The scale it is iterated on (``scale=`` of :func:`torchql.fit`); log scales need a
         positive value.
+    expr : callable, optional
+        For an initial state: its value as a function of the others (``x0_expr=`` of
+        :func:`torchql.fit`, :mod:`torchql.initial_state`); it is then neither estimated nor fixed.
     """
 
     value: float | torch.Tensor | None = None
@@ -60,12 +64,16 @@ class Parameter:
     min: float | None = None
     max: float | None = None
     scale: str = "lin"
+    expr: Callable[[dict], torch.Tensor] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.vary, bool):
             raise TypeError(f"`Parameter.vary` must be True or False; received {self.vary!r}")
         if self.scale not in SCALES:
             raise ValueError(f"`Parameter.scale` must be one of {list(SCALES)}; received {self.scale!r}")
+        if self.expr is not None and not callable(self.expr):
+            raise TypeError(f"`Parameter.expr` must be callable (values by name -> scalar); received "
+                            f"{type(self.expr).__name__}")
         for side in ("min", "max"):
             bound = getattr(self, side)
             if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float))
@@ -73,7 +81,7 @@ class Parameter:
                 raise TypeError(f"`Parameter.{side}` must be a number or None; received {bound!r}")
 
 
-def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds, scale,
+def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds, scale, x0_expr=None,
                      rows: int | None = None) -> dict:
     """``parameters`` written into a fit's keywords.
 
@@ -83,7 +91,7 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
         Never modified: a copy holds the given coefficient values.
     parameters : dict of str to Parameter or number
         Keys: coefficient names (whole buffers) or state names (``"S"`` or ``"S(t0)"``).
-    x0, params, fixed_x0, bounds, scale
+    x0, params, fixed_x0, bounds, scale, x0_expr
         The fit's own keywords, as given.
     rows : int, optional
         The rows of ``x0``: ``None`` for one initial state ``(n_states,)``; ``E`` for several
@@ -91,7 +99,7 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
 
     Returns
     -------
-    dict with keys ``model``, ``x0``, ``params``, ``fixed_x0``, ``bounds``, ``scale``.
+    dict with keys ``model``, ``x0``, ``params``, ``fixed_x0``, ``bounds``, ``scale``, ``x0_expr``.
     """
     if not isinstance(parameters, Mapping):
         raise TypeError(f"`parameters` must be a dict {{name: torchql.Parameter or number}}; received "
@@ -106,8 +114,12 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
     state_values: dict[int, float] = {}
     out_bounds = dict(bounds) if bounds is not None else {}
     out_scale = dict(scale) if scale is not None else {}
+    out_expr = dict(x0_expr) if isinstance(x0_expr, Mapping) else {}
     for key, spec in specs.items():
         name = key.removesuffix("(t0)") if isinstance(key, str) and key not in coefficients else key
+        if spec.expr is not None and name not in states:
+            raise ValueError(f"`parameters[{key!r}]` has an `expr`, which applies to initial states; {key!r} is not a "
+                             f"state of the model (its states are {tuple(states)})")
         if name in coefficients:
             if spec.value is not None:
                 fitted = fitted if fitted is not None else copy.deepcopy(model)
@@ -118,6 +130,12 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
             if not spec.vary and name in out_params:
                 out_params.remove(name)
                 changed = True
+        elif name in states and spec.expr is not None:
+            if key in out_expr or name in out_expr:
+                raise ValueError(f"`parameters[{key!r}]` gives an expression that `x0_expr` gives too: give it in one "
+                                 "place")
+            out_expr[name] = spec.expr
+            continue
         elif name in states:
             if spec.value is not None:
                 state_values[states.index(name)] = _checks.finite_number(f"parameters[{key!r}].value", spec.value)
@@ -140,10 +158,10 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
                 raise ValueError(f"`parameters[{key!r}]` gives a scale that `scale` gives too: give it in one place")
             out_scale[name] = spec.scale
     return dict(model=model if fitted is None else fitted,
-                x0=_with_states(x0, state_values, states, rows, dtype, device),
+                x0=_with_states(x0, state_values, states, rows, dtype, device, set(out_expr)),
                 params=out_params if changed else None,
                 fixed_x0=fixed if per_experiment else (fixed[0] if fixed[0] or fixed_x0 is not None else None),
-                bounds=out_bounds or bounds, scale=out_scale or scale)
+                bounds=out_bounds or bounds, scale=out_scale or scale, x0_expr=out_expr or x0_expr)
 
 
 def _as_parameter(name, spec) -> Parameter:
@@ -185,13 +203,15 @@ def _fixed_lists(fixed_x0) -> tuple[list[list[str]], bool]:
     return [items], False
 
 
-def _with_states(x0, values: dict[int, float], states: list[str], rows: int | None, dtype, device):
-    """``x0`` with the states' given values set (in every row); ``x0`` itself is not modified."""
+def _with_states(x0, values: dict[int, float], states: list[str], rows: int | None, dtype, device,
+                 expressed: set[str]):
+    """``x0`` with the states' given values set (in every row); ``x0`` itself is not modified.
+    Without ``x0`` every state needs a value, but those given by expressions (``expressed``)."""
     if not values:
         return x0
     n = len(states)
     if x0 is None:
-        missing = [states[i] for i in range(n) if i not in values]
+        missing = [states[i] for i in range(n) if i not in values and states[i] not in expressed]
         if missing:
             raise ValueError(f"`parameters` gives the initial values of {[states[i] for i in sorted(values)]} but not "
                              f"of {missing}, and `x0` is not given: give every state's value, in `parameters` or "

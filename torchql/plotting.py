@@ -66,6 +66,7 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     -------
     (Figure, (Axes, Axes or None))
     """
+    from .model import coefficients
     from .observations import ObservationOperator
 
     if data is None:
@@ -85,8 +86,8 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     else:
         t_fine = t_obs.clone()
     with torch.no_grad():
-        h_fine, _ = operator.value_and_jacobian(result.predict(t_fine))
-        h_obs, _ = operator.value_and_jacobian(result.predict(t_obs))
+        h_fine = operator.values(result.predict(t_fine), coefficients(result.model))
+        h_obs = operator.values(result.predict(t_obs), coefficients(result.model))
     y = data.y.to(dtype=dtype, device=device)
     labels = _output_labels(data.observe, names, K)
     tf = t_fine.cpu().numpy()

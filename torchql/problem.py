@@ -24,7 +24,8 @@ from .observations import LogObservation, ObservationOperator, Observations
 from .options import Limits, Tolerances, check_damping, check_scheme
 from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
-from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver
+from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns
+from .initial_state import InitialStateExpressions, check_expressions
 
 __all__ = ["Problem", "check_data", "recorded_options"]
 
@@ -52,7 +53,8 @@ class Problem:
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
                  grid, damping, solver, max_steps, bounds=None, linear_solver=None,
-                 method="kantorovich", initial_trajectory="integrate", single: bool = False, scale=None) -> None:
+                 method="kantorovich", initial_trajectory="integrate", single: bool = False, scale=None,
+                 x0_expr=None) -> None:
         self.single = single  # torchql.fit's problem: one dataset, errors worded for it
         _checks.model_class(model)
         names = tuple(model.state_names)
@@ -121,7 +123,10 @@ class Problem:
         self.t0 = self._initial_time(t0)
 
         # --- initial states
-        self.operator = ObservationOperator(self.observe, names, self.K, dtype, device)
+        self.operator = ObservationOperator(self.observe, names, self.K, dtype, device).bind(system)
+        self.initial = InitialStateExpressions(
+            check_expressions(x0_expr, names, None if fixed_x0 is None or isinstance(fixed_x0, str) else fixed_x0),
+            system)
         if x0 is None:
             x0 = self._x0_from_data(names)
         else:
@@ -150,7 +155,7 @@ class Problem:
 
         fixed_x0 = _checks.distinct_names("fixed_x0", [] if fixed_x0 is None else fixed_x0, names, "state",
                                           f"the model's states are {names}")
-        free = [i for i, s in enumerate(names) if s not in fixed_x0]
+        free = [i for i, s in enumerate(names) if s not in fixed_x0 and i not in self.initial.index]
         n_unknown_params = sum(size for name, size in zip(per_sample, system.param_sizes) if name in self.params)
         self.unknown_index = torch.tensor(free + list(range(n, n + n_unknown_params)), dtype=torch.long,
                                           device=device)
@@ -187,7 +192,10 @@ class Problem:
                 self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
             self._check_positive(used)
             self.z0[:, self.unknown_index] = used
-            x0 = self.z0[:, :n]
+        if self.initial:
+            self.initial.check(self.z0)
+            self.z0 = self.initial.complete(self.z0)
+        x0 = self.z0[:, :n]
         self.breakpoints = self._attach_inputs(model)
         self._check_model(x0[0])
 
@@ -302,6 +310,21 @@ class Problem:
         """Start from ``estimates (B, m)`` where they are finite (the next round of a noise estimate)."""
         current = self.z0[:, self.unknown_index]
         self.z0[:, self.unknown_index] = torch.where(torch.isfinite(estimates), estimates, current)
+        self.z0 = self.initial.complete(self.z0)
+
+    def shifted(self, z0: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """The augmented initial states ``z0 (S, M)`` with the unknowns moved by ``alpha (S, m)`` and
+        the states given by expressions (``x0_expr``) following them (a new tensor)."""
+        z = z0.clone()
+        z[:, self.unknown_index] = z0[:, self.unknown_index] + alpha
+        return self.initial.complete(z)
+
+    def columns(self, z0: torch.Tensor) -> torch.Tensor:
+        """``W(t0) = [z0, dz0/du]``, shape ``(S, M, 1 + m)``: the particular solution's and the
+        homogeneous solutions' initial values (unit vectors, but for states given by expressions)."""
+        if self.initial:
+            return self.initial.columns(z0, self.unknown_index)
+        return initial_columns(z0, self.unknown_index)
 
     def _attach_inputs(self, model) -> torch.Tensor | None:
         """The data's inputs checked against the model's ``input_names`` and the data's times, and
@@ -332,6 +355,7 @@ class Problem:
         for k, i in enumerate(self.operator.observed_states):
             if i is not None:
                 x0[:, i] = torch.where(self.mask[:, 0, k], self.y[:, 0, k], x0[:, i])
+        x0[:, self.initial.index] = 0.0  # given by their expressions
         missing = torch.isnan(x0)
         if bool(missing.any()):
             b = int(missing.any(dim=1).nonzero()[0, 0])
@@ -365,7 +389,8 @@ class Problem:
         bad = (~finite).nonzero().flatten().tolist()
         if bad:
             check(bad[0], f" of `data[{bad[0]}]`" + (f" (samples {bad[:10]} alike)" if len(bad) > 1 else ""))
-        self.operator.check(x0)
+        base = getattr(self.operator, "inner", self.operator)
+        self.operator.check(x0, base._params(self.z0[0]) if base.takes_params else None)
 
     # ------------------------------------------------------------------------------------------
     def result(self, z0, out, statuses, messages, nfev) -> BatchFitResult:

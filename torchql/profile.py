@@ -37,7 +37,7 @@ __all__ = ["profile", "ProfileResult"]
 
 #: fit() keyword arguments a profile re-fit inherits from the original fit.
 _INHERITED = ("t0", "method", "max_iter", "solver", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
-              "initial_trajectory", "max_steps", "damping", "linear_solver", "conditions")
+              "initial_trajectory", "max_steps", "damping", "linear_solver", "conditions", "x0_expr")
 #: Halvings of a step towards the last good point when a re-fit fails.
 _FAIL_HALVINGS = 3
 
@@ -226,7 +226,8 @@ def profile(
 
     # --- the unknowns of the original fit, and how `name` is held fixed
     free_params = _original_params(result, buffers)
-    fixed_states = [s for s in states if f"{s}(t0)" not in names]
+    given = {k.removesuffix("(t0)") for k in (result.fit_kwargs.get("x0_expr") or {})}  # follow the estimates
+    fixed_states = [s for s in states if f"{s}(t0)" not in names and s not in given]
     state_index = None
     if name.endswith("(t0)") and name[:-4] in states and name not in buffers:
         state_index = states.index(name[:-4])
@@ -249,7 +250,8 @@ def profile(
         options["solver"] = result.solver_options["solver"]
     for key in ("bounds", "scale"):  # the profiled unknown is held fixed: its own bound and scale go
         if result.fit_kwargs.get(key):
-            options[key] = {k: v for k, v in result.fit_kwargs[key].items() if k not in (name, name.removesuffix("(t0)"))}
+            options[key] = {k: v for k, v in result.fit_kwargs[key].items()
+                            if k not in (name, name.removesuffix("(t0)"))}
     options.update(fit_options)
 
     # --- threshold: on the SSE, or with estimated sigmas or log-normal noise on 2 NLL (the profile
@@ -482,7 +484,7 @@ def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dic
     except IntegrationError:
         return math.nan
     operator = ObservationOperator(data.observe, model.state_names, data.n_outputs, dtype, device)
-    value, _ = operator.value_and_jacobian(x)
+    value = operator.values(x, coefficients(model))
     y = data.y.to(dtype=dtype, device=device)
     counted = data.mask.to(device) & ~data.exact.to(device)
     log_y = torch.zeros((), dtype=dtype, device=device)
