@@ -312,16 +312,66 @@ class _GradientRun:
 
     def optimize(self):
         """Run the optimizer; returns ``(status, message, iterations, history)``."""
-        theta = self.rhs.theta
         lbfgs = self.optimizer_name == "lbfgs"
+        opt = self._optimizer(lbfgs)
+        closure = self._closure()
+        bar = _progress_bar(self.max_steps) if self.progress else None
+        history: list[IterationRecord] = []
+        status, message = Status.MAX_ITER, ""
+        u_prev, sse_prev, g0 = None, None, None
+        quiet = 0  # consecutive steps passing the tol test
+        step = 0
+        started = time.perf_counter()
+        try:
+            while True:
+                sse, grad = self._evaluate_iterate(lbfgs, closure)
+                u = self.estimates()
+                self._log_iterate(step, sse, u, u_prev, history, bar)
+                if not (math.isfinite(sse) and bool(torch.isfinite(grad).all())):
+                    status = Status.DIVERGED
+                    message = Status.DIVERGED.value + f" (the SSE or its gradient became non-finite at step {step})."
+                    break
+                gmax = float(grad.abs().max())
+                if g0 is None:
+                    g0 = gmax
+                if u_prev is not None:
+                    quiet = quiet + 1 if self._small_change(sse, sse_prev, u, u_prev) else 0
+                stop = self._stop(step, sse, gmax, g0, quiet, started)
+                if stop is not None:
+                    status, message = stop
+                    break
+                u_prev, sse_prev = u, sse
+                if lbfgs:
+                    opt.step(closure)
+                else:
+                    self.rhs.theta.grad = grad
+                    opt.step()
+                step += 1
+        except IntegrationError as exc:
+            if history:  # return the last iterate that could be evaluated
+                step = self._restore(history[-1])
+            status = Status.INTEGRATION_FAILED
+            message = Status.INTEGRATION_FAILED.value + f" The solver said: {exc}."
+        finally:
+            if bar is not None:
+                bar.close()
+        return status, message, step, history
+
+    def _optimizer(self, lbfgs: bool) -> torch.optim.Optimizer:
+        """The torch optimizer of ``theta``: L-BFGS (one quasi-Newton iteration per step) or Adam."""
+        theta = self.rhs.theta
         if lbfgs:
-            opt = torch.optim.LBFGS([theta], lr=self.lr, max_iter=1, max_eval=_MAX_LINE_SEARCH, history_size=20, tolerance_grad=0.0,
-                                    tolerance_change=0.0, line_search_fn="strong_wolfe")
-        else:
-            opt = torch.optim.Adam([theta], lr=self.lr)
+            return torch.optim.LBFGS([theta], lr=self.lr, max_iter=1, max_eval=_MAX_LINE_SEARCH, history_size=20,
+                                     tolerance_grad=0.0, tolerance_change=0.0, line_search_fn="strong_wolfe")
+        return torch.optim.Adam([theta], lr=self.lr)
+
+    def _closure(self) -> Callable[[], torch.Tensor]:
+        """L-BFGS's closure: the SSE at the current ``theta`` (0-dim tensor; ``inf`` where the solver fails),
+        its gradient left in ``theta.grad``; re-uses the last evaluation if ``theta`` is unchanged."""
+        theta = self.rhs.theta
         cache: dict = {}
 
-        def closure():  # L-BFGS: the SSE at the current theta; re-uses the last evaluation if unchanged
+        def closure():
             key = theta.detach()
             if "theta" in cache and torch.equal(cache["theta"], key):
                 theta.grad = cache["grad"].clone()
@@ -334,91 +384,70 @@ class _GradientRun:
             theta.grad = grad.clone()
             return torch.tensor(sse, dtype=theta.dtype)
 
-        bar = _progress_bar(self.max_steps) if self.progress else None
-        history: list[IterationRecord] = []
-        status, message = Status.MAX_ITER, ""
-        u_prev, sse_prev, g0 = None, None, None
-        quiet = 0  # consecutive steps passing the tol test
-        step = 0
-        started = time.perf_counter()
-        try:
-            while True:
-                if lbfgs:
-                    sse = float(closure())
-                    grad = theta.grad.detach().clone()
-                    if not math.isfinite(sse):
-                        raise IntegrationError("the solver failed at the current iterate")
-                else:
-                    sse, grad = self.evaluate()
-                u = self.estimates()
-                record = self._record(step, sse)
-                history.append(record)
-                if history[:-1]:
-                    prev = history[-2]
-                    prev.alpha = u - u_prev
-                    prev.alpha_norm = self._scaled_change(u, u_prev)
-                if self.callback is not None:
-                    self.callback(step, sse, u.clone())
-                if bar is not None:
-                    bar.update(1 if step else 0)
-                    bar.set_postfix(sse=f"{sse:.3e}")
-                if not (math.isfinite(sse) and bool(torch.isfinite(grad).all())):
-                    status = Status.DIVERGED
-                    message = Status.DIVERGED.value + f" (the SSE or its gradient became non-finite at step {step})."
-                    break
-                gmax = float(grad.abs().max())
-                if g0 is None:
-                    g0 = gmax
-                if u_prev is not None:
-                    dsse = abs(sse - sse_prev) / max(sse, torch.finfo(theta.dtype).tiny)
-                    small = dsse <= self.tol and self._scaled_change(u, u_prev) <= self.tol
-                    quiet = quiet + 1 if small else 0
-                if sse == 0.0 or gmax <= self.gtol * g0:
-                    status = Status.CONVERGED
-                    message = (f"Converged: the gradient of the SSE fell below `gtol` = {self.gtol:g} times its "
-                               f"value at the guess (after {step} {self.optimizer_name} steps).")
-                    break
-                if quiet >= self.window:
-                    status = Status.CONVERGED
-                    message = (f"Converged: the relative change of the SSE and of the scaled estimates stayed "
-                               f"below `tol` = {self.tol:g} over the last {self.window} steps (after {step} "
-                               f"{self.optimizer_name} steps).")
-                    break
-                if step >= self.max_steps:
-                    status = Status.MAX_ITER
-                    message = (f"The step budget `max_steps` = {self.max_steps} of the {self.optimizer_name} "
-                               "optimizer was reached before convergence. Increase `max_steps` (or `lr`), "
-                               "or start from guesses closer to the solution.")
-                    break
-                if self.max_time is not None and time.perf_counter() - started >= self.max_time:
-                    status = Status.MAX_ITER
-                    message = (f"The wall-time budget `max_time` = {self.max_time:g} s was used up after {step} "
-                               f"{self.optimizer_name} steps, before convergence (`max_steps` = {self.max_steps}). "
-                               "Increase `max_time`, or start from guesses closer to the solution.")
-                    break
-                u_prev, sse_prev = u, sse
-                if lbfgs:
-                    opt.step(closure)
-                else:
-                    theta.grad = grad
-                    opt.step()
-                step += 1
-        except IntegrationError as exc:
-            # return the last iterate that could be evaluated
-            if history:
-                with torch.no_grad():
-                    last = history[-1]
-                    z = torch.cat([last.x0, torch.cat([v.reshape(-1) for v in last.params.values()])
-                                   if last.params else last.x0.new_zeros(0)])
-                    theta.copy_((z[self.problem.unknown_index] - self.rhs.base[self.problem.unknown_index])
-                                / self.scale)
-                    step = last.iteration
-            status = Status.INTEGRATION_FAILED
-            message = Status.INTEGRATION_FAILED.value + f" The solver said: {exc}."
-        finally:
-            if bar is not None:
-                bar.close()
-        return status, message, step, history
+        return closure
+
+    def _evaluate_iterate(self, lbfgs: bool, closure: Callable[[], torch.Tensor]) -> tuple[float, torch.Tensor]:
+        """SSE and gradient ``(m,)`` at the current ``theta`` (L-BFGS: by ``closure``; raises on solver failure)."""
+        if not lbfgs:
+            return self.evaluate()
+        sse = float(closure())
+        grad = self.rhs.theta.grad.detach().clone()
+        if not math.isfinite(sse):
+            raise IntegrationError("the solver failed at the current iterate")
+        return sse, grad
+
+    def _log_iterate(self, step: int, sse: float, u: torch.Tensor, u_prev: torch.Tensor | None,
+                     history: list[IterationRecord], bar) -> None:
+        """Records iterate ``step`` in ``history`` (the previous record gets the change to ``u``), calls the
+        callback and updates the progress ``bar``."""
+        history.append(self._record(step, sse))
+        if history[:-1]:
+            prev = history[-2]
+            prev.alpha = u - u_prev
+            prev.alpha_norm = self._scaled_change(u, u_prev)
+        if self.callback is not None:
+            self.callback(step, sse, u.clone())
+        if bar is not None:
+            bar.update(1 if step else 0)
+            bar.set_postfix(sse=f"{sse:.3e}")
+
+    def _small_change(self, sse: float, sse_prev: float, u: torch.Tensor, u_prev: torch.Tensor) -> bool:
+        """Whether the step's relative change of the SSE and scaled change of the estimates are within ``tol``."""
+        dsse = abs(sse - sse_prev) / max(sse, torch.finfo(self.rhs.theta.dtype).tiny)
+        return dsse <= self.tol and self._scaled_change(u, u_prev) <= self.tol
+
+    def _stop(self, step: int, sse: float, gmax: float, g0: float, quiet: int,
+              started: float) -> tuple[Status, str] | None:
+        """``(status, message)`` if the run stops at iterate ``step`` (converged or out of budget), else ``None``."""
+        if sse == 0.0 or gmax <= self.gtol * g0:
+            return Status.CONVERGED, (
+                f"Converged: the gradient of the SSE fell below `gtol` = {self.gtol:g} times its "
+                f"value at the guess (after {step} {self.optimizer_name} steps).")
+        if quiet >= self.window:
+            return Status.CONVERGED, (
+                f"Converged: the relative change of the SSE and of the scaled estimates stayed "
+                f"below `tol` = {self.tol:g} over the last {self.window} steps (after {step} "
+                f"{self.optimizer_name} steps).")
+        if step >= self.max_steps:
+            return Status.MAX_ITER, (
+                f"The step budget `max_steps` = {self.max_steps} of the {self.optimizer_name} "
+                "optimizer was reached before convergence. Increase `max_steps` (or `lr`), "
+                "or start from guesses closer to the solution.")
+        if self.max_time is not None and time.perf_counter() - started >= self.max_time:
+            return Status.MAX_ITER, (
+                f"The wall-time budget `max_time` = {self.max_time:g} s was used up after {step} "
+                f"{self.optimizer_name} steps, before convergence (`max_steps` = {self.max_steps}). "
+                "Increase `max_time`, or start from guesses closer to the solution.")
+        return None
+
+    def _restore(self, last: IterationRecord) -> int:
+        """Sets ``theta`` to the iterate of record ``last``; returns its step."""
+        with torch.no_grad():
+            z = torch.cat([last.x0, torch.cat([v.reshape(-1) for v in last.params.values()])
+                           if last.params else last.x0.new_zeros(0)])
+            self.rhs.theta.copy_((z[self.problem.unknown_index] - self.rhs.base[self.problem.unknown_index])
+                                 / self.scale)
+        return last.iteration
 
     # ------------------------------------------------------------------------------------
     def result(self, model, data) -> FitResult:

@@ -415,84 +415,147 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     steps) and the right-hand-side evaluations (points).
     """
     S, M = z0.shape
-    n = system.n
-    G = grid.shape[-1]
-    dtype, device = z0.dtype, z0.device
-    out = z0.new_full((S, G, M), float("nan"))
+    out = z0.new_full((S, grid.shape[-1], M), float("nan"))
     out[:, 0] = z0
     ok = torch.isfinite(z0).all(dim=1)
-    if G == 1:
+    if grid.shape[-1] == 1:
         return out, ok, 0
-    per_sample = grid.dim() == 2
-    fv = torch.vmap(system.f)
-    x = z0.clone()
-    t = grid[:, 0].clone() if per_sample else grid[0].expand(S).clone()
-    node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach
-    k1 = fv(t, x)
-    evals = S
-    # initial step (Hairer's heuristic, per sample)
-    scale = atol + rtol * x[:, :n].abs()
-    d0 = (x[:, :n] / scale).square().mean(dim=1).sqrt()
-    d1 = (k1[:, :n] / scale).square().mean(dim=1).sqrt()
-    span = grid[..., -1] - grid[..., 0]
-    h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
-    h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
-    steps = torch.zeros(S, dtype=torch.long, device=device)
-    # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
-    rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
-    row_e = torch.tensor(_DP_E, dtype=dtype, device=device)
-    row_mid = torch.tensor(_DP_MID, dtype=dtype, device=device)
-    # next_land[j]: the first node at or after j that steps land on
-    node_index = torch.arange(G, device=device)
-    if per_sample:  # flat tables, read at base + node (base: the sample's first entry)
-        end = _last_nodes(grid) + 1  # nodes each sample reaches
-        base = torch.arange(S, device=device) * G
-        landing = (torch.ones(S, G, dtype=torch.bool, device=device) if land is None
-                   else land.to(device).expand(S, G).clone())
-        landing[torch.arange(S, device=device), end - 1] = True
-        landing[:, -1] = True
-        next_land = torch.where(landing, node_index, G).flip(-1).cummin(dim=-1).values.flip(-1)
-        grid_flat, landing_flat, next_flat = grid.reshape(-1), landing.reshape(-1), next_land.reshape(-1)
-    else:
-        end = base = None
-        landing = torch.ones(G, dtype=torch.bool, device=device) if land is None else land.to(device).clone()
-        landing[-1] = True
-        next_land = torch.where(landing, node_index, G).flip(0).cummin(dim=0).values.flip(0)
-    dense = not bool(landing[..., 1:].all())
-
-    def node_time(offset, nodes):
-        """Times of ``nodes`` (next to reach) of the samples whose table offsets are ``offset``."""
-        return grid[nodes] if offset is None else grid_flat[offset + nodes]
-
-    def node_lands(offset, nodes):
-        return landing[nodes] if offset is None else landing_flat[offset + nodes]
-
+    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps)
     # a sample with one node (then padding) is done: its padding is filled below
-    active = (ok if end is None else ok & (end > 1)).nonzero().flatten()
+    active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
         check_time()
-        everyone = active.numel() == S  # no gathering while no sample has finished or failed
-        xa, ta, ka, ha = (x, t, k1, h) if everyone else (x[active], t[active], k1[active], h[active])
+        active = run.advance(active)
+    out, end, G = run.out, run.end, run.G
+    if run.per_sample and bool((end < G).any()):  # the padding repeats each sample's last value
+        last = torch.minimum(run.node_index, (end - 1).unsqueeze(1))  # (S, G)
+        out = out.gather(1, last.unsqueeze(-1).expand(S, G, M))
+    out[~ok] = float("nan")
+    return out, ok, run.evals
+
+
+class _DopriRun:
+    """The loop state of :func:`dopri_batch`: per sample ``x (S, M)``, ``t``, slope ``k1 (S, M)``, step ``h``, next
+    ``node``, ``steps``; the landing tables; ``out (S, G, M)`` and ``ok (S,)`` (written in place), ``evals``."""
+
+    def __init__(self, system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, land: torch.Tensor | None,
+                 out: torch.Tensor, ok: torch.Tensor, rtol: float, atol: float, max_steps: int) -> None:
+        S, n = z0.shape[0], system.n
+        dtype, device = z0.dtype, z0.device
+        self.S, self.G, self.n, self.grid, self.out, self.ok = S, grid.shape[-1], n, grid, out, ok
+        self.rtol, self.atol, self.max_steps = rtol, atol, max_steps
+        self.per_sample = grid.dim() == 2
+        self.fv = torch.vmap(system.f)
+        self.x = x = z0.clone()
+        self.t = grid[:, 0].clone() if self.per_sample else grid[0].expand(S).clone()
+        self.node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach
+        self.k1 = self.fv(self.t, self.x)
+        self.evals = S
+        # initial step (Hairer's heuristic, per sample)
+        scale = atol + rtol * x[:, :n].abs()
+        d0 = (x[:, :n] / scale).square().mean(dim=1).sqrt()
+        d1 = (self.k1[:, :n] / scale).square().mean(dim=1).sqrt()
+        span = grid[..., -1] - grid[..., 0]
+        h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
+        self.h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
+        self.steps = torch.zeros(S, dtype=torch.long, device=device)
+        # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
+        self.rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
+        self.row_e, self.row_mid = (torch.tensor(row, dtype=dtype, device=device) for row in (_DP_E, _DP_MID))
+        self._landing_tables(land, device)
+
+    def _landing_tables(self, land: torch.Tensor | None, device: torch.device) -> None:
+        """Bool ``landing`` (nodes steps land on), ``next_land`` (``(G,)`` or ``(S, G)``), ``end (S,)``, ``dense``."""
+        S, G, grid = self.S, self.G, self.grid
+        self.node_index = torch.arange(G, device=device)
+        if self.per_sample:  # flat tables, read at base + node (base: the sample's first entry)
+            self.end = _last_nodes(grid) + 1  # nodes each sample reaches
+            self.base = torch.arange(S, device=device) * G
+            landing = (torch.ones(S, G, dtype=torch.bool, device=device) if land is None
+                       else land.to(device).expand(S, G).clone())
+            landing[torch.arange(S, device=device), self.end - 1] = True
+            landing[:, -1] = True
+            next_land = torch.where(landing, self.node_index, G).flip(-1).cummin(dim=-1).values.flip(-1)
+            self.grid_flat, self.landing_flat = grid.reshape(-1), landing.reshape(-1)
+            self.next_flat = next_land.reshape(-1)
+        else:
+            self.end = self.base = None
+            landing = torch.ones(G, dtype=torch.bool, device=device) if land is None else land.to(device).clone()
+            landing[-1] = True
+            next_land = torch.where(landing, self.node_index, G).flip(0).cummin(dim=0).values.flip(0)
+        self.landing, self.next_land = landing, next_land
+        self.dense = not bool(landing[..., 1:].all())
+
+    def _passes(self, passed: torch.Tensor, base_a: torch.Tensor | None, node_a: torch.Tensor,
+                t_new: torch.Tensor) -> torch.Tensor:
+        """``passed (A,)`` where the node ``node_a`` (clamped to the last) is before ``t_new`` and not landed on."""
+        clamped = node_a.clamp(max=self.G - 1)
+        if base_a is None:
+            return passed & (self.grid[clamped] < t_new) & ~self.landing[clamped]
+        return passed & (self.grid_flat[base_a + clamped] < t_new) & ~self.landing_flat[base_a + clamped]
+
+    def advance(self, active: torch.Tensor) -> torch.Tensor:
+        """One trial step of the samples ``active (A,)``; returns those still unfinished and not failed."""
+        G, node = self.G, self.node
+        everyone = active.numel() == self.S  # no gathering while no sample has finished or failed
+        xa, ta, ka, ha = ((self.x, self.t, self.k1, self.h) if everyone
+                          else (self.x[active], self.t[active], self.k1[active], self.h[active]))
         node_a = node if everyone else node[active]
-        if per_sample:
-            base_a = base if everyone else base[active]
-            target = grid_flat[base_a + next_flat[base_a + node_a]]
+        if self.per_sample:
+            base_a = self.base if everyone else self.base[active]
+            target = self.grid_flat[base_a + self.next_flat[base_a + node_a]]
         else:
             base_a = None
-            target = grid[next_land[node_a]]
+            target = self.grid[self.next_land[node_a]]
         gap = target - ta
         clipped = ha >= gap
         he = torch.where(clipped, gap, ha)
+        K, x_new, hc = self._stages(xa, ta, ka, he)
+        self.evals += 6 * active.numel()
+        accept, h_next = self._control(xa, x_new, K, hc, he, ha, clipped)
+        # accepted steps advance; those landing on a node record it
+        t_new = torch.where(clipped, target, ta + he)
+        take = accept.unsqueeze(-1)
+        if everyone:
+            self.x, self.t, self.k1, self.h = (torch.where(take, x_new, xa), torch.where(accept, t_new, ta),
+                                               torch.where(take, K[6], ka), h_next)
+            self.steps += 1
+        else:
+            self.x[active] = torch.where(take, x_new, xa)
+            self.t[active] = torch.where(accept, t_new, ta)
+            self.k1[active] = torch.where(take, K[6], ka)
+            self.h[active] = h_next
+            self.steps[active] += 1
+        if self.dense:  # nodes passed inside accepted steps, from the dense output
+            self._dense_output(active, accept, node_a, base_a, xa, ta, x_new, K, he, hc, t_new)
+        landed = accept & clipped
+        if bool(landed.any()):
+            rows = active[landed]
+            self.out[rows, node[rows]] = x_new[landed]
+            node[rows] += 1
+        finished = node[active] >= (G if self.end is None else self.end[active])
+        underflow = h_next <= 10 * torch.finfo(xa.dtype).eps * ta.abs().clamp(min=1.0)
+        bad = (underflow | (self.steps[active] >= self.max_steps)) & ~finished
+        self.ok[active[bad]] = False
+        return active[self.ok[active] & ~finished]
+
+    def _stages(self, xa: torch.Tensor, ta: torch.Tensor, ka: torch.Tensor,
+                he: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Slopes ``K (7, A, M)`` (``K[0] = ka``), ``x_new (A, M)``, ``hc (A, 1)`` of steps ``he (A,)`` from ``xa``."""
         hc = he.unsqueeze(-1)
         K = xa.new_empty(7, *xa.shape)
         K[0] = ka
         for i in range(1, 7):
-            xi = torch.addcmul(xa, hc, torch.tensordot(rows_a[i], K[:i], dims=1))
-            K[i] = fv(ta + _DP_C[i] * he, xi)
-        evals += 6 * active.numel()
-        x_new = xi  # the last stage is evaluated at the fifth-order solution (first same as last)
-        err = hc * torch.tensordot(row_e, K, dims=1)
-        sc = atol + rtol * torch.maximum(xa[:, :n].abs(), x_new[:, :n].abs())
+            xi = torch.addcmul(xa, hc, torch.tensordot(self.rows_a[i], K[:i], dims=1))
+            K[i] = self.fv(ta + _DP_C[i] * he, xi)
+        return K, xi, hc  # the last stage is evaluated at the fifth-order solution (first same as last)
+
+    def _control(self, xa: torch.Tensor, x_new: torch.Tensor, K: torch.Tensor, hc: torch.Tensor, he: torch.Tensor,
+                 ha: torch.Tensor, clipped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Whether each trial step ``he (A,)`` from ``xa (A, M)`` is accepted, bool ``(A,)``, and the next step size."""
+        n = self.n
+        err = hc * torch.tensordot(self.row_e, K, dims=1)
+        sc = self.atol + self.rtol * torch.maximum(xa[:, :n].abs(), x_new[:, :n].abs())
         ratio = (err[:, :n] / sc).square().mean(dim=1).sqrt()
         finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
         accept = finite & (ratio <= 1.0)
@@ -502,54 +565,29 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         factor = torch.where(finite, factor, torch.full_like(factor, 0.2)).clamp(0.2, 10.0)
         factor = torch.where(accept, factor, factor.clamp(max=1.0))
         h_next = he * factor
-        h_next = torch.where(accept & clipped, torch.maximum(h_next, ha), h_next)
-        # accepted steps advance; those landing on a node record it
-        t_new = torch.where(clipped, target, ta + he)
-        take = accept.unsqueeze(-1)
-        if everyone:
-            x, t, k1, h = (torch.where(take, x_new, xa), torch.where(accept, t_new, ta), torch.where(take, K[6], ka),
-                           h_next)
-            steps += 1
-        else:
-            x[active] = torch.where(take, x_new, xa)
-            t[active] = torch.where(accept, t_new, ta)
-            k1[active] = torch.where(take, K[6], ka)
-            h[active] = h_next
-            steps[active] += 1
-        if dense:  # nodes passed inside accepted steps, from the dense output
-            clamped = node_a.clamp(max=G - 1)
-            passed = accept & (node_time(base_a, clamped) < t_new) & ~node_lands(base_a, clamped)
-            if bool(passed.any()):
-                y_mid = torch.addcmul(xa, hc, torch.tensordot(row_mid, K, dims=1))
-                quartic = _quartic(xa, x_new, y_mid, K[0], K[6], hc)
-                while bool(passed.any()):
-                    rows = passed.nonzero().flatten()
-                    offset = None if base_a is None else base_a[rows]
-                    theta = ((node_time(offset, node_a[rows]) - ta[rows]) / he[rows]).unsqueeze(-1)
-                    value = quartic[4][rows]
-                    for coefficient in quartic[3::-1]:
-                        value = value * theta + coefficient[rows]
-                    out[active[rows], node_a[rows]] = value
-                    node_a = node_a.clone()
-                    node_a[rows] += 1
-                    node[active[rows]] += 1
-                    clamped = node_a.clamp(max=G - 1)
-                    passed = passed & (node_time(base_a, clamped) < t_new) & ~node_lands(base_a, clamped)
-        landed = accept & clipped
-        if bool(landed.any()):
-            rows = active[landed]
-            out[rows, node[rows]] = x_new[landed]
-            node[rows] += 1
-        finished = node[active] >= (G if end is None else end[active])
-        underflow = h_next <= 10 * torch.finfo(dtype).eps * ta.abs().clamp(min=1.0)
-        bad = (underflow | (steps[active] >= max_steps)) & ~finished
-        ok[active[bad]] = False
-        active = active[ok[active] & ~finished]
-    if per_sample and bool((end < G).any()):  # the padding repeats each sample's last value
-        last = torch.minimum(node_index, (end - 1).unsqueeze(1))  # (S, G)
-        out = out.gather(1, last.unsqueeze(-1).expand(S, G, M))
-    out[~ok] = float("nan")
-    return out, ok, evals
+        return accept, torch.where(accept & clipped, torch.maximum(h_next, ha), h_next)
+
+    def _dense_output(self, active: torch.Tensor, accept: torch.Tensor, node_a: torch.Tensor,
+                      base_a: torch.Tensor | None, xa: torch.Tensor, ta: torch.Tensor, x_new: torch.Tensor,
+                      K: torch.Tensor, he: torch.Tensor, hc: torch.Tensor, t_new: torch.Tensor) -> None:
+        """The nodes not landed on that accepted steps ``ta -> t_new`` passed: into ``out`` by the dense output."""
+        passed = self._passes(accept, base_a, node_a, t_new)
+        if not bool(passed.any()):
+            return
+        y_mid = torch.addcmul(xa, hc, torch.tensordot(self.row_mid, K, dims=1))
+        quartic = _quartic(xa, x_new, y_mid, K[0], K[6], hc)
+        while bool(passed.any()):
+            rows = passed.nonzero().flatten()
+            t_node = self.grid[node_a[rows]] if base_a is None else self.grid_flat[base_a[rows] + node_a[rows]]
+            theta = ((t_node - ta[rows]) / he[rows]).unsqueeze(-1)
+            value = quartic[4][rows]
+            for coefficient in quartic[3::-1]:
+                value = value * theta + coefficient[rows]
+            self.out[active[rows], node_a[rows]] = value
+            node_a = node_a.clone()
+            node_a[rows] += 1
+            self.node[active[rows]] += 1
+            passed = self._passes(passed, base_a, node_a, t_new)
 
 
 def _quartic(y0, y1, y_mid, f0, f1, h):

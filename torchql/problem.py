@@ -58,7 +58,40 @@ class Problem:
         self.single = single  # torchql.fit's problem: one dataset, errors worded for it
         _checks.model_class(model)
         names = tuple(model.state_names)
-        n = len(names)
+        self._options(model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
+                      rtol, atol, xtol, ftol, rcond)
+        self._stack(data, self.dtype, self.device)  # data: (B, T, K)
+        per_sample, p0 = self._coefficients(model, params, guesses)
+        system = self.system
+        # --- times: t_obs (T,) shared or (B, T) per sample, t0 () shared or (B,) per sample
+        self.t_obs = self.t
+        self.t0 = self._initial_time(t0)
+        # --- initial states
+        self.operator = ObservationOperator(self.observe, names, self.K, self.dtype, self.device).bind(system)
+        self.initial = InitialStateExpressions(
+            check_expressions(x0_expr, names, None if fixed_x0 is None or isinstance(fixed_x0, str) else fixed_x0),
+            system)
+        x0 = self._x0_from_data(names) if x0 is None else self._given_x0(x0, len(names))
+        self.z0 = torch.cat([x0, p0], dim=1).clone()
+        self._noise_model()
+        free = self._unknowns(fixed_x0, names, per_sample)
+        # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
+        # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
+        self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free), self.params, system.param_sizes,
+                                          list(names) + list(coefficient_names(model)), self.dtype, self.device,
+                                          scale)
+        self._move_guesses_inside()
+        if self.initial:
+            self.initial.check(self.z0)
+            self.z0 = self.initial.complete(self.z0)
+        self.breakpoints = self._attach_inputs(model)
+        self._check_model(self.z0[0, :system.n])
+        self._solver_and_grid(grid, linear_solver)
+        self.model = model
+
+    def _options(self, model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
+                 rtol, atol, xtol, ftol, rcond) -> None:
+        """The options validated, and the tolerances resolved for the model's dtype."""
         if not isinstance(solver, str):
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver, auto=True)
@@ -68,15 +101,15 @@ class Problem:
             check_linear_solver(linear_solver)
         limits = Limits.resolve(max_iter, max_steps)
         self.max_iter, self.max_steps = limits.max_iter, limits.max_steps
-        self.dtype, self.device = dtype, device = model_dtype_device(model)
+        self.dtype, self.device = dtype, _ = model_dtype_device(model)
         tol = Tolerances.resolve(dtype, rtol, atol, xtol, ftol, rcond)
         self.rtol, self.atol, self.xtol, self.ftol, self.rcond = tol.rtol, tol.atol, tol.xtol, tol.ftol, tol.rcond
 
-        # --- data: (B, T, K)
-        self._stack(data, dtype, device)
-        B = self.B
-
-        # --- unknowns and per-sample buffers
+    def _coefficients(self, model, params, guesses) -> tuple[list[str], torch.Tensor]:
+        """The estimated coefficients (``self.params``), the augmented system over them and the
+        coefficients given per sample (``guesses``); returns the per-sample names and their values
+        ``(B, P)`` (the guesses of the estimated ones first)."""
+        B, dtype, device = self.B, self.dtype, self.device
         available = coefficient_names(model)
         if params is None:
             params = [name for name in available if name not in tuple(model.constants)]
@@ -91,74 +124,72 @@ class Problem:
                 raise ValueError(f"`guesses` names unknown buffer {name!r}; {_checks.coefficients_text(model)}")
         per_sample = list(params) + [name for name in guesses if name not in params]
         self.params = list(params)
-        self.system = AugmentedSystem(model, per_sample, dtype, device)
-        system = self.system
+        self.system = system = AugmentedSystem(model, per_sample, dtype, device)
         buffers = dict(system.model.named_buffers())
-        columns = []
-        for name, shape in zip(per_sample, system.param_shapes):
-            value = guesses.get(name, buffers[name])
-            try:
-                value = torch.as_tensor(value, dtype=dtype, device=device).detach()
-            except (TypeError, ValueError) as exc:
-                raise TypeError(f"`guesses[{name!r}]` must be a tensor of shape (B, *{tuple(shape)}) = "
-                                f"{(B, *shape)}; received {type(value).__name__}") from exc
-            if value.shape == shape:
-                value = value.expand(B, *shape)
-            elif value.shape != (B, *shape):
-                raise ValueError(f"`guesses[{name!r}]` must have shape (B, *buffer shape) = {(B, *shape)} or the "
-                                 f"buffer's shape {tuple(shape)}; received shape {tuple(value.shape)}")
-            bad = ~torch.isfinite(value.reshape(B, -1)).all(dim=1)
-            if bool(bad.any()) and name not in guesses:
-                raise ValueError(f"the guesses of [{name!r}] (the model's buffers) must be finite")
-            if bool(bad.any()):
-                raise ValueError(f"`guesses[{name!r}]` must be finite; samples {bad.nonzero().flatten().tolist()[:10]} "
-                                 "hold NaN or inf")
-            columns.append(value.reshape(B, -1))
+        columns = [self._per_sample_values(name, shape, guesses, buffers)
+                   for name, shape in zip(per_sample, system.param_shapes)]
         p0 = torch.cat(columns, dim=1) if columns else torch.zeros(B, 0, dtype=dtype, device=device)
         if not bool(torch.isfinite(p0).all()):
             raise ValueError(f"the guesses of {self.params} (the model's buffers) must be finite")
+        return per_sample, p0
 
-        # --- times: t_obs (T,) shared or (B, T) per sample, t0 () shared or (B,) per sample
-        self.t_obs = self.t
-        self.t0 = self._initial_time(t0)
+    def _per_sample_values(self, name: str, shape, guesses: dict, buffers: dict) -> torch.Tensor:
+        """Coefficient ``name``'s value per sample, flattened ``(B, size)``: ``guesses[name]`` or the buffer's."""
+        B = self.B
+        value = guesses.get(name, buffers[name])
+        try:
+            value = torch.as_tensor(value, dtype=self.dtype, device=self.device).detach()
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"`guesses[{name!r}]` must be a tensor of shape (B, *{tuple(shape)}) = "
+                            f"{(B, *shape)}; received {type(value).__name__}") from exc
+        if value.shape == shape:
+            value = value.expand(B, *shape)
+        elif value.shape != (B, *shape):
+            raise ValueError(f"`guesses[{name!r}]` must have shape (B, *buffer shape) = {(B, *shape)} or the "
+                             f"buffer's shape {tuple(shape)}; received shape {tuple(value.shape)}")
+        bad = ~torch.isfinite(value.reshape(B, -1)).all(dim=1)
+        if bool(bad.any()) and name not in guesses:
+            raise ValueError(f"the guesses of [{name!r}] (the model's buffers) must be finite")
+        if bool(bad.any()):
+            raise ValueError(f"`guesses[{name!r}]` must be finite; samples {bad.nonzero().flatten().tolist()[:10]} "
+                             "hold NaN or inf")
+        return value.reshape(B, -1)
 
-        # --- initial states
-        self.operator = ObservationOperator(self.observe, names, self.K, dtype, device).bind(system)
-        self.initial = InitialStateExpressions(
-            check_expressions(x0_expr, names, None if fixed_x0 is None or isinstance(fixed_x0, str) else fixed_x0),
-            system)
-        if x0 is None:
-            x0 = self._x0_from_data(names)
-        else:
-            try:
-                x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach()
-            except (TypeError, ValueError) as exc:
-                if single:
-                    raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); "
-                                    f"received {type(x0).__name__}") from exc
-                raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
-                                f"({n},); received {type(x0).__name__}") from exc
-            if single and x0.shape != (n,):
-                raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
-            if single and not bool(torch.isfinite(x0).all()):
-                raise ValueError("`x0` must be finite; received NaN or inf")
-            if x0.shape == (n,):
-                x0 = x0.expand(B, n)
-            elif x0.shape != (B, n):
-                raise ValueError(f"`x0` must have shape (B, n_states) = ({B}, {n}) or (n_states,) = ({n},); "
-                                 f"received shape {tuple(x0.shape)}")
-            bad = ~torch.isfinite(x0).all(dim=1)
-            if bool(bad.any()):
-                raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
-        self.z0 = torch.cat([x0, p0], dim=1).clone()
-        self._noise_model()
+    def _given_x0(self, x0, n: int) -> torch.Tensor:
+        """The given ``x0`` validated, per sample ``(B, n)``."""
+        B, single = self.B, self.single
+        try:
+            x0 = torch.as_tensor(x0, dtype=self.dtype, device=self.device).detach()
+        except (TypeError, ValueError) as exc:
+            if single:
+                raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); "
+                                f"received {type(x0).__name__}") from exc
+            raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
+                            f"({n},); received {type(x0).__name__}") from exc
+        if single and x0.shape != (n,):
+            raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
+        if single and not bool(torch.isfinite(x0).all()):
+            raise ValueError("`x0` must be finite; received NaN or inf")
+        if x0.shape == (n,):
+            x0 = x0.expand(B, n)
+        elif x0.shape != (B, n):
+            raise ValueError(f"`x0` must have shape (B, n_states) = ({B}, {n}) or (n_states,) = ({n},); "
+                             f"received shape {tuple(x0.shape)}")
+        bad = ~torch.isfinite(x0).all(dim=1)
+        if bool(bad.any()):
+            raise ValueError(f"`x0` must be finite; rows {bad.nonzero().flatten().tolist()[:10]} hold NaN or inf")
+        return x0
 
+    def _unknowns(self, fixed_x0, names: tuple, per_sample: list[str]) -> list[int]:
+        """``unknown_index``, ``unknown_names`` and ``m`` (the free initial states, then the estimated
+        coefficients' elements), checked against the data; returns the free states' indices."""
+        system, n = self.system, len(names)
         fixed_x0 = _checks.distinct_names("fixed_x0", [] if fixed_x0 is None else fixed_x0, names, "state",
                                           f"the model's states are {names}")
         free = [i for i, s in enumerate(names) if s not in fixed_x0 and i not in self.initial.index]
         n_unknown_params = sum(size for name, size in zip(per_sample, system.param_sizes) if name in self.params)
         self.unknown_index = torch.tensor(free + list(range(n, n + n_unknown_params)), dtype=torch.long,
-                                          device=device)
+                                          device=self.device)
         self.unknown_names = [f"{names[i]}(t0)" for i in free] + system.element_names[:n_unknown_params]
         self.m = m = self.unknown_index.numel()
         if m == 0:
@@ -180,33 +211,29 @@ class Problem:
             raise ValueError(
                 f"{where}more values are marked `exact` ({int(marked[over[0]])}) than there are unknowns ({m}); "
                 "at most one exact value per unknown can be met")
-        # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
-        # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
-        self.bounds = Bounds.for_unknowns(bounds, self.unknown_names, len(free), self.params, system.param_sizes,
-                                          list(names) + list(available), dtype, device, scale)
+        return free
+
+    def _move_guesses_inside(self) -> None:
+        """Guesses on or outside their bounds moved inside, per sample (``moved_guesses`` records them)."""
         self.moved_guesses: dict[int, dict[str, tuple[float, float]]] = {}
-        if self.bounds.active:
-            given = self.z0[:, self.unknown_index]
-            used, moved = self.bounds.move_inside(given)
-            for b in moved.any(dim=1).nonzero().flatten().tolist():
-                self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
-            self._check_positive(used)
-            self.z0[:, self.unknown_index] = used
-        if self.initial:
-            self.initial.check(self.z0)
-            self.z0 = self.initial.complete(self.z0)
-        x0 = self.z0[:, :n]
-        self.breakpoints = self._attach_inputs(model)
-        self._check_model(x0[0])
+        if not self.bounds.active:
+            return
+        given = self.z0[:, self.unknown_index]
+        used, moved = self.bounds.move_inside(given)
+        for b in moved.any(dim=1).nonzero().flatten().tolist():
+            self.moved_guesses[b] = moved_record(self.unknown_names, given[b], used[b], moved[b])
+        self._check_positive(used)
+        self.z0[:, self.unknown_index] = used
 
-        # --- the solver ("auto": stiff if some sample's model is stiff along its data)
-        self.solver = choose_solver(self.solver, system, self.t_obs,
+    def _solver_and_grid(self, grid, linear_solver) -> None:
+        """The solver (``"auto"``: stiff if some sample's model is stiff along its data), the linear
+        solver, and the grid: ``(G,)`` shared, or ``(B, G)`` per sample (padded by its last node)."""
+        n = self.system.n
+        self.solver = choose_solver(self.solver, self.system, self.t_obs,
                                     torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
-                                    self.operator.observed_states, x0, self.z0[:, n:],
-                                    (self.t_obs[..., -1] - self.t0).expand(B))
+                                    self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
+                                    (self.t_obs[..., -1] - self.t0).expand(self.B))
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
-
-        # --- grid: (G,) shared, or (B, G) per sample (each fit's own grid, padded by its last node)
         stiff = self.solver in STIFF_SOLVERS
         if self.t_obs.dim() == 1:
             self.grid = make_grid(grid, self.t0, self.t_obs, stiff=stiff, breakpoints=self.breakpoints)
@@ -215,7 +242,6 @@ class Problem:
             self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs, stiff=stiff,
                                                     breakpoints=self.breakpoints)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
-        self.model = model
 
     def _check_positive(self, guesses: torch.Tensor) -> None:
         """The guesses ``(B, m)`` of the log-scale unknowns are positive (a clear error otherwise)."""

@@ -138,6 +138,24 @@ class _Point(NamedTuple):
     x0: torch.Tensor
 
 
+class _Threshold(NamedTuple):
+    """Where the profile interval ends: ``sse_min + s2 * q2``."""
+
+    likelihood: bool  # profile 2 NLL (estimated sigmas or log-normal noise) instead of the SSE
+    s2: float  # residual variance (1 when sigma is known or on the likelihood)
+    q2: float  # squared quantile: normal (sigma known, likelihood) or Student t (estimated)
+    sse_min: float  # the free fit's SSE (or 2 NLL)
+
+    @property
+    def delta(self) -> float:
+        """Allowed rise of the SSE above ``sse_min``: ``s2 * q2``."""
+        return self.s2 * self.q2
+
+    def excess(self, pt: _Point) -> float:
+        """``sqrt(max(SSE - sse_min, 0)) - sqrt(delta)``: negative inside the interval, nearly linear in theta."""
+        return math.sqrt(max(pt.sse - self.sse_min, 0.0)) - math.sqrt(self.delta)
+
+
 def profile(
     result: FitResult,
     name: str,
@@ -192,8 +210,52 @@ def profile(
         For an unknown ``name`` (the message lists the valid ones), a coefficient element of
         a vector or matrix buffer, a failed fit, a missing ``data``, or invalid options.
     """
-    from .fit import fit
+    data = _check_arguments(result, name, data, level, growth, xtol, max_points, fit_options)
+    names = list(result.unknown_names)
+    theta_hat = float(result.estimates[names.index(name)])
+    buffers = coefficients(result.model)
+    params, fixed_x0, state_index = _held_fixed(result, name, buffers)
+    options = _refit_options(result, name, fit_options)
+    threshold = _threshold(result, level)
+    h = _first_step(result, name, theta_hat, step)
+    lower_bound, upper_bound = _check_bounds(bounds, theta_hat)
 
+    refit = _Refitter(result, name, data, options, params, fixed_x0, state_index, buffers, threshold.likelihood)
+    center = refit(theta_hat, result)
+    if center is None:
+        raise RuntimeError(f"re-fitting with {name} fixed at its estimate {theta_hat:g} failed "
+                           f"({refit.failures[-1][1]})")
+    points = [center]
+    ends, closed, notes = [], [], []
+    for direction, limit in ((-1.0, lower_bound), (1.0, upper_bound)):
+        end, why, found = _search_side(refit, center, direction, limit, threshold,
+                                       first=0.5 * math.sqrt(threshold.q2) * h, growth=growth,
+                                       max_points=max_points, tol=xtol * h)
+        points.extend(found)
+        ends.append(direction * math.inf if end is None else end)
+        closed.append(end is not None)
+        if end is None:
+            notes.append(f"open {'below' if direction < 0 else 'above'}: {why}")
+
+    values, sses, estimates = _stack_points(points)
+    wald = result.confidence_intervals(level)[name]
+    message = _summary(name, level, theta_hat, ends, closed, notes, wald)
+    note = _lower_sse_note(result, data, options, name, values, sses, threshold)
+    if note:
+        message += note
+        warnings.warn(note.strip(), UserWarning, stacklevel=2)
+    return ProfileResult(
+        name=name, level=level, estimate=theta_hat, sse_min=threshold.sse_min,
+        threshold=threshold.sse_min + threshold.delta, interval=(ends[0], ends[1]), closed=(closed[0], closed[1]),
+        wald=(float(wald[0]), float(wald[1])), values=values, sse=sses, estimates=estimates, unknown_names=names,
+        message=message, n_fits=refit.n_fits, failures=refit.failures, sigma_known=result.sigma_known,
+        residual_variance=threshold.s2,
+    )
+
+
+def _check_arguments(result: FitResult, name: str, data: Observations | None, level: float, growth: float,
+                     xtol: float, max_points: int, fit_options: dict) -> Observations:
+    """Validate :func:`profile`'s arguments (but ``step`` and ``bounds``); the data to re-fit."""
     if not isinstance(result, FitResult):
         raise TypeError(f"`result` must be a torchql.FitResult (from torchql.fit); received {type(result).__name__}")
     names = list(result.unknown_names)
@@ -217,31 +279,33 @@ def profile(
     for bad in ("params", "fixed_x0", "x0", "callback", "throw", "bounds", "scale"):
         if bad in fit_options:
             raise ValueError(f"`{bad}` cannot be overridden in a profile: it is set by the profile itself")
+    return data
 
-    m = len(names)
-    index = names.index(name)
-    theta_hat = float(result.estimates[index])
+
+def _held_fixed(result: FitResult, name: str, buffers: dict) -> tuple[list[str], list[str], int | None]:
+    """How the re-fits hold ``name`` fixed: ``(params, fixed_x0, state_index)``.
+
+    ``params`` are the buffers to estimate, ``fixed_x0`` the states whose initial value is not
+    estimated, ``state_index`` the index of ``name``'s state when it is an initial state (else None).
+    """
+    names = list(result.unknown_names)
     states = list(result.model.state_names)
-    buffers = coefficients(result.model)
-
-    # --- the unknowns of the original fit, and how `name` is held fixed
     free_params = _original_params(result, buffers)
     given = {k.removesuffix("(t0)") for k in (result.fit_kwargs.get("x0_expr") or {})}  # follow the estimates
     fixed_states = [s for s in states if f"{s}(t0)" not in names and s not in given]
-    state_index = None
     if name.endswith("(t0)") and name[:-4] in states and name not in buffers:
         state_index = states.index(name[:-4])
-        params = free_params
-        fixed_x0 = fixed_states + [states[state_index]]
-    elif name in buffers and buffers[name].dim() == 0:
-        params = [p for p in free_params if p != name]
-        fixed_x0 = fixed_states
-    else:
-        raise ValueError(
-            f"`name` {name!r} is an element of a vector or matrix coefficient: only scalar coefficients and "
-            "initial states can be profiled"
-        )
+        return free_params, fixed_states + [states[state_index]], state_index
+    if name in buffers and buffers[name].dim() == 0:
+        return [p for p in free_params if p != name], fixed_states, None
+    raise ValueError(
+        f"`name` {name!r} is an element of a vector or matrix coefficient: only scalar coefficients and "
+        "initial states can be profiled"
+    )
 
+
+def _refit_options(result: FitResult, name: str, fit_options: dict) -> dict:
+    """Keyword arguments of the re-fits: the original fit's (less ``name``'s bound and scale), then ``fit_options``."""
     options = {k: result.fit_kwargs[k] for k in _INHERITED if k in result.fit_kwargs}
     options.setdefault("method", result.method)
     options.update({k: v for k, v in result.solver_options.items() if k not in options or options[k] is None})
@@ -253,9 +317,14 @@ def profile(
             options[key] = {k: v for k, v in result.fit_kwargs[key].items()
                             if k not in (name, name.removesuffix("(t0)"))}
     options.update(fit_options)
+    return options
 
-    # --- threshold: on the SSE, or with estimated sigmas or log-normal noise on 2 NLL (the profile
-    # likelihood: 2 (NLL - NLL_min) is chi-square with one degree of freedom)
+
+def _threshold(result: FitResult, level: float) -> _Threshold:
+    """The interval's threshold: on the SSE, or with estimated sigmas or log-normal noise on 2 NLL.
+
+    (The profile likelihood: 2 (NLL - NLL_min) is chi-square with one degree of freedom.)
+    """
     likelihood = result.sigma is not None or result.noise != "normal"
     p = 0.5 + 0.5 * level
     if likelihood:
@@ -269,132 +338,151 @@ def profile(
         s2 = result.sse / result.dof
         q2 = student_t_quantile(p, result.dof) ** 2
     sse_min = 2 * result.nll if likelihood else result.sse
-    delta = s2 * q2
-    threshold = sse_min + delta
     if s2 <= 0:
         raise ValueError("the fit's SSE is zero: the data are met exactly and the profile threshold is zero-width")
+    return _Threshold(likelihood, s2, q2, sse_min)
 
+
+def _first_step(result: FitResult, name: str, theta_hat: float, step: float | None) -> float:
+    """Scale ``h`` of the search steps, in ``name``'s units: ``step``, else its standard error or 10% of it."""
     se = result.stderr[name]
     if step is None:
-        h = se if (math.isfinite(se) and se > 0) else (0.1 * abs(theta_hat) if theta_hat != 0 else 0.1)
-    else:
-        if isinstance(step, bool) or not isinstance(step, (int, float)) or not (step > 0 and math.isfinite(step)):
-            raise ValueError(f"`step` must be a finite number > 0; received {step!r}")
-        h = float(step)
-    lower_bound, upper_bound = _check_bounds(bounds, theta_hat)
+        return se if (math.isfinite(se) and se > 0) else (0.1 * abs(theta_hat) if theta_hat != 0 else 0.1)
+    if isinstance(step, bool) or not isinstance(step, (int, float)) or not (step > 0 and math.isfinite(step)):
+        raise ValueError(f"`step` must be a finite number > 0; received {step!r}")
+    return float(step)
 
-    n_fits = 0
-    failures: list[tuple[float, str]] = []
 
-    def evaluate(value: float, warm) -> _Point | None:
-        nonlocal n_fits
-        n_fits += 1
+@dataclass
+class _Refitter:
+    """Re-fits the model with the profiled unknown held at a value; counts the fits and records failures."""
+
+    result: FitResult
+    name: str
+    data: Observations
+    options: dict
+    params: list[str]
+    fixed_x0: list[str]
+    state_index: int | None
+    buffers: dict
+    likelihood: bool
+    n_fits: int = 0
+    failures: list = field(default_factory=list)
+
+    def __call__(self, value: float, warm) -> _Point | None:
+        """The optimum with ``name = value``, warm-started from ``warm`` (a point or the result); None if it fails."""
+        from .fit import fit
+
+        result, name = self.result, self.name
+        self.n_fits += 1
         model = copy.deepcopy(warm.model)
         x0 = warm.x0.clone()
-        if state_index is None:
-            _set_buffer(model, name, torch.tensor(value, dtype=buffers[name].dtype, device=buffers[name].device))
+        if self.state_index is None:
+            buf = self.buffers[name]
+            _set_buffer(model, name, torch.tensor(value, dtype=buf.dtype, device=buf.device))
         else:
-            x0[state_index] = value
-        if m == 1:  # nothing left to fit: the SSE of the model itself
-            sse = _sse_of(model, x0, result.t0, data, options, likelihood)
+            x0[self.state_index] = value
+        if len(result.unknown_names) == 1:  # nothing left to fit: the SSE of the model itself
+            sse = _sse_of(model, x0, result.t0, self.data, self.options, self.likelihood)
             if not math.isfinite(sse):
-                failures.append((value, "INTEGRATION_FAILED"))
+                self.failures.append((value, "INTEGRATION_FAILED"))
                 return None
             est = torch.tensor([value], dtype=result.estimates.dtype)
             return _Point(value, sse, est, model, x0)
         try:
-            r = fit(model, data, x0, params=params, fixed_x0=fixed_x0, **options)
+            r = fit(model, self.data, x0, params=self.params, fixed_x0=self.fixed_x0, **self.options)
         except (ValueError, RuntimeError) as exc:
             if warm is result:
                 raise
-            failures.append((value, f"{type(exc).__name__}: {exc}"))
+            self.failures.append((value, f"{type(exc).__name__}: {exc}"))
             return None
         if not (r.success or r.status is Status.NOT_IDENTIFIABLE) or not math.isfinite(r.sse):
-            failures.append((value, r.status.name))
+            self.failures.append((value, r.status.name))
             return None
         by_name = dict(zip(r.unknown_names, r.estimates.tolist()))
         by_name[name] = value
-        est = torch.tensor([by_name[u] for u in names], dtype=result.estimates.dtype)
-        return _Point(value, 2 * r.nll if likelihood else r.sse, est, r.model, r.x0)
+        est = torch.tensor([by_name[u] for u in result.unknown_names], dtype=result.estimates.dtype)
+        return _Point(value, 2 * r.nll if self.likelihood else r.sse, est, r.model, r.x0)
 
-    center = evaluate(theta_hat, result)
-    if center is None:
-        raise RuntimeError(f"re-fitting with {name} fixed at its estimate {theta_hat:g} failed ({failures[-1][1]})")
-    points = [center]
-    q = math.sqrt(q2)
 
-    def excess(pt: _Point) -> float:
-        return math.sqrt(max(pt.sse - sse_min, 0.0)) - math.sqrt(delta)
+def _search_side(refit: _Refitter, center: _Point, direction: float, limit: float | None, threshold: _Threshold,
+                 *, first: float, growth: float, max_points: int, tol: float
+                 ) -> tuple[float | None, str | None, list[_Point]]:
+    """Walk out from ``center`` (``direction`` -1: below, +1: above) until the profile crosses the threshold.
 
-    ends, closed, notes = [], [], []
-    for direction, limit in ((-1.0, lower_bound), (1.0, upper_bound)):
-        side = "below" if direction < 0 else "above"
-        prev = center
-        dist = 0.5 * q * h
-        end, why = None, None
-        for _ in range(max_points):
-            target = prev.value + direction * dist
-            at_limit = limit is not None and (target - limit) * direction >= 0
-            if at_limit:
-                target = limit
-            point = evaluate(target, prev)
-            halvings, trial_dist = 0, abs(target - prev.value)
-            while point is None and halvings < _FAIL_HALVINGS:
-                halvings += 1
-                trial_dist *= 0.5
-                at_limit = False
-                target = prev.value + direction * trial_dist
-                point = evaluate(target, prev)
-            if point is None:
-                why = (f"the re-fits failed {side} {name} = {prev.value:.6g} "
-                       f"({failures[-1][1]}; the profile stays below the threshold up to there)")
-                break
-            points.append(point)
-            if excess(point) >= 0:
-                end, extra = _crossing(prev, point, excess, evaluate, xtol * h)
-                points.extend(extra)
-                break
-            prev = point
-            dist *= growth
-            if at_limit:
-                why = f"the search bound {limit:.6g} was reached with the profile still below the threshold"
-                break
-        else:
-            why = (f"the profile stays below the threshold up to {name} = {prev.value:.6g} "
-                   f"({max_points} steps; widen the search with `max_points=`/`growth=`/`step=`)")
-        if end is None:
-            ends.append(direction * math.inf)
-            closed.append(False)
-            notes.append(f"open {side}: {why}")
-        else:
-            ends.append(end)
-            closed.append(True)
+    Returns the end (None when the side is open), why it is open, and the points evaluated in order.
+    """
+    name = refit.name
+    side = "below" if direction < 0 else "above"
+    prev = center
+    dist = first
+    points: list[_Point] = []
+    for _ in range(max_points):
+        target = prev.value + direction * dist
+        at_limit = limit is not None and (target - limit) * direction >= 0
+        if at_limit:
+            target = limit
+        point, halved = _step_out(refit, prev, target, direction)
+        at_limit = at_limit and not halved
+        if point is None:
+            return None, (f"the re-fits failed {side} {name} = {prev.value:.6g} "
+                          f"({refit.failures[-1][1]}; the profile stays below the threshold up to there)"), points
+        points.append(point)
+        if threshold.excess(point) >= 0:
+            end, extra = _crossing(prev, point, threshold.excess, refit, tol)
+            return end, None, points + extra
+        prev = point
+        dist *= growth
+        if at_limit:
+            return None, f"the search bound {limit:.6g} was reached with the profile still below the threshold", points
+    return None, (f"the profile stays below the threshold up to {name} = {prev.value:.6g} "
+                  f"({max_points} steps; widen the search with `max_points=`/`growth=`/`step=`)"), points
 
+
+def _step_out(refit: _Refitter, prev: _Point, target: float, direction: float) -> tuple[_Point | None, bool]:
+    """Re-fit at ``target``; while that fails, halve the step from ``prev`` (up to ``_FAIL_HALVINGS`` times).
+
+    Returns the point (None if every try failed) and whether the step was halved.
+    """
+    point = refit(target, prev)
+    halvings, trial_dist = 0, abs(target - prev.value)
+    while point is None and halvings < _FAIL_HALVINGS:
+        halvings += 1
+        trial_dist *= 0.5
+        target = prev.value + direction * trial_dist
+        point = refit(target, prev)
+    return point, halvings > 0
+
+
+def _stack_points(points: list[_Point]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sort ``points`` by value (in place); their values ``(K,)``, SSEs ``(K,)`` and estimates ``(K, m)``."""
     points.sort(key=lambda pt: pt.value)
     values = torch.tensor([pt.value for pt in points], dtype=torch.float64)
     sses = torch.tensor([pt.sse for pt in points], dtype=torch.float64)
     estimates = torch.stack([pt.estimates for pt in points])
-    wald = result.confidence_intervals(level)[name]
+    return values, sses, estimates
 
+
+def _summary(name: str, level: float, theta_hat: float, ends: list[float], closed: list[bool], notes: list[str],
+             wald) -> str:
+    """The result's message: the profile and Wald intervals, and why a side is open."""
     pct = f"{100 * level:g}%"
     message = (f"{name}: {pct} profile interval [{ends[0]:.6g}, {ends[1]:.6g}] "
                f"(Wald [{wald[0]:.6g}, {wald[1]:.6g}], estimate {theta_hat:.6g}).")
     if all(closed):
-        message += " The profile crosses the threshold on both sides."
-    else:
-        message += " The interval is " + "; ".join(notes) + ": the data do not bound it there at this level."
+        return message + " The profile crosses the threshold on both sides."
+    return message + " The interval is " + "; ".join(notes) + ": the data do not bound it there at this level."
+
+
+def _lower_sse_note(result: FitResult, data: Observations, options: dict, name: str, values: torch.Tensor,
+                    sses: torch.Tensor, threshold: _Threshold) -> str | None:
+    """A note when the profile found an SSE clearly below the fit's (beyond integration error); else None."""
+    sse_min = threshold.sse_min
     lowest = int(torch.argmin(sses))
-    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, delta) - _sse_noise(result, data, options):
-        note = (f" The profile found a lower SSE ({float(sses[lowest]):.6g} at {name} = {float(values[lowest]):.6g}) "
+    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, threshold.delta) - _sse_noise(result, data, options):
+        return (f" The profile found a lower SSE ({float(sses[lowest]):.6g} at {name} = {float(values[lowest]):.6g}) "
                 f"than the fit ({sse_min:.6g}): the fit is not at the least-squares optimum; re-fit from there.")
-        message += note
-        warnings.warn(note.strip(), UserWarning, stacklevel=2)
-    return ProfileResult(
-        name=name, level=level, estimate=theta_hat, sse_min=sse_min, threshold=threshold,
-        interval=(ends[0], ends[1]), closed=(closed[0], closed[1]), wald=(float(wald[0]), float(wald[1])),
-        values=values, sse=sses, estimates=estimates, unknown_names=names, message=message, n_fits=n_fits,
-        failures=failures, sigma_known=result.sigma_known, residual_variance=s2,
-    )
+    return None
 
 
 def _crossing(inside: _Point, outside: _Point, excess, evaluate, tol: float):

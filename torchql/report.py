@@ -149,29 +149,45 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
         raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
     if isinstance(min_correlation, bool) or not isinstance(min_correlation, (int, float)) or not 0 <= min_correlation < 1:
         raise ValueError(f"`min_correlation` must be a number in [0, 1); received {min_correlation!r}")
-    names = list(result.unknown_names)
-    m = len(names)
-    width = max([len(n) for n in names] + [10])
-    lines: list[str] = []
-    add = lines.append
+    lines = _fit_section(result) + _statistics_section(result)
+    unknowns, missing = _unknowns_section(result, level)
+    lines += unknowns
+    if len(result.unknown_names) > 1 and not missing:
+        lines += _correlations_section(result, min_correlation)
+    if iterations and result.history:
+        lines += _iterations_section(result)
+    text = "\n".join(lines)
+    if print:
+        builtins.print(text)
+    return text
 
-    add("[[Fit]]")
-    add(f"    method             = {result.method}")
-    add(f"    status             = {result.status.name}")
-    add(f"    success            = {result.success}")
-    add(f"    message            = {result.message}")
-    add(f"    iterations         = {result.iterations}")
-    add(f"    function evals     = {result.nfev}")
+
+def _fit_section(result: "FitResult") -> list[str]:
+    """The ``[[Fit]]`` lines: method, status, message, iterations, evaluations, moved guesses."""
+    lines = [
+        "[[Fit]]",
+        f"    method             = {result.method}",
+        f"    status             = {result.status.name}",
+        f"    success            = {result.success}",
+        f"    message            = {result.message}",
+        f"    iterations         = {result.iterations}",
+        f"    function evals     = {result.nfev}",
+    ]
     if result.moved_guesses:
-        add("    moved guesses      = " + ", ".join(f"{name}: {given:g} -> {used:.6g}"
-                                                    for name, (given, used) in result.moved_guesses.items())
-            + " (on or outside their bounds: moved inside)")
+        lines.append("    moved guesses      = " + ", ".join(f"{name}: {given:g} -> {used:.6g}"
+                                                             for name, (given, used) in result.moved_guesses.items())
+                     + " (on or outside their bounds: moved inside)")
+    return lines
 
+
+def _statistics_section(result: "FitResult") -> list[str]:
+    """The ``[[Fit statistics]]`` lines: counts, SSE, noise, sigma or residual std, NLL, AIC, BIC, condition."""
     n_exact = int(result.exact_mask.sum())
     aic, bic = information_criteria(result)
-    add("[[Fit statistics]]")
+    lines = ["[[Fit statistics]]"]
+    add = lines.append
     add(f"    data points        = {result.n_observations}" + (f" ({n_exact} met exactly)" if n_exact else ""))
-    add(f"    unknowns           = {m}")
+    add(f"    unknowns           = {len(result.unknown_names)}")
     add(f"    degrees of freedom = {result.dof}")
     add(f"    SSE (chi-square)   = {_g(result.sse)}")
     if result.noise != "normal":
@@ -190,68 +206,76 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
     add(f"    AIC                = {_g(aic)}")
     add(f"    BIC                = {_g(bic)}")
     add(f"    condition number   = {_g(condition_number(result), 4)} (column-scaled weighted Jacobian)")
+    return lines
 
-    se = result.stderr
+
+def _unknowns_section(result: "FitResult", level: float) -> tuple[list[str], list[str]]:
+    """The ``[[Unknowns]]`` lines (values, standard errors, Wald intervals at ``level``), and the unknowns
+    without an error bar (all of them when the fit did not converge)."""
+    names = list(result.unknown_names)
+    width = max([len(n) for n in names] + [10])
     est = result.estimates.tolist()
-    pct = f"{100 * level:g}%"
-    missing = []
     if not (result.success or result.status is Status.NOT_IDENTIFIABLE):
         # estimates that are not an optimum: no error bar or interval about them means anything
-        add(f"[[Unknowns]] (value; no standard errors or intervals: {_no_errorbar_reason(result)})")
-        for name, value in zip(names, est):
-            add(f"    {name:<{width}} = {_g(value)}")
-        missing = names
+        lines = [f"[[Unknowns]] (value; no standard errors or intervals: {_no_errorbar_reason(result)})"]
+        lines += [f"    {name:<{width}} = {_g(value)}" for name, value in zip(names, est)]
+        return lines, names
+    se = result.stderr
+    pct = f"{100 * level:g}%"
+    cis = result.confidence_intervals(level)
+    bounded = _bounded(result)
+    header = f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval"
+    if bounded:
+        header += (f"; of {', '.join(bounded)} in the bounds' internal variable (log of the distance to "
+                   "one bound, logit between two), mapped back: inside the bounds, asymmetric")
+    lines = [header + ")"]
+    missing = []
+    for name, value in zip(names, est):
+        s = se[name]
+        if not math.isfinite(s):
+            missing.append(name)
+            lines.append(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
+            continue
+        rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
+        lo, hi = cis[name]
+        lines.append(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
+    if missing:
+        lines += ["[[Unknowns without error bars]]", f"    {', '.join(missing)}: {_no_errorbar_reason(result)}"]
+    return lines, missing
+
+
+def _correlations_section(result: "FitResult", min_correlation: float) -> list[str]:
+    """The ``[[Correlations]]`` lines: the pairs with ``|r| > min_correlation``, strongest first."""
+    names = list(result.unknown_names)
+    m = len(names)
+    corr = result.correlation
+    pairs = [(abs(float(corr[i, j])), float(corr[i, j]), names[i], names[j])
+             for i in range(m) for j in range(i + 1, m)]
+    shown = sorted((p for p in pairs if math.isfinite(p[1]) and p[0] > min_correlation), reverse=True)
+    lines = [f"[[Correlations]] (|r| > {min_correlation:g})"]
+    if not shown:
+        lines.append("    none")
+    cw = max([len(f"C({a}, {b})") for _, _, a, b in shown] + [0])
+    lines += [f"    {f'C({a}, {b})':<{cw}} = {r:+.4f}" for _, r, a, b in shown]
+    return lines
+
+
+def _iterations_section(result: "FitResult") -> list[str]:
+    """The ``[[Iterations]]`` table: SSE, scaled ``|alpha|`` and every unknown per iterate."""
+    names = list(result.unknown_names)
+    if result.method == "kantorovich":
+        what = ("SSE: of the iterate's stored trajectory, the linear prediction w_0 + W alpha of the step "
+                "that led to it (not the model's solution: it need not fall, and may dip below the optimum); "
+                "steps are accepted on IterationRecord.merit or the model's own sum of squares")
     else:
-        cis = result.confidence_intervals(level)
-        bounded = _bounded(result)
-        header = f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval"
-        if bounded:
-            header += (f"; of {', '.join(bounded)} in the bounds' internal variable (log of the distance to "
-                       "one bound, logit between two), mapped back: inside the bounds, asymmetric")
-        add(header + ")")
-        for name, value in zip(names, est):
-            s = se[name]
-            if not math.isfinite(s):
-                missing.append(name)
-                add(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
-                continue
-            rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
-            lo, hi = cis[name]
-            add(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
-        if missing:
-            add("[[Unknowns without error bars]]")
-            add(f"    {', '.join(missing)}: {_no_errorbar_reason(result)}")
-
-    if m > 1 and not missing:
-        corr = result.correlation
-        pairs = [(abs(float(corr[i, j])), float(corr[i, j]), names[i], names[j])
-                 for i in range(m) for j in range(i + 1, m)]
-        shown = sorted((p for p in pairs if math.isfinite(p[1]) and p[0] > min_correlation), reverse=True)
-        add(f"[[Correlations]] (|r| > {min_correlation:g})")
-        if not shown:
-            add("    none")
-        cw = max([len(f"C({a}, {b})") for _, _, a, b in shown] + [0])
-        for _, r, a, b in shown:
-            add(f"    {f'C({a}, {b})':<{cw}} = {r:+.4f}")
-
-    if iterations and result.history:
-        if result.method == "kantorovich":
-            what = ("SSE: of the iterate's stored trajectory, the linear prediction w_0 + W alpha of the step "
-                    "that led to it (not the model's solution: it need not fall, and may dip below the optimum); "
-                    "steps are accepted on IterationRecord.merit or the model's own sum of squares")
-        else:
-            what = "SSE: of the model's solution from the iterate's estimates"
-        add(f"[[Iterations]] ({what}; |alpha|: the update scaled by the unknowns' magnitudes)")
-        cols = [max(14, len(n) + 1) for n in names]
-        add(f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols)))
-        for rec in result.history:
-            vals = unknown_values(result, rec)
-            alpha = "-" if not math.isfinite(rec.alpha_norm) else f"{rec.alpha_norm:.3e}"
-            sse = f"{rec.sse:.6g}" if math.isfinite(rec.sse) else "nan"
-            add(f"    {rec.iteration:>4} {sse:>12} {alpha:>10} "
-                + " ".join(f"{_g(v, 10):>{w}}" for v, w in zip(vals, cols)))
-
-    text = "\n".join(lines)
-    if print:
-        builtins.print(text)
-    return text
+        what = "SSE: of the model's solution from the iterate's estimates"
+    cols = [max(14, len(n) + 1) for n in names]
+    lines = [f"[[Iterations]] ({what}; |alpha|: the update scaled by the unknowns' magnitudes)",
+             f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols))]
+    for rec in result.history:
+        vals = unknown_values(result, rec)
+        alpha = "-" if not math.isfinite(rec.alpha_norm) else f"{rec.alpha_norm:.3e}"
+        sse = f"{rec.sse:.6g}" if math.isfinite(rec.sse) else "nan"
+        lines.append(f"    {rec.iteration:>4} {sse:>12} {alpha:>10} "
+                     + " ".join(f"{_g(v, 10):>{w}}" for v, w in zip(vals, cols)))
+    return lines
