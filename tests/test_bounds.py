@@ -456,6 +456,8 @@ def test_log_scale_fit_recovers_the_truth_and_its_interval_is_of_the_logarithm(d
     lo, hi = r.confidence_intervals()["B"]
     assert lo == pytest.approx(b * math.exp(-q * se / b), rel=1e-10)
     assert hi == pytest.approx(b * math.exp(q * se / b), rel=1e-10)
+    header = next(line for line in r.report().splitlines() if line.startswith("[[Unknowns]]"))
+    assert "of B on the log scale (the interval of log u" in header
     y_lo, y_hi = r.confidence_intervals()["y(t0)"]  # the linear-scale unknowns keep their symmetric intervals
     assert (y_lo + y_hi) / 2 == pytest.approx(r.x0[0].item(), rel=1e-12)
 

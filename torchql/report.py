@@ -223,11 +223,14 @@ def _unknowns_section(result: "FitResult", level: float) -> tuple[list[str], lis
     se = result.stderr
     pct = f"{100 * level:g}%"
     cis = result.confidence_intervals(level)
-    bounded = _bounded(result)
+    bounded = [name for name in _bounded(result) if name not in result.log_scaled]
     header = f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval"
     if bounded:
         header += (f"; of {', '.join(bounded)} in the bounds' internal variable (log of the distance to "
                    "one bound, logit between two), mapped back: inside the bounds, asymmetric")
+    if result.log_scaled:
+        header += (f"; of {', '.join(result.log_scaled)} on the log scale (the interval of log u, inside its "
+                   "bounds), mapped back: asymmetric")
     lines = [header + ")"]
     missing = []
     for name, value in zip(names, est):

@@ -75,10 +75,14 @@ def bruno_experiments(problem: PetabProblem, values: Mapping[str, float]):
     return model, datasets, torch.stack(x0), fixed, conditions, params, bounds
 
 
-def fit_bruno(problem: PetabProblem, values: Mapping[str, float], **options) -> torchql.FitResult:
+def fit_bruno(problem: PetabProblem, values: Mapping[str, float], scale: str = "lin", **options) -> torchql.FitResult:
     """Fit Bruno's 13 unknowns from the guesses ``values`` (linear scale), with the PEtab problem's
-    integration tolerances unless ``options`` say otherwise (other ``options`` go to :func:`torchql.fit`)."""
+    integration tolerances unless ``options`` say otherwise (other ``options`` go to :func:`torchql.fit`).
+    ``scale="log10"`` iterates every unknown on the log scale, as the PEtab table estimates them (its
+    bounds then bound the logarithm)."""
     model, datasets, x0, fixed, conditions, params, bounds = bruno_experiments(problem, values)
+    if scale != "lin":
+        options["scale"] = {name: scale for name in bounds}
     options.setdefault("rtol", problem.spec.rtol)
     options.setdefault("atol", problem.spec.atol)
     return torchql.fit(model, datasets, x0=x0, t0=0.0, params=params, fixed_x0=fixed, conditions=conditions,
