@@ -44,6 +44,7 @@ def main() -> None:
     parser.add_argument("--factor", type=float, default=1.2, help="perturbation factor (default 1.2: +-20 %%)")
     parser.add_argument("--scale", choices=("lin", "log10"), default="lin",
                         help="iterate the unknowns on the linear scale (default) or on PEtab's log10 scale")
+    parser.add_argument("--max-time", type=float, default=None, help="wall-clock budget of each fit, s (default none)")
     args = parser.parse_args()
     label = f"x{args.factor:g}"
     problem = load_problem(PROBLEMS["Bruno_JExpBot2016"])
@@ -53,7 +54,7 @@ def main() -> None:
              "| start | status | iterations | NLL | NLL - reference | max rel. diff. of estimates | time (s) |",
              "|---|---|---|---|---|---|---|"]
     start = time.perf_counter()
-    best = fit_bruno(problem, values, scale=args.scale)
+    best = fit_bruno(problem, values, scale=args.scale, max_time=args.max_time)
     elapsed = time.perf_counter() - start
     lines.append(f"| nominal | {best.status.name} | {best.iterations} | {best.nll:.6f} | "
                  f"{best.nll - problem.reference_nllh:+.1e} | 0 | {elapsed:.1f} |")
@@ -61,16 +62,18 @@ def main() -> None:
     returned = 0
     for seed in range(args.starts):
         start = time.perf_counter()
-        result = fit_bruno(problem, perturbed(problem, values, seed, args.factor), scale=args.scale)
+        result = fit_bruno(problem, perturbed(problem, values, seed, args.factor), scale=args.scale,
+                           max_time=args.max_time)
         elapsed = time.perf_counter() - start
         diff = float(((result.estimates - best.estimates).abs() / best.estimates.abs()).max())
         back = result.success and abs(result.nll - problem.reference_nllh) < 1e-3
         returned += back
         lines.append(f"| {label} seed {seed} | {result.status.name} | {result.iterations} | {result.nll:.6f} | "
                      f"{result.nll - problem.reference_nllh:+.1e} | {diff:.1e} | {elapsed:.1f} |")
-        print(lines[-1])
+        print(lines[-1], flush=True)
     flags = "".join(f" --{k} {v}" for k, v, default in (("starts", args.starts, 8), ("factor", f"{args.factor:g}", "1.2"),
-                                                           ("scale", args.scale, "lin")) if v != default)
+                                                           ("scale", args.scale, "lin"),
+                                                           ("max-time", args.max_time, None)) if v != default)
     lines += ["", f"{returned} of {args.starts} perturbed starts returned to the reference (|NLL - reference| < 1e-3).",
               "", f"Unknowns iterated on the {args.scale} scale. Command: `python experiments/petab_fit.py{flags}`"]
     name = "petab_fit.md" if not flags else f"petab_fit_{args.scale}_{label}.md"
