@@ -155,3 +155,18 @@ def test_float32():
     assert T32.dtype == torch.float32
     assert _within(T32.double(), _reference_transfers(IntervalSystem(ref), 1e-5), 1e-5, 1e-7) <= 1.01
 
+
+
+def test_a_spent_time_budget_stops_the_series_sum():
+    """The first pass over the intervals sums every series term by term: a fit's spent budget stops it there
+    (a Bruno fit from a far start once summed one iteration's series for minutes past its `max_time`)."""
+    import time
+
+    from torchql.budget import TimeBudgetExceeded, time_budget
+
+    coefficients = _Coefficients(IntervalSystem(_random_reference(seed=5, scale=0.1)))  # no substeps: one pass
+    series_transfers(coefficients, rtol=1e-10, atol=1e-12)  # no budget: runs through
+    with time_budget(0.0):
+        time.sleep(0.001)
+        with pytest.raises(TimeBudgetExceeded):
+            series_transfers(coefficients, rtol=1e-10, atol=1e-12)

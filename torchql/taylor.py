@@ -160,6 +160,7 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
     result = result_ratio = passed = None
     k = 1  # terms T_1 .. T_k summed
     while True:
+        check_time()  # a term costs O(a) products: a long sum must not outlast the fit's budget
         new = A_aa[0, :, 0].unsqueeze(1) * recent[-1][0].unsqueeze(0)  # the products A_i T_{k-i}
         for i in range(min(_HERMITE_DEGREE + 1, k)):
             previous = recent[-1 - i]  # T_{k-i}
