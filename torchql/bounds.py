@@ -276,10 +276,6 @@ class Bounds:
         rate = (self.derivative(u) / u).abs()  # ds/dq on the log scale
         return torch.where(self.log & (rate > 1), MAX_INTERNAL_STEP / rate, limit)
 
-    def nonpositive(self, u: torch.Tensor) -> list[str]:
-        """Names of the log-scale unknowns whose value in ``u (m,)`` is not positive."""
-        return [self.names[i] for i in torch.nonzero(self.log & ~(u > 0)).flatten().tolist()]
-
     def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
         """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""
         scale = torch.maximum(u.abs(), torch.ones_like(u))

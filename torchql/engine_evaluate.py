@@ -71,9 +71,8 @@ class Evaluation:
 
     def _rows(self, idx, z_ref_obs, zp_obs, Z_obs):
         """``C (S, R, m)``, ``d (S, R)``, residuals ``(S, R)`` at the observations (zero where missing)."""
-        n, K = self.system.n, self.spec.K
+        n, K = self.spec.operator.width, self.spec.K  # the states, or for h(x, p) the augmented state
         S, T = z_ref_obs.shape[:2]
-        n = z_ref_obs.shape[-1] if self.spec.operator.takes_params else n  # h(x, p): over the augmented state
         x_ref = z_ref_obs[..., :n]
         h_ref, H = self.spec.operator.value_and_jacobian(x_ref.reshape(-1, n))
         h_ref, H = h_ref.reshape(S, T, K), H.reshape(S, T, K, n)
@@ -332,7 +331,7 @@ class Evaluation:
         if need.numel():
             traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
                                            budget_is_final=True)
-            n = traj.shape[-1] if self.spec.operator.takes_params else self.system.n
+            n = self.spec.operator.width
             value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
             y, mask = self.y[idx[need]], self.mask[idx[need]]
             resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))

@@ -62,15 +62,12 @@ class InitialStateExpressions:
         self.system = system
         self.items = [(system.state_names.index(name), name, fn) for name, fn in expressions.items()]
         self.index = [i for i, _, _ in self.items]
-        self._constants = {name: value for name, value in system.model.named_buffers()
-                           if value.is_floating_point() and name not in system.param_names}
 
     def __bool__(self) -> bool:
         return bool(self.items)
 
     def _values(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
-        values = dict(self._constants)
-        values.update(self.system.unpack_params(z[self.system.n:]))
+        values = self.system.coefficient_values(z)
         values.update({name: z[i] for i, name in enumerate(self.system.state_names)})
         return values
 

@@ -251,6 +251,16 @@ class AugmentedSystem:
             start += size
         return out
 
+    def coefficient_values(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every float coefficient by name for one augmented state ``z (M,)``: those in ``z`` from
+        it, the others from :attr:`model` (what observation functions and initial-state expressions read)."""
+        if not hasattr(self, "_fixed_values"):
+            self._fixed_values = {name: value for name, value in self.model.named_buffers()
+                                  if value.is_floating_point() and name not in self.param_names}
+        values = dict(self._fixed_values)
+        values.update(self.unpack_params(z[self.n:]))
+        return values
+
     def rhs(self, t: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Model right-hand side ``f(t, x; p)`` for a single state ``x`` of shape ``(n,)``."""
         return functional_call(self.model, self.unpack_params(p), (t, x))

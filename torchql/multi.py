@@ -31,6 +31,15 @@ def experiment_state_name(name: str, e: int) -> str:
     return f"{name}[{e}]"
 
 
+def condition_values(values: dict, condition: dict | None) -> dict:
+    """``values`` (coefficients by name) as one experiment sees them: its ``condition`` applied, each
+    entry a tensor or another coefficient's name (see :func:`check_conditions`). A new dict."""
+    own = dict(values)
+    for key, value in (condition or {}).items():
+        own[key] = values[value] if isinstance(value, str) else value
+    return own
+
+
 def experiment_expressions(expressions: dict, names: list[str], E: int, conditions: list | None) -> dict | None:
     """``x0_expr`` of several experiments for the stacked model: each state's expression in every
     experiment, seeing that experiment's initial states by their own names and its coefficient
@@ -41,9 +50,8 @@ def experiment_expressions(expressions: dict, names: list[str], E: int, conditio
     def own(fn, e: int):
         def expression(values: dict) -> torch.Tensor:
             mine = {k: v for k, v in values.items() if "[" not in k or k.rsplit("[", 1)[0] not in names}
+            mine = condition_values(mine, conditions[e] if conditions else None)
             mine.update({s: values[experiment_state_name(s, e)] for s in names})
-            for k, v in (conditions[e] if conditions else {}).items():
-                mine[k] = values[v] if isinstance(v, str) else v
             return fn(mine)
         return expression
 
@@ -101,10 +109,7 @@ class StackedModel(ODEModel):
             xe = x[..., e * self.n:(e + 1) * self.n]
             te = self._t0[e] + self._span[e] * t
             args = (te, xe) if self._signals is None else (te, xe, self._signals[e](te))
-            own = buffers
-            if self._conditions and self._conditions[e]:
-                own = dict(buffers)
-                own.update((k, buffers[v] if isinstance(v, str) else v) for k, v in self._conditions[e].items())
+            own = condition_values(buffers, self._conditions[e]) if self._conditions else buffers
             out.append(self._span[e] * functional_call(self.inner.model, own, args))
         return torch.cat(out, dim=-1)
 
@@ -175,9 +180,9 @@ def with_condition(model: ODEModel, condition: dict | None) -> ODEModel:
     """A copy of ``model`` with one experiment's ``condition`` applied (see :func:`check_conditions`)."""
     fitted = copy.deepcopy(model)
     if condition:
-        values = coefficients(model)
-        for key, value in condition.items():
-            _set_buffer(fitted, key, (values[value] if isinstance(value, str) else value).detach().clone())
+        values = condition_values(coefficients(model), condition)
+        for key in condition:
+            _set_buffer(fitted, key, values[key].detach().clone())
     return fitted
 
 
@@ -258,10 +263,7 @@ class _BlockObservation:
             if op.matrix is not None:
                 out.append(xe @ op.matrix.T)
             elif op.takes_params:
-                own = dict(p)
-                for k, v in (self.conditions[e] if self.conditions else {}).items():
-                    own[k] = p[v] if isinstance(v, str) else v
-                out.append(spec(xe, own))
+                out.append(spec(xe, condition_values(p, self.conditions[e] if self.conditions else None)))
             else:
                 out.append(spec(xe))
         return torch.cat(out, dim=-1)

@@ -441,6 +441,9 @@ class ObservationOperator:
         self.matrix: torch.Tensor | None = None
         self.takes_params = False
         self.system = None
+        #: The size of the states :meth:`value_and_jacobian` takes: ``n``, or ``M`` for ``h(x, p)``
+        #: bound to a system (the augmented state).
+        self.width = n
         if isinstance(observe, (torch.Tensor, np.ndarray)):
             Q = _as_float_tensor(observe, "observe", dtype).to(device)
             if Q.shape != (K, n):
@@ -463,16 +466,15 @@ class ObservationOperator:
 
     def bind(self, system) -> "ObservationOperator":
         """Read the coefficients of ``h(x, p)`` from augmented states of ``system`` (an
-        :class:`torchql.model.AugmentedSystem`): its unknowns from ``z``, the others from its model."""
+        :class:`torchql.model.AugmentedSystem`): its unknowns from ``z``, the others from its model;
+        :attr:`width` becomes the augmented state's size ``M``."""
         self.system = system
-        self._constants = {name: value for name, value in system.model.named_buffers()
-                           if value.is_floating_point() and name not in system.param_names}
+        if self.takes_params:
+            self.width = system.M
         return self
 
     def _params(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
-        values = dict(self._constants)
-        values.update(self.system.unpack_params(z[self.n:]))
-        return values
+        return self.system.coefficient_values(z)
 
     def labels(self) -> list[str]:
         """A label per output: the state it reads directly, else ``"y[k]"``."""
@@ -540,6 +542,11 @@ class LogObservation:
     def __init__(self, operator: ObservationOperator) -> None:
         self.inner, self.n, self.K = operator, operator.n, operator.K
         self.matrix, self.function, self.takes_params = None, operator.function, operator.takes_params
+
+    @property
+    def width(self) -> int:
+        """The size of the states :meth:`value_and_jacobian` takes (the inner operator's)."""
+        return self.inner.width
 
     @property
     def observed_states(self) -> list[None]:
