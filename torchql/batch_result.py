@@ -111,6 +111,9 @@ class BatchFitResult:
         The estimated standard deviations (``sigma="estimate"``), one per group ``sigma_names``.
     noise : str
         The data's noise distribution.
+    sigma_function : bool
+        Whether the data's sigma was a function ``sigma(p)`` of the coefficients (the weights,
+        residuals and Jacobian are then at its values at each sample's estimates).
     """
 
     success: torch.Tensor
@@ -151,6 +154,7 @@ class BatchFitResult:
     sigma: torch.Tensor | None = field(default=None, repr=False)
     sigma_names: list[str] | None = field(default=None, repr=False)
     noise: str = field(default="normal", repr=False)
+    sigma_function: bool = field(default=False, repr=False)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])
@@ -221,7 +225,7 @@ class BatchFitResult:
             moved_guesses=dict(self.moved_guesses.get(i, {})),
             nll=math.nan if self.nll is None else float(self.nll[i]),
             sigma=None if self.sigma is None else dict(zip(self.sigma_names, self.sigma[i].tolist())),
-            noise=self.noise)
+            noise=self.noise, sigma_function=self.sigma_function)
 
     def __getitem__(self, i: int) -> FitResult:
         return self.sample(i)
@@ -325,6 +329,7 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         sigma=None if any(p.sigma is None for p in parts) else torch.cat([p.sigma for p in parts]),
         sigma_names=first.sigma_names,
         noise=first.noise,
+        sigma_function=first.sigma_function,
     )
 
 

@@ -30,7 +30,7 @@ from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
 from .batch_integrate import _last_nodes
 from .data_start import data_reference
-from .engine_evaluate import _MERIT_SLACK, Evaluation, _pick
+from .engine_evaluate import Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .lstsq import ExactRowsError, solve_update, solve_update_batch
 from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_MIN as _DAMPING_MIN, DAMPING_START as _DAMPING_START
@@ -157,7 +157,7 @@ class Engine(Evaluation, FinalPass):
         move while the others are re-solved, as ``fit`` does.
         """
         spec = self.spec
-        C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(self.w, idx).reshape(idx.numel(), -1)
+        C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(cur["w"], idx)
         bounds = spec.bounds
         if not bounds.active:
             alpha, infeasible = self._lstsq(idx, C, d, w, damping)
@@ -335,8 +335,8 @@ class Engine(Evaluation, FinalPass):
         zero = st.damping[act] == 0
         sse = cur["sse"][act]
         conv = zero & (scaled <= spec.xtol)
-        conv_sse = (zero & ~conv & torch.isfinite(st.sse_prev[act]) & (sse > 0)
-                    & ((sse - st.sse_prev[act]).abs() <= spec.ftol * sse) & (scaled <= math.sqrt(spec.xtol)))
+        conv_sse = (zero & ~conv & torch.isfinite(st.sse_prev[act]) & (sse != 0)
+                    & ((sse - st.sse_prev[act]).abs() <= spec.ftol * sse.abs()) & (scaled <= math.sqrt(spec.xtol)))
         moving = zero & ~conv & ~conv_sse
         st.sse_prev[act[moving]] = sse[moving]
         done = conv | conv_sse
@@ -362,7 +362,7 @@ class Engine(Evaluation, FinalPass):
         spec, cur = self.spec, st.cur
         if spec.damping is None:
             return ok
-        lower = trial["merit"] <= cur["merit"][act] * (1 + _MERIT_SLACK)
+        lower = not_above(trial["merit"], cur["merit"][act])
         if spec.method == "shooting":  # the merit is the model's own sum of squares
             return ok & lower
         better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped
@@ -371,7 +371,7 @@ class Engine(Evaluation, FinalPass):
             rows = check.nonzero().flatten()
             t_sse = self._nonlinear_sse(act, trial, rows)
             c_sse = self._nonlinear_sse(st.all_idx, cur, act[rows])
-            better[rows] = t_sse <= c_sse * (1 + _MERIT_SLACK)
+            better[rows] = not_above(t_sse, c_sse)
         return ok & better
 
     def _take(self, st: "_Loop", act, trial, accept) -> None:

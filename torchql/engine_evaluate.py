@@ -16,6 +16,7 @@ from .batch_integrate import dopri_batch, integrate_each, propagate_linear_batch
 from .grid_solve import IntervalBudgetError, solve_on_grid
 from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
+from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS, rodas5p_batch
 from .superposition import propagate_linear
 from .trajectory import LinearizedReference
@@ -38,9 +39,15 @@ _GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
 _BLOWUP_STEPS = 16384
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
-#: A trial step is accepted when its merit is at most ``(1 + _MERIT_SLACK)`` times the current one
-#: (rounding of the sums of squares must not reject a converging step).
+#: A trial step is accepted when its merit exceeds the current one by at most ``_MERIT_SLACK`` times
+#: its magnitude (rounding of the sums of squares must not reject a converging step).
 _MERIT_SLACK = 1e-10
+
+
+def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a <= b`` up to :data:`_MERIT_SLACK` relative to ``|b|`` (an objective with a ``sigma(p)``
+    function may be negative; for ``b >= 0`` this is ``a <= b (1 + _MERIT_SLACK)``)."""
+    return a <= torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
 #: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
 _EXACT_PENALTY = 1e6
 
@@ -85,10 +92,27 @@ class Evaluation:
         C = torch.where(mask.unsqueeze(-1), C, zero)
         return C.reshape(S, T * K, -1), d.reshape(S, -1), resid.reshape(S, -1)
 
-    def _ssq(self, idx, residual, penalty: bool = False):
-        """Weighted sums of squares ``(S,)`` of ``residual (S, R)``, the exact rows left out; with
-        ``penalty``, the merit: plus ``_EXACT_PENALTY`` times their squared misfit."""
-        r2 = (residual * _pick(self.w, idx).reshape(residual.shape)) ** 2
+    def _weighted(self, idx, z0, C, d):
+        """The weighted linear problem of the chunk's samples ``idx`` at the iterates ``z0 (S, M)``
+        from its rows ``C (S, R, m)`` and residuals ``d (S, R)``: ``(C, d, w, log_term)``.
+
+        With fixed sigmas ``C`` and ``d`` as they are, ``w (S, R)`` the data's weights and
+        ``log_term`` zero; with a ``sigma(p)`` function, the rows of
+        :func:`torchql.sigma_function.noise_rows` (``2 R`` of them) at the iterates' sigmas, and
+        ``log_term (S,)`` the objective's ``2 sum log sigma``.
+        """
+        w = _pick(self.w, idx).reshape(d.shape)
+        sigma_function = self.spec.sigma_function
+        if sigma_function is None:
+            return C, d, w, torch.zeros(d.shape[0], dtype=d.dtype, device=d.device)
+        sigma, dlog = sigma_function.evaluate(z0)
+        return noise_rows(C, d, w, w > 0, sigma, dlog[..., self.spec.unknown_index])
+
+    def _ssq(self, idx, residual, w, penalty: bool = False):
+        """Weighted sums of squares ``(S,)`` of ``residual (S, R)`` with weights ``w (S, R')`` (the
+        first ``R`` apply), the exact rows left out; with ``penalty``, the merit: plus
+        ``_EXACT_PENALTY`` times their squared misfit."""
+        r2 = (residual * w[:, :residual.shape[1]]) ** 2
         if not self.spec.has_exact:
             return r2.sum(dim=1)
         exact = _pick(self.exact, idx)
@@ -108,9 +132,11 @@ class Evaluation:
             W[..., 0] = z
         W_obs = self._at_obs(W, idx)
         C, d, resid = self._rows(idx, self._at_obs(z, idx), W_obs[..., 0], W_obs[..., 1:])
-        sse, merit = self._ssq(idx, resid), self._ssq(idx, d, penalty=True)
+        C_w, d_w, w, log_term = self._weighted(idx, z0, C, d)
+        sse, merit = self._ssq(idx, resid, w) + log_term, self._ssq(idx, d, w, penalty=True) + log_term
         S = idx.numel()
-        return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C, d=d, sse=sse, merit=merit, failed=failed,
+        return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C_w, d=d_w, w=w, log=log_term, sse=sse, merit=merit,
+                    failed=failed,
                     anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
                     nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
 
@@ -322,7 +348,8 @@ class Evaluation:
         return traj, ok, over
 
     def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor) -> torch.Tensor:
-        """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable).
+        """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable;
+        with a ``sigma(p)`` function, the objective at the iterate's sigmas).
 
         As ``torchql.fit``'s second opinion: integrated at the loose tolerance, on the grid from
         the iterate's particular solution (its prediction of the trajectory) where that settles.
@@ -335,7 +362,7 @@ class Evaluation:
             value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
             y, mask = self.y[idx[need]], self.mask[idx[need]]
             resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
-            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1), penalty=True)
+            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1), it["w"][need], penalty=True) + it["log"][need]
             failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
             sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
             it["nl_sse"][need] = sse

@@ -6,6 +6,8 @@ of the fitted model itself, not of the last linear problem.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .bounds import at_bound_note, moved_guesses_note
@@ -57,29 +59,33 @@ class FinalPass:
             rows, traj, W = rows[~failed], traj[~failed], W[~failed]
         if rows.numel():
             traj_obs = self._at_obs(traj, rows)
-            C, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
-            w = self.w[rows].reshape(rows.numel(), -1)
-            J = C * w.unsqueeze(-1)
-            rw = resid * w
-            s = self._ssq(rows, resid)
+            C_mean, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
+            C, d, w, log_term = self._weighted(rows, z0[rows], C_mean, resid)
+            J = C * w.unsqueeze(-1)  # R rows, and with a sigma(p) function R more (its log term's)
+            rw = d * w
+            R = resid.shape[1]
+            J_info = J if J.shape[1] == R else _fisher_rows(C_mean, w, C[:, R:])
+            s = self._ssq(rows, resid, w)
             sse[rows] = s
+            s = s + log_term  # the objective (with a sigma(p) function, not a sum of squares)
             exact = self.exact[rows]
             exact_residual[rows] = torch.where(exact, resid.abs(), torch.zeros_like(resid)).amax(dim=1)
             if self.history is not None:
                 for k, r in enumerate(rows.tolist()):
                     self.history[r].append(self._record(r, int(iterations[r]), z0[r], float(s[k]), traj[k]))
                     self._notify(r)
-            residuals[rows], jacobian[rows] = rw, J
+            residuals[rows], jacobian[rows] = rw[:, :R], J_info[:, :R]
             nonfinite = ~torch.isfinite(s)
             for r in rows[nonfinite].tolist():
                 codes[r] = Status.DIVERGED
                 detail[r] = " The fitted trajectory is non-finite."
             keep = ~nonfinite
-            rows, J, s, rw = rows[keep], J[keep], s[keep], rw[keep]
+            rows, J, s, rw, J_info = rows[keep], J[keep], s[keep], rw[keep], J_info[keep]
         if rows.numel():
-            deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail)
-            cov[rows] = _covariance(J, self.mask[rows].reshape(rows.numel(), -1), s, self.L[rows], spec,
-                                    deficient | self.exact[rows].any(dim=1), self.exact[rows])
+            used = self._used(rows, J.shape[1])
+            deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail, used)
+            exact = torch.cat([self.exact[rows], torch.zeros_like(used[:, self.exact.shape[1]:])], dim=1)
+            cov[rows] = _covariance(J_info, used, s, self.L[rows], spec, deficient | exact.any(dim=1), exact)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
         if self.history is not None:  # the estimates returned, unevaluated, where the final pass did not run
             for r in range(S):
@@ -97,12 +103,18 @@ class FinalPass:
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
 
-    def _diagnose(self, rows, J, rw, sse, z0, codes, detail):
+    def _used(self, rows, R_all: int) -> torch.Tensor:
+        """The rows in use ``(S, R_all)`` of samples ``rows``: the values present, and with a
+        ``sigma(p)`` function the log rows of those values after them."""
+        used = self.mask[rows].reshape(rows.numel(), -1)
+        return used if R_all == used.shape[1] else torch.cat([used, used], dim=1)
+
+    def _diagnose(self, rows, J, rw, sse, z0, codes, detail, used):
         """The final statuses of samples ``rows`` from their weighted Jacobians ``J (S, R, m)`` and
-        residuals ``rw`` at the estimates: the Gauss–Newton step there (stationarity) and the
-        Jacobian's rank (:func:`torchql.diagnosis.final_status`), for samples that converged or
-        ran out of iterations or stalled. Updates ``codes`` and ``detail``; returns ``deficient
-        (S,)`` and the singular values ``(S, m)``."""
+        residuals ``rw`` at the estimates (rows ``used (S, R)``): the Gauss–Newton step there
+        (stationarity) and the Jacobian's rank (:func:`torchql.diagnosis.final_status`), for
+        samples that converged or ran out of iterations or stalled. Updates ``codes`` and
+        ``detail``; returns ``deficient (S,)`` and the singular values ``(S, m)``."""
         spec = self.spec
         dtype, dev, m = spec.dtype, spec.device, spec.m
         L = self.L[rows]
@@ -115,10 +127,10 @@ class FinalPass:
                 continue
             null_text = ""
             if bool(deficient[k]):
-                used = self.mask[r].reshape(-1)
-                sol = solve_update(J[k][used], torch.zeros(int(L[k]), dtype=dtype, device=dev),
-                                   torch.ones(int(L[k]), dtype=dtype, device=dev),
-                                   torch.zeros(int(L[k]), dtype=torch.bool, device=dev), spec.rcond)
+                n_used = int(used[k].sum())
+                sol = solve_update(J[k][used[k]], torch.zeros(n_used, dtype=dtype, device=dev),
+                                   torch.ones(n_used, dtype=dtype, device=dev),
+                                   torch.zeros(n_used, dtype=torch.bool, device=dev), spec.rcond)
                 null_text = null_detail(sol.null_vectors, spec.unknown_names)
             codes[r], more = final_status(
                 code, rank_deficient=bool(deficient[k]), null_text=null_text,
@@ -130,6 +142,15 @@ class FinalPass:
                 step=step[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
+
+
+def _fisher_rows(C_mean: torch.Tensor, w: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The rows ``(S, 2R, m)`` whose ``J^T J`` is the expected (Fisher) information of a fit with a
+    ``sigma(p)`` function: the mean's sensitivities over sigma, ``C_mean (S, R, m)`` times the data
+    rows' weights (the first ``R`` of ``w``), then ``sqrt(2)`` times the log rows ``g = d log sigma /
+    d unknowns (S, R, m)`` (a Gaussian value's information about ``log sigma`` is 2)."""
+    R = C_mean.shape[1]
+    return torch.cat([C_mean * w[:, :R].unsqueeze(-1), math.sqrt(2.0) * g], dim=1)
 
 
 def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:

@@ -285,6 +285,9 @@ class _Problem:
         if spec.sigma_estimated:
             raise ValueError("`data` asks to estimate sigma (sigma='estimate'), which gradient fitting does not do: "
                              "give sigma, or fit with torchql.fit")
+        if spec.sigma_function is not None:
+            raise ValueError("`data` gives sigma as a function sigma(p) of the coefficients, whose likelihood "
+                             "gradient fitting does not minimize: give sigma values, or fit with torchql.fit")
         self.system, self.operator, self.dtype, self.device = spec.system, spec.operator, spec.dtype, spec.device
         self.rtol, self.atol, self.rcond, self.solver = spec.rtol, spec.atol, spec.rcond, spec.solver
         self.t0, self.t_obs = spec.t0, spec.t_obs
@@ -332,9 +335,12 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
             raise ValueError(f"`x0` must have shape (E, n_states) = ({E}, {n}) with {E} experiments; "
                              f"received shape {tuple(x0_t.shape)}")
         x0_flat = x0_t.reshape(-1).clone()
+    elif x0_expr and set(names) <= set(x0_expr):  # every initial state an expression: nothing to give
+        x0_flat = torch.zeros(E * n, dtype=dtype, device=device)
     else:
         if t0 is not None and bool((t0s != first).any()):
-            raise ValueError("`x0` is required when `t0` precedes an experiment's first observation")
+            raise ValueError("`x0` is required when `t0` precedes an experiment's first observation (unless "
+                             "`x0_expr` gives every state)")
         x0_flat = None
     if isinstance(grid, torch.Tensor):
         raise ValueError("`grid` must be a number of intervals (per experiment) with several experiments; "

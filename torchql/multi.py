@@ -238,7 +238,26 @@ def stack_observations(datasets: list[Observations], state_names: list[str], t0:
     if first.sigma_estimated:
         return Observations(tau, y, observe=observe, sigma="estimate", exact=exact, noise=first.noise,
                             sigma_groups=[label for d, op in zip(datasets, operators) for label in _sigma_labels(d, op)])
+    functions = [d.sigma_function for d in datasets]
+    if any(f is not None for f in functions):
+        if not all(f is not None for f in functions):
+            raise ValueError("`sigma` must be a function sigma(p) for every experiment or for none (experiment "
+                             f"{functions.index(None)} gives none); a known sigma can be a function returning "
+                             "constants")
+        sigma = _BlockSigma(functions, conditions)
     return Observations(tau, y, observe=observe, sigma=sigma if sigma_given else None, exact=exact, noise=first.noise)
+
+
+class _BlockSigma:
+    """``sigma(p) = [sigma_1(p_1), ..., sigma_E(p_E)]``: each experiment's function of its own
+    coefficient values (its ``conditions`` applied)."""
+
+    def __init__(self, functions: list, conditions: list | None) -> None:
+        self.functions, self.conditions = functions, conditions
+
+    def __call__(self, p: dict) -> torch.Tensor:
+        return torch.cat([fn(condition_values(p, self.conditions[e] if self.conditions else None))
+                          for e, fn in enumerate(self.functions)])
 
 
 def _sigma_labels(data: Observations, operator: ObservationOperator) -> list[str]:

@@ -115,6 +115,7 @@ def run_with_noise(spec, run):
             result.sigma = spec.sigma_per_group.clone()
         result.sigma_names = list(spec.sigma_names)
     result.noise = spec.noise
+    result.sigma_function = spec.sigma_function is not None
     _set_likelihood(spec, result)
     return result
 
@@ -136,7 +137,7 @@ def _set_likelihood(spec, result) -> None:
     n = counted.sum(dim=1).to(spec.dtype)
     log_y = spec.log_y_sum
     if spec.sigma_known or spec.sigma_estimated:
-        w = spec.weights.reshape(spec.B, -1)
+        w = spec.weights_at(result.estimates).reshape(spec.B, -1)
         log_sigma = torch.where(counted, -torch.log(w.clamp(min=torch.finfo(spec.dtype).tiny)),
                                 torch.zeros_like(w)).sum(dim=1)
         result.nll = negative_log_likelihood(result.sse, log_sigma, n, log_y)

@@ -126,11 +126,14 @@ class Observations:
         the model's coefficients ``p`` by name (``p["scale"] * x[1] + p["offset"]``): observation
         parameters are coefficients of the model (buffers its ``forward`` need not use), estimated
         with the rest. The same for every sample.
-    sigma : float, Tensor or "estimate", optional
+    sigma : float, Tensor, "estimate" or callable, optional
         Standard deviation of each value (same unit as ``y``; of ``log y`` with
         ``noise="lognormal"``). Residuals are divided by it. ``"estimate"``: unknown, one per group
         of outputs (``sigma_groups``), estimated with the unknowns by maximum likelihood
-        (:mod:`torchql.noise`). Default: 1 for every value, the residual variance estimated
+        (:mod:`torchql.noise`). A callable ``sigma(p) -> (K,)``: each output's standard deviation
+        as a differentiable function of the model's coefficients ``p`` by name (noise parameters,
+        or a scale that also scales ``h(x, p)``), estimated with the rest by maximum likelihood
+        (:mod:`torchql.sigma_function`). Default: 1 for every value, the residual variance estimated
         from the fit. One dataset: a scalar, shape ``(K,)`` or ``(T, K)``, and with
         ``K == 1`` shape ``(T,)`` too. A batch: those shapes (shared by the samples) or any
         shape that broadcasts to ``(B, T, K)``, such as ``(B, 1, K)`` or ``(B, T, K)``.
@@ -162,6 +165,8 @@ class Observations:
     sigma_estimated : bool
         Whether ``sigma`` is to be estimated (``sigma="estimate"``); ``sigma`` is then 1.
     sigma_groups : the ``sigma_groups`` argument as given.
+    sigma_function : callable or None
+        ``sigma(p)`` when ``sigma`` was given as a function of the coefficients (``sigma`` is then 1).
     """
 
     def __init__(
@@ -208,9 +213,13 @@ class Observations:
             raise ValueError("`y` must be positive with noise='lognormal' (its logarithm is fitted); received a value "
                              "<= 0: mark it missing (NaN) or use noise='normal'")
         self.noise = noise
+        self.sigma_function = None
+        if callable(sigma) and not isinstance(sigma, (torch.Tensor, np.ndarray)):
+            self.sigma_function, sigma = sigma, 1.0
         self.sigma_estimated = isinstance(sigma, str)
         if self.sigma_estimated and sigma != "estimate":
-            raise ValueError(f"`sigma` must be a number, a tensor or 'estimate'; received {sigma!r}")
+            raise ValueError("`sigma` must be a number, a tensor or 'estimate' (or a function sigma(p) of the "
+                             f"coefficients); received {sigma!r}")
         if sigma_groups is not None and not self.sigma_estimated:
             raise ValueError("`sigma_groups` applies only with sigma='estimate'")
         self.sigma_groups = sigma_groups
@@ -263,12 +272,13 @@ class Observations:
         obs = cls.__new__(cls)
         obs.t, obs.y, obs.observe, obs.sigma, obs.exact, obs.sigma_given = t, y, observe, sigma, exact, sigma_given
         obs.inputs = inputs
-        obs.noise, obs.sigma_estimated, obs.sigma_groups = "normal", False, None
+        obs.noise, obs.sigma_estimated, obs.sigma_groups, obs.sigma_function = "normal", False, None, None
         return obs
 
     def _same_noise(self, source: "Observations") -> "Observations":
         """This instance with ``source``'s noise model (for samples and slices of a batch)."""
         self.noise, self.sigma_estimated, self.sigma_groups = source.noise, source.sigma_estimated, source.sigma_groups
+        self.sigma_function = source.sigma_function
         return self
 
     def inputs_of(self, b: int) -> Inputs | None:

@@ -92,6 +92,9 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     labels = _output_labels(data.observe, names, K)
     tf = t_fine.cpu().numpy()
     to = t_obs.cpu().numpy()
+    sigma = data.sigma
+    if data.sigma_function is not None:  # its values at the estimates
+        sigma = sigma * data.sigma_function(coefficients(result.model)).to(sigma.dtype).cpu()
     for k in range(K):
         (line,) = ax_fit.plot(tf, h_fine[:, k].cpu().numpy(), label=f"{labels[k]} fitted")
         color = line.get_color()
@@ -99,7 +102,7 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
         yk = y[ok, k].cpu().numpy()
         tk = to[ok.cpu().numpy()]
         if data.sigma_given:
-            ax_fit.errorbar(tk, yk, yerr=data.sigma[:, k][ok.cpu()].cpu().numpy(), fmt="o", color=color, ms=4,
+            ax_fit.errorbar(tk, yk, yerr=sigma[:, k][ok.cpu()].cpu().numpy(), fmt="o", color=color, ms=4,
                             label=f"{labels[k]} data")
         else:
             ax_fit.plot(tk, yk, "o", color=color, ms=4, label=f"{labels[k]} data")

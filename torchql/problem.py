@@ -20,6 +20,7 @@ from .integrate import check_solver
 from .linearize import linearize
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
 from .noise import sigma_group_index
+from .sigma_function import SigmaFunction
 from .observations import LogObservation, ObservationOperator, Observations
 from .options import Limits, Tolerances, check_damping, check_scheme
 from .solvers import STIFF_SOLVERS
@@ -74,6 +75,8 @@ class Problem:
         x0 = self._x0_from_data(names) if x0 is None else self._given_x0(x0, len(names))
         self.z0 = torch.cat([x0, p0], dim=1).clone()
         self._noise_model()
+        self.sigma_function = (None if self.sigma_callable is None
+                               else SigmaFunction(self.sigma_callable, system, self.K))
         free = self._unknowns(fixed_x0, names, per_sample)
         # --- bounds, the same for every sample (guesses on or outside one moved inside, per sample)
         # (the estimated coefficients come first among the per-sample ones, so the zip stops at them)
@@ -301,6 +304,7 @@ class Problem:
         self.K = y.shape[-1]
         self.sigma_known = first.sigma_given
         self.noise, self.sigma_estimated, self.sigma_groups = first.noise, first.sigma_estimated, first.sigma_groups
+        self.sigma_callable = first.sigma_function
         if self.sigma_estimated:
             self.sigma_known = True  # the weights at the estimated sigmas are the covariance's
         y = y.to(dtype=dtype, device=device)
@@ -331,6 +335,16 @@ class Problem:
         per_output = sigma[:, self.sigma_group].unsqueeze(1)  # (B, 1, K)
         self.weights = torch.where(self.mask, 1.0 / per_output, torch.zeros_like(self.weights))
         self.sigma_per_group = sigma.clone()
+
+    def weights_at(self, estimates: torch.Tensor) -> torch.Tensor:
+        """The values' weights ``1 / sigma (B, T, K)`` with the unknowns at ``estimates (B, m)``: the
+        data's own, or with a ``sigma(p)`` function its values there (zero where a value is missing)."""
+        if self.sigma_function is None:
+            return self.weights
+        z0 = self.z0.clone()
+        z0[:, self.unknown_index] = torch.where(torch.isfinite(estimates), estimates, z0[:, self.unknown_index])
+        sigma, _ = self.sigma_function.evaluate(self.initial.complete(z0))
+        return self.weights / sigma.unsqueeze(1)
 
     def warm_start(self, estimates: torch.Tensor) -> None:
         """Start from ``estimates (B, m)`` where they are finite (the next round of a noise estimate)."""
@@ -373,6 +387,8 @@ class Problem:
         return signals.nodes
 
     def _x0_from_data(self, names) -> torch.Tensor:
+        if len(self.initial.index) == len(names):  # every state given by its expression
+            return torch.zeros((self.B, len(names)), dtype=self.dtype, device=self.device)
         early = (self.t0 != self.t_obs[..., 0]).reshape(-1)
         if bool(early.any()):
             where = "" if self.t_obs.dim() == 1 else f" (as in `data[{int(early.nonzero()[0, 0])}]`)"
@@ -417,6 +433,11 @@ class Problem:
             check(bad[0], f" of `data[{bad[0]}]`" + (f" (samples {bad[:10]} alike)" if len(bad) > 1 else ""))
         base = getattr(self.operator, "inner", self.operator)
         self.operator.check(x0, base._params(self.z0[0]) if base.takes_params else None)
+        if self.sigma_function is not None:
+            if self.has_exact:
+                raise ValueError("`exact` values cannot be combined with a `sigma` function of the coefficients: "
+                                 "give the exact values' experiment a fixed sigma, or drop `exact`")
+            self.sigma_function.check(self.z0[0])
 
     # ------------------------------------------------------------------------------------------
     def result(self, z0, out, statuses, messages, nfev) -> BatchFitResult:
@@ -501,9 +522,10 @@ def check_data(data) -> Observations | list[Observations]:
             raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
                              "fit_many needs one observation operator for all datasets (the same names, matrix "
                              "or callable object)")
-        if (d.noise, d.sigma_estimated, d.sigma_groups) != (first.noise, first.sigma_estimated, first.sigma_groups):
-            raise ValueError(f"`data[{i}]` has another noise model than `data[0]` (`noise`, sigma='estimate' or "
-                             "`sigma_groups` differ): one batch has one noise model")
+        if ((d.noise, d.sigma_estimated, d.sigma_groups) != (first.noise, first.sigma_estimated, first.sigma_groups)
+                or d.sigma_function is not first.sigma_function):
+            raise ValueError(f"`data[{i}]` has another noise model than `data[0]` (`noise`, sigma='estimate', "
+                             "`sigma_groups` or the sigma(p) function object differ): one batch has one noise model")
         if d.sigma_given != first.sigma_given:
             raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
                              f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")

@@ -321,11 +321,12 @@ def _refit_options(result: FitResult, name: str, fit_options: dict) -> dict:
 
 
 def _threshold(result: FitResult, level: float) -> _Threshold:
-    """The interval's threshold: on the SSE, or with estimated sigmas or log-normal noise on 2 NLL.
+    """The interval's threshold: on the SSE, or with estimated sigmas, a ``sigma(p)`` function or
+    log-normal noise on 2 NLL.
 
     (The profile likelihood: 2 (NLL - NLL_min) is chi-square with one degree of freedom.)
     """
-    likelihood = result.sigma is not None or result.noise != "normal"
+    likelihood = result.sigma is not None or result.noise != "normal" or result.sigma_function
     p = 0.5 + 0.5 * level
     if likelihood:
         s2, q2 = 1.0, normal_quantile(p) ** 2
@@ -580,6 +581,8 @@ def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dic
         log_y = torch.log(y)[counted].sum()
         y, value = torch.log(y), torch.log(value)
     sigma = data.sigma.to(dtype=dtype, device=device)
+    if data.sigma_function is not None:
+        sigma = sigma * data.sigma_function(coefficients(model)).to(dtype=dtype, device=device)
     if likelihood and data.sigma_estimated:
         _, group = sigma_group_index(data.sigma_groups, data.n_outputs, operator.labels())
         group = torch.tensor(group, dtype=torch.long, device=device)

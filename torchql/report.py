@@ -59,11 +59,12 @@ def information_criteria(result: "FitResult") -> tuple[float, float]:
     values marked exact are met exactly and do not count), ``m`` the number of unknowns.
     ``nan`` when the SSE is not finite, ``-inf`` when it is zero. With estimated sigmas or
     log-normal noise, from the negative log-likelihood instead: ``2 NLL + 2 k`` and
-    ``2 NLL + ln(N) k``, ``k`` the unknowns and the estimated sigmas (:mod:`torchql.noise`).
+    ``2 NLL + ln(N) k``, ``k`` the unknowns and the estimated sigmas (:mod:`torchql.noise`); so
+    too with a ``sigma(p)`` function (whose parameters are among the unknowns).
     """
     n = result.n_observations - int(result.exact_mask.sum())
     m = len(result.unknown_names)
-    if result.sigma is not None or result.noise != "normal":  # the likelihood's own: 2 NLL + penalty
+    if result.sigma is not None or result.noise != "normal" or result.sigma_function:  # 2 NLL + penalty
         k = m + (len(result.sigma) if result.sigma is not None else 0)
         if not math.isfinite(result.nll) or n <= 0:
             return math.nan, math.nan
@@ -195,6 +196,9 @@ def _statistics_section(result: "FitResult") -> list[str]:
     if result.sigma is not None:
         add("    sigma (estimated)  = " + ", ".join(f"{name}: {_g(value)}" for name, value in result.sigma.items())
             + " (maximum likelihood; the residuals are in units of it)")
+    elif result.sigma_function:
+        add("    sigma              = sigma(p), a function of the unknowns (maximum likelihood; the residuals are "
+            "in units of it)")
     elif result.sigma_known:
         red = result.sse / result.dof if result.dof > 0 else math.nan
         add(f"    reduced chi-square = {_g(red)}")
@@ -272,6 +276,9 @@ def _iterations_section(result: "FitResult") -> list[str]:
                 "steps are accepted on IterationRecord.merit or the model's own sum of squares")
     else:
         what = "SSE: of the model's solution from the iterate's estimates"
+    if result.sigma_function:
+        what += ("; with sigma(p), SSE + 2 sum log sigma, the objective (twice the negative log-likelihood less "
+                 "n log 2 pi)")
     cols = [max(14, len(n) + 1) for n in names]
     lines = [f"[[Iterations]] ({what}; |alpha|: the update scaled by the unknowns' magnitudes)",
              f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols))]

@@ -192,6 +192,10 @@ class FitResult:
         The weights, residuals, ``sse`` and covariance are then at these sigmas.
     noise : str
         The data's noise distribution, ``"normal"`` or ``"lognormal"``.
+    sigma_function : bool
+        Whether the data's sigma was a function ``sigma(p)`` of the coefficients
+        (:mod:`torchql.sigma_function`): the fit then maximized the likelihood, ``sse`` is the
+        weighted sum of squares at the estimates' sigmas, and ``nll`` the objective.
     """
 
     success: bool
@@ -231,6 +235,7 @@ class FitResult:
     nll: float = field(default=math.nan, repr=False)
     sigma: dict[str, float] | None = field(default=None, repr=False)
     noise: str = field(default="normal", repr=False)
+    sigma_function: bool = field(default=False, repr=False)
 
     @property
     def stderr(self) -> dict[str, float]:
