@@ -164,3 +164,45 @@ def test_conditions_need_several_experiments_and_fixed_x0_lists_are_checked():
         torchql.fit(_Chain(), datasets[0], x0=x0[0], conditions=[{}])
     with pytest.raises(ValueError, match="`fixed_x0\\[2\\]` names unknown state 'c'"):
         torchql.fit(_Chain(), datasets, x0=x0, fixed_x0=[[], [], ["c"]])
+
+
+def _noisy(datasets, seed):
+    g = torch.Generator().manual_seed(seed)
+    return [torchql.Observations(d.t, d.y + 1e-3 * torch.randn(d.y.shape, generator=g, dtype=DT), observe=d.observe)
+            for d in datasets]
+
+
+def test_fit_many_fits_several_experiments_per_sample_as_fit_does():
+    """Three samples of the three chain experiments (one exact, two noisy), the conditions shared, each
+    sample's own guesses: every sample's result equals ``fit`` on its experiments alone."""
+    datasets, x0 = _chain_experiments()
+    samples = [datasets, _noisy(datasets, 1), _noisy(datasets, 2)]
+    conditions = [{"mult": 1.0}, {"mult": "s"}, {"mult": 0.0}]
+    guesses = torch.stack([x0, 1.1 * x0, 0.9 * x0])
+    batch = torchql.fit_many(_Chain(), samples, x0=guesses, conditions=conditions, fixed_x0=["a"])
+    assert batch.x0.shape == (3, 3, 2) and batch.experiment_t0 == [0.0, 0.0, 0.0]
+    for b, sample in enumerate(samples):
+        one = torchql.fit(_Chain(), sample, x0=guesses[b], conditions=conditions, fixed_x0=["a"])
+        assert batch.status[b] is one.status and int(batch.iterations[b]) == one.iterations
+        torch.testing.assert_close(batch.estimates[b], one.estimates, rtol=1e-9, atol=1e-12)
+        assert float(batch.sse[b]) == pytest.approx(one.sse, rel=1e-8, abs=1e-20)
+        torch.testing.assert_close(batch[b].covariance, one.covariance, rtol=1e-6, atol=1e-20)
+    assert float(batch.params["s"][0]) == pytest.approx(2.5, rel=1e-8)
+    t = torch.linspace(0, 3, 4, dtype=DT)
+    torch.testing.assert_close(batch[0].predict(t, experiment=1),
+                               torchql.simulate(_Chain(0.7, 0.3, mult=2.5), x0[1], t, rtol=1e-12, atol=1e-14),
+                               rtol=0, atol=1e-7)
+
+
+def test_fit_many_with_several_experiments_names_bad_samples():
+    datasets, x0 = _chain_experiments()
+    conditions = [{"mult": 1.0}, {"mult": "s"}, {"mult": 0.0}]
+    with pytest.raises(ValueError, match="`data\\[1\\]` holds 2 experiments but `data\\[0\\]` holds 3"):
+        torchql.fit_many(_Chain(), [datasets, datasets[:2]], x0=x0, conditions=conditions)
+    later = [datasets[0], torchql.Observations(datasets[1].t + 0.1, datasets[1].y, observe=["a", "b"]), datasets[2]]
+    with pytest.raises(ValueError, match="`data\\[1\\]\\[1\\]` has other times than `data\\[0\\]\\[1\\]`"):
+        torchql.fit_many(_Chain(), [datasets, later], x0=x0, conditions=conditions)
+    with pytest.raises(ValueError, match="`conditions` apply to several experiments per sample"):
+        torchql.fit_many(_Chain(), datasets, x0=x0, conditions=conditions)
+    with pytest.raises(ValueError, match="\\(B, E, n_states\\) with B = 2"):
+        torchql.fit_many(_Chain(), [datasets, datasets], x0=torch.stack([x0] * 3), conditions=conditions)

@@ -31,6 +31,7 @@ loop over one sample.
 
 from __future__ import annotations
 
+import copy
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -42,7 +43,8 @@ from .batch_result import BatchFitResult, concatenate
 from .engine import run_engine
 from .noise import run_with_noise
 from .grid import make_grid
-from .model import ODEModel
+from .model import ODEModel, coefficients
+from .multi import stack_experiments, stack_observations
 from .observations import Observations
 from .options import Limits
 from .parameters import apply_parameters
@@ -91,6 +93,7 @@ def fit_many(
     chunk_size: int = DEFAULT_CHUNK,
     progress: bool | Callable[[int, int], None] = False,
     callback: Callable[[int, IterationRecord], None] | None = None,
+    conditions: Sequence[dict] | None = None,
 ) -> BatchFitResult:
     """Fit ``B`` independent datasets with one model, each to its own estimates.
 
@@ -110,8 +113,13 @@ def fit_many(
         has its own values, missing values (NaN) and ``sigma``; with its own times it is fitted
         on the grid ``torchql.fit`` builds for it alone. Values marked ``exact`` are met
         exactly, as in :func:`torchql.fit`.
+        Several experiments per sample: a list of ``B`` lists of ``E`` Observations, sample
+        ``b``'s experiments as :func:`torchql.fit` takes them (experiment ``e`` at the same times
+        and with the same inputs in every sample); each sample is fitted as ``fit`` fits its
+        experiments, with ``conditions``, ``t0`` per experiment and ``fixed_x0`` per experiment.
     x0 : Tensor ``(B, n_states)`` or ``(n_states,)``, optional
-        Initial-state guesses at ``t0`` (one row per sample, or one row for all). If omitted,
+        Initial-state guesses at ``t0`` (one row per sample, or one row for all); with several
+        experiments per sample ``(E, n_states)`` shared or ``(B, E, n_states)``. If omitted,
         every state must be observed directly at ``t0`` in every sample. Its values are copied.
     t0 : float, optional
         Time of ``x0`` (the model's time unit), shared by every sample and not later than any
@@ -168,6 +176,9 @@ def fit_many(
     progress : bool or callable
         ``True``: a progress bar (``tqdm``, from the extra ``torchql[progress]``) counting the
         samples finished; a callable receives ``(finished, total)`` as samples finish.
+    conditions : list of dict, optional
+        With several experiments per sample: each experiment's coefficient values, as in
+        :func:`torchql.fit` (shared by the samples).
     callback : callable, optional
         Called as ``callback(sample, record)`` with each sample's :class:`IterationRecord` as it
         is completed (as :func:`torchql.fit`'s callback, with the sample's index). Every
@@ -190,6 +201,16 @@ def fit_many(
                                  scale=scale, x0_expr=x0_expr)
         model, x0, params, fixed_x0, bounds, scale, x0_expr = (
             given[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
+    if _experiments_per_sample(data):
+        return _fit_experiment_samples(
+            model, data, x0, params=params, guesses=guesses, fixed_x0=fixed_x0, t0=t0, bounds=bounds, scale=scale,
+            x0_expr=x0_expr, grid=grid, conditions=conditions, method=method,
+            initial_trajectory=initial_trajectory, max_iter=max_iter, max_time=max_time, rtol=rtol, atol=atol,
+            xtol=xtol, ftol=ftol, rcond=rcond, damping=damping, solver=solver, linear_solver=linear_solver,
+            max_steps=max_steps, chunk_size=chunk_size, progress=progress, callback=callback)
+    if conditions is not None:
+        raise ValueError("`conditions` apply to several experiments per sample: give `data` as one list of "
+                         "experiments (Observations) per sample")
     runs = _input_runs(data)
     if runs is not None:
         return _fit_runs(runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress,
@@ -310,3 +331,70 @@ def sample_rows_dict(guesses, B: int, start: int, stop: int):
         v = torch.as_tensor(value)
         out[name] = v[start:stop] if v.dim() >= 1 and v.shape[0] == B else v
     return out
+
+
+def _experiments_per_sample(data) -> bool:
+    """Whether ``data`` gives several experiments per sample: a list of lists of Observations."""
+    return isinstance(data, (list, tuple)) and bool(data) and all(isinstance(d, (list, tuple)) for d in data)
+
+
+def _check_experiment_samples(data, x0) -> tuple[int, int]:
+    """``(B, E)`` of ``fit_many``'s samples of several experiments: each a list of ``E``
+    Observations, experiment ``e`` at the same times (and with the same inputs) in every sample;
+    ``x0`` ``None``, shared ``(E, n)`` or per sample ``(B, E, n)``."""
+    B, E = len(data), len(data[0])
+    for b, sample in enumerate(data):
+        if len(sample) != E:
+            raise ValueError(f"`data[{b}]` holds {len(sample)} experiments but `data[0]` holds {E}: every sample "
+                             "needs the same experiments")
+        for e, d in enumerate(sample):
+            if not isinstance(d, Observations):
+                raise TypeError(f"`data[{b}][{e}]` must be a torchql.Observations; received {type(d).__name__}")
+            ref = data[0][e]
+            if d.t.shape != ref.t.shape or not torch.equal(d.t, ref.t):
+                raise ValueError(f"`data[{b}][{e}]` has other times than `data[0][{e}]`: with several experiments "
+                                 "per sample, each experiment's times must be the same in every sample")
+            if (d.inputs is None) != (ref.inputs is None) or (d.inputs is not None and not d.inputs.same_as(ref.inputs)):
+                raise ValueError(f"`data[{b}][{e}]` has other inputs than `data[0][{e}]`: with several experiments "
+                                 "per sample, each experiment's inputs must be the same in every sample")
+    if x0 is not None and torch.as_tensor(x0).dim() == 3 and torch.as_tensor(x0).shape[0] != B:
+        raise ValueError(f"`x0` must have shape (E, n_states) (shared) or (B, E, n_states) with B = {B}; received "
+                         f"shape {tuple(torch.as_tensor(x0).shape)}")
+    return B, E
+
+
+def _fit_experiment_samples(model, data, x0, *, params, guesses, fixed_x0, t0, bounds, scale, x0_expr, grid,
+                            conditions, **options) -> BatchFitResult:
+    """``fit_many`` over samples of several experiments each: every sample's experiments stacked as
+    :func:`torchql.fit` stacks them (:func:`torchql.multi.stack_experiments`), one batched problem."""
+    B, E = _check_experiment_samples(data, x0)
+    per_sample = x0 is not None and torch.as_tensor(x0).dim() == 3
+    st = stack_experiments(model, list(data[0]), x0[0] if per_sample else x0, t0=t0, fixed_x0=fixed_x0,
+                           bounds=bounds, scale=scale, x0_expr=x0_expr, grid=grid, conditions=conditions)
+    names = list(model.state_names)
+    dtype, device = st.data.y.dtype, st.data.y.device
+    stacked = [st.data] + [stack_observations(list(sample), names, st.t0, st.span, dtype, device, st.conditions)
+                           for sample in data[1:]]
+    first = st.data
+    sigma = ("estimate" if first.sigma_estimated else first.sigma_function if first.sigma_function is not None
+             else torch.stack([d.sigma for d in stacked]) if first.sigma_given else None)
+    batch_data = Observations(first.t, torch.stack([d.y for d in stacked]), observe=first.observe, sigma=sigma,
+                              exact=torch.stack([d.exact for d in stacked]), noise=first.noise,
+                              sigma_groups=first.sigma_groups)
+    x0_stacked = st.x0
+    if per_sample:
+        x0_stacked = torch.as_tensor(x0, dtype=dtype, device=device).reshape(B, -1).clone()
+    result = fit_many(st.model, batch_data, x0_stacked, params=params, guesses=guesses, fixed_x0=st.fixed_x0, t0=0.0,
+                      bounds=st.bounds, scale=st.scale, x0_expr=st.x0_expr, grid=grid, **options)
+    own = coefficients(model)
+    result.params = {name: value for name, value in result.params.items() if name in own}
+    result.model = copy.deepcopy(model)
+    result.x0 = result.x0.reshape(B, E, -1)
+    result.experiment_t0 = [float(v) for v in st.t0]
+    result.conditions = st.conditions
+    result.data = data
+    replayed = {k: v for k, v in options.items() if k not in ("chunk_size", "progress", "callback")}
+    result.fit_kwargs = recorded_options(x0=None if per_sample else x0, params=params, fixed_x0=fixed_x0, t0=t0,
+                                         grid=grid, bounds=bounds, scale=scale, x0_expr=x0_expr,
+                                         conditions=conditions, **replayed)
+    return result

@@ -114,6 +114,9 @@ class BatchFitResult:
     sigma_function : bool
         Whether the data's sigma was a function ``sigma(p)`` of the coefficients (the weights,
         residuals and Jacobian are then at its values at each sample's estimates).
+    experiment_t0, conditions : list or None
+        With several experiments per sample: their initial times and checked ``conditions``
+        (shared by the samples, as :class:`torchql.FitResult` has them); ``x0`` is then ``(B, E, n)``.
     """
 
     success: torch.Tensor
@@ -155,6 +158,8 @@ class BatchFitResult:
     sigma_names: list[str] | None = field(default=None, repr=False)
     noise: str = field(default="normal", repr=False)
     sigma_function: bool = field(default=False, repr=False)
+    experiment_t0: list[float] | None = field(default=None, repr=False)
+    conditions: list[dict] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])
@@ -225,7 +230,9 @@ class BatchFitResult:
             moved_guesses=dict(self.moved_guesses.get(i, {})),
             nll=math.nan if self.nll is None else float(self.nll[i]),
             sigma=None if self.sigma is None else dict(zip(self.sigma_names, self.sigma[i].tolist())),
-            noise=self.noise, sigma_function=self.sigma_function)
+            noise=self.noise, sigma_function=self.sigma_function,
+            experiment_t0=None if self.experiment_t0 is None else list(self.experiment_t0),
+            conditions=self.conditions)
 
     def __getitem__(self, i: int) -> FitResult:
         return self.sample(i)
@@ -258,7 +265,8 @@ class BatchFitResult:
         """Sample ``i``'s measured inputs from the fitted data, or ``None``."""
         data = self.data
         if isinstance(data, (list, tuple)):
-            return data[i].inputs
+            own = data[i]
+            return None if isinstance(own, (list, tuple)) else own.inputs  # several experiments: each its own
         return data.inputs_of(i) if data is not None else None
 
     def summary(self) -> str:

@@ -26,9 +26,8 @@ from . import _checks
 from .engine import run_engine
 from .noise import run_with_noise
 from .problem import Problem, recorded_options
-from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
-from .initial_state import check_expressions
-from .multi import StackedModel, check_conditions, experiment_expressions, experiment_state_name, stack_observations
+from .model import ODEModel, _set_buffer, coefficients
+from .multi import stack_experiments
 from .observations import Observations
 from .options import METHODS, Limits
 from .parameters import apply_parameters
@@ -300,70 +299,19 @@ class _Problem:
 def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds, scale, x0_expr, grid, throw,
                      callback, conditions, **options) -> FitResult:
     """Several experiments sharing the coefficients: the stacked problem of :mod:`torchql.multi`."""
-    _checks.model_class(model)
-    if not datasets:
-        raise ValueError("`data` is an empty list: give one torchql.Observations per experiment")
-    for e, d in enumerate(datasets):
-        if not isinstance(d, Observations):
-            raise TypeError(f"`data[{e}]` must be a torchql.Observations; received {type(d).__name__}")
-    E, names = len(datasets), list(model.state_names)
-    n = len(names)
-    dtype, device = model_dtype_device(model)
-    first = torch.stack([d.t[0].to(dtype) for d in datasets]).to(device)
-    last = torch.stack([d.t[-1].to(dtype) for d in datasets]).to(device)
-    if t0 is None:
-        t0s = first.clone()
-    else:
-        values = [t0] * E if not isinstance(t0, (list, tuple, torch.Tensor)) or (
-            isinstance(t0, torch.Tensor) and t0.dim() == 0) else list(t0)
-        if len(values) != E:
-            raise ValueError(f"`t0` must be one time or one per experiment ({E}); received {len(values)}")
-        t0s = torch.tensor([_checks.finite_number(f"t0[{e}]", float(v)) for e, v in enumerate(values)],
-                           dtype=dtype, device=device)
-        late = [e for e in range(E) if t0s[e] > first[e]]
-        if late:
-            raise ValueError(f"`t0` must not be later than each experiment's first observation; experiments {late} "
-                             f"start at {[float(first[e]) for e in late]}, t0 = {[float(t0s[e]) for e in late]}")
-    span = last - t0s
-    span = torch.where(span > 0, span, torch.ones_like(span))
-    if x0 is not None:
-        try:
-            x0_t = torch.as_tensor(x0, dtype=dtype, device=device).detach()
-        except (TypeError, ValueError) as exc:
-            raise TypeError(f"`x0` must be a tensor of shape (E, n_states) = ({E}, {n}); received {type(x0).__name__}") from exc
-        if x0_t.shape != (E, n):
-            raise ValueError(f"`x0` must have shape (E, n_states) = ({E}, {n}) with {E} experiments; "
-                             f"received shape {tuple(x0_t.shape)}")
-        x0_flat = x0_t.reshape(-1).clone()
-    elif x0_expr and set(names) <= set(x0_expr):  # every initial state an expression: nothing to give
-        x0_flat = torch.zeros(E * n, dtype=dtype, device=device)
-    else:
-        if t0 is not None and bool((t0s != first).any()):
-            raise ValueError("`x0` is required when `t0` precedes an experiment's first observation (unless "
-                             "`x0_expr` gives every state)")
-        x0_flat = None
-    if isinstance(grid, torch.Tensor):
-        raise ValueError("`grid` must be a number of intervals (per experiment) with several experiments; "
-                         "received a tensor of times")
-    checked = check_conditions(model, conditions, E)
-    stacked = StackedModel(model, t0s, span, _experiment_inputs(model, datasets, t0s, last, dtype, device), checked)
-    data = stack_observations(datasets, names, t0s, span, dtype, device, checked)
-    fixed = _experiment_fixed(fixed_x0, names, E)
-    stacked_bounds = _per_experiment("bounds", bounds, "{name: (lower, upper)}", names, fixed, E)
-    stacked_scale = _per_experiment("scale", scale, "{name: 'lin' | 'log' | 'log10'}", names, fixed, E)
-    result = fit(stacked, data, x0_flat, params=params, fixed_x0=fixed, t0=0.0, bounds=stacked_bounds,
-                 scale=stacked_scale, grid=grid,
-                 x0_expr=experiment_expressions(check_expressions(x0_expr, names, None), names, E, checked),
-                 throw=False, callback=callback, **options)
+    st = stack_experiments(model, datasets, x0, t0=t0, fixed_x0=fixed_x0, bounds=bounds, scale=scale,
+                           x0_expr=x0_expr, grid=grid, conditions=conditions)
+    result = fit(st.model, st.data, st.x0, params=params, fixed_x0=st.fixed_x0, t0=0.0, bounds=st.bounds,
+                 scale=st.scale, grid=grid, x0_expr=st.x0_expr, throw=False, callback=callback, **options)
     fitted = copy.deepcopy(model)
     own = coefficients(model)
     result.params = {name: value for name, value in result.params.items() if name in own}
     for name, value in result.params.items():
         _set_buffer(fitted, name, value)
     result.model = fitted
-    result.x0 = result.x0.reshape(E, n)
-    result.experiment_t0 = [float(v) for v in t0s]
-    result.conditions = checked
+    result.x0 = result.x0.reshape(len(datasets), -1)
+    result.experiment_t0 = [float(v) for v in st.t0]
+    result.conditions = st.conditions
     result.data = datasets
     result.fit_kwargs = recorded_options(x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, grid=grid, bounds=bounds,
                                          scale=scale, x0_expr=x0_expr, conditions=conditions,
@@ -371,64 +319,3 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
     if throw and not result.success:
         raise FitError(result)
     return result
-
-
-def _per_experiment(argument: str, given, expected: str, names: list, fixed, E: int) -> dict | None:
-    """``bounds`` or ``scale`` of several experiments for the stacked model: a state's entry applies
-    to its initial value in every experiment where that is an unknown; a coefficient's as given."""
-    if given is None:
-        return None
-    if not isinstance(given, dict):
-        raise TypeError(f"`{argument}` must be a dict {expected}; received {type(given).__name__}")
-    stacked = {}
-    for key, value in given.items():
-        state = key.removesuffix("(t0)") if isinstance(key, str) else key
-        if state in names:  # the experiments where that state's initial value is an unknown
-            stacked.update({experiment_state_name(state, e): value for e in range(E)
-                            if experiment_state_name(state, e) not in (fixed or ())})
-        else:
-            stacked[key] = value
-    return stacked
-
-
-def _experiment_inputs(model, datasets: list, t0s: torch.Tensor, last: torch.Tensor, dtype, device) -> list | None:
-    """Each experiment's inputs in the model's order, checked as one dataset's are (names, times)."""
-    names = tuple(getattr(model, "input_names", ()))
-    given = [d.inputs is not None for d in datasets]
-    if not names and not any(given):
-        return None
-    if not names:
-        e = given.index(True)
-        raise ValueError(f"`data[{e}]` carries inputs {list(datasets[e].inputs.names)} but `model` declares none: "
-                         "set its `input_names` and take them in forward(t, x, u)")
-    signals = []
-    for e, d in enumerate(datasets):
-        if d.inputs is None:
-            raise ValueError(f"`model` takes inputs {names} (its `input_names`) but `data[{e}]` carries none: give "
-                             f"them as Observations(t, y, observe, inputs=torchql.Inputs(t_u, u, names={list(names)}))")
-        signals.append(d.inputs.for_model(names, float(t0s[e]), float(last[e]), dtype, device,
-                                          where=f"data[{e}].inputs", span="the experiment's times"))
-    return signals
-
-
-def _experiment_fixed(fixed_x0, names: list, E: int) -> list[str] | None:
-    """``fixed_x0`` of several experiments as the stacked model's state names: state names fixed in
-    every experiment, or one list of names per experiment."""
-    if fixed_x0 is None:
-        return None
-    if isinstance(fixed_x0, str):
-        raise TypeError(f"`fixed_x0` must be a sequence of state names, not a string; use [{fixed_x0!r}]")
-    items = list(fixed_x0)
-    per_experiment = len(items) == E and all(isinstance(item, (list, tuple)) for item in items)
-    if not per_experiment and any(not isinstance(item, str) for item in items):
-        raise TypeError(f"`fixed_x0` must be state names, or one list of state names per experiment ({E}); "
-                        f"received {fixed_x0!r}")
-    lists = items if per_experiment else [items] * E
-    fixed = []
-    for e, own in enumerate(lists):
-        for name in own:
-            if name not in names:
-                where = f"`fixed_x0[{e}]`" if per_experiment else "`fixed_x0`"
-                raise ValueError(f"{where} names unknown state {name!r}; the model's states are {tuple(names)}")
-            fixed.append(experiment_state_name(name, e))
-    return fixed
