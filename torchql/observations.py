@@ -213,6 +213,33 @@ class Observations:
             raise ValueError("`y` must be positive with noise='lognormal' (its logarithm is fitted); received a value "
                              "<= 0: mark it missing (NaN) or use noise='normal'")
         self.noise = noise
+        self._set_sigma(sigma, sigma_groups, shape, batched)
+
+        if exact is None:
+            ex = torch.zeros(shape, dtype=torch.bool)
+        else:
+            try:
+                ex = torch.as_tensor(exact)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise TypeError(
+                    f"`exact` must be a boolean mask of shape (T,) or (T, K); received {type(exact).__name__}") from exc
+            if ex.dtype != torch.bool:
+                raise TypeError(f"`exact` must be a boolean mask; received dtype {ex.dtype}")
+            if not _fits(tuple(ex.shape), shape, ((T,), (T, K))):
+                raise ValueError(
+                    f"`exact` must have shape (T,) = ({T},) or (T, K) = ({T}, {K})"
+                    + (f", or broadcast to (B, T, K) = {shape}" if batched else "")
+                    + f"; received shape {tuple(ex.shape)}"
+                )
+            if ex.shape == (T,):  # every value at those times
+                ex = ex.unsqueeze(-1)
+        self.exact = ex.expand(shape).clone(memory_format=torch.contiguous_format)
+        self.inputs = _check_inputs(inputs, shape[0] if batched else None)
+
+    def _set_sigma(self, sigma, sigma_groups, shape: tuple, batched: bool) -> None:
+        """``sigma``, ``sigma_given``, ``sigma_estimated``, ``sigma_groups`` and ``sigma_function`` from
+        the arguments, validated (values of shape ``shape``)."""
+        T, K = shape[-2], shape[-1]
         self.sigma_function = None
         if callable(sigma) and not isinstance(sigma, (torch.Tensor, np.ndarray)):
             self.sigma_function, sigma = sigma, 1.0
@@ -243,27 +270,6 @@ class Observations:
                 raise ValueError("`sigma` must be finite and strictly positive; received a value <= 0, NaN or inf")
         self.sigma = sig.expand(shape).clone(memory_format=torch.contiguous_format)
         self.sigma_given = sigma is not None
-
-        if exact is None:
-            ex = torch.zeros(shape, dtype=torch.bool)
-        else:
-            try:
-                ex = torch.as_tensor(exact)
-            except (TypeError, ValueError, RuntimeError) as exc:
-                raise TypeError(
-                    f"`exact` must be a boolean mask of shape (T,) or (T, K); received {type(exact).__name__}") from exc
-            if ex.dtype != torch.bool:
-                raise TypeError(f"`exact` must be a boolean mask; received dtype {ex.dtype}")
-            if not _fits(tuple(ex.shape), shape, ((T,), (T, K))):
-                raise ValueError(
-                    f"`exact` must have shape (T,) = ({T},) or (T, K) = ({T}, {K})"
-                    + (f", or broadcast to (B, T, K) = {shape}" if batched else "")
-                    + f"; received shape {tuple(ex.shape)}"
-                )
-            if ex.shape == (T,):  # every value at those times
-                ex = ex.unsqueeze(-1)
-        self.exact = ex.expand(shape).clone(memory_format=torch.contiguous_format)
-        self.inputs = _check_inputs(inputs, shape[0] if batched else None)
 
     @classmethod
     def _validated(cls, t: torch.Tensor, y: torch.Tensor, observe, sigma: torch.Tensor, exact: torch.Tensor,
