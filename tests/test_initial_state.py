@@ -133,3 +133,24 @@ def _raises(message):
 def test_bad_expressions_are_named(exact, kwargs, error, match):
     with pytest.raises(error, match=match):
         torchql.fit(SIR(2.0, 0.3), exact, GUESS_X0, **kwargs)
+
+
+def test_no_x0_is_needed_when_expressions_give_every_state(exact):
+    """Every initial state an expression of coefficients (here of N and an I0 coefficient): ``x0`` may be
+    left out, for one experiment and for several, and the fit is the one with a placeholder ``x0``."""
+
+    class SeededSIR(SIR):
+        def __init__(self, *args, I0=1.0, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.register_buffer("I0", torch.tensor(float(I0), dtype=DT))
+
+    every = {"S": lambda v: v["N"] - v["I0"], "I": lambda v: v["I0"], "R": lambda v: torch.zeros_like(v["I0"])}
+    params = ["beta", "gamma", "I0"]
+    without = torchql.fit(SeededSIR(2.0, 0.3), exact, x0_expr=every, params=params, t0=-1.0)
+    placeholder = torchql.fit(SeededSIR(2.0, 0.3), exact, torch.zeros(3, dtype=DT), x0_expr=every, params=params,
+                              t0=-1.0)
+    assert without.success, without.message
+    assert torch.equal(without.estimates, placeholder.estimates)
+    several = torchql.fit(SeededSIR(2.0, 0.3), [exact, exact], x0_expr=every, params=params, t0=-1.0)
+    assert several.success, several.message
+    torch.testing.assert_close(several.estimates, without.estimates, rtol=1e-7, atol=0)
