@@ -51,3 +51,71 @@ def test_fit_and_fit_many_read_the_same_tolerances():
     batch = torchql.fit_many(Decay(0.2), torchql.Observations(t, torch.stack([y, y]), observe=["y"]), x0=x0, rtol=1e-8)
     assert single.fit_kwargs["rtol"] == 1e-8
     assert torch.allclose(batch.estimates[0], single.estimates, rtol=1e-10, atol=0)
+
+
+def _decay_data(noise=0.0):
+    t = torch.linspace(0, 2, 11, dtype=torch.float64)
+    y = (1.5 * torch.exp(-0.7 * t)).unsqueeze(-1)
+    y = y + noise * torch.randn(y.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    return torchql.Observations(t, y, observe=["y"])
+
+
+X0 = torch.tensor([1.0], dtype=torch.float64)
+
+
+def test_fit_options_equal_the_keywords_they_stand_for():
+    data = _decay_data(0.01)
+    options = torchql.FitOptions(method="shooting", rtol=1e-9, max_iter=30, grid=40)
+    by_object = torchql.fit(Decay(0.2), data, X0, options=options)
+    by_keywords = torchql.fit(Decay(0.2), data, X0, method="shooting", rtol=1e-9, max_iter=30, grid=40)
+    assert by_object.success and torch.equal(by_object.estimates, by_keywords.estimates)
+    assert by_object.options == by_keywords.options == options.replace(max_time=None)
+    again = torchql.fit(Decay(0.2), data, X0, options=by_object.options)  # a result's options re-run it
+    assert torch.equal(again.estimates, by_object.estimates)
+    batch = torchql.fit_many(Decay(0.2), [data, data], X0, options=options)
+    torch.testing.assert_close(batch.estimates[0], by_object.estimates, rtol=1e-10, atol=0)
+    assert batch.options == by_object.options
+
+
+def test_a_keyword_at_its_default_takes_the_field_and_a_conflict_is_named():
+    data = _decay_data()
+    options = torchql.FitOptions(rtol=1e-9)
+    same = torchql.fit(Decay(0.2), data, X0, rtol=1e-9, options=options)  # the same value both ways: fine
+    assert same.fit_kwargs["rtol"] == 1e-9
+    with pytest.raises(ValueError, match="`rtol` is given twice, 1e-08 as a keyword and 1e-09 in `options`"):
+        torchql.fit(Decay(0.2), data, X0, rtol=1e-8, options=options)
+    with pytest.raises(TypeError, match="`options` must be a torchql.FitOptions; received dict"):
+        torchql.fit(Decay(0.2), data, X0, options={"rtol": 1e-9})
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(method="newton"), ValueError, "`method` must be one of"),
+    (dict(rtol=-1.0), ValueError, "`rtol`"),
+    (dict(grid=0), ValueError, "`grid`"),
+    (dict(solver="rk45"), ValueError, "`solver` must be one of"),
+    (dict(linear_solver="magnus"), ValueError, "`linear_solver` must be one of"),
+    (dict(max_iter=-1), ValueError, "`max_iter`"),
+    (dict(damping="trust"), ValueError, "`damping` must be one of"),
+    (dict(method="shooting", initial_trajectory="data"), ValueError, "applies to method=\"kantorovich\" only"),
+])
+def test_bad_fit_options_are_named_where_they_are_written(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        torchql.FitOptions(**kwargs)
+
+
+def test_profile_multistart_and_gradient_fitting_take_the_options():
+    data = _decay_data(0.01)
+    result = torchql.fit(Decay(0.2), data, X0)
+    loose = torchql.FitOptions(rtol=1e-7)
+    by_object = torchql.profile(result, "k", options=loose)
+    assert by_object.interval == torchql.profile(result, "k", rtol=1e-7).interval
+    with pytest.raises(ValueError, match="`rtol` is given twice"):
+        torchql.profile(result, "k", rtol=1e-8, options=loose)
+    best = torchql.multistart(Decay(0.2), data, X0, starts=3, options=loose)
+    assert best.best.fit_kwargs["rtol"] == 1e-7
+    from torchql.baselines import adjoint_fit
+
+    with pytest.raises(ValueError, match="`options.method` = 'shooting' does not apply here"):
+        adjoint_fit(Decay(0.2), data, x0=X0, options=torchql.FitOptions(method="shooting"))
+    gradient = adjoint_fit(Decay(0.2), data, x0=X0, max_steps=2, options=loose)
+    assert gradient.solver_options["rtol"] == 1e-7

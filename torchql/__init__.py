@@ -12,6 +12,7 @@ from .model import ODEModel
 from .multistart import MultiStartResult, multistart
 from .newton import NewtonResult, newton_raphson
 from .observations import Observations
+from .options import FitOptions
 from .profile import ProfileResult, profile
 from .ray_backend import fit_many_ray  # imports Ray only when called (the extra torchql[ray])
 from .result import FitError, FitResult, IterationRecord, Status
@@ -27,6 +28,7 @@ __all__ = [
     "compare",
     "Comparison",
     "fit",
+    "FitOptions",
     "fit_many",
     "fit_many_ray",
     "BatchFitResult",

@@ -34,6 +34,7 @@ from .integrate import IntegrationError, solve
 from .lstsq import solve_update
 from .model import ODEModel, _set_buffer
 from .observations import Observations
+from .options import FitOptions, accepts_options
 from .result import FitResult, IterationRecord, Status
 from .solvers import STIFF_SOLVERS
 from .uncertainty import covariance
@@ -54,6 +55,7 @@ _RTOL, _ATOL = 1e-7, 1e-9
 _MAX_LINE_SEARCH = 25
 
 
+@accepts_options
 def adjoint_fit(
     model: ODEModel,
     data: Observations,
@@ -75,6 +77,7 @@ def adjoint_fit(
     rtol: float | None = None,
     atol: float | None = None,
     progress: bool = False,
+    options: FitOptions | None = None,
 ) -> FitResult:
     """Fit ``model`` to ``data`` by gradient-based optimization of the weighted SSE.
 
@@ -122,6 +125,9 @@ def adjoint_fit(
         backward) solve, so tighter tolerances cost every step.
     progress : bool
         Show a ``tqdm`` progress bar if ``tqdm`` is installed (silently nothing otherwise).
+    options : FitOptions, optional
+        Of :class:`torchql.FitOptions` only ``solver``, ``rtol``, ``atol`` and ``max_time`` apply here
+        (a keyword left at its default takes the field); another field set is an error.
 
     Returns
     -------

@@ -46,7 +46,7 @@ from .grid import make_grid
 from .model import ODEModel, coefficients
 from .multi import stack_experiments, stack_observations
 from .observations import Observations
-from .options import Limits
+from .options import FitOptions, Limits, accepts_options
 from .parameters import apply_parameters
 from .problem import Problem, check_data, inputs_all_or_none, recorded_options
 from .propagators import LinearPropagator
@@ -63,6 +63,7 @@ _Spec = Problem
 _make_grid = make_grid
 
 
+@accepts_options
 def fit_many(
     model: ODEModel,
     data: Observations | Sequence[Observations],
@@ -94,6 +95,7 @@ def fit_many(
     progress: bool | Callable[[int, int], None] = False,
     callback: Callable[[int, IterationRecord], None] | None = None,
     conditions: Sequence[dict] | None = None,
+    options: FitOptions | None = None,
 ) -> BatchFitResult:
     """Fit ``B`` independent datasets with one model, each to its own estimates.
 
@@ -179,6 +181,8 @@ def fit_many(
     conditions : list of dict, optional
         With several experiments per sample: each experiment's coefficient values, as in
         :func:`torchql.fit` (shared by the samples).
+    options : FitOptions, optional
+        As in :func:`torchql.fit`.
     callback : callable, optional
         Called as ``callback(sample, record)`` with each sample's :class:`IterationRecord` as it
         is completed (as :func:`torchql.fit`'s callback, with the sample's index). Every

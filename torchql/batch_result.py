@@ -19,6 +19,7 @@ from .result import FitResult, IterationRecord, Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import ODEModel
+    from .options import FitOptions
 
 __all__ = ["BatchFitResult", "SampleResult", "concatenate"]
 
@@ -160,6 +161,13 @@ class BatchFitResult:
     sigma_function: bool = field(default=False, repr=False)
     experiment_t0: list[float] | None = field(default=None, repr=False)
     conditions: list[dict] | None = field(default=None, repr=False)
+
+    @property
+    def options(self) -> "FitOptions":
+        """The options the fit ran with (:class:`torchql.FitOptions`), to run another one alike."""
+        from .options import FitOptions
+
+        return FitOptions.of(self.fit_kwargs)
 
     def __len__(self) -> int:
         return int(self.success.shape[0])

@@ -29,7 +29,7 @@ from .problem import Problem, recorded_options
 from .model import ODEModel, _set_buffer, coefficients
 from .multi import stack_experiments
 from .observations import Observations
-from .options import METHODS, Limits
+from .options import METHODS, FitOptions, Limits, accepts_options
 from .parameters import apply_parameters
 from .result import FitError, FitResult, IterationRecord
 from .propagators import LinearPropagator
@@ -38,6 +38,7 @@ __all__ = ["fit", "METHODS"]
 
 
 
+@accepts_options
 def fit(
     model: ODEModel,
     data: Observations,
@@ -67,6 +68,7 @@ def fit(
     conditions: Sequence[dict] | None = None,
     parameters: dict | None = None,
     x0_expr: dict | None = None,
+    options: FitOptions | None = None,
 ) -> FitResult:
     """Fit the unknown coefficients and initial state of ``model`` to ``data``.
 
@@ -209,6 +211,10 @@ def fit(
         holds the coefficients and the initial states by name. Such a state is neither an unknown
         nor fixed: it follows the estimates (its value in ``x0`` is ignored). With several
         experiments it applies to each, with that experiment's values.
+    options : FitOptions, optional
+        The options as one object (:class:`torchql.FitOptions`: method, solvers, damping, grid,
+        limits and tolerances), to reuse across fits; a keyword left at its default takes the
+        field's value, and one given both ways with different values is an error.
 
     Returns
     -------

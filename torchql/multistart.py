@@ -30,6 +30,7 @@ from .batch import fit_many
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .observations import Observations
+from .options import expand_options
 from .result import FitResult
 from .propagators import linear_propagator
 
@@ -151,7 +152,8 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         Called as ``callback(k, result)`` after each fit (progress reporting); when the starts
         are fitted in one batch, for every start once the batch is done.
     **fit_kwargs
-        Further arguments of :func:`torchql.fit` (``method``, ``initial_trajectory``, ...).
+        Further arguments of :func:`torchql.fit` (``method``, ``initial_trajectory``, ...; or
+        ``options=`` a :class:`torchql.FitOptions`, whose fields set away from their defaults apply).
         With the options ``fit_many`` supports, the starts are fitted in one batch (see the
         module's description and ``MultiStartResult.batched``).
 
@@ -167,6 +169,7 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         raise ValueError(f"`spread` must be >= 1 (a factor around the guesses); received {spread:g}")
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable as callback(k, result); received {callback!r}")
+    fit_kwargs = expand_options(fit_kwargs)
     if "throw" in fit_kwargs:
         raise TypeError("`throw` is not accepted by multistart: failed starts are part of the result")
     if params is None:

@@ -1,12 +1,16 @@
-"""Tolerances and limits of a fit: every default written once, validated once.
+"""How a fit runs: its options, tolerances and limits, every default written once, validated once.
 
 ``fit`` and ``fit_many`` resolve their keyword arguments here, so that the same arguments give
-the same numbers in both, and a default changes in one place.
+the same numbers in both, and a default changes in one place. :class:`FitOptions` holds them as
+one object that ``fit``, ``fit_many``, ``profile``, ``multistart``, ``fit_many_ray`` and
+``adjoint_fit`` take as ``options=``, and every fit returns as ``result.options``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import inspect
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -14,7 +18,8 @@ from . import _checks
 from .integrate import default_tolerances
 
 __all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "METHODS", "INITIAL_TRAJECTORIES", "Tolerances",
-           "Limits", "check_damping", "check_scheme"]
+           "Limits", "FitOptions", "with_options", "expand_options", "accepts_options", "check_damping",
+           "check_scheme"]
 
 #: The damping strategies: ``"lm"`` (Levenberg–Marquardt, default) or ``None`` (the thesis' iteration).
 DAMPINGS = ("lm", None)
@@ -108,3 +113,149 @@ def check_scheme(method, initial_trajectory) -> tuple[str, str]:
     if initial_trajectory == "data" and method != "kantorovich":
         raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
     return method, initial_trajectory
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How a fit runs, as one object to reuse: ``fit(model, data, options=opts)``.
+
+    Every field is the keyword of :func:`torchql.fit` of that name, with its default (``None``:
+    the default of the model's precision, see :class:`Tolerances`). Validated when made, so a
+    bad value is reported where the options are written. An entry point's keyword given with
+    another value than its default wins over a field left at its default; a field and a keyword
+    both set to different values is an error. ``opts.replace(rtol=1e-8)`` is a changed copy.
+
+    Attributes
+    ----------
+    method, solver, linear_solver, damping, initial_trajectory, grid
+        The scheme, the nonlinear and linear solvers, the damping, the first reference, the grid.
+    max_iter, max_time, max_steps
+        The limits (:class:`Limits`).
+    rtol, atol, xtol, ftol, rcond
+        The tolerances (:class:`Tolerances`).
+    """
+
+    method: str = "kantorovich"
+    solver: str = "auto"
+    linear_solver: object = None
+    damping: str | None = "lm"
+    initial_trajectory: str = "integrate"
+    grid: object = None
+    max_iter: int = 50
+    max_time: float | None = None
+    max_steps: int | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    xtol: float | None = None
+    ftol: float | None = None
+    rcond: float | None = None
+
+    def __post_init__(self) -> None:
+        from .integrate import check_solver
+        from .superposition import check_linear_solver
+
+        check_scheme(self.method, self.initial_trajectory)
+        check_damping(self.damping)
+        if not isinstance(self.solver, str):
+            raise TypeError(f"`solver` must be a string; received {type(self.solver).__name__}")
+        check_solver(self.solver, auto=True)
+        if self.linear_solver is not None:
+            check_linear_solver(self.linear_solver)
+        Limits.resolve(self.max_iter, self.max_steps, self.max_time)
+        for name in ("rtol", "atol", "xtol", "ftol", "rcond"):
+            if getattr(self, name) is not None:
+                _checks.positive_number(name, getattr(self, name))
+        grid = self.grid
+        if grid is not None and not isinstance(grid, torch.Tensor):
+            _checks.positive_int("grid", grid)
+
+    def replace(self, **changes) -> "FitOptions":
+        """A copy with ``changes`` (validated)."""
+        return replace(self, **changes)
+
+    def keywords(self) -> dict:
+        """The fields as keyword arguments of :func:`torchql.fit`."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def of(cls, keywords: dict) -> "FitOptions":
+        """The options among a fit's ``keywords`` (others ignored)."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in keywords.items() if k in names})
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor) and a.shape == b.shape and bool(
+            torch.equal(a, b))
+    return a == b if type(a) is type(b) else a is b
+
+
+def with_options(options: "FitOptions | None", given: dict, defaults: dict | None = None) -> dict:
+    """The keyword arguments ``given`` (as an entry point received them) with ``options``' fields.
+
+    A keyword left at its default (``defaults``, else :class:`FitOptions`' own) takes the field; a
+    field that the entry point does not take (not in ``given``) must be at its default; a field and a
+    keyword set to different values is a ``ValueError`` naming it.
+    """
+    if options is None:
+        return dict(given)
+    if not isinstance(options, FitOptions):
+        raise TypeError(f"`options` must be a torchql.FitOptions; received {type(options).__name__}")
+    out = dict(given)
+    for f in fields(FitOptions):
+        field_value = getattr(options, f.name)
+        if _same(field_value, f.default):
+            continue
+        if f.name not in given:
+            raise ValueError(f"`options.{f.name}` = {field_value!r} does not apply here (this function takes no "
+                             f"`{f.name}`); leave it at its default {f.default!r}")
+        keyword = given[f.name]
+        default = (defaults or {}).get(f.name, f.default)
+        if _same(keyword, default) or _same(keyword, field_value):
+            out[f.name] = field_value
+        else:
+            raise ValueError(f"`{f.name}` is given twice, {keyword!r} as a keyword and {field_value!r} in `options`; "
+                             "give it once")
+    return out
+
+
+def expand_options(keywords: dict) -> dict:
+    """``keywords`` of a function that passes them on to a fit (``profile``, ``multistart``), with an
+    ``options`` entry (a :class:`FitOptions`) replaced by its fields set away from their defaults; a
+    field also given as a keyword with another value is a ``ValueError`` naming it."""
+    keywords = dict(keywords)
+    options = keywords.pop("options", None)
+    if options is None:
+        return keywords
+    if not isinstance(options, FitOptions):
+        raise TypeError(f"`options` must be a torchql.FitOptions; received {type(options).__name__}")
+    for f in fields(FitOptions):
+        value = getattr(options, f.name)
+        if _same(value, f.default):
+            continue
+        if f.name in keywords and not _same(keywords[f.name], value):
+            raise ValueError(f"`{f.name}` is given twice, {keywords[f.name]!r} as a keyword and {value!r} in "
+                             "`options`; give it once")
+        keywords[f.name] = value
+    return keywords
+
+
+def accepts_options(function):
+    """Decorate a fitting function whose keywords include some of :class:`FitOptions`' fields and
+    ``options=None``: a call with ``options`` runs it with those keywords resolved by
+    :func:`with_options` (the function's own defaults deciding which keywords were left alone)."""
+    signature = inspect.signature(function)
+    names = [f.name for f in fields(FitOptions) if f.name in signature.parameters]
+
+    @functools.wraps(function)
+    def call(*args, options: "FitOptions | None" = None, **kwargs):
+        if options is None:
+            return function(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        given = {name: bound.arguments[name] for name in names}
+        bound.arguments.update(with_options(options, given, {name: signature.parameters[name].default
+                                                             for name in names}))
+        return function(*bound.args, **bound.kwargs)
+    return call

@@ -28,6 +28,7 @@ from typing import NamedTuple
 import torch
 
 from .model import _set_buffer, coefficients
+from .options import expand_options
 from .noise import estimate_sigma, negative_log_likelihood, sigma_group_index
 from .observations import ObservationOperator, Observations
 from .result import FitResult, Status
@@ -198,7 +199,8 @@ def profile(
         The interval's ends are located to ``xtol * step``.
     **fit_options
         Keyword arguments of :func:`torchql.fit` overriding those of the original fit
-        (``method=``, ``grid=``, ``rtol=``, ``max_iter=``, ...).
+        (``method=``, ``grid=``, ``rtol=``, ``max_iter=``, ...), or ``options=`` a
+        :class:`torchql.FitOptions` whose fields set away from their defaults override them.
 
     Returns
     -------
@@ -316,7 +318,7 @@ def _refit_options(result: FitResult, name: str, fit_options: dict) -> dict:
         if result.fit_kwargs.get(key):
             options[key] = {k: v for k, v in result.fit_kwargs[key].items()
                             if k not in (name, name.removesuffix("(t0)"))}
-    options.update(fit_options)
+    options.update(expand_options(fit_options))
     return options
 
 

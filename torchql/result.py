@@ -13,6 +13,7 @@ from .status import Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import ODEModel
+    from .options import FitOptions
     from .observations import Observations
 
 __all__ = ["Status", "IterationRecord", "FitResult", "FitError"]
@@ -236,6 +237,13 @@ class FitResult:
     sigma: dict[str, float] | None = field(default=None, repr=False)
     noise: str = field(default="normal", repr=False)
     sigma_function: bool = field(default=False, repr=False)
+
+    @property
+    def options(self) -> "FitOptions":
+        """The options the fit ran with (:class:`torchql.FitOptions`), to run another one alike."""
+        from .options import FitOptions
+
+        return FitOptions.of(self.fit_kwargs)
 
     @property
     def stderr(self) -> dict[str, float]:
