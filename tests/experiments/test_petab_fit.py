@@ -15,7 +15,11 @@ from test_petab import PETAB  # skips this module too without ../shared/petab; p
 from experiments.petab import PROBLEMS, load_problem, nominal_values
 from experiments.petab.boehm_fit import boehm_experiment
 from experiments.petab.bruno_fit import bruno_experiments, fit_bruno
+from experiments.petab.fiedler import steady_state
+from experiments.petab.fiedler_fit import TOTALS, fiedler_experiments
 from experiments.petab_fit import perturbed
+from torchql.model import coefficients
+from torchql.multi import check_conditions, with_condition
 from torchql.noise import negative_log_likelihood
 
 
@@ -57,3 +61,25 @@ def test_boehm_problem_built_for_torchql_gives_the_reference_likelihood():
     nll = negative_log_likelihood((r**2).sum(), torch.log(sigma[present]).sum(), torch.tensor(float(r.numel())))
     assert abs(float(nll) - problem.reference_nllh) < 1e-3
     assert data.sigma_estimated and int(present.sum()) == len(problem.measurements) == 48
+
+
+def test_fiedler_problem_built_for_torchql_gives_the_reference_likelihood():
+    """The data, conditions, observation h(x, p) and noise sigma(p) that ``fit_fiedler`` fits give, at the
+    nominal parameters, the reference negative log-likelihood; its 22 unknowns are PEtab's."""
+    problem = load_problem(PROBLEMS["Fiedler_BMCSystBiol2016"], PETAB)
+    values = nominal_values(problem)
+    model, datasets, conditions, params, bounds = fiedler_experiments(problem, values)
+    assert sorted(params) == sorted(problem.estimated) and len(params) == 22 == len(bounds)
+    assert sum(int((~torch.isnan(d.y)).sum()) for d in datasets) == len(problem.measurements) == 72
+    nll = 0.0
+    for data, condition in zip(datasets, check_conditions(model, conditions, len(datasets))):
+        own = with_condition(model, condition)
+        p = coefficients(own)
+        x0 = steady_state({**p, **{k: torch.tensor(1.0, dtype=torch.float64) for k in TOTALS}})
+        x = torchql.simulate(own, x0, data.t, t0=0.0, rtol=1e-10, atol=1e-12)
+        sigma = data.sigma_function(p).expand_as(data.y)
+        present = ~torch.isnan(data.y)
+        r = ((data.y - torch.stack([data.observe(xi, p) for xi in x])) / sigma)[present]
+        nll += float(negative_log_likelihood((r**2).sum(), torch.log(sigma[present]).sum(),
+                                             torch.tensor(float(r.numel()))))
+    assert abs(nll - problem.reference_nllh) < 1e-3
