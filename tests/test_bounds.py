@@ -423,6 +423,17 @@ def test_log_scale_transform_round_trip_and_derivative():
     assert torch.allclose(b.derivative(u), numeric, rtol=1e-8)
 
 
+def test_log_scale_guesses_on_a_bound_move_inside_on_the_log_scale():
+    """``[1e-5, 1e3]`` on the log scale: a guess below moves ``1e-3`` of the log-width inside,
+    ``1e-5 * 1e8^0.001`` (not ``1e-3`` of the linear width, which would put it near 1); one-sided:
+    ``1e-3 max(1, |log bound|)`` inside in ``log u``; a lower bound 0 keeps the linear rule."""
+    b = make_log([1e-5, 1e-5, 1e-5, 0.0], [1e3, 1e3, None, None])
+    used, moved = b.move_inside(torch.tensor([8e-6, 1200.0, 1e-5, 0.0], dtype=DT))
+    assert moved.tolist() == [True, True, True, True]
+    expected = [1e-5 * 1e8 ** 1e-3, 1e3 / 1e8 ** 1e-3, 1e-5 * math.exp(1e-3 * math.log(1e5)), 1e-3]
+    assert torch.allclose(used, torch.tensor(expected, dtype=DT), rtol=1e-12, atol=0)
+
+
 def test_log_scale_step_is_a_relative_change_capped_at_a_factor_1000():
     b = make_log([None, None, 1e-5, None], [None, None, 1e5, None])
     u = torch.tensor([2.0, 2.0, 1.0, 1e-300], dtype=DT)

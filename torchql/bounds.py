@@ -163,7 +163,9 @@ class Bounds:
 
         A guess on a bound or beyond it goes to ``bound ± START_OFFSET * max(1, |bound|)``
         (one-sided) or to ``START_OFFSET`` of the width inside the nearer bound (two-sided);
-        see the module's description. Guesses strictly inside are returned unchanged.
+        see the module's description. For an unknown on a log scale with positive bounds the rule
+        applies to ``log u`` and ``log`` of its bounds (``[1e-5, 1e3]``: ``1e-5 * 1e8^0.001``).
+        Guesses strictly inside are returned unchanged.
 
         Returns
         -------
@@ -176,17 +178,28 @@ class Bounds:
         moved = low | (self.has_upper & ~(u < self.upper))
         if not bool(moved.any()):
             return u.clone(), moved
-        both = self.has_lower & self.has_upper
         lo = torch.where(self.has_lower, self.lower, torch.zeros_like(u))
         hi = torch.where(self.has_upper, self.upper, torch.zeros_like(u))
+        used = self._moved(u, lo, hi, low, moved)
+        # on a log scale (positive bounds) the step inside is taken in log u, as the iteration sees it
+        logged = self.log & moved & ~(self.has_lower & (lo <= 0))
+        if bool(logged.any()):
+            def log(v):
+                return torch.log(torch.where(logged, v, torch.ones_like(v)))
+            in_log = torch.exp(self._moved(log(u.clamp_min(torch.finfo(u.dtype).tiny)), log(lo), log(hi), low, moved))
+            used = torch.where(logged, in_log, used)
+        return used, moved
+
+    def _moved(self, u, lo, hi, low, moved) -> torch.Tensor:
+        """:meth:`move_inside`'s rule on values ``u`` with bounds ``lo``, ``hi`` (0 where absent)."""
+        both = self.has_lower & self.has_upper
         width = START_OFFSET * hi - START_OFFSET * lo  # START_OFFSET * (hi - lo), which cannot overflow
         up = torch.where(both, width, START_OFFSET * torch.maximum(lo.abs(), torch.ones_like(u)))
         down = torch.where(both, width, START_OFFSET * torch.maximum(hi.abs(), torch.ones_like(u)))
         inf = torch.full_like(u, math.inf)
         inside_lo, inside_hi = torch.nextafter(lo, inf), torch.nextafter(hi, -inf)  # where the offset rounds away
         used = torch.where(low, torch.maximum(lo + up, inside_lo), u)
-        used = torch.where(moved & ~low, torch.minimum(hi - down, inside_hi), used)
-        return used, moved
+        return torch.where(moved & ~low, torch.minimum(hi - down, inside_hi), used)
 
     def _both(self) -> torch.Tensor:
         return self._has_lo & self._has_hi
