@@ -43,8 +43,8 @@ from .batch_result import BatchFitResult, concatenate
 from .engine import run_engine
 from .noise import run_with_noise
 from .grid import make_grid
-from .model import ODEModel, coefficients
-from .multi import stack_experiments, stack_observations
+from .model import ODEModel
+from .multi import experiment_result, stack_experiments, stack_observations
 from .observations import Observations
 from .options import FitOptions, Limits, accepts_options
 from .parameters import apply_parameters
@@ -342,10 +342,10 @@ def _experiments_per_sample(data) -> bool:
     return isinstance(data, (list, tuple)) and bool(data) and all(isinstance(d, (list, tuple)) for d in data)
 
 
-def _check_experiment_samples(data, x0) -> tuple[int, int]:
-    """``(B, E)`` of ``fit_many``'s samples of several experiments: each a list of ``E``
+def _check_experiment_samples(data, x0) -> tuple[int, bool]:
+    """``(B, per_sample)`` of ``fit_many``'s samples of several experiments: each a list of ``E``
     Observations, experiment ``e`` at the same times (and with the same inputs) in every sample;
-    ``x0`` ``None``, shared ``(E, n)`` or per sample ``(B, E, n)``."""
+    ``x0`` ``None``, shared ``(E, n)`` or per sample ``(B, E, n)`` (``per_sample``)."""
     B, E = len(data), len(data[0])
     for b, sample in enumerate(data):
         if len(sample) != E:
@@ -361,18 +361,19 @@ def _check_experiment_samples(data, x0) -> tuple[int, int]:
             if (d.inputs is None) != (ref.inputs is None) or (d.inputs is not None and not d.inputs.same_as(ref.inputs)):
                 raise ValueError(f"`data[{b}][{e}]` has other inputs than `data[0][{e}]`: with several experiments "
                                  "per sample, each experiment's inputs must be the same in every sample")
-    if x0 is not None and torch.as_tensor(x0).dim() == 3 and torch.as_tensor(x0).shape[0] != B:
+    shape = None if x0 is None else tuple(torch.as_tensor(x0).shape)
+    per_sample = shape is not None and len(shape) == 3
+    if per_sample and shape[0] != B:
         raise ValueError(f"`x0` must have shape (E, n_states) (shared) or (B, E, n_states) with B = {B}; received "
-                         f"shape {tuple(torch.as_tensor(x0).shape)}")
-    return B, E
+                         f"shape {shape}")
+    return B, per_sample
 
 
 def _fit_experiment_samples(model, data, x0, *, params, guesses, fixed_x0, t0, bounds, scale, x0_expr, grid,
                             conditions, **options) -> BatchFitResult:
     """``fit_many`` over samples of several experiments each: every sample's experiments stacked as
     :func:`torchql.fit` stacks them (:func:`torchql.multi.stack_experiments`), one batched problem."""
-    B, E = _check_experiment_samples(data, x0)
-    per_sample = x0 is not None and torch.as_tensor(x0).dim() == 3
+    B, per_sample = _check_experiment_samples(data, x0)
     st = stack_experiments(model, list(data[0]), x0[0] if per_sample else x0, t0=t0, fixed_x0=fixed_x0,
                            bounds=bounds, scale=scale, x0_expr=x0_expr, grid=grid, conditions=conditions)
     names = list(model.state_names)
@@ -380,8 +381,12 @@ def _fit_experiment_samples(model, data, x0, *, params, guesses, fixed_x0, t0, b
     stacked = [st.data] + [stack_observations(list(sample), names, st.t0, st.span, dtype, device, st.conditions)
                            for sample in data[1:]]
     first = st.data
-    sigma = ("estimate" if first.sigma_estimated else first.sigma_function if first.sigma_function is not None
-             else torch.stack([d.sigma for d in stacked]) if first.sigma_given else None)
+    if first.sigma_estimated:
+        sigma = "estimate"
+    elif first.sigma_function is not None:
+        sigma = first.sigma_function
+    else:
+        sigma = torch.stack([d.sigma for d in stacked]) if first.sigma_given else None
     batch_data = Observations(first.t, torch.stack([d.y for d in stacked]), observe=first.observe, sigma=sigma,
                               exact=torch.stack([d.exact for d in stacked]), noise=first.noise,
                               sigma_groups=first.sigma_groups)
@@ -390,13 +395,8 @@ def _fit_experiment_samples(model, data, x0, *, params, guesses, fixed_x0, t0, b
         x0_stacked = torch.as_tensor(x0, dtype=dtype, device=device).reshape(B, -1).clone()
     result = fit_many(st.model, batch_data, x0_stacked, params=params, guesses=guesses, fixed_x0=st.fixed_x0, t0=0.0,
                       bounds=st.bounds, scale=st.scale, x0_expr=st.x0_expr, grid=grid, **options)
-    own = coefficients(model)
-    result.params = {name: value for name, value in result.params.items() if name in own}
-    result.model = copy.deepcopy(model)
-    result.x0 = result.x0.reshape(B, E, -1)
-    result.experiment_t0 = [float(v) for v in st.t0]
-    result.conditions = st.conditions
-    result.data = data
+    experiment_result(result, model, st, data)
+    result.model = copy.deepcopy(model)  # each sample's coefficients set by result.model_of(i)
     replayed = {k: v for k, v in options.items() if k not in ("chunk_size", "progress", "callback")}
     result.fit_kwargs = recorded_options(x0=None if per_sample else x0, params=params, fixed_x0=fixed_x0, t0=t0,
                                          grid=grid, bounds=bounds, scale=scale, x0_expr=x0_expr,

@@ -26,8 +26,8 @@ from . import _checks
 from .engine import run_engine
 from .noise import run_with_noise
 from .problem import Problem, recorded_options
-from .model import ODEModel, _set_buffer, coefficients
-from .multi import stack_experiments
+from .model import ODEModel, _set_buffer
+from .multi import experiment_result, stack_experiments
 from .observations import Observations
 from .options import METHODS, FitOptions, Limits, accepts_options
 from .parameters import apply_parameters
@@ -309,16 +309,11 @@ def _fit_experiments(model, datasets: list, x0, *, params, fixed_x0, t0, bounds,
                            x0_expr=x0_expr, grid=grid, conditions=conditions)
     result = fit(st.model, st.data, st.x0, params=params, fixed_x0=st.fixed_x0, t0=0.0, bounds=st.bounds,
                  scale=st.scale, grid=grid, x0_expr=st.x0_expr, throw=False, callback=callback, **options)
+    experiment_result(result, model, st, datasets)
     fitted = copy.deepcopy(model)
-    own = coefficients(model)
-    result.params = {name: value for name, value in result.params.items() if name in own}
     for name, value in result.params.items():
         _set_buffer(fitted, name, value)
     result.model = fitted
-    result.x0 = result.x0.reshape(len(datasets), -1)
-    result.experiment_t0 = [float(v) for v in st.t0]
-    result.conditions = st.conditions
-    result.data = datasets
     result.fit_kwargs = recorded_options(x0=x0, params=params, fixed_x0=fixed_x0, t0=t0, grid=grid, bounds=bounds,
                                          scale=scale, x0_expr=x0_expr, conditions=conditions,
                                          **options)

@@ -26,8 +26,8 @@ from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .noise import sigma_group_index
 from .observations import ObservationOperator, Observations
 
-__all__ = ["StackedModel", "StackedExperiments", "stack_experiments", "stack_observations", "experiment_state_name",
-           "check_conditions", "with_condition"]
+__all__ = ["StackedModel", "StackedExperiments", "stack_experiments", "experiment_result", "stack_observations",
+           "experiment_state_name", "check_conditions", "with_condition"]
 
 
 def experiment_state_name(name: str, e: int) -> str:
@@ -44,6 +44,11 @@ def condition_values(values: dict, condition: dict | None) -> dict:
     return own
 
 
+def experiment_values(values: dict, conditions: list | None, e: int) -> dict:
+    """``values`` as experiment ``e`` sees them, its entry of ``conditions`` (if any) applied."""
+    return condition_values(values, conditions[e] if conditions else None)
+
+
 def experiment_expressions(expressions: dict, names: list[str], E: int, conditions: list | None) -> dict | None:
     """``x0_expr`` of several experiments for the stacked model: each state's expression in every
     experiment, seeing that experiment's initial states by their own names and its coefficient
@@ -54,7 +59,7 @@ def experiment_expressions(expressions: dict, names: list[str], E: int, conditio
     def own(fn, e: int):
         def expression(values: dict) -> torch.Tensor:
             mine = {k: v for k, v in values.items() if "[" not in k or k.rsplit("[", 1)[0] not in names}
-            mine = condition_values(mine, conditions[e] if conditions else None)
+            mine = experiment_values(mine, conditions, e)
             mine.update({s: values[experiment_state_name(s, e)] for s in names})
             return fn(mine)
         return expression
@@ -260,7 +265,7 @@ class _BlockSigma:
         self.functions, self.conditions = functions, conditions
 
     def __call__(self, p: dict) -> torch.Tensor:
-        return torch.cat([fn(condition_values(p, self.conditions[e] if self.conditions else None))
+        return torch.cat([fn(experiment_values(p, self.conditions, e))
                           for e, fn in enumerate(self.functions)])
 
 
@@ -286,7 +291,7 @@ class _BlockObservation:
             if op.matrix is not None:
                 out.append(xe @ op.matrix.T)
             elif op.takes_params:
-                out.append(spec(xe, condition_values(p, self.conditions[e] if self.conditions else None)))
+                out.append(spec(xe, experiment_values(p, self.conditions, e)))
             else:
                 out.append(spec(xe))
         return torch.cat(out, dim=-1)
@@ -365,6 +370,19 @@ def stack_experiments(model, datasets: list, x0, *, t0, fixed_x0, bounds, scale,
         _per_experiment("bounds", bounds, "{name: (lower, upper)}", names, fixed, E),
         _per_experiment("scale", scale, "{name: 'lin' | 'log' | 'log10'}", names, fixed, E),
         experiment_expressions(check_expressions(x0_expr, names, None), names, E, checked), t0s, span, checked)
+
+
+def experiment_result(result, model, st: StackedExperiments, datasets):
+    """The stacked fit's ``result`` (a ``FitResult``, or a ``BatchFitResult`` of samples of several
+    experiments) in the experiments' terms: the model's own coefficients only, ``x0 (..., E, n)``,
+    ``experiment_t0``, the checked ``conditions`` and the experiments' ``datasets``. Returns it."""
+    own = coefficients(model)
+    result.params = {name: value for name, value in result.params.items() if name in own}
+    result.x0 = result.x0.reshape(*result.x0.shape[:-1], st.t0.numel(), -1)
+    result.experiment_t0 = [float(v) for v in st.t0]
+    result.conditions = st.conditions
+    result.data = datasets
+    return result
 
 
 def _per_experiment(argument: str, given, expected: str, names: list, fixed, E: int) -> dict | None:
