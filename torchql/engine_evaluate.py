@@ -42,14 +42,14 @@ _LOOSE_RTOL = 1e-6
 #: A trial step is accepted when its merit exceeds the current one by at most ``_MERIT_SLACK`` times
 #: its magnitude (rounding of the sums of squares must not reject a converging step).
 _MERIT_SLACK = 1e-10
+#: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
+_EXACT_PENALTY = 1e6
 
 
 def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a <= b`` up to :data:`_MERIT_SLACK` relative to ``|b|`` (an objective with a ``sigma(p)``
     function may be negative; for ``b >= 0`` this is ``a <= b (1 + _MERIT_SLACK)``)."""
     return a <= torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
-#: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
-_EXACT_PENALTY = 1e6
 
 
 class Evaluation:

@@ -64,7 +64,7 @@ class FinalPass:
             J = C * w.unsqueeze(-1)  # R rows, and with a sigma(p) function R more (its log term's)
             rw = d * w
             R = resid.shape[1]
-            J_info = J if J.shape[1] == R else _fisher_rows(C_mean, w, C[:, R:])
+            J_info = J if spec.sigma_function is None else _fisher_rows(C_mean, w, C[:, R:])
             s = self._ssq(rows, resid, w)
             sse[rows] = s
             s = s + log_term  # the objective (with a sigma(p) function, not a sum of squares)
@@ -82,7 +82,7 @@ class FinalPass:
             keep = ~nonfinite
             rows, J, s, rw, J_info = rows[keep], J[keep], s[keep], rw[keep], J_info[keep]
         if rows.numel():
-            used = self._used(rows, J.shape[1])
+            used = self._used(rows)
             deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail, used)
             exact = torch.cat([self.exact[rows], torch.zeros_like(used[:, self.exact.shape[1]:])], dim=1)
             cov[rows] = _covariance(J_info, used, s, self.L[rows], spec, deficient | exact.any(dim=1), exact)
@@ -103,11 +103,11 @@ class FinalPass:
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
 
-    def _used(self, rows, R_all: int) -> torch.Tensor:
-        """The rows in use ``(S, R_all)`` of samples ``rows``: the values present, and with a
-        ``sigma(p)`` function the log rows of those values after them."""
+    def _used(self, rows) -> torch.Tensor:
+        """The rows in use of samples ``rows``: the values present ``(S, R)``, and with a ``sigma(p)``
+        function the log rows of those values after them ``(S, 2 R)``."""
         used = self.mask[rows].reshape(rows.numel(), -1)
-        return used if R_all == used.shape[1] else torch.cat([used, used], dim=1)
+        return used if self.spec.sigma_function is None else torch.cat([used, used], dim=1)
 
     def _diagnose(self, rows, J, rw, sse, z0, codes, detail, used):
         """The final statuses of samples ``rows`` from their weighted Jacobians ``J (S, R, m)`` and

@@ -271,6 +271,13 @@ class Observations:
         self.sigma = sig.expand(shape).clone(memory_format=torch.contiguous_format)
         self.sigma_given = sigma is not None
 
+    def sigma_at(self, coefficients: dict) -> torch.Tensor:
+        """The values' standard deviations, shape of :attr:`sigma`, with a ``sigma(p)`` function at
+        the model's ``coefficients`` (by name), else :attr:`sigma` itself."""
+        if self.sigma_function is None:
+            return self.sigma
+        return self.sigma * self.sigma_function(coefficients).to(device=self.sigma.device, dtype=self.sigma.dtype)
+
     @classmethod
     def _validated(cls, t: torch.Tensor, y: torch.Tensor, observe, sigma: torch.Tensor, exact: torch.Tensor,
                    sigma_given: bool, inputs=None) -> "Observations":

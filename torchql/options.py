@@ -173,10 +173,6 @@ class FitOptions:
         """A copy with ``changes`` (validated)."""
         return replace(self, **changes)
 
-    def keywords(self) -> dict:
-        """The fields as keyword arguments of :func:`torchql.fit`."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
     @classmethod
     def of(cls, keywords: dict) -> "FitOptions":
         """The options among a fit's ``keywords`` (others ignored)."""
@@ -191,6 +187,19 @@ def _same(a, b) -> bool:
     return a == b if type(a) is type(b) else a is b
 
 
+def _set_fields(options) -> list[tuple[str, object, object]]:
+    """``(name, value, default)`` of the fields of ``options`` (a :class:`FitOptions`, else
+    ``TypeError``) set away from their defaults."""
+    if not isinstance(options, FitOptions):
+        raise TypeError(f"`options` must be a torchql.FitOptions; received {type(options).__name__}")
+    return [(f.name, getattr(options, f.name), f.default) for f in fields(FitOptions)
+            if not _same(getattr(options, f.name), f.default)]
+
+
+def _given_twice(name: str, keyword, value) -> ValueError:
+    return ValueError(f"`{name}` is given twice, {keyword!r} as a keyword and {value!r} in `options`; give it once")
+
+
 def with_options(options: "FitOptions | None", given: dict, defaults: dict | None = None) -> dict:
     """The keyword arguments ``given`` (as an entry point received them) with ``options``' fields.
 
@@ -198,25 +207,17 @@ def with_options(options: "FitOptions | None", given: dict, defaults: dict | Non
     field that the entry point does not take (not in ``given``) must be at its default; a field and a
     keyword set to different values is a ``ValueError`` naming it.
     """
-    if options is None:
-        return dict(given)
-    if not isinstance(options, FitOptions):
-        raise TypeError(f"`options` must be a torchql.FitOptions; received {type(options).__name__}")
     out = dict(given)
-    for f in fields(FitOptions):
-        field_value = getattr(options, f.name)
-        if _same(field_value, f.default):
-            continue
-        if f.name not in given:
-            raise ValueError(f"`options.{f.name}` = {field_value!r} does not apply here (this function takes no "
-                             f"`{f.name}`); leave it at its default {f.default!r}")
-        keyword = given[f.name]
-        default = (defaults or {}).get(f.name, f.default)
-        if _same(keyword, default) or _same(keyword, field_value):
-            out[f.name] = field_value
-        else:
-            raise ValueError(f"`{f.name}` is given twice, {keyword!r} as a keyword and {field_value!r} in `options`; "
-                             "give it once")
+    if options is None:
+        return out
+    for name, value, default in _set_fields(options):
+        if name not in given:
+            raise ValueError(f"`options.{name}` = {value!r} does not apply here (this function takes no "
+                             f"`{name}`); leave it at its default {default!r}")
+        keyword = given[name]
+        if not (_same(keyword, (defaults or {}).get(name, default)) or _same(keyword, value)):
+            raise _given_twice(name, keyword, value)
+        out[name] = value
     return out
 
 
@@ -228,16 +229,10 @@ def expand_options(keywords: dict) -> dict:
     options = keywords.pop("options", None)
     if options is None:
         return keywords
-    if not isinstance(options, FitOptions):
-        raise TypeError(f"`options` must be a torchql.FitOptions; received {type(options).__name__}")
-    for f in fields(FitOptions):
-        value = getattr(options, f.name)
-        if _same(value, f.default):
-            continue
-        if f.name in keywords and not _same(keywords[f.name], value):
-            raise ValueError(f"`{f.name}` is given twice, {keywords[f.name]!r} as a keyword and {value!r} in "
-                             "`options`; give it once")
-        keywords[f.name] = value
+    for name, value, _ in _set_fields(options):
+        if name in keywords and not _same(keywords[name], value):
+            raise _given_twice(name, keywords[name], value)
+        keywords[name] = value
     return keywords
 
 

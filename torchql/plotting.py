@@ -92,9 +92,7 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     labels = _output_labels(data.observe, names, K)
     tf = t_fine.cpu().numpy()
     to = t_obs.cpu().numpy()
-    sigma = data.sigma
-    if data.sigma_function is not None:  # its values at the estimates
-        sigma = sigma * data.sigma_function(coefficients(result.model)).to(sigma.dtype).cpu()
+    sigma = data.sigma_at(coefficients(result.model))  # with a sigma(p) function, at the estimates
     for k in range(K):
         (line,) = ax_fit.plot(tf, h_fine[:, k].cpu().numpy(), label=f"{labels[k]} fitted")
         color = line.get_color()

@@ -582,9 +582,7 @@ def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dic
     if data.noise == "lognormal":
         log_y = torch.log(y)[counted].sum()
         y, value = torch.log(y), torch.log(value)
-    sigma = data.sigma.to(dtype=dtype, device=device)
-    if data.sigma_function is not None:
-        sigma = sigma * data.sigma_function(coefficients(model)).to(dtype=dtype, device=device)
+    sigma = data.sigma_at(coefficients(model)).to(dtype=dtype, device=device)
     if likelihood and data.sigma_estimated:
         _, group = sigma_group_index(data.sigma_groups, data.n_outputs, operator.labels())
         group = torch.tensor(group, dtype=torch.long, device=device)
