@@ -109,7 +109,7 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
         if jumps is not None:
             low, high = torch.minimum(t[0], t[-1]), torch.maximum(t[0], t[-1])
             jumps = jumps.to(t)
-            jumps = jumps[(jumps > low) & (jumps < high)]
+            jumps = torch.unique(jumps[(jumps > low) & (jumps < high)])  # torchdiffeq takes a time once
             if jumps.numel():
                 options["jump_t"] = jumps  # the solver lands on these too
         if hit is not None:
