@@ -19,8 +19,13 @@ def test_cars_from_their_data_equal_single_fits():
                for b in range(4)]
     assert batch.success.all(), batch.summary()
     assert_same_as_single(batch, singles)
-    # the history's first record: the guesses, whose model SSE a data start does not compute
-    assert torch.isnan(torch.tensor(batch[0].history[0].sse))
+    # the history's first record: the first iterate (the coefficients fitted to the data's slopes)
+    # and its sum of squares, as the single fit records them
+    for b in range(4):
+        first, own = batch[b].history[0], singles[b].history[0]
+        assert first.iteration == own.iteration == 0 and first.sse == pytest.approx(own.sse, rel=1e-10)
+        assert all(float(first.params[k]) == pytest.approx(float(own.params[k]), rel=1e-12) for k in own.params)
+        assert float(own.params["C_D"]) != 0.4  # not the guess
 
 
 def test_oscillators_on_their_own_clocks_with_a_hidden_state():

@@ -234,7 +234,7 @@ def test_bounds_must_be_a_dict():
 
 
 def test_initial_trajectory_invalid():
-    with pytest.raises(ValueError, match=r"`initial_trajectory` must be one of \('integrate', 'data'\); received 'zeros'"):
+    with pytest.raises(ValueError, match=r"`initial_trajectory` must be one of \('auto', 'integrate', 'data'\); received 'zeros'"):
         torchql.fit(Decay(), decay_data(), initial_trajectory="zeros")
 
 

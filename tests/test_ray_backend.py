@@ -26,7 +26,8 @@ def fleet(B: int):
 @pytest.mark.slow
 def test_local_ray_run_equals_fit_many_in_input_order():
     data, x0 = fleet(5)
-    C_D = torch.tensor([0.4, 0.4, -40.0, 0.4, 0.35], dtype=DT)  # sample 2 blows up: a failure per sample
+    # sample 2 blows up, integrated from its guess: a failure per sample (from the data it converges)
+    C_D = torch.tensor([0.4, 0.4, -40.0, 0.4, 0.35], dtype=DT)
     times = torch.stack([T + 0.5 * b for b in range(5)])  # the same logs recorded at other clock times
     model = CoastingCar(17.3, 80.43)
     seen = []
@@ -35,15 +36,15 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     except Exception as exc:  # noqa: BLE001 - an environment that cannot start Ray skips, saying why
         pytest.skip(f"a local Ray instance cannot start here: {exc}")
     try:
-        remote = torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2, grid=20,
+        remote = torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate",
                                       progress=lambda done, total: seen.append((done, total)))
         batch = torchql.Observations(T, torch.stack([d.y for d in data]), observe=["v"])  # sliced into tasks
-        remote_batch = torchql.fit_many_ray(model, batch, x0, guesses={"C_D": C_D}, batch_size=2, grid=20)
+        remote_batch = torchql.fit_many_ray(model, batch, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate")
         own = torchql.Observations(times, batch.y, observe=["v"])  # per-sample times: each task gets its samples'
-        remote_own = torchql.fit_many_ray(model, own, x0, guesses={"C_D": C_D}, batch_size=2, grid=20)
+        remote_own = torchql.fit_many_ray(model, own, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate")
     finally:
         ray.shutdown()
-    local = torchql.fit_many(model, data, x0, guesses={"C_D": C_D}, grid=20)
+    local = torchql.fit_many(model, data, x0, guesses={"C_D": C_D}, grid=20, initial_trajectory="integrate")
     assert len(remote) == 5 and seen[-1] == (5, 5)
     assert [s.name for s in remote.status] == [s.name for s in local.status]
     assert remote.status[2].name == "INTEGRATION_FAILED" and remote.success.sum() == 4
@@ -52,7 +53,7 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     assert torch.allclose(remote.params["C_D"][[0, 1, 3, 4]], local.params["C_D"][[0, 1, 3, 4]], rtol=1e-12)
     assert [s.name for s in remote_batch.status] == [s.name for s in local.status]
     assert torch.allclose(remote_batch.estimates, local.estimates, rtol=1e-12, atol=0)
-    local_own = torchql.fit_many(model, own, x0, guesses={"C_D": C_D}, grid=20)
+    local_own = torchql.fit_many(model, own, x0, guesses={"C_D": C_D}, grid=20, initial_trajectory="integrate")
     assert [s.name for s in remote_own.status] == [s.name for s in local_own.status]
     assert torch.allclose(remote_own.estimates, local_own.estimates, rtol=1e-12, atol=0)
     assert torch.equal(remote_own.t0, times[:, 0]) and torch.equal(local_own.t0, times[:, 0])

@@ -19,7 +19,9 @@ CAR_TIMES = torch.arange(9, dtype=DT) * 5.0
 
 @pytest.fixture(scope="module")
 def car():
-    result = torchql.fit(CoastingCar(17.3, 80.43), torchql.Observations(CAR_TIMES, SUNBEAM, observe=["v"]), grid=100)
+    # integrated from the guesses, so that the iteration table starts at them
+    result = torchql.fit(CoastingCar(17.3, 80.43), torchql.Observations(CAR_TIMES, SUNBEAM, observe=["v"]), grid=100,
+                         initial_trajectory="integrate")
     assert result.success
     return result
 

@@ -46,9 +46,9 @@ from .grid import make_grid
 from .model import ODEModel
 from .multi import experiment_result, stack_experiments, stack_observations
 from .observations import Observations
-from .options import FitOptions, Limits, accepts_options
+from .options import FitOptions, Limits, accepts_options, recorded_options
 from .parameters import apply_parameters
-from .problem import Problem, check_data, inputs_all_or_none, recorded_options
+from .problem import Problem, check_data, inputs_all_or_none
 from .propagators import LinearPropagator
 from .result import IterationRecord
 
@@ -78,7 +78,7 @@ def fit_many(
     scale: dict | None = None,
     parameters: dict | None = None,
     x0_expr: dict | None = None,
-    initial_trajectory: str = "integrate",
+    initial_trajectory: str = "auto",
     max_iter: int = 50,
     max_time: float | None = None,
     rtol: float | None = None,
@@ -158,10 +158,12 @@ def fit_many(
         Default: none.
     fixed_x0, max_iter, rtol, atol, xtol, ftol, rcond, grid, damping, solver, max_steps
         As in :func:`torchql.fit`.
-    initial_trajectory : {"integrate", "data"}
-        As in :func:`torchql.fit` (Kantorovich only): ``"data"`` builds each sample's first
-        reference from its own data (smoothed observed states, derived hidden states, coefficients
-        fitted to the slopes), with no integration from the guesses; one sample after another.
+    initial_trajectory : {"auto", "integrate", "data"}
+        As in :func:`torchql.fit`: ``"data"`` builds each sample's first reference from its own
+        data (smoothed observed states, derived hidden states, coefficients fitted to the
+        slopes), with no integration from the guesses, batched over the samples; ``"auto"``
+        (default) decides once for the batch and fits again, from the integrated guesses, each
+        sample whose fit from the data failed.
         ``solver="auto"`` (default) decides as ``fit`` does, once for the batch: ``"rodas5p"``
         when some sample's model is stiff along its data (:mod:`torchql.stiffness`), else
         ``"dopri5"``. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched

@@ -82,8 +82,10 @@ class BatchFitResult:
     singular_values : Tensor ``(B, m)`` or None
         Singular values of each column-scaled weighted Jacobian (NaN where not evaluated).
     start_params, start_x0, sse_start
-        Each sample's guesses (``{name: (B, *shape)}``, ``(B, n_states)``) and the model's sum of
-        squares there ``(B,)``: the first record of ``batch[i].history``.
+        Each sample's first iterate (``{name: (B, *shape)}``, ``(B, n_states)``) and its sum of
+        squares ``(B,)``: the first record of ``batch[i].history``. Integrated from the guesses, the
+        first iterate is the guesses; built from the data, its coefficients are those fitted to
+        the data's slopes.
     solver_options : dict
         ``solver``, ``rtol``, ``atol`` of the fits (used by ``batch[i].predict``).
     data : Observations or list of Observations or None

@@ -4,166 +4,303 @@ The observed states are the data, smoothed (:func:`torchql.smoothing.smooth`) an
 on the storage grid; the unobserved ones are derived from the model where the observed states'
 equations involve them (``y' = v`` gives ``v`` from the smoothed ``y``); the first coefficients
 are fitted to the data's slopes (gradient matching). None of this integrates the model, so it
-does not depend on how poor the guesses are (the thesis' wide-basin start). One sample at a
-time: :func:`torchql.fit` calls it once, :func:`torchql.fit_many` once per sample.
+does not depend on how poor the guesses are (the thesis' wide-basin start).
+
+Batch-first: the smoothing is per series, the derivation of unobserved states and the gradient
+matching are one vectorized computation over every sample (each sample with its own damping),
+so ``fit`` (one sample) and ``fit_many`` (``S`` samples) compute the same start.
 """
 
 from __future__ import annotations
 
-import math
+from typing import Callable
 
 import torch
 from torch.func import jacrev, vmap
 
-from .lstsq import solve_update
+from .lstsq import solve_update_batch
+from .status import Status
 from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
 from .smoothing import interpolate, smooth
 
-__all__ = ["data_reference", "slopes"]
+__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "keep_the_better_fit", "slopes", "MIN_POINTS",
+           "FALLBACK_STATUSES"]
 
-#: Gauss–Newton steps of the gradient matching that gives the first coefficients from the data.
+#: Accepted Gauss–Newton steps of the gradient matching that gives the first coefficients.
 MATCH_STEPS = 30
 #: Gauss–Newton steps that derive unobserved states for a first trajectory from the data.
 DERIVE_STEPS = 8
+#: Relative change of every coefficient below which the gradient matching has converged.
+MATCH_XTOL = 1e-10
+
+
+#: Used values of a directly measured state, in every sample, for ``initial_trajectory="auto"`` to
+#: build the first reference from the data (fewer give no usable slopes: a line or a parabola).
+MIN_POINTS = 4
+
+
+def first_reference(initial_trajectory: str, method: str, observed_states: list, rows_mask: torch.Tensor,
+                    stiff: bool = False, max_iter: int | None = None,
+                    derivation_uses_unknowns: Callable[[list[int]], bool] | None = None) -> str:
+    """The first reference a fit uses: ``"data"`` or ``"integrate"``.
+
+    ``"auto"`` (the default) is ``"data"`` for Kantorovich on a non-stiff path when some output
+    reads a state directly and has at least :data:`MIN_POINTS` used values in every sample
+    (``rows_mask (S, T, K)``), and the states not measured so can be derived from those that are
+    without the unknown coefficients (``derivation_uses_unknowns(measured states)`` false, see
+    :func:`derivation_uses_unknowns`): ``y' = v`` gives ``v``, where SIR's ``I' = beta S I / N -
+    gamma I`` gives ``S`` only through the guesses of ``beta`` and ``gamma``. Built from the data,
+    the start does not depend on how poor the guesses are, where the model integrated from them
+    may leave the basin of the optimum. Otherwise it is ``"integrate"``: for shooting; when no
+    state is measured directly (a sum of states, a log-transformed output) or at too few times;
+    when deriving the others needs the unknowns; when the solver is stiff (``stiff``), whose fast
+    transients the data do not resolve; and with ``max_iter=0``, which evaluates the guesses.
+    Decided once for a batch, as ``solver="auto"`` is. Explicit choices are returned unchanged.
+    """
+    if initial_trajectory != "auto":
+        return initial_trajectory
+    if method != "kantorovich" or stiff or max_iter == 0:
+        return "integrate"
+    counts = rows_mask.sum(dim=1).amin(dim=0)  # (K,): the fewest used values of each output in a sample
+    measured = sorted({i for k, i in enumerate(observed_states) if i is not None and int(counts[k]) >= MIN_POINTS})
+    if not measured or (derivation_uses_unknowns is not None and derivation_uses_unknowns(measured)):
+        return "integrate"
+    return "data"
+
+
+def derivation_uses_unknowns(system, measured: list[int], unknown_index: torch.Tensor, z0: torch.Tensor,
+                             t0: torch.Tensor) -> bool:
+    """Whether the equations of the ``measured`` states involve an unknown coefficient while some
+    state is not measured (the data-built start derives those from the measured states'
+    equations, which would then rest on the coefficients' guesses). Tested at one generic point
+    near the guesses ``z0 (M,)``: a fixed perturbation, so that no coincidental zero (``I = 0``)
+    hides a term."""
+    n = system.n
+    coefficients = unknown_index[unknown_index >= n]
+    if len(measured) == n or not coefficients.numel():
+        return False
+    generic = torch.randn(z0.shape, generator=torch.Generator().manual_seed(0), dtype=z0.dtype).to(z0.device)
+    z = z0 + (0.1 * z0.abs() + 0.1) * generic
+    with torch.no_grad():
+        J = jacrev(lambda v: system.f(t0, v))(z)
+    rows = torch.tensor(measured, device=z0.device)
+    return bool((J.index_select(0, rows).index_select(1, coefficients) != 0).any())
+
+
+#: The ends of a data-started fit after which ``"auto"`` fits the sample again from the integrated
+#: guesses: the start led nowhere. Not ``MAX_ITER`` or ``MAX_TIME`` (the fit was still on its way:
+#: it needs iterations or time, not another start), nor a success.
+FALLBACK_STATUSES = (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.STALLED, Status.NOT_IDENTIFIABLE)
+
+
+def fallback_rows(statuses: list) -> list[int]:
+    """The rows of a chunk's ``statuses`` (fitted from the data-built start) to fit again from the
+    integrated guesses (:data:`FALLBACK_STATUSES`)."""
+    return [k for k, code in enumerate(statuses) if code in FALLBACK_STATUSES]
+
+
+def keep_the_better_fit(chunk: dict, rows: list[int], other: dict) -> None:
+    """Rows ``rows`` of the engine's ``chunk`` (fitted from the data) against ``other`` (the same
+    samples fitted from the integrated guesses, in that order): each keeps the better fit (a
+    success over a failure, else the lower sum of squares, a finite one over NaN), its message
+    saying what the other start gave. Updates ``chunk`` in place."""
+    S = len(chunk["status"])
+    for j, k in enumerate(rows):
+        first, second = chunk["status"][k], other["status"][j]
+        sse_first, sse_second = float(chunk["sse"][k]), float(other["sse"][j])
+        wins = not first.success and (second.success or sse_second < sse_first
+                                      or (sse_first != sse_first and sse_second == sse_second))
+        if wins:
+            for key, value in chunk.items():
+                if isinstance(value, list) or (isinstance(value, torch.Tensor) and value.shape[:1] == (S,)):
+                    value[k] = other[key][j]
+            chunk["message"][k] += (f" From the first reference built from the data the fit ended {first.name}"
+                                    f" (SSE {sse_first:.6g}); this fit integrated the model from the guesses.")
+        else:
+            chunk["message"][k] += (f" Integrated from the guesses instead of starting from the data, the fit"
+                                    f" ended {second.name} (SSE {sse_second:.6g}).")
 
 
 def slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """Node slopes of values ``z (G, M)`` on ``grid`` by finite differences (zeros on a one-node grid)."""
+    """Node slopes of values ``z (G, M)`` on ``grid (G,)`` by finite differences (zeros on a one-node grid)."""
     return torch.gradient(z, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z)
 
 
-def data_reference(system, grid: torch.Tensor, t_obs: torch.Tensor, y: torch.Tensor, sigma: torch.Tensor,
-                   rows_mask: torch.Tensor, observed_states: list, z0: torch.Tensor, unknown_index: torch.Tensor,
-                   bounds, rcond: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The first reference of one sample, built from its data.
+def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Tensor, y: torch.Tensor,
+                   sigma: torch.Tensor, rows_mask: torch.Tensor, observed_states: list, z0: torch.Tensor,
+                   unknown_index: torch.Tensor, bounds, rcond: float
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The first reference of ``S`` samples, built from their data.
 
     Parameters
     ----------
     system : AugmentedSystem
-    grid : Tensor ``(G,)``
-        The storage grid.
-    t_obs : Tensor ``(T,)``; y, sigma : Tensor ``(T, K)``; rows_mask : bool Tensor ``(T, K)``
+    grid : Tensor ``(G,)`` shared, or ``(S, G)`` per sample
+        The storage grid; sample ``s`` uses its first ``ends[s]`` nodes (the others pad it).
+    ends : list of int
+        The number of nodes of each sample's grid.
+    t_obs : Tensor ``(T,)`` or ``(S, T)``; y, sigma : Tensor ``(S, T, K)``; rows_mask : bool Tensor ``(S, T, K)``
         The data, their standard deviations, and which values are used.
     observed_states : list
         For each output, the state it reads directly (``None`` otherwise).
-    z0 : Tensor ``(M,)``
+    z0 : Tensor ``(S, M)``
         The guesses (states, then coefficients).
     unknown_index : Tensor ``(m,)`` of int; bounds : Bounds; rcond : float
         The unknowns, their bounds, and the rank threshold, for the gradient matching.
 
     Returns
     -------
-    z_ref, z_dot : Tensor ``(G, M)``
-        The reference and its slopes at the nodes.
-    z0 : Tensor ``(M,)``
-        The guesses with the coefficients from the gradient matching (when some state is observed).
+    z_ref, z_dot : Tensor ``(S, G, M)``
+        The references and their slopes at the nodes (a padding node repeats the sample's last
+        node, with slope zero).
+    z0 : Tensor ``(S, M)``
+        The guesses with the coefficients from the gradient matching (where some state is observed).
     """
-    z_ref = z0.unsqueeze(0).repeat(grid.shape[0], 1)
-    observed = []
-    for k, i in enumerate(observed_states):
-        if i is None:
-            continue
-        ok = rows_mask[:, k]
-        if int(ok.sum()) >= 1:
-            values = smooth(t_obs[ok], y[ok, k], sigma[ok, k] ** -2)
-            z_ref[:, i] = interpolate(t_obs[ok], values, grid)
-            observed.append(i)
-    z_dot = slopes(grid, z_ref)
-    hidden = [i for i in range(system.n) if i not in observed]
-    if observed and hidden:
-        z_ref = _derive_hidden(system, grid, z_ref, z_dot, observed, hidden)
-        z_dot = slopes(grid, z_ref)
-    if observed and system.P:
-        z_ref = _match_slopes(system, grid, z_ref, z_dot, z0, unknown_index, bounds, rcond)
-        z0 = torch.cat([z0[: system.n], z_ref[0, system.n:]])
+    S, M = z0.shape
+    G = grid.shape[-1]
+    z_ref = z0.unsqueeze(1).repeat(1, G, 1)
+    z_dot = torch.zeros_like(z_ref)
+    observed = []  # per sample, the states set from its data
+    for s in range(S):
+        nodes = (grid[s] if grid.dim() == 2 else grid)[: ends[s]]
+        times = t_obs[s] if t_obs.dim() == 2 else t_obs
+        seen = []
+        for k, i in enumerate(observed_states):
+            ok = rows_mask[s, :, k]
+            if i is not None and bool(ok.any()):
+                values = smooth(times[ok], y[s, ok, k], sigma[s, ok, k] ** -2)
+                z_ref[s, : ends[s], i] = interpolate(times[ok], values, nodes)
+                seen.append(i)
+        z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
+        z_dot[s, : ends[s]] = slopes(nodes, z_ref[s, : ends[s]])
+        observed.append(tuple(seen))
+    live = _live_nodes(ends, G, z0)
+    for seen in sorted(set(observed)):  # samples that observe the same states derive the others alike
+        rows = torch.tensor([s for s in range(S) if observed[s] == seen], device=z0.device)
+        hidden = [i for i in range(system.n) if i not in seen]
+        if seen and hidden:
+            z_ref[rows] = _derive_hidden(system, grid if grid.dim() == 1 else grid[rows], z_ref[rows], z_dot[rows],
+                                         list(seen), hidden)
+            for s in rows.tolist():
+                nodes = (grid[s] if grid.dim() == 2 else grid)[: ends[s]]
+                z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
+                z_dot[s, : ends[s]] = slopes(nodes, z_ref[s, : ends[s]])
+    matched = torch.tensor([bool(seen) for seen in observed], device=z0.device)
+    if bool((unknown_index >= system.n).any()) and bool(matched.any()):
+        rows = matched.nonzero().flatten()
+        p = _match_slopes(system, grid if grid.dim() == 1 else grid[rows], live[rows], z_ref[rows], z_dot[rows],
+                          z0[rows], unknown_index, bounds, rcond)
+        z_ref[rows, :, system.n:] = p.unsqueeze(1)
+        z0 = z0.clone()
+        z0[rows, system.n:] = p
     return z_ref, z_dot, z0
 
 
-def _match_slopes(system, grid, z_ref, z_dot, z0, unknown_index, bounds, rcond) -> torch.Tensor:
-    """First coefficients from the data's slopes: ``min_p sum_j ||(z'_j - f(t_j, z_j; p)) / s||^2``.
+def _live_nodes(ends: list[int], G: int, like: torch.Tensor) -> torch.Tensor:
+    """``(S, G)``: 1 on each sample's own grid nodes, 0 on its padding."""
+    return (torch.arange(G, device=like.device) < torch.tensor(ends, device=like.device).unsqueeze(1)).to(like.dtype)
 
-    With the trajectory fixed at the smoothed data, the coefficients enter only the
-    right-hand side, so this small least-squares problem (gradient matching) needs no
-    integration and does not depend on how poor the guesses are; a few damped
-    Gauss–Newton steps from the guesses solve it (bounds honoured). ``s`` scales each
-    state's slopes to unit size. Returns ``z_ref`` with its coefficient columns replaced.
+
+def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, rcond) -> torch.Tensor:
+    """First coefficients ``(S, P)`` from the data's slopes: ``min_p sum_j ||(z'_j - f(t_j, z_j; p)) / s||^2``.
+
+    With the trajectory fixed at the smoothed data, the coefficients enter only the right-hand
+    side, so this small least-squares problem (gradient matching) needs no integration and does
+    not depend on how poor the guesses are. Damped Gauss–Newton steps from the guesses solve it
+    (bounds honoured), every sample with its own damping: a step that lowers a sample's cost is
+    kept (damping / 10), one that does not is retried with more damping; a sample stops after
+    :data:`MATCH_STEPS` kept steps, a step below :data:`MATCH_XTOL`, or damping past its limit.
+    ``s`` scales each state's slopes to unit size; padding nodes (``live`` 0) do not count.
     """
     n = system.n
-    scale = z_dot[:, :n].abs().amax(dim=0)
+    S = z0.shape[0]
+    scale = (z_dot[:, :, :n].abs() * live.unsqueeze(-1)).amax(dim=1)
     scale = torch.where(scale > 0, scale, torch.ones_like(scale))
 
-    def mismatch(p, t, z, zd):
-        return (system.f(t, torch.cat([z[:n], p]))[:n] - zd[:n]) / scale
+    def mismatch(p, t, z, zd, sc, on):
+        return (system.f(t, torch.cat([z[:n], p]))[:n] - zd[:n]) / sc * on
 
-    value = vmap(mismatch, in_dims=(None, 0, 0, 0))
-    jac = vmap(jacrev(mismatch), in_dims=(None, 0, 0, 0))
-    m_states = unknown_index.numel() - system.P
-    u = z0[unknown_index].clone()
-    p = z0[n:].clone()
+    node_dims = (None, 0, 0, 0, None, 0)  # one sample's nodes: its coefficients and scales shared
+    per_node = vmap(mismatch, in_dims=node_dims)
+    per_node_jac = vmap(jacrev(mismatch), in_dims=node_dims)
+    grid_dim = None if grid.dim() == 1 else 0
+    value = vmap(lambda p, t, z, zd, sc, on: per_node(p, t, z, zd, sc, on).reshape(-1), in_dims=(0, grid_dim, 0, 0, 0, 0))
+    jac = vmap(lambda p, t, z, zd, sc, on: per_node_jac(p, t, z, zd, sc, on).reshape(-1, p.shape[0]),
+               in_dims=(0, grid_dim, 0, 0, 0, 0))
+    args = (grid, z_ref, z_dot, scale, live)
+    m_states = int((unknown_index < n).sum())
+    est = unknown_index[m_states:] - n  # the estimated coefficients among p (not the per-sample constants)
+    u = z0[:, unknown_index].clone()
+    p = z0[:, n:].clone()
     with torch.no_grad():
-        r = value(p, grid, z_ref, z_dot).reshape(-1)
-        cost = float(r.square().sum())
-        if not math.isfinite(cost):
-            return z_ref
-        damping = 0.0
-        rows = torch.ones_like(r)
-        none = torch.zeros_like(r, dtype=torch.bool)
-        for _ in range(MATCH_STEPS):
-            J = jac(p, grid, z_ref, z_dot).reshape(-1, system.P)
-            if bounds.active:
-                J = J * bounds.derivative(u)[m_states:]
-            accepted = False
-            while damping <= _DAMPING_MAX:
-                sol = solve_update(J, -r, rows, none, rcond, damping)
-                step = torch.cat([torch.zeros(m_states, dtype=u.dtype, device=u.device), sol.alpha])
-                change, _ = bounds.step(u, step)
-                p_new = p + change[m_states:]
-                r_new = value(p_new, grid, z_ref, z_dot).reshape(-1)
-                new_cost = float(r_new.square().sum())
-                if math.isfinite(new_cost) and new_cost < cost:
-                    accepted = True
-                    break
-                damping = _DAMPING_START if damping == 0.0 else 10 * damping
-            if not accepted:
-                break
-            small = bool((change.abs() <= 1e-10 * (u.abs() + 1e-300)).all())
-            p, u, r, cost, damping = p_new, u + change, r_new, new_cost, damping / 10
-            if small:
-                break
-    out = z_ref.clone()
-    out[:, n:] = p
-    return out
+        r = value(p, *args)
+        cost = r.square().sum(dim=1)
+        running = torch.isfinite(cost)
+        damping = torch.zeros(S, dtype=p.dtype, device=p.device)
+        kept = torch.zeros(S, dtype=torch.long, device=p.device)
+        J = jac(p, *args)[:, :, est]
+        fresh = torch.ones(S, dtype=torch.bool, device=p.device)  # J is at the current p
+        while bool(running.any()):
+            if not bool(fresh[running].all()):
+                redo = running & ~fresh
+                J[redo] = jac(p[redo], *(a if a.dim() == 1 else a[redo] for a in args))[:, :, est]
+                fresh |= redo
+            Jq = J * bounds.derivative(u)[:, m_states:].unsqueeze(1) if bounds.active else J
+            ones = torch.ones_like(r)
+            alpha, _, _ = solve_update_batch(Jq, -r, ones, rcond, damping)
+            step = torch.cat([torch.zeros(S, m_states, dtype=u.dtype, device=u.device), alpha.nan_to_num(0.0)], dim=1)
+            change, _ = bounds.step(u, step)
+            p_new = p.index_add(1, est, change[:, m_states:])
+            r_new = value(p_new, *args)
+            new_cost = r_new.square().sum(dim=1)
+            better = running & torch.isfinite(new_cost) & (new_cost < cost) & torch.isfinite(alpha).all(dim=1)
+            small = (change.abs() <= MATCH_XTOL * (u.abs() + 1e-300)).all(dim=1)
+            keep = better.unsqueeze(1)
+            p, u = torch.where(keep, p_new, p), torch.where(keep, u + change, u)
+            r, cost = torch.where(keep, r_new, r), torch.where(better, new_cost, cost)
+            kept += better.long()
+            fresh &= ~better
+            worse = running & ~better
+            damping = torch.where(better, damping / 10, damping)
+            damping = torch.where(worse, torch.where(damping == 0, torch.full_like(damping, _DAMPING_START),
+                                                     10 * damping), damping)
+            running &= ~(better & small) & (kept < MATCH_STEPS) & (damping <= _DAMPING_MAX)
+    return p
+
 
 def _derive_hidden(system, grid, z_ref, z_dot, observed: list[int], hidden: list[int]) -> torch.Tensor:
-    """Unobserved states at every node, from the model: ``min ||x_o' - f_o(x_o, x_h)||`` over ``x_h``.
+    """Unobserved states at every node of ``S`` samples, from the model: ``min ||x_o' - f_o(x_o, x_h)||`` over ``x_h``.
 
     Where the observed states' equations involve the hidden ones (``y' = v`` gives ``v``
     from the smoothed ``y``), a few vectorized Gauss–Newton steps from the guess ``x0``
     find them at each node; nodes where this does not lower the mismatch, or becomes
-    non-finite, keep the guess.
+    non-finite, keep the guess. ``grid (G,)`` or ``(S, G)``; ``z_ref, z_dot (S, G, M)``.
     """
+    S, G, M = z_ref.shape
     obs = torch.tensor(observed, device=z_ref.device)
     hid = torch.tensor(hidden, device=z_ref.device)
+    times = (grid.expand(S, G) if grid.dim() == 1 else grid).reshape(-1)
+    z, zd = z_ref.reshape(S * G, M), z_dot.reshape(S * G, M)
 
     def mismatch(xh, t, z, zd):
         return system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
 
     jac = vmap(jacrev(mismatch))
     value = vmap(mismatch)
-    xh = z_ref[:, hid].clone()
+    xh = z[:, hid].clone()
     with torch.no_grad():
-        r = value(xh, grid, z_ref, z_dot)
+        r = value(xh, times, z, zd)
         best = r.square().sum(-1)
         for _ in range(DERIVE_STEPS):
-            J = jac(xh, grid, z_ref, z_dot)
+            J = jac(xh, times, z, zd)
             step = torch.linalg.pinv(J, rtol=1e-8) @ r.unsqueeze(-1)
             trial = xh - step.squeeze(-1)
-            r_trial = value(trial, grid, z_ref, z_dot)
+            r_trial = value(trial, times, z, zd)
             norm = r_trial.square().sum(-1)
             better = torch.isfinite(norm) & (norm < best)
             xh = torch.where(better.unsqueeze(-1), trial, xh)
             r = torch.where(better.unsqueeze(-1), r_trial, r)
             best = torch.where(better, norm, best)
-    out = z_ref.clone()
+    out = z.clone()
     out[:, hid] = xh
-    return out
+    return out.reshape(S, G, M)

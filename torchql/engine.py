@@ -27,9 +27,9 @@ from collections.abc import Callable
 import torch
 
 from .batch_result import BatchFitResult
-from .budget import TimeBudgetExceeded, no_time_budget, time_budget, time_left
+from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .batch_integrate import _last_nodes
-from .data_start import data_reference
+from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .lstsq import ExactRowsError, solve_update, solve_update_batch
@@ -63,6 +63,7 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
                jacobian=torch.empty(B, R, m, dtype=spec.dtype, device=spec.device),
                singular_values=torch.empty(B, m, dtype=spec.dtype, device=spec.device),
                sse_start=torch.empty(B, dtype=spec.dtype, device=spec.device),
+               z0_start=torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device),
                exact_residual=torch.empty(B, dtype=spec.dtype, device=spec.device))
     statuses: list[Status] = [Status.MAX_ITER] * B
     messages: list[str] = [""] * B
@@ -79,6 +80,12 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
                     report(offset + count)
 
                 chunk = engine.run(step)
+                nfev += engine.nfev
+                retry = fallback_rows(chunk["status"]) if spec.start_fallback else []
+                if retry:  # "auto": where the data-built start failed, the fit from the integrated guesses
+                    again = Engine(spec, index[retry], max_time, history=history, callback=callback, start="integrate")
+                    keep_the_better_fit(chunk, retry, again.run(lambda count: None))
+                    nfev += again.nfev
                 out_z0[index] = chunk["z0"]
                 for key in out:
                     out[key][index] = chunk[key]
@@ -86,7 +93,6 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
                     statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
                 if histories is not None:
                     histories.extend(chunk["history"])
-                nfev += engine.nfev
                 finished += index.numel()
                 report(finished)
     finally:
@@ -100,8 +106,10 @@ class Engine(Evaluation, FinalPass):
     """The iteration of one chunk of samples (indices ``index`` of the problem's batch)."""
 
     def __init__(self, spec: Problem, index: torch.Tensor, max_time: float | None = None, history: bool = False,
-                 callback: Callable[[int, IterationRecord], None] | None = None) -> None:
+                 callback: Callable[[int, IterationRecord], None] | None = None, start: str | None = None) -> None:
         self.spec, self.max_time, self.index = spec, max_time, index
+        #: the first reference: ``"data"`` or ``"integrate"`` (default: the problem's)
+        self.start = spec.initial_trajectory if start is None else start
         self.scale: torch.Tensor | None = None  # (S, m) typical magnitudes, from the first trajectory
         self.sse_start: torch.Tensor | None = None  # (S,) the model's sums of squares at the guesses
         self.system = spec.system
@@ -113,6 +121,9 @@ class Engine(Evaluation, FinalPass):
         self.callback = callback
         self.propagation_errors: dict[int, str] = {}  # chunk row: a per-sample propagator's message
         self.z0_guess = spec.z0[index].clone()
+        #: the first iterate ``(S, M)`` and its sum of squares ``(S,)`` (the guesses and NaN until it is made)
+        self.first_z0 = self.z0_guess.clone()
+        self.first_sse = torch.full((index.numel(),), float("nan"), dtype=spec.dtype, device=spec.device)
         self.S = index.numel()
         self.nfev = 0
         #: samples whose current iterate needs more grid-solver steps than a trial may take (their
@@ -242,8 +253,10 @@ class Engine(Evaluation, FinalPass):
         from the guesses (loosely, from a constant guess, for Kantorovich); the unknowns' typical
         magnitudes and the model's sums of squares at the guesses."""
         spec, S, n, all_idx = self.spec, self.S, self.system.n, st.all_idx
-        if spec.initial_trajectory == "data":
-            traj, z_dot, st.z0 = self._data_start(all_idx, st.z0)
+        if self.start == "data":
+            traj, z_dot, z0 = self._data_start(all_idx, st.z0)
+            check_time()  # out of time already: the samples keep their guesses, as an integrated start's do
+            st.z0 = z0
             bad = torch.zeros(S, dtype=torch.bool, device=spec.device)
             lin = self._linearize(all_idx, traj, z_dot)
             st.cur = self._evaluate(all_idx, st.z0, traj, z_dot, lin)
@@ -263,7 +276,8 @@ class Engine(Evaluation, FinalPass):
         typical = torch.where(typical > 0, typical, torch.ones_like(typical))
         self.scale = typical[:, spec.unknown_index]
         # for the final diagnosis: the model's own SSE at the guesses, when the first iterate is its solution
-        self.sse_start = None if spec.initial_trajectory == "data" else st.cur["sse"].clone()
+        self.sse_start = None if self.start == "data" else st.cur["sse"].clone()
+        self.first_z0, self.first_sse = st.z0.clone(), st.cur["sse"].clone()
         st.report_stopped()
 
     def _iteration(self, st: "_Loop") -> bool:
@@ -481,21 +495,13 @@ class Engine(Evaluation, FinalPass):
         coefficients from the gradient matching. A sample on its own grid gets it on its own
         nodes, the padding repeating the last one."""
         spec = self.spec
-        S, M = z0.shape
-        z_ref = z0.new_empty(S, self.G, M)
-        z_dot = torch.zeros_like(z_ref)
-        z0 = z0.clone()
         y = torch.where(self.mask, self.y, torch.full_like(self.y, float("nan")))
         sigma = torch.where(self.mask, 1.0 / self.w.clamp(min=torch.finfo(self.w.dtype).tiny), torch.ones_like(self.w))
-        ends = (_last_nodes(self.grid) + 1).tolist() if self.grid.dim() == 2 else [self.G] * S
-        for k, s in enumerate(idx.tolist()):
-            grid = self.grid[s, :ends[k]] if self.grid.dim() == 2 else self.grid
-            t_obs = self.t_obs[s] if self.t_obs.dim() == 2 else self.t_obs
-            ref, slope, z0[k] = data_reference(self.system, grid, t_obs, y[s], sigma[s], self.mask[s],
-                                               spec.operator.observed_states, z0[k], spec.unknown_index,
-                                               spec.bounds, spec.rcond)
-            z_ref[k, :ends[k]], z_ref[k, ends[k]:] = ref, ref[-1]
-            z_dot[k, :ends[k]] = slope
+        ends = (_last_nodes(self.grid) + 1)[idx].tolist() if self.grid.dim() == 2 else [self.G] * idx.numel()
+        z_ref, z_dot, z0 = data_reference(self.system, self.grid if self.grid.dim() == 1 else self.grid[idx], ends,
+                                          self.t_obs if self.t_obs.dim() == 1 else self.t_obs[idx], y[idx],
+                                          sigma[idx], self.mask[idx], spec.operator.observed_states, z0,
+                                          spec.unknown_index, spec.bounds, spec.rcond)
         return z_ref, z_dot, spec.initial.complete(z0)
 
     def _shoot(self, act, z0_new, z_new, reference):

@@ -101,7 +101,7 @@ class FinalPass:
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
-                    sse_start=self.sse_start if self.sse_start is not None else torch.full_like(sse, float("nan")))
+                    sse_start=self.first_sse, z0_start=self.first_z0)
 
     def _used(self, rows) -> torch.Tensor:
         """The rows in use of samples ``rows``: the values present ``(S, R)``, and with a ``sigma(p)``

@@ -25,11 +25,11 @@ import torch
 from . import _checks
 from .engine import run_engine
 from .noise import run_with_noise
-from .problem import Problem, recorded_options
+from .problem import Problem
 from .model import ODEModel, _set_buffer
 from .multi import experiment_result, stack_experiments
 from .observations import Observations
-from .options import METHODS, FitOptions, Limits, accepts_options
+from .options import METHODS, FitOptions, Limits, accepts_options, recorded_options
 from .parameters import apply_parameters
 from .result import FitError, FitResult, IterationRecord
 from .propagators import LinearPropagator
@@ -60,7 +60,7 @@ def fit(
     ftol: float | None = None,
     rcond: float | None = None,
     grid: int | torch.Tensor | None = None,
-    initial_trajectory: str = "integrate",
+    initial_trajectory: str = "auto",
     max_steps: int | None = None,
     damping: str | None = "lm",
     linear_solver: "str | LinearPropagator | None" = None,
@@ -153,9 +153,16 @@ def fit(
     grid : int or Tensor, optional
         Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``
         (default 1000), or extra times to include. Observation times and ``t0`` are always nodes.
-    initial_trajectory : {"integrate", "data"}
-        Kantorovich's first reference: the nonlinear model integrated from the guesses, or
-        built from the data, so that no integration from poor guesses is needed: directly
+    initial_trajectory : {"auto", "integrate", "data"}
+        Kantorovich's first reference. ``"auto"`` (default): ``"data"`` where the data can give
+        it, else ``"integrate"`` (:func:`torchql.data_start.first_reference`: shooting, no state
+        measured directly at four or more times, unmeasured states that only the unknown
+        coefficients would give, a stiff model, ``max_iter=0``); a fit from the data that ends
+        ``DIVERGED``, ``INTEGRATION_FAILED``, ``STALLED`` or ``NOT_IDENTIFIABLE`` is run again
+        from the integrated guesses and the better of the two kept, its message saying so.
+        ``"integrate"``: the nonlinear model integrated from the guesses (the thesis' start;
+        its first iterate is the guesses). ``"data"``: built from the data, so that no
+        integration from poor guesses is needed: directly
         observed states smoothed (a discrete smoothing spline, its smoothing chosen by
         generalized cross-validation; see :mod:`torchql.smoothing`) and interpolated;
         unobserved states derived from the model where the observed states' equations

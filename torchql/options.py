@@ -19,7 +19,7 @@ from .integrate import default_tolerances
 
 __all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "METHODS", "INITIAL_TRAJECTORIES", "Tolerances",
            "Limits", "FitOptions", "with_options", "expand_options", "accepts_options", "check_damping",
-           "check_scheme"]
+           "check_scheme", "recorded_options"]
 
 #: The damping strategies: ``"lm"`` (Levenberg–Marquardt, default) or ``None`` (the thesis' iteration).
 DAMPINGS = ("lm", None)
@@ -30,8 +30,10 @@ DAMPING_MIN = 1e-10
 DAMPING_MAX = 1e12
 #: The iteration schemes.
 METHODS: tuple[str, ...] = ("kantorovich", "shooting")
-#: How the first Kantorovich reference is made: integrated from the guesses, or built from the data.
-INITIAL_TRAJECTORIES: tuple[str, ...] = ("integrate", "data")
+#: How the first Kantorovich reference is made: built from the data where some state is measured
+#: directly (``"auto"``, :func:`torchql.data_start.first_reference`), integrated from the guesses,
+#: or built from the data.
+INITIAL_TRAJECTORIES: tuple[str, ...] = ("auto", "integrate", "data")
 
 
 @dataclass(frozen=True)
@@ -139,7 +141,7 @@ class FitOptions:
     solver: str = "auto"
     linear_solver: object = None
     damping: str | None = "lm"
-    initial_trajectory: str = "integrate"
+    initial_trajectory: str = "auto"
     grid: object = None
     max_iter: int = 50
     max_time: float | None = None
@@ -254,3 +256,16 @@ def accepts_options(function):
                                                              for name in names}))
         return function(*bound.args, **bound.kwargs)
     return call
+
+
+def recorded_options(*, params, fixed_x0, bounds, scale=None, **options) -> dict:
+    """A fit's options as ``result.fit_kwargs`` keeps them for a re-fit (``profile``,
+    ``multistart``): copies of the lists, dicts and tensor (``x0``, when given) the user passed,
+    the other options as given."""
+    record = dict(params=None if params is None else list(params),
+                  fixed_x0=None if fixed_x0 is None else list(fixed_x0),
+                  bounds=None if bounds is None else dict(bounds), scale=None if scale is None else dict(scale),
+                  **options)
+    if record.get("x0") is not None:
+        record["x0"] = torch.as_tensor(record["x0"]).detach().clone()
+    return record

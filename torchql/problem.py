@@ -15,6 +15,7 @@ from torch.func import vmap
 from . import _checks
 from .batch_result import BatchFitResult
 from .bounds import Bounds, moved_record
+from .data_start import derivation_uses_unknowns, first_reference
 from .grid import make_grid
 from .integrate import check_solver
 from .linearize import linearize
@@ -28,20 +29,7 @@ from .stiffness import choose_solver, linear_solver_for
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns
 from .initial_state import InitialStateExpressions, check_expressions
 
-__all__ = ["Problem", "check_data", "recorded_options"]
-
-
-def recorded_options(*, params, fixed_x0, bounds, scale=None, **options) -> dict:
-    """A fit's options as ``result.fit_kwargs`` keeps them for a re-fit (``profile``,
-    ``multistart``): copies of the lists, dicts and tensor (``x0``, when given) the user passed,
-    the other options as given."""
-    record = dict(params=None if params is None else list(params),
-                  fixed_x0=None if fixed_x0 is None else list(fixed_x0),
-                  bounds=None if bounds is None else dict(bounds), scale=None if scale is None else dict(scale),
-                  **options)
-    if record.get("x0") is not None:
-        record["x0"] = torch.as_tensor(record["x0"]).detach().clone()
-    return record
+__all__ = ["Problem", "check_data"]
 
 
 class Problem:
@@ -54,7 +42,7 @@ class Problem:
 
     def __init__(self, model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond,
                  grid, damping, solver, max_steps, bounds=None, linear_solver=None,
-                 method="kantorovich", initial_trajectory="integrate", single: bool = False, scale=None,
+                 method="kantorovich", initial_trajectory="auto", single: bool = False, scale=None,
                  x0_expr=None) -> None:
         self.single = single  # torchql.fit's problem: one dataset, errors worded for it
         _checks.model_class(model)
@@ -90,6 +78,14 @@ class Problem:
         self.breakpoints = self._attach_inputs(model)
         self._check_model(self.z0[0, :system.n])
         self._solver_and_grid(grid, linear_solver)
+        given = self.initial_trajectory
+        t0 = self.t0 if self.t0.dim() == 0 else self.t0[0]
+        self.initial_trajectory = first_reference(
+            given, self.method, self.operator.observed_states, self.mask, stiff=self.solver in STIFF_SOLVERS,
+            max_iter=self.max_iter, derivation_uses_unknowns=lambda measured: derivation_uses_unknowns(
+                self.system, measured, self.unknown_index, self.z0[0], t0))
+        #: ``"auto"`` chose the data: a sample whose fit fails is fitted again from the integrated guesses
+        self.start_fallback = given == "auto" and self.initial_trajectory == "data"
         self.model = model
 
     def _options(self, model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
@@ -351,6 +347,8 @@ class Problem:
         current = self.z0[:, self.unknown_index]
         self.z0[:, self.unknown_index] = torch.where(torch.isfinite(estimates), estimates, current)
         self.z0 = self.initial.complete(self.z0)
+        # the next round integrates from these estimates: a data-built start would discard them
+        self.initial_trajectory, self.start_fallback = "integrate", False
 
     def shifted(self, z0: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         """The augmented initial states ``z0 (S, M)`` with the unknowns moved by ``alpha (S, m)`` and
@@ -459,7 +457,8 @@ class Problem:
             model=system.user_model(), residuals=out["residuals"], jacobian=out["jacobian"],
             used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
             exact=self.exact.reshape(B, -1).clone(), exact_residual=out["exact_residual"],
-            start_params=self._params_of(self.z0), start_x0=self.z0[:, :n].clone(), sse_start=out["sse_start"],
+            start_params=self._params_of(out["z0_start"]), start_x0=out["z0_start"][:, :n].clone(),
+            sse_start=out["sse_start"],
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
             lower=self.bounds.lower.clone() if self._bounded else None,
             upper=self.bounds.upper.clone() if self._bounded else None,

@@ -30,12 +30,7 @@ NOISY = (("linear", 5, 1e-3), ("oscillator", 6, 1e-3), ("logistic", 7, 1e-3), ("
          ("michaelis_menten", 9, 1e-3))
 FITTED = NOISY + EXACT[:1]
 #: Cases where torchql does not reach the best SSE today, with how it fails.
-FAILING: dict[tuple, str] = {
-    ("michaelis_menten", 9, 1e-3): (
-        "NOT_IDENTIFIABLE ({V, Km}) after V and Km ran off to about -7e6 and -3e7 along the first-order "
-        "direction S' = -(V / Km) S; scipy reaches SSE 3.5e-3 next to the truth, where the column-scaled "
-        "Jacobian's condition number is 18: a wrong diagnosis"),
-}
+FAILING: dict[tuple, str] = {}
 
 
 def _ids(cases):

@@ -1,0 +1,124 @@
+"""The first reference (``torchql.data_start``): the ``"auto"`` default's choice, the fallback to the
+integrated guesses where the data-built start fails, and the batched data start."""
+
+import pytest
+import torch
+
+import torchql
+from torchql.data_start import MIN_POINTS, first_reference
+from torchql.models import CoastingCar, LinearOscillator, NonlinearOscillator
+
+DT = torch.float64
+AREA, MASS = 17.3, 80.43
+
+
+def _osc_data(times, digits=None):
+    y = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13,
+                         atol=1e-15)[:, :1]
+    return torchql.Observations(times, y if digits is None else torch.round(y * 10**digits) / 10**digits,
+                                observe=["y"])
+
+
+def _started_from_the_guesses(result, guesses) -> bool:
+    """Whether the first iterate's coefficients are the guesses (integrated start) or were
+    refitted to the data's slopes (data-built start)."""
+    return all(float(result.history[0].params[k]) == v for k, v in guesses.items())
+
+
+def test_auto_builds_the_first_reference_from_the_data_where_a_state_is_measured():
+    data = _osc_data(torch.linspace(0, 6.5, 14, dtype=DT))
+    guesses = dict(A=0.5, B=1.0)
+    x0 = torch.tensor([0.0, 0.5], dtype=DT)
+    auto = torchql.fit(LinearOscillator(**guesses), data, x0)
+    data_built = torchql.fit(LinearOscillator(**guesses), data, x0, initial_trajectory="data")
+    integrated = torchql.fit(LinearOscillator(**guesses), data, x0, initial_trajectory="integrate")
+    assert auto.success and data_built.success and integrated.success
+    assert torch.equal(auto.estimates, data_built.estimates) and auto.iterations == data_built.iterations
+    assert not _started_from_the_guesses(auto, guesses) and _started_from_the_guesses(integrated, guesses)
+    assert auto.fit_kwargs["initial_trajectory"] == "auto"
+    # from the data, the first iterate is already close: fewer updates than from the guesses
+    assert auto.iterations < integrated.iterations
+    # both reach the same optimum (exact data: the truth to the integrator's accuracy)
+    assert torch.allclose(auto.estimates, integrated.estimates, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("kwargs", [dict(method="shooting"), dict(max_iter=0)], ids=["shooting", "max_iter=0"])
+def test_auto_integrates_the_guesses_for_shooting_and_for_an_evaluation_of_the_guesses(kwargs):
+    data = _osc_data(torch.linspace(0, 6.5, 14, dtype=DT))
+    guesses = dict(A=0.5, B=1.0)
+    r = torchql.fit(LinearOscillator(**guesses), data, torch.tensor([0.0, 0.5], dtype=DT), **kwargs)
+    assert _started_from_the_guesses(r, guesses)
+
+
+def test_first_reference_rules():
+    observed, hidden = [0], [None]  # the output reads state 0 directly / a function of the states
+    enough = torch.ones(2, MIN_POINTS, 1, dtype=torch.bool)
+    few = enough.clone()
+    few[1, 0] = False  # one sample with too few values for slopes
+    assert first_reference("auto", "kantorovich", observed, enough) == "data"
+    assert first_reference("auto", "kantorovich", observed, few) == "integrate"
+    assert first_reference("auto", "kantorovich", hidden, enough) == "integrate"
+    assert first_reference("auto", "shooting", observed, enough) == "integrate"
+    assert first_reference("auto", "kantorovich", observed, enough, stiff=True) == "integrate"
+    assert first_reference("auto", "kantorovich", observed, enough, max_iter=0) == "integrate"
+    for explicit in ("data", "integrate"):  # an explicit choice stands
+        assert first_reference(explicit, "kantorovich", hidden, few, stiff=True) == explicit
+
+
+@pytest.fixture(scope="module")
+def table_4_5():
+    """Thesis Table 4.5: 8 two-digit values of the nonlinear oscillator, from the thesis' guesses.
+    Built from so few values, the data's slopes give C = -548 and D = 108, where the model
+    blows up; integrated from the guesses, the damped iteration reaches the optimum."""
+    times = torch.tensor([0, 1, 2, 3, 4, 5, 6, 6.5], dtype=DT)
+    x = torchql.simulate(NonlinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)
+    return torchql.Observations(times, torch.round(x[:, :1] * 100) / 100, observe=["y"])
+
+
+def test_where_the_data_start_fails_auto_fits_again_from_the_integrated_guesses(table_4_5):
+    guess = dict(A=0.5, B=2.0, C=0.5, D=2.0)
+    x0 = torch.tensor([0.5, 0.5], dtype=DT)
+    data_built = torchql.fit(NonlinearOscillator(**guess), table_4_5, x0=x0, initial_trajectory="data", max_steps=200)
+    integrated = torchql.fit(NonlinearOscillator(**guess), table_4_5, x0=x0, initial_trajectory="integrate",
+                             max_steps=200)
+    auto = torchql.fit(NonlinearOscillator(**guess), table_4_5, x0=x0, max_steps=200)
+    assert not data_built.success and integrated.success, (data_built.message, integrated.message)
+    assert auto.success and auto.status is integrated.status
+    # the second fit is the integrated one, bit for bit, and its message says what was tried first
+    assert torch.equal(auto.estimates, integrated.estimates) and auto.iterations == integrated.iterations
+    assert auto.sse == integrated.sse and torch.equal(auto.covariance, integrated.covariance)
+    assert auto.message == (integrated.message + " From the first reference built from the data the fit ended "
+                            f"{data_built.status.name} (SSE {data_built.sse:.6g}); this fit integrated the model "
+                            "from the guesses.")
+    assert [rec.iteration for rec in auto.history] == [rec.iteration for rec in integrated.history]
+    # in a batch, the sample that needs it is fitted again, alone; each sample is its own fit
+    easy = _osc_data(table_4_5.t)  # a linear oscillator's data: the same model fits it with C = D = 0
+    batch = torchql.fit_many(NonlinearOscillator(**guess), [table_4_5, easy], torch.stack([x0, x0]), max_steps=200)
+    easy_fit = torchql.fit(NonlinearOscillator(**guess), easy, x0=x0, max_steps=200)
+    for b, single in enumerate([auto, easy_fit]):
+        assert batch.status[b] is single.status and batch.message[b] == single.message
+        assert int(batch.iterations[b]) == single.iterations
+        assert torch.allclose(batch.estimates[b], single.estimates, rtol=1e-8, atol=1e-12)
+
+
+def test_the_data_start_leaves_per_sample_constants_alone():
+    """Cars of their own frontal areas (a per-sample constant): the slopes fit C_D and mu only, so
+    each sample is the single fit of a car with that area, and the areas come back unchanged."""
+    g = torch.Generator().manual_seed(5)
+    t = torch.arange(9, dtype=DT) * 5.0
+    areas = torch.tensor([15.0, 17.3, 20.0], dtype=DT)
+    data = []
+    for area in areas.tolist():
+        v = torchql.simulate(CoastingCar(area, MASS, 0.45, 0.015), torch.tensor([117.3], dtype=DT), t, rtol=1e-12,
+                             atol=1e-12)
+        data.append(torchql.Observations(t, v + 0.3 * torch.randn(9, 1, generator=g, dtype=DT), observe=["v"]))
+    x0 = torch.stack([d.y[0] for d in data])
+    batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, guesses={"frontal_area": areas}, grid=50,
+                             initial_trajectory="data")
+    assert torch.equal(batch.params["frontal_area"], areas)
+    for b in range(3):
+        single = torchql.fit(CoastingCar(float(areas[b]), MASS), data[b], x0[b], grid=50, initial_trajectory="data")
+        assert single.success and batch.status[b] is single.status
+        assert int(batch.iterations[b]) == single.iterations
+        assert torch.allclose(batch.estimates[b], single.estimates, rtol=1e-8, atol=0)
+        assert float(batch[b].history[0].params["frontal_area"]) == float(areas[b])
