@@ -12,11 +12,13 @@ from torchql.budget import TimeBudgetExceeded, check_time, no_time_budget, time_
 
 DT = torch.float64
 T = torch.linspace(0, 2, 11, dtype=DT)
+INTEGRATE = dict(initial_trajectory="integrate")
 Y = (1.5 * torch.exp(-0.7 * T)).unsqueeze(-1)
 
 
 class SlowDecay(Decay):
-    """``y' = -k y`` whose every right-hand-side evaluation takes 20 ms: an unbudgeted fit takes minutes."""
+    """``y' = -k y`` whose every right-hand-side evaluation takes 20 ms: an unbudgeted fit takes minutes
+    (integrated from the guesses, ``INTEGRATE``; from the data it converges before the budget ends)."""
 
     def forward(self, t, x):
         time.sleep(0.02)
@@ -44,7 +46,7 @@ def test_budget_context_nests_to_the_earlier_deadline_and_can_be_lifted():
 def test_fit_stops_at_max_time_with_its_own_status():
     data = torchql.Observations(T, Y, observe=["y"])
     start = time.perf_counter()
-    result = torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5)
+    result = torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5, **INTEGRATE)
     elapsed = time.perf_counter() - start
     assert result.status is torchql.Status.MAX_TIME
     assert not result.success
@@ -70,7 +72,7 @@ def test_fit_within_its_budget_is_unchanged():
 def test_fit_many_stops_every_running_and_unstarted_sample_at_max_time():
     data = torchql.Observations(T, torch.stack([Y, 1.1 * Y, 0.9 * Y]), observe=["y"])
     start = time.perf_counter()
-    result = torchql.fit_many(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5,
+    result = torchql.fit_many(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5, **INTEGRATE,
                               chunk_size=1)
     assert time.perf_counter() - start < 10.0
     assert [s.name for s in result.status] == ["MAX_TIME"] * 3
@@ -101,7 +103,7 @@ def test_max_time_must_be_a_positive_number(value):
 
 def test_a_fit_estimating_sigma_that_runs_out_of_time_says_so():
     data = torchql.Observations(T, Y, observe=["y"], sigma="estimate")
-    result = torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5)
+    result = torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=0.5, **INTEGRATE)
     assert result.status is torchql.Status.MAX_TIME and not result.success
     assert set(result.sigma) == {"y"} and math.isnan(result.sigma["y"])  # not estimated: no round finished
     assert math.isnan(result.nll)

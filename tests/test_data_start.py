@@ -122,3 +122,37 @@ def test_the_data_start_leaves_per_sample_constants_alone():
         assert int(batch.iterations[b]) == single.iterations
         assert torch.allclose(batch.estimates[b], single.estimates, rtol=1e-8, atol=0)
         assert float(batch[b].history[0].params["frontal_area"]) == float(areas[b])
+
+
+def test_slopes_on_a_grid_with_a_hair_wide_interval():
+    """An observation time a hair (1e-15) from a uniform node leaves an interval of that width: the
+    slopes there stay those of the function (a difference over that interval alone divides the
+    values' round-off by 1e-15)."""
+    from torchql.data_start import slopes
+
+    grid = torch.cat([torch.linspace(0, 2, 201, dtype=DT), torch.tensor([0.6 + 1e-15], dtype=DT)]).sort().values
+    z = torch.stack([torch.sin(grid), grid**2], dim=1)
+    exact = torch.stack([torch.cos(grid), 2 * grid], dim=1)
+    # over two intervals of 0.01: error h^2/6 |f'''| where they are equal, h/2 |f''| (0.01) next to
+    # the hair-wide interval, h |f''| (0.02) at the ends (their difference is centred a node inside)
+    err = (slopes(grid, z) - exact).abs()
+    assert err[1:-1].max() <= 0.0101 and err.max() <= 0.0201
+    away = (grid - 0.6).abs() > 0.015
+    away[0] = away[-1] = False
+    assert err[away].max() < 2e-5
+
+
+def test_observation_times_off_the_uniform_nodes_by_round_off_still_give_the_data_start():
+    """A position-only oscillator observed at t = 0.2 k (51 times over [0, 10]): some of these
+    times lie 1e-15 from the 1000-interval grid's nodes. From poor guesses (B 2.6x the truth,
+    v(t0) 2.2x), the default start is built from the data and reaches the truth (exact data) with
+    no second fit from the integrated guesses."""
+    times = torch.linspace(0, 10, 51, dtype=DT)
+    truth = torch.tensor([-1.414, -0.321], dtype=DT)
+    y = torchql.simulate(LinearOscillator(0.1824, 2.7194), truth, times, rtol=1e-13, atol=1e-15)[:, :1]
+    data = torchql.Observations(times, y, observe=["y"])
+    r = torchql.fit(LinearOscillator(0.098, 7.2), data, torch.tensor([-1.414, -0.704], dtype=DT))
+    assert r.success and "integrated the model from the guesses" not in r.message, r.message
+    assert not _started_from_the_guesses(r, dict(A=0.098, B=7.2))
+    assert abs(float(r.params["A"]) - 0.1824) < 1e-7 and abs(float(r.params["B"]) - 2.7194) < 1e-7
+    assert torch.allclose(r.x0, truth, rtol=0, atol=1e-7)

@@ -122,8 +122,25 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict) -> None:
 
 
 def slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """Node slopes of values ``z (G, M)`` on ``grid (G,)`` by finite differences (zeros on a one-node grid)."""
-    return torch.gradient(z, spacing=(grid,), dim=0)[0] if grid.shape[0] > 1 else torch.zeros_like(z)
+    """Node slopes of values ``z (G, M)`` on ``grid (G,)`` (zeros on a one-node grid).
+
+    Central differences over the two neighbours, ``(z[i+1] - z[i-1]) / (t[i+1] - t[i-1])``, and
+    over the first and last two intervals at the ends: where an observation time falls a hair
+    from a uniform node, the grid has an interval of ~1e-15, over which a one-interval difference
+    (or the second-order non-uniform formula) is round-off divided by that interval (slopes of
+    1e12 that ruined the gradient matching); the span of two intervals is never that small.
+    """
+    G = grid.shape[0]
+    if G == 1:
+        return torch.zeros_like(z)
+    if G == 2:
+        return ((z[1] - z[0]) / (grid[1] - grid[0])).expand_as(z).clone()
+    out = torch.empty_like(z)
+    span = (grid[2:] - grid[:-2]).unsqueeze(-1)
+    out[1:-1] = (z[2:] - z[:-2]) / span
+    out[0] = (z[2] - z[0]) / span[0]
+    out[-1] = (z[-1] - z[-3]) / span[-1]
+    return out
 
 
 def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Tensor, y: torch.Tensor,
