@@ -379,8 +379,9 @@ def max_difference(a: FitResult, b: FitResult) -> float:
 def fit_oscillator(guess: dict[str, float], t: torch.Tensor, y: torch.Tensor, method: str = "kantorovich",
                    max_steps: int | None = None, damping: str | None = "lm") -> FitResult:
     data = torchql.Observations(t, y, observe=["y"])
+    # the thesis' NRK: the first trajectory integrated from the guesses, whose iterations we compare
     return torchql.fit(oscillator(guess), data, x0=tensor((guess["y0"], guess["y0'"])), method=method,
-                       max_steps=max_steps, damping=damping)
+                       max_steps=max_steps, damping=damping, initial_trajectory="integrate")
 
 
 def fit_cases(guess: dict[str, float], data: Dataset, shooting_digits: Sequence[int] = ()) -> dict[int, list[Run]]:
@@ -626,7 +627,7 @@ def _summary(name: str, results: dict[int, list[Run]], truth: dict[str, float]) 
 # ----------------------------------------------------------------------------------------------
 def fit_car(car: Car) -> FitResult:
     data = torchql.Observations(tensor(CAR_TIMES), tensor(car.measured), observe=["v"])
-    return torchql.fit(CoastingCar(car.frontal_area, car.mass), data)
+    return torchql.fit(CoastingCar(car.frontal_area, car.mass), data, initial_trajectory="integrate")
 
 
 def thesis_coefficients_curve(car: Car, t: torch.Tensor) -> torch.Tensor:
