@@ -1,4 +1,5 @@
-"""``initial_trajectory="data"``: a first Kantorovich reference built from the data, no integration.
+"""The first Kantorovich reference built from the data, with no integration (``initial_trajectory="data"``,
+and what the default ``"auto"`` chooses where the data can give it).
 
 The observed states are the data, smoothed (:func:`torchql.smoothing.smooth`) and interpolated
 on the storage grid; the unobserved ones are derived from the model where the observed states'
@@ -9,6 +10,10 @@ does not depend on how poor the guesses are (the thesis' wide-basin start).
 Batch-first: the smoothing is per series, the derivation of unobserved states and the gradient
 matching are one vectorized computation over every sample (each sample with its own damping),
 so ``fit`` (one sample) and ``fit_many`` (``S`` samples) compute the same start.
+
+:func:`first_reference` is ``"auto"``'s choice between this start and the model integrated from
+the guesses; :func:`fallback_rows` and :func:`keep_the_better_fit` fit a sample again from the
+integrated guesses where its fit from the data failed, and keep the better of the two.
 """
 
 from __future__ import annotations
@@ -19,12 +24,12 @@ import torch
 from torch.func import jacrev, vmap
 
 from .lstsq import solve_update_batch
-from .status import Status
 from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
 from .smoothing import interpolate, smooth
+from .status import Status
 
-__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "keep_the_better_fit", "slopes", "MIN_POINTS",
-           "FALLBACK_STATUSES"]
+__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "keep_the_better_fit",
+           "slopes", "MIN_POINTS", "FALLBACK_STATUSES"]
 
 #: Accepted Gauss–Newton steps of the gradient matching that gives the first coefficients.
 MATCH_STEPS = 30
@@ -241,7 +246,8 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
     per_node = vmap(mismatch, in_dims=node_dims)
     per_node_jac = vmap(jacrev(mismatch), in_dims=node_dims)
     grid_dim = None if grid.dim() == 1 else 0
-    value = vmap(lambda p, t, z, zd, sc, on: per_node(p, t, z, zd, sc, on).reshape(-1), in_dims=(0, grid_dim, 0, 0, 0, 0))
+    value = vmap(lambda p, t, z, zd, sc, on: per_node(p, t, z, zd, sc, on).reshape(-1),
+                 in_dims=(0, grid_dim, 0, 0, 0, 0))
     jac = vmap(lambda p, t, z, zd, sc, on: per_node_jac(p, t, z, zd, sc, on).reshape(-1, p.shape[0]),
                in_dims=(0, grid_dim, 0, 0, 0, 0))
     args = (grid, z_ref, z_dot, scale, live)
