@@ -76,3 +76,23 @@ def test_interpolate_slopes_are_continuous_and_accurate():
     # no kinks at the knots: consecutive slopes differ by the curvature over one step (about
     # 1.7^3 * 0.005 = 0.025); straight lines between the samples jump by up to 0.7 there
     assert (slope[1:] - slope[:-1]).abs().max() < 0.03
+
+
+def test_series_at_the_same_times_are_smoothed_and_interpolated_together_as_each_alone():
+    """Columns ``(T, N)`` sharing times and weights: each column is smoothed with its own GCV choice
+    (a noiseless, a noisy and a rough series pick different smoothing) and interpolated, equal to
+    the series alone bit for bit (so fit_many's data start is fit's, whatever the batch)."""
+    g = torch.Generator().manual_seed(3)
+    t = torch.sort(torch.rand(25, generator=g, dtype=torch.float64)).values * 6
+    Y = torch.stack([torch.sin(t), torch.sin(t) + 0.1 * torch.randn(25, generator=g, dtype=torch.float64),
+                     torch.randn(25, generator=g, dtype=torch.float64)], dim=1)
+    w = torch.full((25,), 4.0, dtype=torch.float64)
+    together = smooth(t, Y, w)
+    alone = torch.stack([smooth(t, Y[:, j], w) for j in range(3)], dim=1)
+    assert together.shape == (25, 3)
+    assert torch.equal(together, alone)
+    assert (together - Y).abs().amax(dim=0).unique().numel() == 3  # three different amounts of smoothing
+    tq = torch.linspace(-1, 7, 50, dtype=torch.float64)
+    joined = interpolate(t, together, tq)
+    assert joined.shape == (50, 3)
+    assert torch.equal(joined, torch.stack([interpolate(t, together[:, j], tq) for j in range(3)], dim=1))

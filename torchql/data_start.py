@@ -181,21 +181,8 @@ def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Ten
     S, M = z0.shape
     G = grid.shape[-1]
     z_ref = z0.unsqueeze(1).repeat(1, G, 1)
-    z_dot = torch.zeros_like(z_ref)
-    observed = []  # per sample, the states set from its data
-    for s in range(S):
-        nodes = (grid[s] if grid.dim() == 2 else grid)[: ends[s]]
-        times = t_obs[s] if t_obs.dim() == 2 else t_obs
-        seen = []
-        for k, i in enumerate(observed_states):
-            ok = rows_mask[s, :, k]
-            if i is not None and bool(ok.any()):
-                values = smooth(times[ok], y[s, ok, k], sigma[s, ok, k] ** -2)
-                z_ref[s, : ends[s], i] = interpolate(times[ok], values, nodes)
-                seen.append(i)
-        z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
-        z_dot[s, : ends[s]] = slopes(nodes, z_ref[s, : ends[s]])
-        observed.append(tuple(seen))
+    observed = _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_ref)
+    z_dot = _node_slopes(grid, ends, z_ref)
     live = _live_nodes(ends, G, z0)
     for seen in sorted(set(observed)):  # samples that observe the same states derive the others alike
         rows = torch.tensor([s for s in range(S) if observed[s] == seen], device=z0.device)
@@ -204,9 +191,9 @@ def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Ten
             z_ref[rows] = _derive_hidden(system, grid if grid.dim() == 1 else grid[rows], z_ref[rows], z_dot[rows],
                                          list(seen), hidden)
             for s in rows.tolist():
-                nodes = (grid[s] if grid.dim() == 2 else grid)[: ends[s]]
                 z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
-                z_dot[s, : ends[s]] = slopes(nodes, z_ref[s, : ends[s]])
+            z_dot[rows] = _node_slopes(grid if grid.dim() == 1 else grid[rows], [ends[s] for s in rows.tolist()],
+                                       z_ref[rows])
     matched = torch.tensor([bool(seen) for seen in observed], device=z0.device)
     if bool((unknown_index >= system.n).any()) and bool(matched.any()):
         rows = matched.nonzero().flatten()
@@ -216,6 +203,52 @@ def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Ten
         z0 = z0.clone()
         z0[rows, system.n:] = p
     return z_ref, z_dot, z0
+
+
+def _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_ref) -> list[tuple[int, ...]]:
+    """Sets the states that outputs read directly in ``z_ref (S, G, M)`` to their smoothed data,
+    interpolated on each sample's grid nodes (its padding repeating its last node); returns, per
+    sample, the states so set. Samples on the shared grid and times, with every value of an
+    output used and the same weights, are smoothed and interpolated together."""
+    S = z_ref.shape[0]
+    seen: list[list[int]] = [[] for _ in range(S)]
+    for k, i in enumerate(observed_states):
+        if i is None:
+            continue
+        ok, w = rows_mask[:, :, k], sigma[:, :, k] ** -2
+        together = torch.zeros(S, dtype=torch.bool, device=z_ref.device)
+        if grid.dim() == 1 and t_obs.dim() == 1:
+            full = ok.all(dim=1)
+            first = int(full.nonzero()[0, 0]) if bool(full.any()) else 0
+            together = full & (w == w[first]).all(dim=1)
+        rows = together.nonzero().flatten()
+        if rows.numel():
+            values = smooth(t_obs, y[rows, :, k].T, w[rows[0]])  # (T, R)
+            z_ref[rows, :, i] = interpolate(t_obs, values, grid).T
+        some = ok.any(dim=1).tolist()
+        for s in (~together).nonzero().flatten().tolist():
+            if some[s]:
+                times = (t_obs[s] if t_obs.dim() == 2 else t_obs)[ok[s]]
+                values = smooth(times, y[s, ok[s], k], w[s, ok[s]])
+                z_ref[s, : ends[s], i] = interpolate(times, values, (grid[s] if grid.dim() == 2 else grid)[: ends[s]])
+        for s in range(S):
+            if some[s]:
+                seen[s].append(i)
+    if grid.dim() == 2:  # the padding repeats each sample's last node
+        for s in range(S):
+            z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
+    return [tuple(states) for states in seen]
+
+
+def _node_slopes(grid, ends, z_ref) -> torch.Tensor:
+    """:func:`slopes` of ``z_ref (S, G, M)`` on each sample's own nodes (zero on its padding)."""
+    S, G, M = z_ref.shape
+    if grid.dim() == 1:
+        return slopes(grid, z_ref.transpose(0, 1).reshape(G, S * M)).reshape(G, S, M).transpose(0, 1).contiguous()
+    z_dot = torch.zeros_like(z_ref)
+    for s in range(S):
+        z_dot[s, : ends[s]] = slopes(grid[s, : ends[s]], z_ref[s, : ends[s]])
+    return z_dot
 
 
 def _live_nodes(ends: list[int], G: int, like: torch.Tensor) -> torch.Tensor:

@@ -45,54 +45,57 @@ def _second_differences(t: torch.Tensor) -> torch.Tensor:
 
 def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None,
            lams: torch.Tensor | None = None) -> torch.Tensor:
-    """Smoothed values of one series.
+    """Smoothed values of one series ``y (T,)``, or of ``N`` series ``y (T, N)`` at the same times
+    with the same weights (each with its own smoothing parameter).
 
     Parameters
     ----------
     t : Tensor ``(T,)``
         Strictly increasing times.
-    y : Tensor ``(T,)``
+    y : Tensor ``(T,)`` or ``(T, N)``
         Values (finite).
     weights : Tensor ``(T,)``, optional
-        ``1 / sigma^2`` per value (default ones).
+        ``1 / sigma^2`` per value (default ones), shared by the series.
     lams : Tensor, optional
         Candidate smoothing parameters (default a logarithmic range scaled to the data's time
-        span); the GCV minimizer is used.
+        span); each series takes its GCV minimizer (the first, in a tie).
 
     Returns
     -------
-    Tensor ``(T,)``
+    Tensor, the shape of ``y``
         The smoothed values (``y`` itself for fewer than 4 or more than
         :data:`MAX_SMOOTHED_POINTS` points).
     """
     T = t.shape[0]
     if T < 4 or T > MAX_SMOOTHED_POINTS:
         return y.clone()
-    w = torch.ones_like(y) if weights is None else weights
+    Y = y.reshape(T, -1)
+    w = torch.ones_like(t) if weights is None else weights
     D = _second_differences(t)
     P = D.T @ D
     span = float(t[-1] - t[0])
     if lams is None:
         # lam * span^-3-ish balances the roughness term against one squared residual per point
         lams = torch.logspace(-12, 2, 29, dtype=t.dtype) * span ** 3 / T
-    # one eigendecomposition serves every lam: with u = sqrt(w) z the hat matrix is
+    # one eigendecomposition serves every lam and series: with u = sqrt(w) z the hat matrix is
     # (I + lam Pw)^-1, Pw = W^-1/2 P W^-1/2, diagonal in Pw's eigenvectors
     r = w.sqrt()
     evals, Q = torch.linalg.eigh(P / r.unsqueeze(0) / r.unsqueeze(1))
     evals = evals.clamp_min(0)
-    coeff = Q.T @ (r * y)
-    best, best_score = y.clone(), float("inf")
-    for lam in lams.tolist():
-        shrink = 1 / (1 + lam * evals)
-        dof = T - float(shrink.sum())
-        if dof <= 1e-9:
-            continue
-        z = (Q @ (shrink * coeff)) / r
-        rss = float((w * (y - z) ** 2).sum())
-        score = T * rss / dof**2
-        if score < best_score:
-            best, best_score = z, score
-    return best
+    shrink = (1 / (1 + lams.to(evals).unsqueeze(0) * evals.unsqueeze(1)))  # (T, L)
+    dof = T - shrink.sum(dim=0)  # (L,)
+    usable = dof > 1e-9
+    out = Y.clone()
+    # series by series (every lam at once): the products are then those of the series alone, so a
+    # series gives the same values bit for bit whatever others are smoothed with it
+    for j in range(Y.shape[1]):
+        Z = (Q @ (shrink * (Q.T @ (r * Y[:, j])).unsqueeze(1))) / r.unsqueeze(1)  # (T, L)
+        rss = (w.unsqueeze(1) * (Y[:, j:j + 1] - Z) ** 2).sum(dim=0)  # (L,)
+        score = torch.where(usable, T * rss / dof.clamp_min(1e-9) ** 2, torch.full_like(rss, float("inf")))
+        best = int(torch.argmin(score))  # the first minimizer
+        if torch.isfinite(score[best]):  # else no usable lam: as given
+            out[:, j] = Z[:, best]
+    return out.reshape(y.shape)
 
 
 def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:
@@ -102,21 +105,23 @@ def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Ten
     ----------
     t : Tensor ``(T,)``
         Strictly increasing knots (times).
-    y : Tensor ``(T,)``
-        Finite values at the knots.
+    y : Tensor ``(T,)`` or ``(T, N)``
+        Finite values at the knots: one series, or ``N`` at the same knots.
     tq : Tensor ``(Q,)``
         Query times.
 
     Returns
     -------
-    Tensor ``(Q,)``
+    Tensor ``(Q,)`` or ``(Q, N)``
         The spline's values (the chord for two knots, the parabola for three); constant at
         the end values outside ``[t[0], t[-1]]``, and ``y[0]`` everywhere for one knot.
     """
     if t.shape[0] == 1:
-        return y.expand(tq.shape[0]).clone()
-    slopes = torch.as_tensor(knot_slopes(t.detach().cpu().double().numpy(), y.detach().cpu().double().numpy()),
+        return y[:1].expand(tq.shape[0], *y.shape[1:]).clone()
+    Y = y.reshape(t.shape[0], -1)
+    slopes = torch.as_tensor(knot_slopes(t.detach().cpu().double().numpy(), Y.detach().cpu().double().numpy()),
                              dtype=y.dtype, device=y.device)
     inside = tq.clamp(t[0], t[-1])
     j = (torch.searchsorted(t, inside, right=True) - 1).clamp(0, t.shape[0] - 2)
-    return hermite(t, y.unsqueeze(-1), slopes.unsqueeze(-1), j, inside).squeeze(-1)
+    out = hermite(t, Y, slopes, j, inside)
+    return out.reshape(tq.shape[0], *y.shape[1:])
