@@ -190,8 +190,8 @@ def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Ten
         if seen and hidden:
             z_ref[rows] = _derive_hidden(system, grid if grid.dim() == 1 else grid[rows], z_ref[rows], z_dot[rows],
                                          list(seen), hidden)
-            for s in rows.tolist():
-                z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
+            if grid.dim() == 2:
+                _pad(z_ref, ends, rows.tolist())
             z_dot[rows] = _node_slopes(grid if grid.dim() == 1 else grid[rows], [ends[s] for s in rows.tolist()],
                                        z_ref[rows])
     matched = torch.tensor([bool(seen) for seen in observed], device=z0.device)
@@ -234,10 +234,15 @@ def _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_
         for s in range(S):
             if some[s]:
                 seen[s].append(i)
-    if grid.dim() == 2:  # the padding repeats each sample's last node
-        for s in range(S):
-            z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
+    if grid.dim() == 2:
+        _pad(z_ref, ends, range(S))
     return [tuple(states) for states in seen]
+
+
+def _pad(z_ref: torch.Tensor, ends: list[int], rows) -> None:
+    """Each sample ``s`` in ``rows`` of ``z_ref (S, G, M)`` repeats its last node over its padding."""
+    for s in rows:
+        z_ref[s, ends[s]:] = z_ref[s, ends[s] - 1]
 
 
 def _node_slopes(grid, ends, z_ref) -> torch.Tensor:

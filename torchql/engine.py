@@ -111,7 +111,6 @@ class Engine(Evaluation, FinalPass):
         #: the first reference: ``"data"`` or ``"integrate"`` (default: the problem's)
         self.start = spec.initial_trajectory if start is None else start
         self.scale: torch.Tensor | None = None  # (S, m) typical magnitudes, from the first trajectory
-        self.sse_start: torch.Tensor | None = None  # (S,) the model's sums of squares at the guesses
         self.system = spec.system
         self.y, self.w, self.mask = spec.y[index], spec.weights[index], spec.mask[index]
         self.exact = spec.exact[index].reshape(index.numel(), -1)  # (S, R) rows met exactly
@@ -275,8 +274,7 @@ class Engine(Evaluation, FinalPass):
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
         typical = torch.where(typical > 0, typical, torch.ones_like(typical))
         self.scale = typical[:, spec.unknown_index]
-        # for the final diagnosis: the model's own SSE at the guesses, when the first iterate is its solution
-        self.sse_start = None if self.start == "data" else st.cur["sse"].clone()
+        # integrated from the guesses, the first iterate's SSE is the model's own there (the final diagnosis')
         self.first_z0, self.first_sse = st.z0.clone(), st.cur["sse"].clone()
         st.report_stopped()
 

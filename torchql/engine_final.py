@@ -138,7 +138,7 @@ class FinalPass:
                 scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
                                          None if self.scale is None else self.scale[r]),
                 unknown_names=spec.unknown_names,
-                sse=float(sse[k]), sse_start=None if self.sse_start is None else float(self.sse_start[r]),
+                sse=float(sse[k]), sse_start=None if self.start == "data" else float(self.first_sse[r]),
                 step=step[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
