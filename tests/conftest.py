@@ -4,11 +4,16 @@ The fits in these tests work on tiny tensors, where torch's intra-op thread pool
 than it gives (and slows everything down badly when the machine is busy): run single-threaded,
 and use the machine's cores with one pytest-xdist worker process each (``addopts`` in
 pyproject.toml), at most :data:`MAX_WORKERS` (each holds torch, scipy and matplotlib).
+Data fixtures that several test modules use are defined here.
 """
 
 import os
 
+import pytest
 import torch
+
+import torchql
+from torchql.models import NonlinearOscillator
 
 torch.set_num_threads(1)
 
@@ -19,3 +24,12 @@ MAX_WORKERS = 4
 def pytest_xdist_auto_num_workers(config):
     """``-n auto``: one worker per core, at most :data:`MAX_WORKERS`."""
     return max(1, min(MAX_WORKERS, os.cpu_count() or 1))
+
+
+@pytest.fixture(scope="module")
+def table_4_5_two_digit():
+    """Thesis Table 4.5: 8 points (t = 0, 1, ..., 6, 6.5) of the nonlinear oscillator, rounded to 2 decimals."""
+    dt = torch.float64
+    times = torch.tensor([0, 1, 2, 3, 4, 5, 6, 6.5], dtype=dt)
+    x = torchql.simulate(NonlinearOscillator(), torch.tensor([0.0, 1.0], dtype=dt), times, rtol=1e-13, atol=1e-15)
+    return torchql.Observations(times, torch.round(x[:, :1] * 100) / 100, observe=["y"])

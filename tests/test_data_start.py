@@ -65,17 +65,11 @@ def test_first_reference_rules():
         assert first_reference(explicit, "kantorovich", hidden, few, stiff=True) == explicit
 
 
-@pytest.fixture(scope="module")
-def table_4_5():
-    """Thesis Table 4.5: 8 two-digit values of the nonlinear oscillator, from the thesis' guesses.
-    Built from so few values, the data's slopes give C = -548 and D = 108, where the model
-    blows up; integrated from the guesses, the damped iteration reaches the optimum."""
-    times = torch.tensor([0, 1, 2, 3, 4, 5, 6, 6.5], dtype=DT)
-    x = torchql.simulate(NonlinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)
-    return torchql.Observations(times, torch.round(x[:, :1] * 100) / 100, observe=["y"])
-
-
-def test_where_the_data_start_fails_auto_fits_again_from_the_integrated_guesses(table_4_5):
+def test_where_the_data_start_fails_auto_fits_again_from_the_integrated_guesses(table_4_5_two_digit):
+    """Thesis Table 4.5 (8 two-digit values), from the thesis' guesses: built from so few values,
+    the data's slopes give C = -548 and D = 108, where the model blows up; integrated from the
+    guesses, the damped iteration reaches the optimum."""
+    table_4_5 = table_4_5_two_digit
     guess = dict(A=0.5, B=2.0, C=0.5, D=2.0)
     x0 = torch.tensor([0.5, 0.5], dtype=DT)
     data_built = torchql.fit(NonlinearOscillator(**guess), table_4_5, x0=x0, initial_trajectory="data", max_steps=200)

@@ -310,14 +310,6 @@ def test_other_solvers(linear_data, solver):
     assert rel_error(result.estimates, LINEAR_TRUTH) < 1e-6
 
 
-@pytest.fixture(scope="module")
-def table_4_5_two_digit():
-    """Thesis Table 4.5: 8 points (t = 0, 1, ..., 6, 6.5) of the nonlinear oscillator, rounded to 2 decimals."""
-    times = torch.tensor([0, 1, 2, 3, 4, 5, 6, 6.5], dtype=DT)
-    x = torchql.simulate(NonlinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)
-    return torchql.Observations(times, torch.round(x[:, :1] * 100) / 100, observe=["y"])
-
-
 def test_table_4_5_damped_kantorovich_reaches_the_least_squares_optimum(table_4_5_two_digit):
     """Undamped, the first step overshoots into a finite-time blow-up; damped, both methods agree."""
     guess = dict(A=0.5, B=2.0, C=0.5, D=2.0)
