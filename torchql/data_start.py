@@ -21,7 +21,7 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
-from torch.func import jacrev, vmap
+from torch.func import jacfwd, jacrev, vmap
 
 from .lstsq import solve_update_batch
 from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
@@ -35,8 +35,12 @@ __all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fal
 MATCH_STEPS = 30
 #: Gauss–Newton steps that derive unobserved states for a first trajectory from the data.
 DERIVE_STEPS = 8
-#: Relative change of every coefficient below which the gradient matching has converged.
-MATCH_XTOL = 1e-10
+#: Relative change of every coefficient below which the gradient matching has converged. Its
+#: result only starts the fit's own iteration, which converges quadratically: a digit more costs
+#: steps (Gauss–Newton converges only linearly where the slopes do not fit exactly) and no iteration.
+MATCH_XTOL = 1e-6
+#: Relative decrease of the matching's cost below which it has converged (round-off, or a flat minimum).
+MATCH_FTOL = 1e-12
 
 
 #: Used values of a directly measured state, in every sample, for ``initial_trajectory="auto"`` to
@@ -269,63 +273,67 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
     not depend on how poor the guesses are. Damped Gauss–Newton steps from the guesses solve it
     (bounds honoured), every sample with its own damping: a step that lowers a sample's cost is
     kept (damping / 10), one that does not is retried with more damping; a sample stops after
-    :data:`MATCH_STEPS` kept steps, a step below :data:`MATCH_XTOL`, or damping past its limit.
-    ``s`` scales each state's slopes to unit size; padding nodes (``live`` 0) do not count.
+    :data:`MATCH_STEPS` kept steps, a step below :data:`MATCH_XTOL` (kept, or undamped: the
+    Gauss–Newton step at a stationary point), a change of cost below :data:`MATCH_FTOL`, or
+    damping past its limit. Each evaluation gives the residuals and their Jacobian in one
+    forward-mode pass. ``s`` scales each state's slopes to unit size; padding nodes (``live`` 0) do not count.
     """
     n = system.n
     S = z0.shape[0]
     scale = (z_dot[:, :, :n].abs() * live.unsqueeze(-1)).amax(dim=1)
     scale = torch.where(scale > 0, scale, torch.ones_like(scale))
 
-    def mismatch(p, t, z, zd, sc, on):
-        return (system.f(t, torch.cat([z[:n], p]))[:n] - zd[:n]) / sc * on
+    def slope(p, t, z):
+        value = system.rhs(t, z[:n], p)
+        return value, value
 
-    node_dims = (None, 0, 0, 0, None, 0)  # one sample's nodes: its coefficients and scales shared
-    per_node = vmap(mismatch, in_dims=node_dims)
-    per_node_jac = vmap(jacrev(mismatch), in_dims=node_dims)
-    grid_dim = None if grid.dim() == 1 else 0
-    value = vmap(lambda p, t, z, zd, sc, on: per_node(p, t, z, zd, sc, on).reshape(-1),
-                 in_dims=(0, grid_dim, 0, 0, 0, 0))
-    jac = vmap(lambda p, t, z, zd, sc, on: per_node_jac(p, t, z, zd, sc, on).reshape(-1, p.shape[0]),
-               in_dims=(0, grid_dim, 0, 0, 0, 0))
-    args = (grid, z_ref, z_dot, scale, live)
+    # Only the model runs under the transforms: arithmetic with tensors that carry no tangent
+    # (the slopes, scales, mask) costs torch a Python-level kernel per operation in forward mode.
+    per_node = vmap(jacfwd(slope, has_aux=True))  # the Jacobian and the value in one pass
+    G = z_ref.shape[1]
+    times = (grid.expand(S, G) if grid.dim() == 1 else grid).reshape(-1)
+    nodes = z_ref.reshape(S * G, -1)
+    weight = (live.unsqueeze(-1) / scale.unsqueeze(1)).reshape(S, G * n)  # 1 / s on live nodes, 0 on padding
+    target = z_dot[:, :, :n].reshape(S, G * n)
     m_states = int((unknown_index < n).sum())
     est = unknown_index[m_states:] - n  # the estimated coefficients among p (not the per-sample constants)
+
+    def residuals_and_jacobian(p):
+        J, value = per_node(p.repeat_interleave(G, dim=0), times, nodes)
+        r = (value.reshape(S, G * n) - target) * weight
+        return r, J[:, :, est].reshape(S, G * n, -1) * weight.unsqueeze(-1)
+
     u = z0[:, unknown_index].clone()
     p = z0[:, n:].clone()
     with torch.no_grad():
-        r = value(p, *args)
+        r, J = residuals_and_jacobian(p)
         cost = r.square().sum(dim=1)
         running = torch.isfinite(cost)
         damping = torch.zeros(S, dtype=p.dtype, device=p.device)
         kept = torch.zeros(S, dtype=torch.long, device=p.device)
-        J = jac(p, *args)[:, :, est]
-        fresh = torch.ones(S, dtype=torch.bool, device=p.device)  # J is at the current p
         while bool(running.any()):
-            if not bool(fresh[running].all()):
-                redo = running & ~fresh
-                J[redo] = jac(p[redo], *(a if a.dim() == 1 else a[redo] for a in args))[:, :, est]
-                fresh |= redo
             Jq = J * bounds.derivative(u)[:, m_states:].unsqueeze(1) if bounds.active else J
-            ones = torch.ones_like(r)
-            alpha, _, _ = solve_update_batch(Jq, -r, ones, rcond, damping)
+            alpha, _, _ = solve_update_batch(Jq, -r, torch.ones_like(r), rcond, damping)
             step = torch.cat([torch.zeros(S, m_states, dtype=u.dtype, device=u.device), alpha.nan_to_num(0.0)], dim=1)
             change, _ = bounds.step(u, step)
             p_new = p.index_add(1, est, change[:, m_states:])
-            r_new = value(p_new, *args)
+            r_new, J_new = residuals_and_jacobian(p_new)
             new_cost = r_new.square().sum(dim=1)
             better = running & torch.isfinite(new_cost) & (new_cost < cost) & torch.isfinite(alpha).all(dim=1)
-            small = (change.abs() <= MATCH_XTOL * (u.abs() + 1e-300)).all(dim=1)
+            # A small step is the end when it was kept, or undamped: the Gauss–Newton step of a
+            # stationary point (a linear problem's second step), which round-off may not let lower the cost.
+            small = (change.abs() <= MATCH_XTOL * (u.abs() + 1e-300)).all(dim=1) & (better | (damping == 0))
+            flat = torch.isfinite(new_cost) & ((cost - new_cost).abs() <= MATCH_FTOL * cost)
             keep = better.unsqueeze(1)
             p, u = torch.where(keep, p_new, p), torch.where(keep, u + change, u)
             r, cost = torch.where(keep, r_new, r), torch.where(better, new_cost, cost)
+            J = torch.where(better.view(S, 1, 1), J_new, J)
             kept += better.long()
-            fresh &= ~better
             worse = running & ~better
             damping = torch.where(better, damping / 10, damping)
             damping = torch.where(worse, torch.where(damping == 0, torch.full_like(damping, _DAMPING_START),
                                                      10 * damping), damping)
-            running &= ~(better & small) & (kept < MATCH_STEPS) & (damping <= _DAMPING_MAX)
+            running &= ~small & ~flat & (kept < MATCH_STEPS) & (damping <= _DAMPING_MAX)
     return p
 
 
