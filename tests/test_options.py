@@ -12,8 +12,9 @@ from torchql.options import DAMPINGS, Limits, Tolerances, check_damping
 
 def test_float64_defaults():
     tol = Tolerances.resolve(torch.float64)
-    assert (tol.rtol, tol.atol, tol.xtol, tol.ftol) == (1e-10, 1e-12, 1e-8, 1e-12)
+    assert (tol.rtol, tol.atol, tol.xtol, tol.ftol) == (1e-10, 1e-12, 1e-8, 1e-10)  # ftol: rtol > 1e-12
     assert tol.rcond == pytest.approx(1e-7, rel=1e-12)  # 1e3 rtol > 1e3 eps
+    assert Tolerances.resolve(torch.float64, rtol=1e-13).ftol == 1e-12  # never finer than 1e-12
 
 
 def test_lower_precision_defaults_follow_the_integrator():
@@ -22,6 +23,7 @@ def test_lower_precision_defaults_follow_the_integrator():
     assert tol.rcond == pytest.approx(1e-3)
     loose = Tolerances.resolve(torch.float64, rtol=1e-6)
     assert loose.xtol == pytest.approx(1e-4) and loose.rcond == pytest.approx(1e-3)  # 100 rtol, 1e3 rtol
+    assert loose.ftol == 1e-6  # an SSE change below the integration's accuracy is no change
 
 
 def test_given_values_are_kept_and_validated():

@@ -146,7 +146,8 @@ def fit(
         the guess for coefficients). Default ``max(1e-8, 100 * rtol)``.
     ftol : float, optional
         Convergence also when the SSE changes by less than ``ftol`` relative (and the scaled
-        update is below ``sqrt(xtol)``). Default ``1e-12`` (float64), ``1e-6`` below.
+        update is below ``sqrt(xtol)``). Default ``max(1e-12, rtol)`` in float64, ``max(1e-6, rtol)``
+        below: the SSE of an integrated model is not known more closely than the integration.
     rcond : float, optional
         Relative singular-value threshold below which a direction of the unknowns counts as
         not identifiable. Default ``max(1e3 * rtol, 1e3 * eps)``.

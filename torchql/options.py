@@ -49,7 +49,8 @@ class Tolerances:
         ``max(1e-8, 100 rtol)`` in float64, ``max(1e-4, 100 rtol)`` below (no finer than the
         integration can resolve).
     ftol : float
-        Sum-of-squares test: default ``1e-12`` in float64, ``1e-6`` below.
+        Sum-of-squares test: default ``max(1e-12, rtol)`` in float64, ``max(1e-6, rtol)`` below
+        (a change of the SSE below the integration's relative accuracy is no change).
     rcond : float
         Relative singular-value threshold of the rank tests: default ``max(1e3 rtol, 1e3 eps)``.
     """
@@ -71,7 +72,7 @@ class Tolerances:
         return cls(
             rtol=rtol, atol=atol,
             xtol=_checks.positive_number("xtol", xtol) if xtol is not None else max(1e-8 if double else 1e-4, 100 * rtol),
-            ftol=_checks.positive_number("ftol", ftol) if ftol is not None else (1e-12 if double else 1e-6),
+            ftol=_checks.positive_number("ftol", ftol) if ftol is not None else max(1e-12 if double else 1e-6, rtol),
             rcond=_checks.positive_number("rcond", rcond) if rcond is not None else max(1e3 * rtol, 1e3 * eps),
         )
 
