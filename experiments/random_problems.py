@@ -56,7 +56,10 @@ Run (from the repository root)::
     python experiments/random_problems.py --write              # also writes experiments/output/random_problems.md
     python experiments/random_problems.py --n 15 --families logistic linear --max-time 60 --workers 2
 
-The printed report holds wall times, which depend on the machine and its load.
+The printed report holds wall times, which depend on the machine and its load. Each process first
+fits one small problem with both methods, untimed, and the report gives that warm-up apart: the first
+``torch.func`` derivative in a process imports ``torch._dynamo`` (about 1 s, once), a cost of the
+process and not of any one fit, as scipy's first call pays its own imports.
 """
 
 from __future__ import annotations
@@ -522,9 +525,21 @@ def run_scipy(problem: Problem, max_time: float | None) -> dict:
                 nfev=int(out.nfev), wall=time.perf_counter() - start, estimates=out.x.copy())
 
 
+_WARM_UP: dict[str, float] = {}
+
+
+def warm_up() -> dict[str, float]:
+    """Once per process: fit a small problem with both methods, untimed in the study; their wall times."""
+    if not _WARM_UP:
+        problem = make_problem("logistic", 0, 0.0)
+        _WARM_UP.update(torchql=run_torchql(problem, None)["wall"], scipy=run_scipy(problem, None)["wall"])
+    return dict(_WARM_UP)
+
+
 def run_problem(job: tuple[str, int, float, float | None]) -> dict:
     """Fit one problem with both methods; the record of :func:`study`."""
     torch.set_num_threads(1)
+    warm = warm_up()
     family, seed, noise, max_time = job
     problem = make_problem(family, seed, noise)
     tq, sp = run_torchql(problem, max_time), run_scipy(problem, max_time)
@@ -547,7 +562,7 @@ def run_problem(job: tuple[str, int, float, float | None]) -> dict:
     return dict(family=family, seed=seed, noise=noise, variant=problem.variant, names=problem.unknown_names,
                 truth=problem.truth, guess=problem.guess, best=best, floor=problem.floor, sse_truth=sse_truth,
                 local=bool(best > 2 * sse_truth + problem.floor),
-                cond_truth=problem.cond_truth, cond_opt=cond_opt, torchql=tq, scipy=sp, wrong=wrong)
+                cond_truth=problem.cond_truth, cond_opt=cond_opt, torchql=tq, scipy=sp, wrong=wrong, warm_up=warm)
 
 
 def jobs_for(n: int, seed: int, families: Sequence[str], max_time: float | None) -> list[tuple]:
@@ -592,6 +607,7 @@ def report(records: Sequence[dict], args_line: str) -> str:
     sp_wall = np.array([r["scipy"]["wall"] for r in records])
     ratios = tq_wall / sp_wall
     worst = int(np.argmax(ratios))
+    warm = {method: max(r["warm_up"][method] for r in records) for method in ("torchql", "scipy")}
     local = ", ".join(f"{r['family']} seed {r['seed']} noise {r['noise']:g}" for r in records if r["local"]) or "none"
     lines = [
         "# Random problems: torchql against scipy least_squares",
@@ -613,6 +629,8 @@ def report(records: Sequence[dict], args_line: str) -> str:
         f"- worst per-problem torchql/scipy time ratio: {ratios[worst]:.3g} ({records[worst]['family']} seed "
         f"{records[worst]['seed']} noise {records[worst]['noise']:g}: {tq_wall[worst]:.3g} s against "
         f"{sp_wall[worst]:.3g} s)",
+        f"- warm-up fit of each process, not counted above: torchql {warm['torchql']:.3g} s, scipy "
+        f"{warm['scipy']:.3g} s (the first `torch.func` derivative imports `torch._dynamo` once)",
         f"- wrong diagnoses: {sum(r['wrong'] is not None for r in records)}",
         f"- best SSE above twice the truth's plus the floor (both methods in a local optimum): {local}",
         "",
