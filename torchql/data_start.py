@@ -352,23 +352,25 @@ def _derive_hidden(system, grid, z_ref, z_dot, observed: list[int], hidden: list
     z, zd = z_ref.reshape(S * G, M), z_dot.reshape(S * G, M)
 
     def mismatch(xh, t, z, zd):
-        return system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
+        r = system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
+        return r, r
 
-    jac = vmap(jacrev(mismatch))
-    value = vmap(mismatch)
+    residuals_and_jacobian = vmap(jacrev(mismatch, has_aux=True))  # the Jacobian and the value in one pass
     xh = z[:, hid].clone()
     with torch.no_grad():
-        r = value(xh, times, z, zd)
+        J, r = residuals_and_jacobian(xh, times, z, zd)
         best = r.square().sum(-1)
         for _ in range(DERIVE_STEPS):
-            J = jac(xh, times, z, zd)
             step = torch.linalg.pinv(J, rtol=1e-8) @ r.unsqueeze(-1)
             trial = xh - step.squeeze(-1)
-            r_trial = value(trial, times, z, zd)
+            J_trial, r_trial = residuals_and_jacobian(trial, times, z, zd)
             norm = r_trial.square().sum(-1)
             better = torch.isfinite(norm) & (norm < best)
+            if not bool(better.any()):  # nothing moved: every later step would repeat this one
+                break
             xh = torch.where(better.unsqueeze(-1), trial, xh)
             r = torch.where(better.unsqueeze(-1), r_trial, r)
+            J = torch.where(better.view(-1, 1, 1), J_trial, J)
             best = torch.where(better, norm, best)
     out = z.clone()
     out[:, hid] = xh
