@@ -1,59 +1,93 @@
-"""Throughput of batched fitting (``torchql.fit_many``) against loops of single fits, in one run.
+"""Throughput of batched fitting (``torchql.fit_many``) against loops of single fits and a vmapped JAX peer.
 
-Problem: a fleet of coasting cars (``torchql.models.CoastingCar``, the thesis' Sunbeam Alpine:
-frontal area 17.3 ft^2, mass 80.43 slug), each with its own coefficients drawn around
-``C_D = 0.45 +- 0.05``, ``mu = 0.015 +- 0.003`` and initial speed ``117.3 +- 2`` ft/s, observed
-at ``t = 0, 5, ..., 40`` s (nine speeds) with Gaussian noise of 0.3 ft/s. The exact speeds come
-from the model's closed-form solution. Unknowns per car: ``v(t0)``, ``C_D``, ``mu``; start
-``C_D = 0.4``, ``mu = 0.02``, ``v(t0)`` = the car's first measured speed.
+Two problem families, each sample with its own true coefficients and Gaussian noise:
 
-Compared, in the same process:
+* **coasting cars** (``torchql.models.CoastingCar``, the thesis' Sunbeam Alpine: frontal area
+  17.3 ft^2, mass 80.43 slug), ``v' = -(rho A C_D / (2 m)) v^2 - mu g``, coefficients drawn
+  around ``C_D = 0.45 +- 0.05``, ``mu = 0.015 +- 0.003``, initial speed ``117.3 +- 2`` ft/s,
+  observed at ``t = 0, 5, ..., 40`` s (nine speeds, noise 0.3 ft/s; exact speeds from the
+  closed-form solution). Unknowns ``v(t0)``, ``C_D``, ``mu``; start ``(v_1, 0.4, 0.02)`` with
+  ``v_1`` the car's first measured speed. Batch sizes ``--sizes`` (default 10, 100, 1000, 10000);
+* **linear oscillators** (``torchql.models.LinearOscillator``, ``y'' + A y' + B y = 0``, states
+  ``(y, v = y')``), truths drawn around the thesis' ``(y0, v0, A, B) = (0, 1, 0.1, 3)``:
+  ``y0 ~ 0 +- 0.05``, ``v0 ~ 1 +- 0.1``, ``A ~ 0.1 +- 0.02``, ``B ~ 3 +- 0.3``; position observed at
+  ``t = 0, 0.5, ..., 6.5`` (14 points, noise 1e-3; exact positions from the closed form).
+  Unknowns ``y(t0)``, ``v(t0)``, ``A``, ``B``; start: the thesis' ``(0.5, 0.5, 0.5, 1.0)``, each
+  component of each sample times ``exp(0.2 z)``, ``z`` standard normal. Batch sizes
+  ``--osc-sizes`` (default 1000).
 
-* ``torchql.fit_many`` on ``B`` datasets for every ``B`` in ``--sizes`` (after one untimed
-  warm-up on a small batch), given as one batched ``Observations`` (values ``(B, 9, 1)``,
-  validated once) and timed with its building; once more at the largest ``B`` with
-  ``rtol=1e-8`` (every other row: the default ``rtol=1e-10``), a faster setting whose accuracy
-  is reported beside the others', and once with torch on every core (the other rows and the
-  loops run on one thread);
-* a Python loop of ``torchql.fit`` on the first ``--subset`` datasets (same settings), timed
-  with the building of one ``Observations`` per dataset;
-* a Python loop of ``scipy.optimize.least_squares`` over ``scipy.integrate.solve_ivp`` on the
-  same subset, with the settings of ``benchmarks/fit_speed.py`` (``trf``, 2-point differences,
-  ``rtol=1e-10``, ``atol=1e-12``), with ``DOP853`` and with ``RK45``; the faster of the two is the
-  reference of the ratios.
+Rows of each family's table, all in the same process, torch on one thread unless said:
 
-Loops are timed on the subset only (their throughput does not depend on the batch size); the
-ratio at size ``B`` is ``fits/s of fit_many at B`` over ``fits/s of the loop``. Every fit_many row
-and both scipy loops are timed ``--repeat`` times (default 3) and the fastest run counts, on both
-sides of each ratio alike (the torchql loop, the slowest, runs once).
+* ``torchql fit_many`` (**the headline**): ``fit_many`` with its DEFAULT options (default grid
+  of 1000 storage intervals, ``rtol=1e-10``) on ``B`` datasets for every ``B``, given as one
+  batched ``Observations`` (values ``(B, T, 1)``, validated once) with per-sample start states
+  (``x0``) and coefficient guesses (``guesses=``), timed with that building, after one untimed
+  warm-up on a small batch;
+* ``torchql fit_many, tuned (grid=20)`` and ``torchql fit_many, tuned (rtol=1e-8)``: the largest
+  ``B`` with one option changed each (20 storage intervals; a looser integration tolerance),
+  faster settings whose accuracy columns say what they cost;
+* ``torchql fit_many, N threads``: the largest ``B``, default options, torch on every core;
+* ``JAX optimistix LM + diffrax, vmap`` (when ``jax``, ``diffrax`` and ``optimistix`` are
+  installed: ``pip install "torchql[bench]"``): ``benchmarks/jax_peer.py``, one
+  ``jax.jit(jax.vmap(fit_one))`` over the batch, float64, XLA on one thread; ``fit_one`` is
+  ``optimistix.least_squares`` with ``LevenbergMarquardt(rtol=1e-8, atol=1e-8)`` (at most 200
+  steps, ``throw=False``) over ``diffrax.diffeqsolve`` (``Dopri5``, ``PIDController(rtol=1e-10,
+  atol=1e-12)``, ``SaveAt(ts=observation times)``, forward-mode ``ForwardMode`` Jacobians), from
+  the same starts as torchql. Every ``B`` is compiled once for its shapes (``lower().compile()``,
+  reported separately) and then timed (``block_until_ready``, inputs to and results from numpy);
+* ``torchql fit, loop``: a Python loop of ``torchql.fit`` (default options) on the first
+  ``--subset`` datasets, timed with the building of one ``Observations`` per dataset (once);
+* ``scipy least_squares + solve_ivp ..., loop``: ``scipy.optimize.least_squares`` (``trf``,
+  2-point differences, ``x_scale="jac"``, ``xtol=1e-12``, ``ftol=gtol=1e-14``) over
+  ``scipy.integrate.solve_ivp`` (``rtol=1e-10``, ``atol=1e-12``, the settings of
+  ``benchmarks/fit_speed.py``) on the same subset: ``DOP853`` and ``RK45`` for the cars, ``DOP853``
+  for the oscillators. The faster scipy loop is the reference of ``/ scipy loop``.
 
-torchql's settings: ``grid=GRID`` storage intervals (the default is 1000, far finer than nine
-smooth samples need; both torchql variants use the same grid, so batched and single fits are
-the same computation). The accuracy columns say what that costs: the largest relative
-difference of the batched estimates from single fits with the default grid, and the largest
-relative excess of their SSE over the better of torchql's and scipy's (the target of
-``fit_speed.py`` is ``1e-6``).
+Every fit_many row, every JAX size and the scipy loops are timed ``--repeat`` times (default 3)
+and the fastest run counts; the torchql loop, the slowest, runs once. Ratios: fits/s of the row
+over fits/s of the reference (``/ JAX``: the JAX row of the same ``B``). ``converged``: samples
+whose fit succeeded (torchql: ``success``; JAX: optimistix' ``RESULTS.successful``); ``mean
+iter``: torchql's iterations, JAX's Levenberg–Marquardt steps (accepted and rejected). The JAX
+peer iterates each unknown as a multiple of its start (see ``benchmarks/jax_peer.py``); the
+scipy loops start from the same starts as torchql and JAX.
 
-Memory: the process' peak resident set size after each batch (``resource``; it only grows, and
-the batches run in increasing size, so each figure is the peak up to and including that batch).
+Accuracy columns: ``max dSSE``, the largest relative excess of a row's sum of squares over the
+best of all rows on the same dataset (every SSE recomputed from the closed-form solution);
+``max diff``, the largest relative difference of a row's estimates from the default
+``fit_many``'s on the same datasets (relative to the torchql estimate, or to 1% of that
+unknown's largest magnitude in the batch where the estimate is smaller: the oscillators'
+``y(t0)`` scatters around 0). The torchql loop's ``max diff`` is batched against single fits.
+
+Memory (``peak RSS``, fit_many and JAX rows): the process' peak resident set size during the
+row's runs, libraries loaded included (Linux: the high-water mark is reset before each row
+through ``/proc/self/clear_refs``; elsewhere the process' peak so far). The JAX rows of both
+families run after every torchql and scipy row, so that JAX's memory is not in torchql's figures.
+
+``--quick``: cars ``B = 4, 16``, oscillators ``B = 8``, loops on 4, one run each, no all-cores
+row; the JAX rows when JAX is installed (their compilation is most of its time).
 
 Run (from the repository root)::
 
-    python benchmarks/batch.py                      # sizes 10,100,1000,10000; subset 100
-    python benchmarks/batch.py --sizes 10 100 1000 --subset 50
-    python benchmarks/batch.py --quick --out /tmp/bench   # smoke run (seconds)
+    python benchmarks/batch.py                        # cars 10..10000, oscillators 1000; subset 100
+    python benchmarks/batch.py --sizes 10 100 1000 --osc-sizes 100 1000 --subset 50
+    python benchmarks/batch.py --no-jax               # torchql and scipy rows only
+    python benchmarks/batch.py --quick --out /tmp/bench   # smoke run (JAX rows: if installed)
 
-Writes ``OUT/batch.md`` (the table) and ``OUT/batch.png`` (fits/s against ``B``).
+Writes ``OUT/batch.md`` (the tables) and ``OUT/batch.png`` (fits/s against ``B``).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import platform
+import re
 import resource
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -63,264 +97,515 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import least_squares
 
 import torchql
-from torchql.models import CoastingCar
+from torchql.models import CoastingCar, LinearOscillator
 from torchql.models.car import AIR_DENSITY, GRAVITY
 
 DTYPE = torch.float64
 AREA, MASS = 17.3, 80.43
-TIMES = tuple(5.0 * k for k in range(9))
-NOISE = 0.3
-GRID = 20
-GUESS = dict(C_D=0.4, mu=0.02)
-#: A looser integration tolerance for one extra fit_many row (its accuracy is reported beside it).
-FAST_RTOL = 1e-8
+#: The tuned rows: each changes one option of the default fit.
+TUNED = {"grid=20": dict(grid=20), "rtol=1e-8": dict(rtol=1e-8)}
 PEER_RTOL, PEER_ATOL = 1e-10, 1e-12
 PEER_LSQ = dict(method="trf", jac="2-point", diff_step=1e-5, x_scale="jac", xtol=1e-12, ftol=1e-14, gtol=1e-14,
                 max_nfev=2000)
+#: Oscillators' start (y0, v0, A, B): the thesis', perturbed per sample by a factor exp(OSC_START_SPREAD z).
+OSC_START, OSC_START_SPREAD = np.array([0.5, 0.5, 0.5, 1.0]), 0.2
+#: Floor of the relative differences: this fraction of an unknown's largest magnitude in the batch.
+REL_FLOOR = 1e-2
+JAX_HINT = 'pip install "torchql[bench]"'
 
 
-def exact_speed(t: np.ndarray, v0: np.ndarray, C_D: np.ndarray, mu: np.ndarray) -> np.ndarray:
-    """Closed form of ``v' = -a v^2 - c``: ``v = sqrt(c/a) tan(atan(v0 sqrt(a/c)) - sqrt(a c) t)``, ``(B, T)``."""
+# ----------------------------------------------------------------------------------------------
+# Problem families
+# ----------------------------------------------------------------------------------------------
+
+def exact_speed(t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Cars' closed form ``v = sqrt(c/a) tan(atan(v0 sqrt(a/c)) - sqrt(a c) t)``, ft/s, ``(B, T)``.
+
+    ``t (T,)`` s; ``p (B, 3)`` = ``(v0 ft/s, C_D, mu)``; ``a = rho A C_D / (2 m)``, ``c = mu g``.
+    """
+    v0, C_D, mu = p[:, 0], p[:, 1], p[:, 2]
     a = (0.5 * AIR_DENSITY * AREA * C_D / MASS)[:, None]
     c = (mu * GRAVITY)[:, None]
-    return np.sqrt(c / a) * np.tan(np.arctan(v0[:, None] * np.sqrt(a / c)) - np.sqrt(a * c) * t[None, :])
+    with np.errstate(all="ignore"):
+        return np.sqrt(c / a) * np.tan(np.arctan(v0[:, None] * np.sqrt(a / c)) - np.sqrt(a * c) * t[None, :])
 
 
-def make_data(B: int, seed: int = 0):
-    """``B`` noisy datasets: the times ``(T,)``, speeds ``(B, T)`` and the true ``(v0, C_D, mu)`` ``(B, 3)``."""
-    rng = np.random.default_rng(seed)
+def exact_position(t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Oscillators' closed form ``y = exp(-A t/2) (y0 cos(w t) + (v0 + A y0/2) sin(w t)/w)``, ``(B, T)``.
+
+    ``t (T,)``; ``p (B, 4)`` = ``(y0, v0, A, B)``; ``w = sqrt(B - A^2/4)`` (complex when overdamped).
+    """
+    y0, v0, A, B = (p[:, k, None] for k in range(4))
+    w = np.sqrt((B - A**2 / 4).astype(complex))
+    with np.errstate(all="ignore"):
+        sin_over_w = t * np.sinc(w * t / np.pi)  # sin(w t) / w, also at w = 0
+        return np.real(np.exp(-A * t / 2) * (y0 * np.cos(w * t) + (v0 + A * y0 / 2) * sin_over_w))
+
+
+def _car_truth(rng: np.random.Generator, B: int) -> np.ndarray:
     v0 = 117.3 + 2.0 * rng.standard_normal(B)
     C_D = 0.45 + 0.05 * rng.standard_normal(B)
     mu = np.abs(0.015 + 0.003 * rng.standard_normal(B))
-    t = np.array(TIMES)
-    v = exact_speed(t, v0, C_D, mu) + NOISE * rng.standard_normal((B, t.size))
-    return t, v, np.stack([v0, C_D, mu], axis=1)
+    return np.stack([v0, C_D, mu], axis=1)
 
 
-def batch_observations(t: np.ndarray, v: np.ndarray) -> torchql.Observations:
-    """The datasets ``v (B, T)`` at times ``t (T,)`` as one batched Observations, values ``(B, T, 1)``."""
-    return torchql.Observations(torch.tensor(t, dtype=DTYPE), torch.tensor(v, dtype=DTYPE).unsqueeze(-1),
-                                observe=["v"])
+def _car_starts(rng: np.random.Generator, y: np.ndarray) -> np.ndarray:
+    B = y.shape[0]
+    return np.stack([y[:, 0], np.full(B, 0.4), np.full(B, 0.02)], axis=1)
 
 
-def run_fit_many(t, v, grid=GRID, rtol=None) -> tuple[torchql.BatchFitResult, float]:
-    """``fit_many`` on the datasets ``v (B, T)``, timed with the building of their batched Observations."""
-    start = time.perf_counter()
-    data = batch_observations(t, v)
-    x0 = torch.tensor(v[:, :1], dtype=DTYPE)
-    result = torchql.fit_many(CoastingCar(AREA, MASS, **GUESS), data, x0, grid=grid, rtol=rtol)
-    return result, time.perf_counter() - start
+def _osc_truth(rng: np.random.Generator, B: int) -> np.ndarray:
+    z = rng.standard_normal((B, 4))
+    return np.array([0.0, 1.0, 0.1, 3.0]) + np.array([0.05, 0.1, 0.02, 0.3]) * z
 
 
-def run_single_loop(t, v, grid=GRID) -> tuple[np.ndarray, np.ndarray, list[str], float]:
-    """A loop of ``torchql.fit`` on the datasets ``v (B, T)``, timed with the building of their Observations."""
-    start = time.perf_counter()
-    tt = torch.tensor(t, dtype=DTYPE)
-    estimates, sse, status = [], [], []
-    model = CoastingCar(AREA, MASS, **GUESS)
-    for row in v:
-        d = torchql.Observations(tt, torch.tensor(row, dtype=DTYPE).unsqueeze(-1), observe=["v"])
-        r = torchql.fit(model, d, torch.tensor(row[:1], dtype=DTYPE), grid=grid)
-        estimates.append(r.estimates.numpy())
-        sse.append(r.sse)
-        status.append(r.status.name)
-    return np.array(estimates), np.array(sse), status, time.perf_counter() - start
+def _osc_starts(rng: np.random.Generator, y: np.ndarray) -> np.ndarray:
+    return OSC_START * np.exp(OSC_START_SPREAD * rng.standard_normal((y.shape[0], 4)))
 
 
 def _car_rhs(t, x, C_D, mu):
     return [-0.5 * AIR_DENSITY * AREA * C_D / MASS * x[0] ** 2 - mu * GRAVITY]
 
 
-def run_scipy_loop(t, v, solver: str) -> tuple[np.ndarray, np.ndarray, float]:
+def _osc_rhs(t, x, A, B):
+    return [x[1], -A * x[1] - B * x[0]]
+
+
+@dataclass(frozen=True)
+class Family:
+    """A problem family: model, observation times, truths, starts, closed form, scipy and JAX forms.
+
+    Unknowns are the ``n_states`` initial states followed by ``coefficients``; state 0 is observed.
+    """
+
+    key: str
+    title: str
+    model: Callable[..., torchql.ODEModel]
+    state_names: tuple[str, ...]
+    coefficients: tuple[str, ...]
+    times: np.ndarray
+    noise: float
+    truth: Callable[[np.random.Generator, int], np.ndarray]
+    starts: Callable[[np.random.Generator, np.ndarray], np.ndarray]
+    exact: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    scipy_rhs: Callable
+    scipy_solvers: tuple[str, ...]
+    peer: Callable
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+
+CARS = Family("cars", "Coasting cars", lambda **c: CoastingCar(AREA, MASS, **c), ("v",), ("C_D", "mu"),
+              5.0 * np.arange(9), 0.3, _car_truth, _car_starts, exact_speed, _car_rhs, ("DOP853", "RK45"),
+              lambda jp: jp.coasting_car(AREA, MASS, AIR_DENSITY, GRAVITY))
+OSCILLATORS = Family("oscillators", "Linear oscillators", lambda **c: LinearOscillator(**c), ("y", "v"), ("A", "B"),
+                     0.5 * np.arange(14), 1e-3, _osc_truth, _osc_starts, exact_position, _osc_rhs, ("DOP853",),
+                     lambda jp: jp.linear_oscillator())
+
+
+@dataclass
+class Data:
+    """``B`` datasets of a family: times ``t (T,)``, values ``y (B, T)``, ``truth (B, m)``, ``starts (B, m)``."""
+
+    t: np.ndarray
+    y: np.ndarray
+    truth: np.ndarray
+    starts: np.ndarray
+
+    def head(self, n: int) -> "Data":
+        """The first ``n`` datasets."""
+        return Data(self.t, self.y[:n], self.truth[:n], self.starts[:n])
+
+
+def make_data(family: Family, B: int, seed: int = 0, noise: float | None = None) -> Data:
+    """``B`` datasets of ``family``: exact values plus Gaussian noise (``noise``, default the family's)."""
+    rng = np.random.default_rng(seed)
+    truth = family.truth(rng, B)
+    t = np.asarray(family.times, dtype=float)
+    y = family.exact(t, truth) + (family.noise if noise is None else noise) * rng.standard_normal((B, t.size))
+    return Data(t, y, truth, family.starts(rng, y))
+
+
+# ----------------------------------------------------------------------------------------------
+# The methods
+# ----------------------------------------------------------------------------------------------
+
+def run_fit_many(family: Family, data: Data, **options) -> tuple[torchql.BatchFitResult, float]:
+    """``fit_many`` on ``data`` (``options`` as given, else defaults), timed with its batched Observations."""
     start = time.perf_counter()
-    estimates, sse = [], []
-    for row in v:
+    obs = torchql.Observations(torch.tensor(data.t, dtype=DTYPE), torch.tensor(data.y, dtype=DTYPE).unsqueeze(-1),
+                               observe=[family.state_names[0]])
+    n = family.n_states
+    x0 = torch.tensor(data.starts[:, :n], dtype=DTYPE)
+    guesses = {name: torch.tensor(data.starts[:, n + k], dtype=DTYPE) for k, name in enumerate(family.coefficients)}
+    result = torchql.fit_many(family.model(), obs, x0, guesses=guesses, **options)
+    return result, time.perf_counter() - start
+
+
+def run_single_loop(family: Family, data: Data) -> tuple[np.ndarray, list[str], int, float]:
+    """A loop of ``torchql.fit`` (defaults) over ``data``: estimates ``(B, m)``, statuses, successes, seconds."""
+    start = time.perf_counter()
+    tt = torch.tensor(data.t, dtype=DTYPE)
+    n = family.n_states
+    estimates, status, success = [], [], 0
+    for row, guess in zip(data.y, data.starts):
+        obs = torchql.Observations(tt, torch.tensor(row, dtype=DTYPE).unsqueeze(-1), observe=[family.state_names[0]])
+        model = family.model(**dict(zip(family.coefficients, guess[n:].tolist())))
+        r = torchql.fit(model, obs, torch.tensor(guess[:n], dtype=DTYPE))
+        estimates.append(r.estimates.numpy())
+        status.append(r.status.name)
+        success += bool(r.success)
+    return np.array(estimates), status, success, time.perf_counter() - start
+
+
+def run_scipy_loop(family: Family, data: Data, solver: str) -> tuple[np.ndarray, float]:
+    """A loop of ``least_squares`` over ``solve_ivp`` (``solver``) on ``data``: estimates ``(B, m)``, seconds."""
+    start = time.perf_counter()
+    t, n = data.t, family.n_states
+    estimates = []
+    for row, guess in zip(data.y, data.starts):
         def residuals(u, row=row):
-            sol = solve_ivp(_car_rhs, (t[0], t[-1]), u[:1], method=solver, t_eval=t, args=tuple(u[1:]),
+            sol = solve_ivp(family.scipy_rhs, (t[0], t[-1]), u[:n], method=solver, t_eval=t, args=tuple(u[n:]),
                             rtol=PEER_RTOL, atol=PEER_ATOL)
             if not sol.success or sol.y.shape[1] != t.size:
                 return np.full(t.size, 1e10)
             return sol.y[0] - row
-        r = least_squares(residuals, np.array([row[0], GUESS["C_D"], GUESS["mu"]]), **PEER_LSQ)
-        estimates.append(r.x)
-        sse.append(2 * r.cost)
-    return np.array(estimates), np.array(sse), time.perf_counter() - start
+        estimates.append(least_squares(residuals, guess, **PEER_LSQ).x)
+    return np.array(estimates), time.perf_counter() - start
 
 
-def reference_sse(t, v, estimates) -> np.ndarray:
-    """SSE of each estimate from the closed-form solution (the yardstick for every method)."""
-    fitted = exact_speed(t, estimates[:, 0], estimates[:, 1], estimates[:, 2])
-    return np.sum((fitted - v) ** 2, axis=1)
+def best_of(repeat: int, run: Callable[[], tuple]) -> tuple:
+    """``run()`` ``repeat`` times (each returns a tuple ending with its seconds): the fastest run's tuple."""
+    return min((run() for _ in range(repeat)), key=lambda r: r[-1])
+
+
+def reset_peak_rss() -> None:
+    """Reset the process' peak resident set size (Linux >= 4.0; elsewhere nothing)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
 
 
 def peak_rss_mb() -> float:
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return kb / 1024 if sys.platform != "darwin" else kb / 1024**2
+    """The process' peak resident set size since the last reset, MB (``VmHWM``; else ``ru_maxrss``)."""
+    try:
+        with open("/proc/self/status") as f:
+            return int(re.search(r"VmHWM:\s+(\d+)", f.read()).group(1)) / 1024
+    except (OSError, AttributeError):
+        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return kb / 1024 if sys.platform != "darwin" else kb / 1024**2
 
 
-def best_of(repeat: int, run):
-    """``run()`` ``repeat`` times: the last result with the shortest wall time (its last element)."""
-    runs = [run() for _ in range(repeat)]
-    return min(runs, key=lambda r: r[-1])[:-1] + (min(r[-1] for r in runs),)
+# ----------------------------------------------------------------------------------------------
+# Rows
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class Row:
+    """One row of a family's table: ``B`` datasets (the first ``B``), estimates ``(B, m)``, wall seconds.
+
+    ``kind``: ``fit_many`` (default options), ``tuned``, ``threads``, ``jax``, ``loop`` (torchql fit)
+    or ``scipy``. ``dsse`` and ``diff`` are filled by :func:`score_rows`.
+    """
+
+    label: str
+    kind: str
+    B: int
+    seconds: float
+    estimates: np.ndarray
+    converged: int | None = None
+    iterations: float | None = None
+    rss: float | None = None
+    extra: dict = field(default_factory=dict)
+    dsse: float = float("nan")
+    diff: float = float("nan")
+
+    @property
+    def rate(self) -> float:
+        return self.B / self.seconds
 
 
-def benchmark(sizes: list[int], subset: int, seed: int = 0, repeat: int = 3) -> dict:
-    t, v, truth = make_data(max(sizes + [subset]), seed)
-    run_fit_many(t, v[:4])  # warm-up (imports, first calls), untimed
-    batched = {}
+def torchql_row(label: str, kind: str, result: torchql.BatchFitResult, seconds: float, rss: float | None = None,
+                **extra) -> Row:
+    """A row from a ``fit_many`` result."""
+    return Row(label, kind, len(result), seconds, result.estimates.numpy(), int(result.success.sum()),
+               float(result.iterations.double().mean()), rss, dict(extra, result=result))
+
+
+def fit_many_rows(family: Family, data: Data, sizes: list[int], repeat: int, all_cores: bool = True) -> list[Row]:
+    """The headline (default options) at every ``B``; the tuned and (``all_cores``) all-cores rows at the largest."""
+    rows = []
     for B in sorted(sizes):
-        print(f"... fit_many B = {B}", file=sys.stderr, flush=True)
-        result, seconds = best_of(repeat, lambda: run_fit_many(t, v[:B]))
-        batched[B] = dict(result=result, seconds=seconds, rate=B / seconds, rss=peak_rss_mb(),
-                          converged=int(result.success.sum()), iterations=float(result.iterations.double().mean()))
+        print(f"... {family.key}: fit_many B = {B}", file=sys.stderr, flush=True)
+        reset_peak_rss()
+        result, seconds = best_of(repeat, lambda: run_fit_many(family, data.head(B)))
+        rows.append(torchql_row("torchql fit_many", "fit_many", result, seconds, peak_rss_mb()))
     B = max(sizes)
-    print(f"... fit_many B = {B}, rtol = {FAST_RTOL}", file=sys.stderr, flush=True)
-    fast, seconds = best_of(repeat, lambda: run_fit_many(t, v[:B], rtol=FAST_RTOL))
-    fast_row = dict(B=B, seconds=seconds, rate=B / seconds, converged=int(fast.success.sum()),
-                    iterations=float(fast.iterations.double().mean()))
+    for name, options in TUNED.items():
+        print(f"... {family.key}: fit_many B = {B}, {name}", file=sys.stderr, flush=True)
+        result, seconds = best_of(repeat, lambda: run_fit_many(family, data.head(B), **options))
+        rows.append(torchql_row(f"torchql fit_many, tuned ({name})", "tuned", result, seconds))
+    if not all_cores:
+        return rows
     threads = os.cpu_count() or 1
-    print(f"... fit_many B = {B}, {threads} threads", file=sys.stderr, flush=True)
+    print(f"... {family.key}: fit_many B = {B}, {threads} threads", file=sys.stderr, flush=True)
     torch.set_num_threads(threads)
     try:
-        wide, seconds = best_of(repeat, lambda: run_fit_many(t, v[:B]))
+        result, seconds = best_of(repeat, lambda: run_fit_many(family, data.head(B)))
     finally:
         torch.set_num_threads(1)
-    wide_row = dict(B=B, seconds=seconds, rate=B / seconds, converged=int(wide.success.sum()),
-                    iterations=float(wide.iterations.double().mean()), threads=threads,
-                    diff=float(((wide.estimates - batched[B]["result"].estimates).abs()
-                                / batched[B]["result"].estimates.abs()).nan_to_num(0.0).max()))
-    print(f"... loops on the subset of {subset}", file=sys.stderr, flush=True)
-    ts, vs = t, v[:subset]
-    single_est, single_sse, single_status, single_seconds = run_single_loop(ts, vs)
-    default_est, _, _, _ = run_single_loop(ts, vs, grid=None)
-    peers = {}
-    for solver in ("DOP853", "RK45"):
-        est, sse, seconds = best_of(repeat, lambda: run_scipy_loop(ts, vs, solver))
-        peers[solver] = dict(estimates=est, sse=sse, seconds=seconds, rate=subset / seconds)
-    largest = batched[max(sizes)]["result"]
-    n_cmp = min(subset, max(sizes))
-    batch_est = largest.estimates[:n_cmp].numpy()
-    diff = np.abs(batch_est - single_est[:n_cmp]) / np.maximum(np.abs(single_est[:n_cmp]), 1e-300)
-    sse_diff = np.abs(largest.sse[:n_cmp].numpy() - single_sse[:n_cmp]) / single_sse[:n_cmp]
-    grid_cost = np.abs(batch_est - default_est[:n_cmp]) / np.abs(default_est[:n_cmp])
-    candidates = [reference_sse(ts, vs[:n_cmp], e[:n_cmp]) for e in (
-        batch_est, fast.estimates[:n_cmp].numpy(), default_est, peers["DOP853"]["estimates"],
-        peers["RK45"]["estimates"])]
-    best = np.min(np.stack(candidates), axis=0)
-    excess = {name: float(np.max((c - best) / best)) for name, c in
-              zip(("fit_many", f"fit_many rtol={FAST_RTOL:g}", "fit (default grid)", "scipy DOP853", "scipy RK45"),
-                  candidates)}
-    statuses_agree = all(largest.status[i].name == single_status[i] for i in range(n_cmp))
-    return dict(batched=batched, fast=fast_row, wide=wide_row, single=dict(seconds=single_seconds, rate=subset / single_seconds),
-                peers=peers, repeat=repeat,
-                subset=subset, n_cmp=n_cmp, max_diff=float(diff.max()), max_sse_diff=float(sse_diff.max()),
-                grid_cost=float(grid_cost.max()), excess=excess, statuses_agree=statuses_agree,
-                truth_error=float(np.median(np.abs(batch_est - truth[:n_cmp]) / np.abs(truth[:n_cmp]))))
+    rows.append(torchql_row(f"torchql fit_many, {threads} threads", "threads", result, seconds))
+    return rows
 
+
+def jax_rows(family: Family, data: Data, sizes: list[int], repeat: int, peer) -> list[Row]:
+    """The JAX peer at every ``B`` (compiled per shape; the compile time in ``extra``)."""
+    rows = []
+    problem = family.peer(peer)
+    for B in sorted(sizes):
+        print(f"... {family.key}: JAX B = {B}", file=sys.stderr, flush=True)
+        reset_peak_rss()
+        d = data.head(B)
+        r = peer.fit_batch(problem, d.t, d.y, d.starts, repeat=repeat)
+        rows.append(Row("JAX optimistix LM + diffrax, vmap", "jax", B, r.seconds, r.estimates, int(r.success.sum()),
+                        float(np.mean(r.steps)), peak_rss_mb(),
+                        dict(compile=r.compile_seconds, cores=r.cpu_seconds / r.seconds, max_steps=int(r.steps.max()))))
+    return rows
+
+
+def loop_rows(family: Family, data: Data, subset: int, repeat: int) -> list[Row]:
+    """The torchql ``fit`` loop (once) and the scipy loops (best of ``repeat``) on the first ``subset``."""
+    d = data.head(subset)
+    print(f"... {family.key}: loops on the subset of {subset}", file=sys.stderr, flush=True)
+    estimates, status, success, seconds = run_single_loop(family, d)
+    rows = [Row("torchql fit, loop", "loop", subset, seconds, estimates, success, extra=dict(status=status))]
+    for solver in family.scipy_solvers:
+        estimates, seconds = best_of(repeat, lambda: run_scipy_loop(family, d, solver))
+        rows.append(Row(f"scipy least_squares + solve_ivp {solver}, loop", "scipy", subset, seconds, estimates,
+                        extra=dict(solver=solver)))
+    return rows
+
+
+def relative_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``|a - b|`` relative to ``|b|``, or to ``REL_FLOOR`` times each column's largest ``|b|`` where larger."""
+    floor = REL_FLOOR * np.max(np.abs(b), axis=0, keepdims=True)
+    return np.abs(a - b) / np.maximum(np.abs(b), np.maximum(floor, 1e-300))
+
+
+def score_rows(family: Family, data: Data, rows: list[Row]) -> None:
+    """Fill every row's ``dsse`` (SSE excess over the best row, per dataset) and ``diff`` (from fit_many)."""
+    sse = [np.sum((family.exact(data.t, r.estimates) - data.y[:r.B]) ** 2, axis=1) for r in rows]
+    n = max(r.B for r in rows)
+    best = np.full(n, np.inf)
+    for s in sse:
+        best[:s.size] = np.fmin(best[:s.size], s)
+    reference = max((r for r in rows if r.kind == "fit_many"), key=lambda r: r.B).estimates
+    for r, s in zip(rows, sse):
+        r.dsse = float(np.max((s - best[:r.B]) / best[:r.B]))
+        m = min(r.B, len(reference))
+        if r.kind != "fit_many":
+            r.diff = float(np.max(relative_difference(r.estimates[:m], reference[:m])))
+
+
+#: The order of the rows in a table.
+ROW_ORDER = ("fit_many", "tuned", "threads", "jax", "loop", "scipy")
+
+
+def benchmark_family(family: Family, sizes: list[int], subset: int, repeat: int, seed: int,
+                     all_cores: bool = True) -> dict:
+    """The torchql and scipy rows of one family's table (the JAX rows come later: :func:`add_jax_rows`)."""
+    data = make_data(family, max(sizes + [subset]), seed)
+    run_fit_many(family, data.head(4))  # warm-up (imports, first calls), untimed
+    rows = fit_many_rows(family, data, sizes, repeat, all_cores) + loop_rows(family, data, subset, repeat)
+    return dict(family=family, rows=rows, data=data, sizes=sizes, repeat=repeat, subset=subset)
+
+
+def add_jax_rows(res: dict, peer) -> None:
+    """Add the JAX rows to a family's result (after every torchql row, so that JAX's memory is not in theirs)."""
+    res["rows"] += jax_rows(res["family"], res["data"], res["sizes"], res["repeat"], peer)
+
+
+def finish(res: dict) -> None:
+    """Order a family's rows and score them."""
+    res["rows"].sort(key=lambda r: ROW_ORDER.index(r.kind))
+    score_rows(res["family"], res["data"], res["rows"])
+
+
+# ----------------------------------------------------------------------------------------------
+# Report
+# ----------------------------------------------------------------------------------------------
 
 def _ratio(x: float) -> str:
+    if not np.isfinite(x):
+        return ""
     return f"{x:.0f}x" if x >= 10 else f"{x:.2g}x"
 
 
-def markdown(res: dict, load) -> str:
-    peer_name = max(res["peers"], key=lambda k: res["peers"][k]["rate"])
-    peer_rate = res["peers"][peer_name]["rate"]
-    single_rate = res["single"]["rate"]
-    lines = ["| method | datasets | wall time | fits / s | / scipy loop | / torchql loop | converged | mean iter "
-             "| peak RSS |", "|---|---|---|---|---|---|---|---|---|"]
-    for B, r in sorted(res["batched"].items()):
-        lines.append(f"| torchql fit_many | {B} | {r['seconds']:.2f} s | {r['rate']:.0f} | "
-                     f"**{_ratio(r['rate'] / peer_rate)}** | {_ratio(r['rate'] / single_rate)} | {r['converged']}/{B} | "
-                     f"{r['iterations']:.2f} | {r['rss']:.0f} MB |")
-    f = res["fast"]
-    lines.append(f"| torchql fit_many, rtol={FAST_RTOL:g} | {f['B']} | {f['seconds']:.2f} s | {f['rate']:.0f} | "
-                 f"{_ratio(f['rate'] / peer_rate)} | {_ratio(f['rate'] / single_rate)} | {f['converged']}/{f['B']} | "
-                 f"{f['iterations']:.2f} | |")
-    w = res["wide"]
-    lines.append(f"| torchql fit_many, {w['threads']} threads | {w['B']} | {w['seconds']:.2f} s | {w['rate']:.0f} | "
-                 f"{_ratio(w['rate'] / peer_rate)} | {_ratio(w['rate'] / single_rate)} | {w['converged']}/{w['B']} | "
-                 f"{w['iterations']:.2f} | |")
-    S = res["subset"]
-    lines.append(f"| torchql fit, loop | {S} | {res['single']['seconds']:.2f} s | {single_rate:.1f} | "
-                 f"{single_rate / peer_rate:.2f}x | 1x | | | |")
-    for name, p in res["peers"].items():
-        lines.append(f"| scipy least_squares + solve_ivp {name}, loop | {S} | {p['seconds']:.2f} s | {p['rate']:.1f} | "
-                     f"{p['rate'] / peer_rate:.2f}x | | | | |")
-    env = (f"torch {torch.__version__} ({torch.get_num_threads()} thread), scipy {scipy.__version__}, numpy "
-           f"{np.__version__}, Python {platform.python_version()}, {platform.machine()}, {os.cpu_count()} CPUs; "
-           f"load average {load[0]:.2f} before, {load[1]:.2f} after")
-    acc = res["excess"]
-    notes = [
-        f"Ratios are against the faster scipy loop ({peer_name}); loops are timed on the first {S} datasets. "
-        f"Every fit_many row and both scipy loops are the best of {res['repeat']} runs (the torchql loop: one "
-        f"run), so that a busy moment of the machine does not decide a ratio.",
-        f"Every row runs torch on 1 thread except `{w['threads']} threads` (torch's default on this machine: "
-        f"every core; the loops use one); its estimates differ from the 1-thread row's by at most "
-        f"{w['diff']:.1e} (relative).",
-        f"Batched vs single torchql fits (same grid, first {res['n_cmp']} datasets of the largest batch): largest "
-        f"relative difference of the estimates {res['max_diff']:.1e}, of the SSE {res['max_sse_diff']:.1e}; "
-        f"statuses identical: {'yes' if res['statuses_agree'] else 'NO'}.",
-        f"Cost of `grid={GRID}` against the default grid (1000): largest relative difference of the estimates "
-        f"{res['grid_cost']:.1e}.",
-        "Largest relative SSE excess over the best of the methods (closed-form solution): " + ", ".join(
-            f"{k} {v:.1e}" for k, v in acc.items()) + ".",
-        f"Median relative error of the estimates against the true coefficients (noise {NOISE} ft/s): "
-        f"{res['truth_error']:.1e}.",
+def _num(x: float | None, fmt: str) -> str:
+    return "" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+HEADER = ("| method | datasets | wall time | fits / s | / scipy loop | / torchql loop | / JAX | converged | mean iter "
+          "| max dSSE | max diff | peak RSS |")
+
+
+def table_lines(res: dict) -> list[str]:
+    """The Markdown table of one family's rows."""
+    rows = res["rows"]
+    scipy_rate = max(r.rate for r in rows if r.kind == "scipy")
+    loop_rate = next(r.rate for r in rows if r.kind == "loop")
+    jax_rate = {r.B: r.rate for r in rows if r.kind == "jax"}
+    lines = [HEADER, "|" + "---|" * (HEADER.count("|") - 1)]
+    for r in rows:
+        vs_jax = r.rate / jax_rate[r.B] if r.kind in ("fit_many", "tuned", "threads") and r.B in jax_rate else np.nan
+        vs_scipy = _ratio(r.rate / scipy_rate)
+        lines.append(
+            f"| {r.label} | {r.B} | {r.seconds:.2f} s | {r.rate:.1f} | "
+            f"{f'**{vs_scipy}**' if r.kind == 'fit_many' else vs_scipy} | {_ratio(r.rate / loop_rate)} | "
+            f"{f'**{_ratio(vs_jax)}**' if r.kind == 'fit_many' and np.isfinite(vs_jax) else _ratio(vs_jax)} | "
+            f"{'' if r.converged is None else f'{r.converged}/{r.B}'} | {_num(r.iterations, '.2f')} | "
+            f"{_num(r.dsse, '.1e')} | {_num(r.diff, '.1e')} | {_num(r.rss, '.0f')}{' MB' if r.rss else ''} |")
+    return lines
+
+
+def notes(res: dict) -> list[str]:
+    """The notes under one family's table."""
+    rows, fam = res["rows"], res["family"]
+    scipy_best = max((r for r in rows if r.kind == "scipy"), key=lambda r: r.rate)
+    loop = next(r for r in rows if r.kind == "loop")
+    largest = max((r for r in rows if r.kind == "fit_many"), key=lambda r: r.B)
+    n = min(loop.B, largest.B)
+    same = all(largest.extra["result"].status[i].name == loop.extra["status"][i] for i in range(n))
+    truth_err = np.median(relative_difference(largest.estimates, res["data"].truth[:largest.B]), axis=0)
+    out = [
+        f"`/ scipy loop`: against the faster scipy loop ({scipy_best.extra['solver']}); loops on the first "
+        f"{res['subset']} datasets. fit_many rows, JAX rows and scipy loops: the fastest of {res['repeat']} "
+        f"run(s); the torchql loop: one run.",
+        f"Batched against single torchql fits (default options, first {n} datasets): statuses identical: "
+        f"{'yes' if same else 'NO'}; `max diff` of the `torchql fit, loop` row.",
+        f"Median relative error of fit_many's estimates against the true values (noise {fam.noise:g}): " + ", ".join(
+            f"{name} {e:.1e}" for name, e in zip(largest.extra["result"].unknown_names, truth_err)) + ".",
     ]
-    return (f"{env}.\n\n" + "\n".join(lines) + "\n\n" + "\n".join(f"* {n}" for n in notes) + "\n")
+    jax = [r for r in rows if r.kind == "jax"]
+    if jax:
+        out.append("JAX: compile time per batch size (tracing and XLA compilation of `jit(vmap(fit_one))` for "
+                   "its shapes, not in the wall time): " + ", ".join(f"B={r.B} {r.extra['compile']:.1f} s" for r in jax)
+                   + "; cores used in the timed call (CPU time / wall time): "
+                   + ", ".join(f"{r.extra['cores']:.2f}" for r in jax)
+                   + "; LM steps per sample (accepted and rejected): largest "
+                   + ", ".join(str(r.extra["max_steps"]) for r in jax)
+                   + " (the vmapped loop runs every sample until the last one stops). `converged`: samples that "
+                   "optimistix reports successful.")
+    return out
 
 
-def plot(res: dict, path: Path) -> None:
+def environment(load: tuple[float, float], peer) -> str:
+    """Versions, thread settings and machine load, for the header."""
+    jax_part = peer.versions() if peer is not None else f"JAX rows skipped ({JAX_HINT})"
+    return (f"torch {torch.__version__} (1 thread unless a row says otherwise), {jax_part}, scipy {scipy.__version__}, "
+            f"numpy {np.__version__}, Python {platform.python_version()}, {platform.machine()}, {os.cpu_count()} "
+            f"CPUs; load average {load[0]:.2f} before, {load[1]:.2f} after")
+
+
+def markdown(results: list[dict], load: tuple[float, float], peer) -> str:
+    """The report: environment line, then per family its table and notes."""
+    parts = [environment(load, peer) + "."]
+    for res in results:
+        fam = res["family"]
+        parts.append(f"## {fam.title}\n\nUnknowns: " + ", ".join(res["rows"][0].extra["result"].unknown_names)
+                     + f"; {fam.times.size} observations per dataset.\n\n" + "\n".join(table_lines(res)) + "\n\n"
+                     + "\n".join(f"* {n}" for n in notes(res)))
+    return "\n\n".join(parts) + "\n"
+
+
+def plot(results: list[dict], path: Path) -> None:
+    """fits/s against ``B`` per family: fit_many and JAX as lines, the loops as horizontal lines."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    sizes = sorted(res["batched"])
-    rates = [res["batched"][B]["rate"] for B in sizes]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.loglog(sizes, rates, "o-", label="torchql fit_many")
-    ax.axhline(res["single"]["rate"], color="C1", ls="--", label="torchql fit, Python loop")
-    for k, (name, p) in enumerate(res["peers"].items()):
-        ax.axhline(p["rate"], color=f"C{2 + k}", ls=":", label=f"scipy {name}, Python loop")
-    ax.set_xlabel("datasets in the batch, B")
-    ax.set_ylabel("fits per second")
-    ax.set_title("Coasting cars: batched fitting throughput (1 CPU thread)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
+    for ax, res in zip(axes[0], results):
+        rows = res["rows"]
+        for kind, label, style in (("fit_many", "torchql fit_many (default)", "o-"), ("jax", "JAX LM + diffrax", "s-"),
+                                   ("tuned", "torchql fit_many, tuned", "^")):
+            pts = sorted((r.B, r.rate) for r in rows if r.kind == kind)
+            if pts:
+                ax.loglog(*zip(*pts), style, label=label)
+        for k, r in enumerate(r for r in rows if r.kind in ("loop", "scipy")):
+            ax.axhline(r.rate, color=f"C{3 + k}", ls="--" if r.kind == "loop" else ":", label=r.label)
+        ax.set_xlabel("datasets in the batch, B")
+        ax.set_ylabel("fits per second")
+        ax.set_title(f"{res['family'].title}: batched fitting throughput")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
+# ----------------------------------------------------------------------------------------------
+# Command line
+# ----------------------------------------------------------------------------------------------
+
+def load_peer(disabled: bool):
+    """The ``jax_peer`` module when jax, diffrax and optimistix are importable (else None, with one line)."""
+    if disabled:
+        print("JAX rows skipped (--no-jax).", flush=True)
+        return None
+    missing = [m for m in ("jax", "diffrax", "optimistix") if importlib.util.find_spec(m) is None]
+    if missing:
+        print(f"JAX rows skipped: {', '.join(missing)} not installed ({JAX_HINT}).", flush=True)
+        return None
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import jax_peer
+
+    return jax_peer
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000, 10000],
-                        help="batch sizes B (default 10 100 1000 10000)")
+                        help="batch sizes B of the cars (default 10 100 1000 10000)")
+    parser.add_argument("--osc-sizes", type=int, nargs="+", default=[1000],
+                        help="batch sizes B of the oscillators (default 1000)")
     parser.add_argument("--subset", type=int, default=100, help="datasets fitted by the loops (default 100)")
     parser.add_argument("--repeat", type=int, default=3,
-                        help="runs of each fit_many row and scipy loop; the fastest counts (default 3)")
-    parser.add_argument("--quick", action="store_true", help="smoke run: sizes 4 and 16, subset 4, one run each")
+                        help="runs of each fit_many row, JAX size and scipy loop; the fastest counts (default 3)")
+    parser.add_argument("--no-jax", action="store_true", help="leave out the JAX rows even when JAX is installed")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: cars 4 and 16, oscillators 8, subset 4, one run each, no all-cores row")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output",
                         help="output folder (default benchmarks/output)")
     args = parser.parse_args(argv)
     if args.quick:
-        args.sizes, args.subset, args.repeat = [4, 16], 4, 1
-    if any(B < 1 for B in args.sizes) or args.subset < 1 or args.repeat < 1:
-        parser.error("--sizes, --subset and --repeat must be positive")
+        args.sizes, args.osc_sizes, args.subset, args.repeat = [4, 16], [8], 4, 1
+    if min(args.sizes + args.osc_sizes) < 1 or args.subset < 1 or args.repeat < 1:
+        parser.error("--sizes, --osc-sizes, --subset and --repeat must be positive")
     return args
 
 
 def main(argv=None) -> None:
     args = parse_args(argv)
     torch.set_num_threads(1)
+    peer = load_peer(args.no_jax)
     load_before = os.getloadavg()[0]
-    res = benchmark(list(args.sizes), args.subset, repeat=args.repeat)
-    table = markdown(res, (load_before, os.getloadavg()[0]))
-    print(table)
+    results = [benchmark_family(family, list(sizes), args.subset, args.repeat, seed, all_cores=not args.quick)
+               for seed, (family, sizes) in enumerate(((CARS, args.sizes), (OSCILLATORS, args.osc_sizes)))]
+    for res in results:
+        if peer is not None:
+            add_jax_rows(res, peer)
+        finish(res)
+    report = markdown(results, (load_before, os.getloadavg()[0]), peer)
+    print(report)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "batch.md").write_text("# batch: torchql.fit_many against loops of single fits\n\n" + table)
-    plot(res, args.out / "batch.png")
+    (args.out / "batch.md").write_text("# batch: torchql.fit_many against loops of single fits and JAX\n\n" + report)
+    plot(results, args.out / "batch.png")
 
 
 if __name__ == "__main__":
