@@ -1,6 +1,6 @@
 """torchql: system identification by quasilinearization, in PyTorch."""
 
-from . import baselines, models, propagators
+from . import baselines, damping, models, propagators, schemes
 from .batch import fit_many
 from .batch_result import BatchFitResult
 from .fit import METHODS, fit
@@ -50,4 +50,6 @@ __all__ = [
     "models",
     "baselines",
     "propagators",
+    "damping",
+    "schemes",
 ]

@@ -40,6 +40,8 @@ import torch
 
 from . import _checks
 from .batch_result import BatchFitResult, concatenate
+from .damping import Damping
+from .schemes import Scheme
 from .engine import run_engine
 from .noise import run_with_noise
 from .grid import make_grid
@@ -73,7 +75,7 @@ def fit_many(
     guesses: dict | None = None,
     fixed_x0: Sequence[str] | None = None,
     t0: float | None = None,
-    method: str = "kantorovich",
+    method: str | Scheme = "kantorovich",
     bounds: dict | None = None,
     scale: dict | None = None,
     parameters: dict | None = None,
@@ -87,7 +89,7 @@ def fit_many(
     ftol: float | None = None,
     rcond: float | None = None,
     grid: int | torch.Tensor | None = None,
-    damping: str | None = "lm",
+    damping: str | Damping | None = "lm",
     solver: str = "auto",
     linear_solver: "str | LinearPropagator | None" = None,
     max_steps: int | None = None,

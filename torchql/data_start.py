@@ -24,6 +24,7 @@ import torch
 from torch.func import jacfwd, jacrev, vmap
 
 from .lstsq import solve_update_batch
+from .schemes import scheme_strategy
 from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
 from .smoothing import interpolate, smooth
 from .status import Status
@@ -48,7 +49,7 @@ MATCH_FTOL = 1e-12
 MIN_POINTS = 4
 
 
-def first_reference(initial_trajectory: str, method: str, observed_states: list, rows_mask: torch.Tensor,
+def first_reference(initial_trajectory: str, method, observed_states: list, rows_mask: torch.Tensor,
                     stiff: bool = False, max_iter: int | None = None,
                     derivation_uses_unknowns: Callable[[list[int]], bool] | None = None) -> str:
     """The first reference a fit uses: ``"data"`` or ``"integrate"``.
@@ -60,7 +61,8 @@ def first_reference(initial_trajectory: str, method: str, observed_states: list,
     :func:`derivation_uses_unknowns`): ``y' = v`` gives ``v``, where SIR's ``I' = beta S I / N -
     gamma I`` gives ``S`` only through the guesses of ``beta`` and ``gamma``. Built from the data,
     the start does not depend on how poor the guesses are, where the model integrated from them
-    may leave the basin of the optimum. Otherwise it is ``"integrate"``: for shooting; when no
+    may leave the basin of the optimum. Otherwise it is ``"integrate"``: for shooting (``method``, a
+    name or a :class:`torchql.schemes.Scheme`, whose iterates solve the model); when no
     state is measured directly (a sum of states, a log-transformed output) or at too few times;
     when deriving the others needs the unknowns; when the solver is stiff (``stiff``), whose fast
     transients the data do not resolve; and with ``max_iter=0``, which evaluates the guesses.
@@ -68,7 +70,7 @@ def first_reference(initial_trajectory: str, method: str, observed_states: list,
     """
     if initial_trajectory != "auto":
         return initial_trajectory
-    if method != "kantorovich" or stiff or max_iter == 0:
+    if scheme_strategy(method).integrates_model or stiff or max_iter == 0:
         return "integrate"
     counts = rows_mask.sum(dim=1).amin(dim=0)  # (K,): the fewest used values of each output in a sample
     measured = sorted({i for k, i in enumerate(observed_states) if i is not None and int(counts[k]) >= MIN_POINTS})

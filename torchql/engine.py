@@ -33,10 +33,9 @@ from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .lstsq import ExactRowsError, solve_update, solve_update_batch
-from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_MIN as _DAMPING_MIN, DAMPING_START as _DAMPING_START
 from .problem import Problem
 from .result import IterationRecord, Status
-from .trajectory import DEFECT_TRUST, model_defect
+from .trajectory import DEFECT_TRUST
 
 __all__ = ["Engine", "run_engine"]
 
@@ -221,7 +220,7 @@ class Engine(Evaluation, FinalPass):
 
     def _model_merit(self, rows: torch.Tensor, cur: dict) -> torch.Tensor:
         """The model's own merit at the iterates of ``rows`` where known (shooting: the merit), else NaN."""
-        return cur["merit"][rows] if self.spec.method == "shooting" else cur["nl_sse"][rows]
+        return cur["merit"][rows] if self.spec.scheme.integrates_model else cur["nl_sse"][rows]
 
     def _notify(self, rows) -> None:
         """Hand the open records of samples ``rows`` to the callback."""
@@ -260,7 +259,7 @@ class Engine(Evaluation, FinalPass):
             lin = self._linearize(all_idx, traj, z_dot)
             st.cur = self._evaluate(all_idx, st.z0, traj, z_dot, lin)
         else:
-            kantorovich = spec.method == "kantorovich"
+            kantorovich = not spec.scheme.integrates_model
             guess = st.z0.unsqueeze(1).expand(S, self.G, st.z0.shape[1]) if kantorovich else None
             traj, errors = self._nonlinear(all_idx, st.z0, loose=kantorovich, guess=guess)
             bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=spec.device)
@@ -370,12 +369,12 @@ class Engine(Evaluation, FinalPass):
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
         solutions' sums of squares) for trials near solving the model whose step was not capped
         at a bound's largest internal move; otherwise the model's own sums of squares, integrated
-        from both estimates. Undamped iteration (``damping=None``): every integrable trial."""
+        from both estimates. A damping that does not filter (``damping=None``): every integrable trial."""
         spec, cur = self.spec, st.cur
-        if spec.damping is None:
+        if not spec.damping.filters:
             return ok
         lower = not_above(trial["merit"], cur["merit"][act])
-        if spec.method == "shooting":  # the merit is the model's own sum of squares
+        if spec.scheme.integrates_model:  # the merit is the model's own sum of squares
             return ok & lower
         better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped
         check = ok & ~better
@@ -403,12 +402,12 @@ class Engine(Evaluation, FinalPass):
         st.final_guess[target] = _pick(trial["W"], rows)[..., 0]
 
     def _reject(self, st: "_Loop", rejected, alpha) -> None:
-        """Rejected trials: without damping the iteration fails; Kantorovich re-anchors an
-        undamped rejection about the model's own solution once; otherwise the damping rises, to
-        a tenth of the previous iterate's first, then tenfold, and past ``_DAMPING_MAX`` the
-        sample has stalled."""
+        """Rejected trials: without a filtering damping the iteration fails; Kantorovich
+        re-anchors an undamped rejection about the model's own solution once; otherwise the
+        damping strategy raises the damping (:meth:`torchql.damping.Damping.raised`), and past
+        its use (:meth:`~torchql.damping.Damping.stalled`) the sample has stalled."""
         spec = self.spec
-        if spec.damping is None:  # the thesis' iteration: the step is taken, and fails
+        if not spec.damping.filters:  # the thesis' iteration: the step is taken, and fails
             st.z0[rejected] = spec.shifted(st.cur["z0"][rejected], alpha)
             st.iterations[rejected] += 1
             self._notify(rejected)
@@ -421,11 +420,9 @@ class Engine(Evaluation, FinalPass):
         raise_rows = rejected[~torch.isin(rejected, anchored)]
         if not raise_rows.numel():
             return
-        d, last = st.damping[raise_rows], st.last_damping[raise_rows]
-        first = torch.where(last > 0, torch.clamp(last / 10, min=_DAMPING_MIN), _DAMPING_START)
-        d = torch.where(d == 0, first, 10 * d)
+        d = spec.damping.raised(st.damping[raise_rows], st.last_damping[raise_rows])
         st.damping[raise_rows] = d
-        stalled = raise_rows[d > _DAMPING_MAX]
+        stalled = raise_rows[spec.damping.stalled(d)]
         if stalled.numel():
             self._annotate(stalled, rejected=st.rejected[stalled], model_merit=self._model_merit(stalled, st.cur))
             self._notify(stalled)
@@ -436,7 +433,7 @@ class Engine(Evaluation, FinalPass):
         own solution from their estimates (where it integrates); returns those samples."""
         cur, n = st.cur, self.system.n
         candidates = rejected[(st.damping[rejected] == 0) & ~cur["anchored"][rejected]]
-        if self.spec.method == "shooting" or not candidates.numel():  # shooting: anchored always
+        if self.spec.scheme.integrates_model or not candidates.numel():  # the model's own solution already
             return rejected[:0]
         self._nonlinear_sse(st.all_idx, cur, candidates)
         integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
@@ -468,24 +465,9 @@ class Engine(Evaluation, FinalPass):
             detail[r] = f" The solver said: {said}."
 
     def _propose(self, act, cur, alpha):
-        """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where usable."""
-        spec = self.spec
-        W = _pick(cur["W"], act)
-        z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
-        z0_new = spec.shifted(_pick(cur["z0"], act), alpha)
-        if spec.method == "shooting":
-            return self._shoot(act, z0_new, z_new, (_pick(cur["z0"], act), _pick(cur["rz"], act)))
-        finite = torch.isfinite(z_new).flatten(1).all(dim=1)
-        z_ref = _pick(cur["rz"], act)
-        z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, z_ref)
-        lin_ref = cur["lin"]
-        z_dot = _pick(lin_ref.f, act) + torch.einsum("sgij,sgj->sgi", _pick(lin_ref.jac, act), z_safe - z_ref)
-        lin = self._linearize(act, z_safe, z_dot)
-        trial = self._evaluate(act, z0_new, z_safe, z_dot, lin)
-        trial["defect"] = model_defect(lin.f, z_dot, self.system.n)
-        ok = (finite & ~trial["failed"] & torch.isfinite(trial["merit"])
-              & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
-        return trial, ok
+        """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where
+        usable (the scheme's :meth:`~torchql.schemes.Scheme.propose`)."""
+        return self.spec.scheme.propose(self, act, cur, alpha)
 
     def _data_start(self, idx, z0):
         """Each sample's first reference from its data (:func:`torchql.data_start.data_reference`,
@@ -501,22 +483,6 @@ class Engine(Evaluation, FinalPass):
                                           sigma[idx], self.mask[idx], spec.operator.observed_states, z0,
                                           spec.unknown_index, spec.bounds, spec.rcond)
         return z_ref, z_dot, spec.initial.complete(z0)
-
-    def _shoot(self, act, z0_new, z_new, reference):
-        """Shooting's trial iterates: each sample's model integrated from ``z0_new (S, M)`` (the
-        linear prediction ``z_new`` its guess), with its sensitivities; ``ok`` where it integrates.
-        ``reference``: the current iterates' ``(z0, trajectory)``."""
-        guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
-        traj, errors = self._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True,
-                                       reference=reference)
-        integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
-        traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
-        lin = self._linearize(act, traj)
-        trial = self._evaluate(act, z0_new, traj, lin.f, lin, solution=True)
-        trial["defect"] = torch.zeros_like(trial["merit"])
-        ok = (integrated & ~trial["failed"] & torch.isfinite(trial["merit"])
-              & torch.isfinite(trial["C"]).flatten(1).all(dim=1))
-        return trial, ok
 
 
 #: Entries of a trial iterate that only decide its acceptance and are not kept.

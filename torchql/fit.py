@@ -23,6 +23,8 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
+from .damping import Damping
+from .schemes import Scheme
 from .engine import run_engine
 from .noise import run_with_noise
 from .problem import Problem
@@ -47,7 +49,7 @@ def fit(
     params: Sequence[str] | None = None,
     fixed_x0: Sequence[str] | None = None,
     t0: float | None = None,
-    method: str = "kantorovich",
+    method: str | Scheme = "kantorovich",
     bounds: dict | None = None,
     scale: dict | None = None,
     max_iter: int = 50,
@@ -62,7 +64,7 @@ def fit(
     grid: int | torch.Tensor | None = None,
     initial_trajectory: str = "auto",
     max_steps: int | None = None,
-    damping: str | None = "lm",
+    damping: str | Damping | None = "lm",
     linear_solver: "str | LinearPropagator | None" = None,
     callback: Callable[[IterationRecord], None] | None = None,
     conditions: Sequence[dict] | None = None,
@@ -97,10 +99,12 @@ def fit(
         homogeneous solution and are honoured exactly.
     t0 : float, optional
         Time of the initial state; default the first observation time. May precede it.
-    method : {"kantorovich", "shooting"}
+    method : {"kantorovich", "shooting"} or torchql.schemes.Scheme
         ``"kantorovich"``: the Newton–Raphson–Kantorovich iteration of function space; the
         next linearization uses the stored superposed trajectory. ``"shooting"``:
-        Gauss–Newton, re-integrating the nonlinear model with its variational equations.
+        Gauss–Newton, re-integrating the nonlinear model with its variational equations. A
+        :class:`torchql.schemes.Scheme` object (or a name registered by
+        :func:`torchql.schemes.register_scheme`) is another scheme.
     bounds : dict, optional
         ``{name: (lower, upper)}`` with ``None`` for an open side, e.g. ``{"k": (0.0, None)}``.
         A name is a coefficient (a vector or matrix buffer's name bounds every element; an
@@ -176,12 +180,14 @@ def fit(
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
         grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.
         It caps the grid solver's RK4 steps per interval too (see ``linear_solver``).
-    damping : {"lm", None}
+    damping : {"lm", None} or torchql.damping.Damping
         ``"lm"`` (default): globalized by Levenberg–Marquardt damping. The undamped
         quasilinearization step is always tried first and kept when it lowers the sum of
         squares (so near the optimum the iteration is the thesis' one, quadratically
         convergent); otherwise, or when its trajectory cannot be integrated, the step is
         damped until it does. ``None``: the undamped iteration of the thesis, step for step.
+        A :class:`torchql.damping.Damping` object sets the strategy itself, e.g.
+        ``LevenbergMarquardt(start=1e-2)``.
     linear_solver : str or torchql.propagators.LinearPropagator, optional
         How the linear (particular and homogeneous) system is propagated over the grid: one of
         ``torchql.LINEAR_SOLVERS``. Default: ``"radau"`` with a stiff ``solver``, else

@@ -15,21 +15,14 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from . import _checks
+from .damping import DAMPING_MAX, DAMPING_MIN, DAMPING_START, DAMPINGS, damping_strategy
 from .integrate import default_tolerances
+from .schemes import METHODS, scheme_strategy
 
 __all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "METHODS", "INITIAL_TRAJECTORIES", "Tolerances",
            "Limits", "FitOptions", "with_options", "expand_options", "accepts_options", "check_damping",
            "check_scheme", "recorded_options"]
 
-#: The damping strategies: ``"lm"`` (Levenberg–Marquardt, default) or ``None`` (the thesis' iteration).
-DAMPINGS = ("lm", None)
-#: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
-#: largest squared singular value of the scaled least-squares matrix), for every damped solve.
-DAMPING_START = 1e-3
-DAMPING_MIN = 1e-10
-DAMPING_MAX = 1e12
-#: The iteration schemes.
-METHODS: tuple[str, ...] = ("kantorovich", "shooting")
 #: How the first Kantorovich reference is made: built from the data where some state is measured
 #: directly (``"auto"``, :func:`torchql.data_start.first_reference`), integrated from the guesses,
 #: or built from the data.
@@ -96,26 +89,28 @@ class Limits:
         )
 
 
-def check_damping(damping) -> str | None:
-    """``damping`` if it is one of :data:`DAMPINGS`, else ``ValueError`` naming them."""
-    if damping is not None and not isinstance(damping, str) or damping not in DAMPINGS:
-        raise ValueError(f"`damping` must be one of {DAMPINGS}; received {damping!r}")
+def check_damping(damping):
+    """``damping`` as given if it names a registered strategy (:data:`DAMPINGS`) or is a
+    :class:`torchql.damping.Damping`, else ``ValueError`` naming the registered ones."""
+    damping_strategy(damping)
     return damping
 
 
 def check_scheme(method, initial_trajectory) -> tuple[str, str]:
-    """``(method, initial_trajectory)`` validated: each a string among :data:`METHODS` and
-    :data:`INITIAL_TRAJECTORIES` (``TypeError``/``ValueError`` naming the valid ones), and the
-    data-built start with Kantorovich only."""
-    for arg, value, allowed in (("method", method, METHODS), ("initial_trajectory", initial_trajectory,
-                                                              INITIAL_TRAJECTORIES)):
-        if not isinstance(value, str):
-            raise TypeError(f"`{arg}` must be a string, one of {allowed}; received {type(value).__name__}")
-        if value not in allowed:
-            raise ValueError(f"`{arg}` must be one of {allowed}; received {value!r}")
-    if initial_trajectory == "data" and method != "kantorovich":
+    """``(method, initial_trajectory)`` validated: ``method`` a registered scheme's name or a
+    :class:`torchql.schemes.Scheme` (:func:`torchql.schemes.scheme_strategy`), returned as its
+    name; ``initial_trajectory`` a string among :data:`INITIAL_TRAJECTORIES` (``TypeError``/
+    ``ValueError`` naming the valid ones); the data-built start only for a scheme whose iterates
+    need not solve the model (Kantorovich)."""
+    scheme = scheme_strategy(method)
+    if not isinstance(initial_trajectory, str):
+        raise TypeError(f"`initial_trajectory` must be a string, one of {INITIAL_TRAJECTORIES}; received "
+                        f"{type(initial_trajectory).__name__}")
+    if initial_trajectory not in INITIAL_TRAJECTORIES:
+        raise ValueError(f"`initial_trajectory` must be one of {INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
+    if initial_trajectory == "data" and scheme.integrates_model:
         raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
-    return method, initial_trajectory
+    return scheme.name, initial_trajectory
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,9 @@ from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtyp
 from .noise import sigma_group_index
 from .sigma_function import SigmaFunction
 from .observations import LogObservation, ObservationOperator, Observations
-from .options import Limits, Tolerances, check_damping, check_scheme
+from .damping import damping_strategy
+from .schemes import scheme_strategy
+from .options import Limits, Tolerances, check_scheme
 from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns
@@ -81,7 +83,7 @@ class Problem:
         given = self.initial_trajectory
         t0 = self.t0 if self.t0.dim() == 0 else self.t0[0]
         self.initial_trajectory = first_reference(
-            given, self.method, self.operator.observed_states, self.mask, stiff=self.solver in STIFF_SOLVERS,
+            given, self.scheme, self.operator.observed_states, self.mask, stiff=self.solver in STIFF_SOLVERS,
             max_iter=self.max_iter, derivation_uses_unknowns=lambda measured: derivation_uses_unknowns(
                 self.system, measured, self.unknown_index, self.z0[0], t0))
         #: ``"auto"`` chose the data: a sample whose fit fails is fitted again from the integrated guesses
@@ -94,8 +96,9 @@ class Problem:
         if not isinstance(solver, str):
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver, auto=True)
-        self.damping, self.solver = check_damping(damping), solver
+        self.damping, self.solver = damping_strategy(damping), solver
         self.method, self.initial_trajectory = check_scheme(method, initial_trajectory)
+        self.scheme = scheme_strategy(method)
         if linear_solver is not None:
             check_linear_solver(linear_solver)
         limits = Limits.resolve(max_iter, max_steps)

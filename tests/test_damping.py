@@ -1,0 +1,86 @@
+"""Damping strategies as objects: the registered names, a strategy passed as an object, and the
+Levenberg–Marquardt schedule the engine follows."""
+
+import pytest
+import torch
+
+import torchql
+import torchql.damping as damping_module
+from torchql.damping import DAMPINGS, Damping, LevenbergMarquardt, Undamped, damping_strategy, register_damping
+from torchql.models import NonlinearOscillator
+
+DT = torch.float64
+GUESS = dict(A=0.5, B=2.0, C=0.5, D=2.0)  # the thesis' poor start: the first undamped step overshoots
+
+
+def test_registered_names_and_errors():
+    assert DAMPINGS == ("lm", None)
+    assert isinstance(damping_strategy("lm"), LevenbergMarquardt)
+    assert isinstance(damping_strategy(None), Undamped)
+    custom = LevenbergMarquardt(start=1e-2)
+    assert damping_strategy(custom) is custom
+    with pytest.raises(ValueError, match=r"`damping` must be one of \('lm', None\) or a torchql.damping.Damping; "
+                                         r"received 'trust'"):
+        damping_strategy("trust")
+    with pytest.raises(TypeError, match="must be a torchql.damping.Damping; received str"):
+        register_damping("lm")
+    with pytest.raises(ValueError, match="0 < minimum <= start <= maximum"):
+        LevenbergMarquardt(start=0.0)
+
+
+def test_levenberg_marquardt_schedule():
+    """A first raise starts at ``start`` after an undamped iterate, else at a tenth of the last
+    accepted damping (not below ``minimum``); later raises are tenfold; past ``maximum`` it stalls."""
+    lm = LevenbergMarquardt()
+    damping = torch.tensor([0.0, 0.0, 0.0, 1e-3], dtype=DT)
+    last = torch.tensor([0.0, 1e-4, 1e-12, 0.0], dtype=DT)
+    assert lm.raised(damping, last).tolist() == pytest.approx([1e-3, 1e-5, 1e-10, 1e-2], rel=1e-15)
+    assert lm.stalled(torch.tensor([1e12, 1e13], dtype=DT)).tolist() == [False, True]
+    undamped = Undamped()
+    assert not undamped.filters and not bool(undamped.stalled(damping).any())
+
+
+def test_a_strategy_object_drives_the_fit(table_4_5_two_digit):
+    """``damping=LevenbergMarquardt()`` is ``damping="lm"`` bit for bit; a subclass's schedule is
+    the one the engine follows (here each raise a hundredfold), in fit and fit_many alike."""
+    x0 = torch.tensor([0.5, 0.5], dtype=DT)
+
+    class Steep(LevenbergMarquardt):
+        name = "steep"
+
+        def __init__(self):
+            super().__init__()
+            self.calls = []
+
+        def raised(self, damping, last):
+            self.calls.append(damping.clone())
+            return torch.where(damping == 0, torch.full_like(damping, self.start), 100 * damping)
+
+    by_name = torchql.fit(NonlinearOscillator(**GUESS), table_4_5_two_digit, x0=x0, max_steps=200)
+    by_object = torchql.fit(NonlinearOscillator(**GUESS), table_4_5_two_digit, x0=x0, max_steps=200,
+                            damping=LevenbergMarquardt())
+    assert sum(rec.rejected for rec in by_name.history) > 0  # the damping works on this start
+    assert torch.equal(by_name.estimates, by_object.estimates) and by_name.iterations == by_object.iterations
+    steep = Steep()
+    result = torchql.fit(NonlinearOscillator(**GUESS), table_4_5_two_digit, x0=x0, max_steps=200, damping=steep)
+    assert result.success, result.message
+    assert steep.calls, "the engine never asked the strategy to raise the damping"
+    raised = [float(d) for rec in result.history for d in ([rec.damping] if rec.rejected else [])]
+    assert all(d == steep.start or round(torch.log10(torch.tensor(d / steep.start)).item(), 9) % 2 == 0
+               for d in raised if d > 0)  # start * 100^k: the subclass's schedule, not tenfold
+    batch = torchql.fit_many(NonlinearOscillator(**GUESS), [table_4_5_two_digit] * 2, x0, max_steps=200,
+                             damping=Steep())
+    assert torch.allclose(batch.estimates, result.estimates.expand(2, -1), rtol=1e-10, atol=0)
+
+
+def test_a_registered_strategy_is_taken_by_name(table_4_5_two_digit, monkeypatch):
+    monkeypatch.setattr(damping_module, "_REGISTRY", dict(damping_module._REGISTRY))  # leave the registry as found
+
+    class Gentle(LevenbergMarquardt):
+        name = "gentle"
+
+    register_damping(Gentle(start=1e-1))
+    result = torchql.fit(NonlinearOscillator(**GUESS), table_4_5_two_digit, x0=torch.tensor([0.5, 0.5], dtype=DT),
+                         max_steps=200, damping="gentle")
+    assert result.success, result.message
+    assert isinstance(damping_strategy("gentle"), Damping)

@@ -1,0 +1,78 @@
+"""Iteration schemes as objects: the registered names, a scheme passed as an object, a new scheme."""
+
+import pytest
+import torch
+
+import torchql
+import torchql.schemes as schemes_module
+from torchql.models import LinearOscillator
+from torchql.schemes import METHODS, Kantorovich, Scheme, Shooting, register_scheme, scheme_strategy
+
+DT = torch.float64
+X0_GUESS = torch.tensor([0.5, 0.5], dtype=DT)
+
+
+@pytest.fixture(scope="module")
+def oscillator_data():
+    """The thesis' linear oscillator (A = 0.1, B = 3, y(0) = 0, y'(0) = 1), 14 exact positions."""
+    t = torch.arange(14, dtype=DT) * 0.5
+    x = torchql.simulate(LinearOscillator(A=0.1, B=3.0), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-13,
+                         atol=1e-15)
+    return torchql.Observations(t, x[:, :1], observe=["y"])
+
+
+def test_registered_names_and_errors():
+    assert METHODS == ("kantorovich", "shooting") == torchql.METHODS
+    assert isinstance(scheme_strategy("kantorovich"), Kantorovich)
+    assert scheme_strategy("shooting").integrates_model and not scheme_strategy("kantorovich").integrates_model
+    with pytest.raises(ValueError, match=r"`method` must be one of \('kantorovich', 'shooting'\); received 'newton'"):
+        scheme_strategy("newton")
+    with pytest.raises(TypeError, match="`method` must be a string, one of .* or a torchql.schemes.Scheme; received int"):
+        scheme_strategy(1)
+    with pytest.raises(TypeError, match="must be a torchql.schemes.Scheme; received str"):
+        register_scheme("kantorovich")
+
+
+@pytest.mark.parametrize("name, scheme", [("kantorovich", Kantorovich()), ("shooting", Shooting())])
+def test_a_scheme_object_is_its_name(oscillator_data, name, scheme):
+    by_name = torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method=name)
+    by_object = torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method=scheme)
+    assert by_name.success and by_object.method == name
+    assert torch.equal(by_name.estimates, by_object.estimates) and by_name.iterations == by_object.iterations
+    truth = torch.tensor([0.0, 1.0, 0.1, 3.0], dtype=DT)
+    assert torch.allclose(by_object.estimates, truth, rtol=0, atol=1e-8)
+
+
+def test_a_new_scheme_drives_fit_and_fit_many(oscillator_data, monkeypatch):
+    """A subclass (Kantorovich that counts its trials) registered by name: fit and fit_many use its
+    trials, and the data-built start is refused for a scheme whose iterates solve the model."""
+    monkeypatch.setattr(schemes_module, "_REGISTRY", dict(schemes_module._REGISTRY))  # leave the registry as found
+
+    class Counting(Kantorovich):
+        name = "counting"
+
+        def __init__(self):
+            self.trials = 0
+
+        def trial(self, engine, act, cur, z0_new, z_new):
+            self.trials += act.numel()
+            return super().trial(engine, act, cur, z0_new, z_new)
+
+    counting = register_scheme(Counting())
+    single = torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method="counting")
+    plain = torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS)
+    # every iteration but the converged last (whose step is taken without a trial) is a trial of the scheme
+    assert single.method == "counting" and counting.trials >= single.iterations - 1 >= 1
+    assert torch.equal(single.estimates, plain.estimates)
+    counting.trials = 0
+    batch = torchql.fit_many(LinearOscillator(A=0.5, B=1.0), [oscillator_data] * 3, X0_GUESS, method=counting)
+    assert counting.trials >= int(batch.iterations.sum()) - 3 >= 3
+    assert torch.allclose(batch.estimates, single.estimates.expand(3, -1), rtol=1e-10, atol=1e-14)
+
+    class Integrating(Shooting):
+        name = "integrating"
+
+    with pytest.raises(ValueError, match='`initial_trajectory="data"` applies to method="kantorovich" only'):
+        torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method=Integrating(),
+                    initial_trajectory="data")
+    assert isinstance(scheme_strategy(Integrating()), Scheme)

@@ -1,0 +1,118 @@
+"""Damping strategies: which trial iterates a fit accepts, and what a rejected trial does.
+
+``damping=`` of :func:`torchql.fit` and :func:`torchql.fit_many` takes a registered name
+(:data:`DAMPINGS`: ``"lm"``, the default, or ``None``, the thesis' undamped iteration) or a
+:class:`Damping` object. Adding a strategy is a subclass registered by :func:`register_damping`.
+
+The damping enters the iteration's least-squares update as ``lambda`` in ``min ||C a - d||^2 +
+lambda s_max^2 ||a||^2`` (``s_max`` the largest singular value of the scaled matrix,
+:func:`torchql.lstsq.solve_update_batch`): zero for a fresh iterate, raised by the strategy after
+each rejected trial of that iterate, back to zero once a trial is accepted.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["Damping", "LevenbergMarquardt", "Undamped", "DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX",
+           "register_damping", "damping_strategy"]
+
+#: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
+#: largest squared singular value of the scaled least-squares matrix), for every damped solve.
+DAMPING_START = 1e-3
+DAMPING_MIN = 1e-10
+DAMPING_MAX = 1e12
+
+
+class Damping:
+    """A damping strategy.
+
+    Attributes
+    ----------
+    name : str or None
+        The name ``damping=`` takes.
+    filters : bool
+        Whether a trial iterate must lower the sum of squares to be accepted. Without the
+        filter every trial that integrates is taken, and one that does not ends the fit.
+    """
+
+    name: str | None = "base"
+    filters: bool = True
+
+    def raised(self, damping: torch.Tensor, last: torch.Tensor) -> torch.Tensor:
+        """The damping ``(S,)`` after a rejected trial made with ``damping (S,)`` (0: undamped);
+        ``last (S,)`` is the damping of the previous iterate's accepted trial."""
+        raise NotImplementedError
+
+    def stalled(self, damping: torch.Tensor) -> torch.Tensor:
+        """Bool ``(S,)``: the samples whose ``damping`` is past use (their fit has stalled)."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"
+
+
+class LevenbergMarquardt(Damping):
+    """Levenberg–Marquardt: a rejected trial is retried with more damping.
+
+    The first raise of an iterate starts from a tenth of the previous iterate's accepted damping
+    (at least ``minimum``), or from ``start`` where that one was undamped; every further
+    rejection raises it tenfold; past ``maximum`` the fit has stalled.
+    """
+
+    name = "lm"
+
+    def __init__(self, start: float = DAMPING_START, minimum: float = DAMPING_MIN,
+                 maximum: float = DAMPING_MAX) -> None:
+        if not 0 < minimum <= start <= maximum:
+            raise ValueError(f"Levenberg–Marquardt damping needs 0 < minimum <= start <= maximum; received "
+                             f"minimum={minimum!r}, start={start!r}, maximum={maximum!r}")
+        self.start, self.minimum, self.maximum = float(start), float(minimum), float(maximum)
+
+    def raised(self, damping: torch.Tensor, last: torch.Tensor) -> torch.Tensor:
+        first = torch.where(last > 0, torch.clamp(last / 10, min=self.minimum), self.start)
+        return torch.where(damping == 0, first, 10 * damping)
+
+    def stalled(self, damping: torch.Tensor) -> torch.Tensor:
+        return damping > self.maximum
+
+
+class Undamped(Damping):
+    """The thesis' iteration: every trial is taken; one that cannot be integrated ends the fit."""
+
+    name = None
+    filters = False
+
+    def raised(self, damping: torch.Tensor, last: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(damping)
+
+    def stalled(self, damping: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(damping, dtype=torch.bool)
+
+
+_REGISTRY: dict[str | None, Damping] = {}
+
+
+def register_damping(strategy: Damping) -> Damping:
+    """Register ``strategy`` under its :attr:`~Damping.name` (replacing one of that name); returns it."""
+    if not isinstance(strategy, Damping):
+        raise TypeError(f"a damping strategy must be a torchql.damping.Damping; received {type(strategy).__name__}")
+    _REGISTRY[strategy.name] = strategy
+    return strategy
+
+
+register_damping(LevenbergMarquardt())
+register_damping(Undamped())
+
+#: The registered damping names (``None``: undamped).
+DAMPINGS: tuple[str | None, ...] = tuple(_REGISTRY)
+
+
+def damping_strategy(damping) -> Damping:
+    """The strategy ``damping`` names, or ``damping`` itself when it is a :class:`Damping`;
+    ``ValueError`` listing the registered names otherwise."""
+    if isinstance(damping, Damping):
+        return damping
+    if (damping is None or isinstance(damping, str)) and damping in _REGISTRY:
+        return _REGISTRY[damping]
+    raise ValueError(f"`damping` must be one of {tuple(_REGISTRY)} or a torchql.damping.Damping; received {damping!r}")

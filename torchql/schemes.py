@@ -1,0 +1,135 @@
+"""Iteration schemes: how a fit makes its trial iterate from the current one and an update ``alpha``.
+
+``method=`` of :func:`torchql.fit` and :func:`torchql.fit_many` takes a registered name
+(:data:`METHODS`: ``"kantorovich"``, the default, or ``"shooting"``) or a :class:`Scheme` object;
+adding a scheme is a subclass registered by :func:`register_scheme`.
+
+Both schemes update the unknowns alike: the superposition ``W_0 + sum_k alpha_k W_k`` of the
+particular and homogeneous solutions of the linearized model predicts the new trajectory on the
+grid, and the initial state and coefficients move by ``alpha``. They differ in what the next
+reference is:
+
+* **Kantorovich** (the thesis' method): the prediction itself, the model linearized about it. An
+  iterate need not solve the model until the iteration converges, so a first reference may be
+  built from the data, and each trial costs one linearization and one propagation.
+* **Shooting**: the model integrated from the updated initial state and coefficients (the
+  prediction its guess), with its sensitivities. Every iterate solves the model, and its merit
+  is the model's own sum of squares.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .engine_evaluate import _pick
+from .trajectory import model_defect
+
+__all__ = ["Scheme", "Kantorovich", "Shooting", "METHODS", "register_scheme", "scheme_strategy"]
+
+
+class Scheme:
+    """An iteration scheme.
+
+    Attributes
+    ----------
+    name : str
+        The name ``method=`` takes.
+    integrates_model : bool
+        Whether every iterate is the model's own solution from its estimates (then its merit is
+        the model's sum of squares, the first reference is integrated strictly, and no iterate is
+        re-anchored). Otherwise a first reference may be built from the data.
+    """
+
+    name: str = "base"
+    integrates_model: bool = False
+
+    def propose(self, engine, act: torch.Tensor, cur: dict, alpha: torch.Tensor) -> tuple[dict, torch.Tensor]:
+        """The trial iterates of samples ``act`` (rows of ``cur``) with updates ``alpha (S, m)``:
+        the evaluated trial (as :meth:`torchql.engine_evaluate.Evaluation._evaluate` returns it,
+        with its ``defect``) and ``ok (S,)`` where it is usable."""
+        W = _pick(cur["W"], act)
+        z_new = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha)
+        z0_new = engine.spec.shifted(_pick(cur["z0"], act), alpha)
+        return self.trial(engine, act, cur, z0_new, z_new)
+
+    def trial(self, engine, act, cur, z0_new: torch.Tensor, z_new: torch.Tensor) -> tuple[dict, torch.Tensor]:
+        """The trial iterates from the new estimates ``z0_new (S, M)`` and the predicted
+        trajectories ``z_new (S, G, M)``."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"
+
+
+def _usable(trial: dict, *more: torch.Tensor) -> torch.Tensor:
+    """Samples whose trial propagated and has a finite merit and matrix (and each of ``more``)."""
+    ok = ~trial["failed"] & torch.isfinite(trial["merit"]) & torch.isfinite(trial["C"]).flatten(1).all(dim=1)
+    for condition in more:
+        ok = ok & condition
+    return ok
+
+
+class Kantorovich(Scheme):
+    """The thesis' scheme: the next reference is the predicted trajectory."""
+
+    name = "kantorovich"
+
+    def trial(self, engine, act, cur, z0_new, z_new):
+        finite = torch.isfinite(z_new).flatten(1).all(dim=1)
+        z_ref = _pick(cur["rz"], act)
+        z_safe = torch.where(finite.reshape(-1, 1, 1), z_new, z_ref)
+        lin_ref = cur["lin"]
+        z_dot = _pick(lin_ref.f, act) + torch.einsum("sgij,sgj->sgi", _pick(lin_ref.jac, act), z_safe - z_ref)
+        lin = engine._linearize(act, z_safe, z_dot)
+        trial = engine._evaluate(act, z0_new, z_safe, z_dot, lin)
+        trial["defect"] = model_defect(lin.f, z_dot, engine.system.n)
+        return trial, _usable(trial, finite)
+
+
+class Shooting(Scheme):
+    """The next reference is the model integrated from the new estimates, with its sensitivities."""
+
+    name = "shooting"
+    integrates_model = True
+
+    def trial(self, engine, act, cur, z0_new, z_new):
+        guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
+        traj, errors = engine._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True,
+                                         reference=(_pick(cur["z0"], act), _pick(cur["rz"], act)))
+        integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
+        traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
+        lin = engine._linearize(act, traj)
+        trial = engine._evaluate(act, z0_new, traj, lin.f, lin, solution=True)
+        trial["defect"] = torch.zeros_like(trial["merit"])
+        return trial, _usable(trial, integrated)
+
+
+_REGISTRY: dict[str, Scheme] = {}
+
+
+def register_scheme(scheme: Scheme) -> Scheme:
+    """Register ``scheme`` under its :attr:`~Scheme.name` (replacing one of that name); returns it."""
+    if not isinstance(scheme, Scheme):
+        raise TypeError(f"an iteration scheme must be a torchql.schemes.Scheme; received {type(scheme).__name__}")
+    _REGISTRY[scheme.name] = scheme
+    return scheme
+
+
+register_scheme(Kantorovich())
+register_scheme(Shooting())
+
+#: The registered scheme names.
+METHODS: tuple[str, ...] = tuple(_REGISTRY)
+
+
+def scheme_strategy(method) -> Scheme:
+    """The scheme ``method`` names, or ``method`` itself when it is a :class:`Scheme`;
+    ``TypeError``/``ValueError`` naming the registered ones otherwise."""
+    if isinstance(method, Scheme):
+        return method
+    if not isinstance(method, str):
+        raise TypeError(f"`method` must be a string, one of {tuple(_REGISTRY)}, or a torchql.schemes.Scheme; "
+                        f"received {type(method).__name__}")
+    if method not in _REGISTRY:
+        raise ValueError(f"`method` must be one of {tuple(_REGISTRY)}; received {method!r}")
+    return _REGISTRY[method]
