@@ -23,9 +23,10 @@ Rows of each family's table, all in the same process, torch on one thread unless
   batched ``Observations`` (values ``(B, T, 1)``, validated once) with per-sample start states
   (``x0``) and coefficient guesses (``guesses=``), timed with that building, after one untimed
   warm-up on a small batch;
-* ``torchql fit_many, tuned (grid=20)`` and ``torchql fit_many, tuned (rtol=1e-8)``: the largest
-  ``B`` with one option changed each (20 storage intervals; a looser integration tolerance),
-  faster settings whose accuracy columns say what they cost;
+* ``torchql fit_many, tuned (grid=20)``, ``tuned (grid='smooth')`` and ``tuned (rtol=1e-8)``: the
+  largest ``B`` with one option changed each (20 storage intervals; as few intervals as the
+  guesses' trajectories need, :func:`torchql.grid.smooth_intervals`; a looser integration
+  tolerance), faster settings whose accuracy columns say what they cost;
 * ``torchql fit_many, N threads``: the largest ``B``, default options, torch on every core;
 * ``JAX optimistix LM + diffrax, vmap`` (when ``jax``, ``diffrax`` and ``optimistix`` are
   installed: ``pip install "torchql[bench]"``): ``benchmarks/jax_peer.py``, one
@@ -103,7 +104,7 @@ from torchql.models.car import AIR_DENSITY, GRAVITY
 DTYPE = torch.float64
 AREA, MASS = 17.3, 80.43
 #: The tuned rows: each changes one option of the default fit.
-TUNED = {"grid=20": dict(grid=20), "rtol=1e-8": dict(rtol=1e-8)}
+TUNED = {"grid=20": dict(grid=20), "grid='smooth'": dict(grid="smooth"), "rtol=1e-8": dict(rtol=1e-8)}
 PEER_RTOL, PEER_ATOL = 1e-10, 1e-12
 PEER_LSQ = dict(method="trf", jac="2-point", diff_step=1e-5, x_scale="jac", xtol=1e-12, ftol=1e-14, gtol=1e-14,
                 max_nfev=2000)

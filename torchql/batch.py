@@ -88,7 +88,7 @@ def fit_many(
     xtol: float | None = None,
     ftol: float | None = None,
     rcond: float | None = None,
-    grid: int | torch.Tensor | None = None,
+    grid: int | str | torch.Tensor | None = None,
     damping: str | Damping | None = "lm",
     solver: str = "auto",
     linear_solver: "str | LinearPropagator | None" = None,

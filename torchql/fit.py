@@ -61,7 +61,7 @@ def fit(
     xtol: float | None = None,
     ftol: float | None = None,
     rcond: float | None = None,
-    grid: int | torch.Tensor | None = None,
+    grid: int | str | torch.Tensor | None = None,
     initial_trajectory: str = "auto",
     max_steps: int | None = None,
     damping: str | Damping | None = "lm",
@@ -155,9 +155,12 @@ def fit(
     rcond : float, optional
         Relative singular-value threshold below which a direction of the unknowns counts as
         not identifiable. Default ``max(1e3 * rtol, 1e3 * eps)``.
-    grid : int or Tensor, optional
+    grid : int, "smooth" or Tensor, optional
         Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``
         (default 1000), or extra times to include. Observation times and ``t0`` are always nodes.
+        ``"smooth"``: as few intervals as the guesses' trajectories need for their cubic Hermite
+        interpolation to stay within a sixteenth of the tolerance (:func:`torchql.grid.smooth_intervals`,
+        20 to 1000; the largest any sample needs in ``fit_many``; the default grid for a stiff model).
     initial_trajectory : {"auto", "integrate", "data"}
         Kantorovich's first reference. ``"auto"`` (default): ``"data"`` where the data can give
         it, else ``"integrate"`` (:func:`torchql.data_start.first_reference`: shooting, no state

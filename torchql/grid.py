@@ -12,12 +12,20 @@ A stiff model's solution has fast transients (Robertson kinetics: a boundary lay
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-__all__ = ["make_grid", "DEFAULT_INTERVALS", "NODES_PER_DECADE", "EARLIEST"]
+__all__ = ["make_grid", "make_grids", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
+           "EARLIEST", "SMOOTH_SAFETY"]
 
 #: Uniform intervals of the default grid.
 DEFAULT_INTERVALS = 1000
+#: Fewest uniform intervals of a grid chosen from the trajectory (``grid="smooth"``).
+MIN_INTERVALS = 20
+#: ``grid="smooth"``: the cubic Hermite interpolation error allowed between nodes, as a fraction
+#: of the tolerance ``atol + rtol |x|`` (a sixteenth: each halving of the intervals gains 16).
+SMOOTH_SAFETY = 1 / 16
 #: Geometric nodes per decade of ``t - t0`` added for stiff models.
 NODES_PER_DECADE = 10
 #: The earliest geometric node, as a fraction of the span after ``t0``. On Robertson kinetics to
@@ -77,3 +85,49 @@ def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = Fals
         nodes = breakpoints.to(dtype=dtype, device=device)
         extra = torch.cat([extra, nodes[(nodes > t0) & (nodes < t_end)]])
     return torch.unique(torch.cat([fixed, uniform, extra]))
+
+
+def make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False,
+               breakpoints: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each sample's own grid, as :func:`torchql.fit` builds it for that dataset alone.
+
+    ``t0``: shared ``()`` or per sample ``(B,)``; ``t_obs (B, T)``. Returns the grids ``(B, G)``,
+    each padded at the end by repeating its last node up to the longest one's ``G`` nodes
+    (zero-length intervals), and each grid's own number of nodes ``(B,)``. Samples with the
+    same ``t0`` and times share one construction.
+    """
+    B = t_obs.shape[0]
+    starts = t0.expand(B) if t0.dim() == 0 else t0
+    keys, inverse = torch.unique(torch.cat([starts.unsqueeze(1), t_obs], dim=1), dim=0, return_inverse=True)
+    grids = [make_grid(grid, key[0], key[1:], stiff=stiff, breakpoints=breakpoints) for key in keys]
+    sizes = torch.tensor([g.numel() for g in grids], dtype=torch.long, device=t_obs.device)
+    G = int(sizes.max())
+    padded = torch.stack([torch.cat([g, g[-1:].expand(G - g.numel())]) for g in grids])
+    return padded[inverse], sizes[inverse]
+
+
+def smooth_intervals(times: torch.Tensor, x: torch.Tensor, slopes: torch.Tensor, rtol: float, atol: float) -> int:
+    """The fewest uniform intervals whose cubic Hermite interpolation of trajectories meets the tolerance.
+
+    ``times (G,)`` or per sample ``(S, G)``, uniform from ``t0`` to the end; ``x, slopes (S, G, n)``
+    the trajectories and their slopes there. Over an interval of width ``h`` the interpolation error is at most
+    ``h^4 / 384`` times the largest fourth derivative of ``x``, the third derivative of the
+    slopes, estimated by third differences over every eighth node. Each component's error must
+    stay below :data:`SMOOTH_SAFETY` times ``atol + rtol max |x|``; the count is the largest any
+    sample needs, between :data:`MIN_INTERVALS` and :data:`DEFAULT_INTERVALS` (the default where
+    a trajectory is not finite).
+    """
+    S = x.shape[0]
+    times = times.expand(S, times.shape[-1])
+    every = 8
+    f = slopes[:, ::every]
+    span = times[:, -1] - times[:, 0]
+    if f.shape[1] < 4 or not bool((span > 0).all()):
+        return DEFAULT_INTERVALS
+    H = (times[:, every] - times[:, 0]).unsqueeze(1)
+    fourth = ((f[:, 3:] - 3 * f[:, 2:-1] + 3 * f[:, 1:-2] - f[:, :-3]).abs().amax(dim=1) / H**3)  # (S, n)
+    tol = SMOOTH_SAFETY * (atol + rtol * x.abs().amax(dim=1))
+    if not (torch.isfinite(fourth).all() and torch.isfinite(tol).all()):
+        return DEFAULT_INTERVALS
+    width = (384 * tol / fourth.clamp(min=torch.finfo(x.dtype).tiny)) ** 0.25
+    return min(DEFAULT_INTERVALS, max(MIN_INTERVALS, math.ceil(float((span / width.amin(dim=1)).max()))))

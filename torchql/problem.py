@@ -16,7 +16,8 @@ from . import _checks
 from .batch_result import BatchFitResult
 from .bounds import Bounds, moved_record
 from .data_start import derivation_uses_unknowns, first_reference
-from .grid import make_grid
+from .batch_integrate import dopri_batch
+from .grid import DEFAULT_INTERVALS, make_grid, make_grids, smooth_intervals
 from .integrate import check_solver
 from .linearize import linearize
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
@@ -237,13 +238,35 @@ class Problem:
                                     (self.t_obs[..., -1] - self.t0).expand(self.B))
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
         stiff = self.solver in STIFF_SOLVERS
+        if isinstance(grid, str):
+            grid = self._smooth_grid(grid, stiff)
         if self.t_obs.dim() == 1:
             self.grid = make_grid(grid, self.t0, self.t_obs, stiff=stiff, breakpoints=self.breakpoints)
             self.grid_size = None
         else:
-            self.grid, self.grid_size = _make_grids(grid, self.t0, self.t_obs, stiff=stiff,
+            self.grid, self.grid_size = make_grids(grid, self.t0, self.t_obs, stiff=stiff,
                                                     breakpoints=self.breakpoints)
         self.obs_in_grid = torch.searchsorted(self.grid, self.t_obs)
+
+    def _smooth_grid(self, grid: str, stiff: bool) -> int | None:
+        """``grid="smooth"``: the uniform intervals that the guesses' trajectories need
+        (:func:`torchql.grid.smooth_intervals`; integrated by Dormand–Prince, the nodes from its
+        dense output); the default grid for a stiff model."""
+        if grid != "smooth":
+            raise ValueError(f'`grid` must be a number of intervals, a tensor of times or "smooth"; received {grid!r}')
+        if stiff:
+            return None
+        n, u = self.system.n, torch.linspace(0.0, 1.0, DEFAULT_INTERVALS + 1, dtype=self.dtype, device=self.device)
+        t0 = self.t0.expand(self.B).unsqueeze(1)
+        times = t0 + (self.t_obs[..., -1].expand(self.B).unsqueeze(1) - t0) * u  # (B, G)
+        land = torch.zeros_like(u, dtype=torch.bool)
+        land[-1] = True
+        with torch.no_grad():
+            traj, ok, _ = dopri_batch(self.system, self.z0, times, rtol=self.rtol, atol=self.atol, land=land)
+            if not bool(ok.all()):
+                return None
+            slopes = vmap(self.system.f)(times.reshape(-1), traj.reshape(-1, self.system.M)).reshape(traj.shape)
+        return smooth_intervals(times, traj[..., :n], slopes[..., :n], self.rtol, self.atol)
 
     def _check_positive(self, guesses: torch.Tensor) -> None:
         """The guesses ``(B, m)`` of the log-scale unknowns are positive (a clear error otherwise)."""
@@ -574,26 +597,3 @@ def _same_observe(a, b) -> bool:
     except ImportError:  # pragma: no cover
         pass
     return False
-
-
-#: The storage grid, shared with ``fit`` (:func:`torchql.grid.make_grid`).
-_make_grid = make_grid
-
-
-def _make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False,
-                breakpoints: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each sample's own grid, as :func:`torchql.fit` builds it for that dataset alone.
-
-    ``t0``: shared ``()`` or per sample ``(B,)``; ``t_obs (B, T)``. Returns the grids ``(B, G)``,
-    each padded at the end by repeating its last node up to the longest one's ``G`` nodes
-    (zero-length intervals), and each grid's own number of nodes ``(B,)``. Samples with the
-    same ``t0`` and times share one construction.
-    """
-    B = t_obs.shape[0]
-    starts = t0.expand(B) if t0.dim() == 0 else t0
-    keys, inverse = torch.unique(torch.cat([starts.unsqueeze(1), t_obs], dim=1), dim=0, return_inverse=True)
-    grids = [make_grid(grid, key[0], key[1:], stiff=stiff, breakpoints=breakpoints) for key in keys]
-    sizes = torch.tensor([g.numel() for g in grids], dtype=torch.long, device=t_obs.device)
-    G = int(sizes.max())
-    padded = torch.stack([torch.cat([g, g[-1:].expand(G - g.numel())]) for g in grids])
-    return padded[inverse], sizes[inverse]
