@@ -74,7 +74,7 @@ def test_a_strategy_object_drives_the_fit(table_4_5_two_digit):
 
 
 def test_a_registered_strategy_is_taken_by_name(table_4_5_two_digit, monkeypatch):
-    monkeypatch.setattr(damping_module, "_REGISTRY", dict(damping_module._REGISTRY))  # leave the registry as found
+    monkeypatch.setattr(damping_module._REGISTRY, "entries", dict(damping_module._REGISTRY.entries))  # leave the registry as found
 
     class Gentle(LevenbergMarquardt):
         name = "gentle"

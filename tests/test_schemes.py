@@ -46,7 +46,7 @@ def test_a_scheme_object_is_its_name(oscillator_data, name, scheme):
 def test_a_new_scheme_drives_fit_and_fit_many(oscillator_data, monkeypatch):
     """A subclass (Kantorovich that counts its trials) registered by name: fit and fit_many use its
     trials, and the data-built start is refused for a scheme whose iterates solve the model."""
-    monkeypatch.setattr(schemes_module, "_REGISTRY", dict(schemes_module._REGISTRY))  # leave the registry as found
+    monkeypatch.setattr(schemes_module._REGISTRY, "entries", dict(schemes_module._REGISTRY.entries))  # leave the registry as found
 
     class Counting(Kantorovich):
         name = "counting"

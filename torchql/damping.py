@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import torch
 
+from .registry import Registry
+
 __all__ = ["Damping", "LevenbergMarquardt", "Undamped", "DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX",
            "register_damping", "damping_strategy"]
 
@@ -90,29 +92,26 @@ class Undamped(Damping):
         return torch.zeros_like(damping, dtype=torch.bool)
 
 
-_REGISTRY: dict[str | None, Damping] = {}
+_REGISTRY = Registry(Damping, "torchql.damping.Damping", "a damping strategy")
 
 
 def register_damping(strategy: Damping) -> Damping:
     """Register ``strategy`` under its :attr:`~Damping.name` (replacing one of that name); returns it."""
-    if not isinstance(strategy, Damping):
-        raise TypeError(f"a damping strategy must be a torchql.damping.Damping; received {type(strategy).__name__}")
-    _REGISTRY[strategy.name] = strategy
-    return strategy
+    return _REGISTRY.register(strategy)
 
 
 register_damping(LevenbergMarquardt())
 register_damping(Undamped())
 
 #: The registered damping names (``None``: undamped).
-DAMPINGS: tuple[str | None, ...] = tuple(_REGISTRY)
+DAMPINGS: tuple[str | None, ...] = _REGISTRY.names
 
 
 def damping_strategy(damping) -> Damping:
     """The strategy ``damping`` names, or ``damping`` itself when it is a :class:`Damping`;
     ``ValueError`` listing the registered names otherwise."""
-    if isinstance(damping, Damping):
-        return damping
-    if (damping is None or isinstance(damping, str)) and damping in _REGISTRY:
-        return _REGISTRY[damping]
-    raise ValueError(f"`damping` must be one of {tuple(_REGISTRY)} or a torchql.damping.Damping; received {damping!r}")
+    found = _REGISTRY.find(damping)
+    if found is None:
+        raise ValueError(f"`damping` must be one of {_REGISTRY.names} or a {_REGISTRY.public_name}; "
+                         f"received {damping!r}")
+    return found

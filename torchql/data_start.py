@@ -25,7 +25,7 @@ from torch.func import jacfwd, jacrev, vmap
 
 from .lstsq import solve_update_batch
 from .schemes import scheme_strategy
-from .options import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
+from .damping import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
 from .smoothing import interpolate, smooth
 from .status import Status
 

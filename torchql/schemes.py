@@ -22,6 +22,7 @@ from __future__ import annotations
 import torch
 
 from .engine_evaluate import _pick
+from .registry import Registry
 from .trajectory import model_defect
 
 __all__ = ["Scheme", "Kantorovich", "Shooting", "METHODS", "register_scheme", "scheme_strategy"]
@@ -104,32 +105,28 @@ class Shooting(Scheme):
         return trial, _usable(trial, integrated)
 
 
-_REGISTRY: dict[str, Scheme] = {}
+_REGISTRY = Registry(Scheme, "torchql.schemes.Scheme", "an iteration scheme")
 
 
 def register_scheme(scheme: Scheme) -> Scheme:
     """Register ``scheme`` under its :attr:`~Scheme.name` (replacing one of that name); returns it."""
-    if not isinstance(scheme, Scheme):
-        raise TypeError(f"an iteration scheme must be a torchql.schemes.Scheme; received {type(scheme).__name__}")
-    _REGISTRY[scheme.name] = scheme
-    return scheme
+    return _REGISTRY.register(scheme)
 
 
 register_scheme(Kantorovich())
 register_scheme(Shooting())
 
 #: The registered scheme names.
-METHODS: tuple[str, ...] = tuple(_REGISTRY)
+METHODS: tuple[str, ...] = _REGISTRY.names
 
 
 def scheme_strategy(method) -> Scheme:
     """The scheme ``method`` names, or ``method`` itself when it is a :class:`Scheme`;
     ``TypeError``/``ValueError`` naming the registered ones otherwise."""
-    if isinstance(method, Scheme):
-        return method
+    found = _REGISTRY.find(method)
+    if found is not None:
+        return found
     if not isinstance(method, str):
-        raise TypeError(f"`method` must be a string, one of {tuple(_REGISTRY)}, or a torchql.schemes.Scheme; "
+        raise TypeError(f"`method` must be a string, one of {_REGISTRY.names}, or a {_REGISTRY.public_name}; "
                         f"received {type(method).__name__}")
-    if method not in _REGISTRY:
-        raise ValueError(f"`method` must be one of {tuple(_REGISTRY)}; received {method!r}")
-    return _REGISTRY[method]
+    raise ValueError(f"`method` must be one of {_REGISTRY.names}; received {method!r}")

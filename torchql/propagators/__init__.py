@@ -16,6 +16,7 @@ the whole transfer, for every stiffness; what ``solver="auto"`` takes for a stif
 
 from __future__ import annotations
 
+from ..registry import Registry
 from ._base import LinearPropagator
 from .exponential import ExponentialRadau, RadauCollocation
 from .rk4 import RK4Doubling
@@ -26,21 +27,18 @@ __all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "Ex
            "PROPAGATORS", "DEFAULT_PROPAGATOR",
            "register_propagator", "linear_propagator"]
 
+_REGISTRY = Registry(LinearPropagator, "torchql.propagators.LinearPropagator", "`propagator`")
 #: The registered propagators by name.
-PROPAGATORS: dict[str, LinearPropagator] = {}
+PROPAGATORS: dict[str, LinearPropagator] = _REGISTRY.entries
 #: The name of the default propagator.
 DEFAULT_PROPAGATOR = "taylor"
 
 
 def register_propagator(propagator: LinearPropagator) -> LinearPropagator:
     """Register ``propagator`` under its ``name``, so that ``linear_solver=name`` selects it."""
-    if not isinstance(propagator, LinearPropagator):
-        raise TypeError(f"`propagator` must be a torchql.propagators.LinearPropagator; "
-                        f"received {type(propagator).__name__}")
-    if not isinstance(propagator.name, str) or not propagator.name:
+    if isinstance(propagator, LinearPropagator) and (not isinstance(propagator.name, str) or not propagator.name):
         raise ValueError(f"a propagator needs a non-empty string `name`; received {propagator.name!r}")
-    PROPAGATORS[propagator.name] = propagator
-    return propagator
+    return _REGISTRY.register(propagator)
 
 
 def linear_propagator(value: "str | LinearPropagator", arg: str = "linear_solver") -> LinearPropagator:
@@ -49,15 +47,14 @@ def linear_propagator(value: "str | LinearPropagator", arg: str = "linear_solver
     Raises ``ValueError`` listing the registered names for an unknown name, ``TypeError`` for
     anything that is neither a name nor a :class:`LinearPropagator`.
     """
-    if isinstance(value, LinearPropagator):
-        return value
+    found = _REGISTRY.find(value)
+    if found is not None:
+        return found
     if isinstance(value, str):
-        if value not in PROPAGATORS:
-            raise ValueError(f"`{arg}` must be one of {tuple(PROPAGATORS)} or a torchql.propagators.LinearPropagator; "
-                             f"received {value!r}")
-        return PROPAGATORS[value]
-    raise TypeError(f"`{arg}` must be a string, one of {tuple(PROPAGATORS)}, or a "
-                    f"torchql.propagators.LinearPropagator; received {type(value).__name__}")
+        raise ValueError(f"`{arg}` must be one of {_REGISTRY.names} or a {_REGISTRY.public_name}; "
+                         f"received {value!r}")
+    raise TypeError(f"`{arg}` must be a string, one of {_REGISTRY.names}, or a {_REGISTRY.public_name}; "
+                    f"received {type(value).__name__}")
 
 
 for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau(), RadauCollocation()):
