@@ -67,6 +67,7 @@ def test_a_new_scheme_drives_fit_and_fit_many(oscillator_data, monkeypatch):
     counting.trials = 0
     batch = torchql.fit_many(LinearOscillator(A=0.5, B=1.0), [oscillator_data] * 3, X0_GUESS, method=counting)
     assert counting.trials >= int(batch.iterations.sum()) - 3 >= 3
+    assert batch[0].method == "counting"  # the name, as fit reports it
     assert torch.allclose(batch.estimates, single.estimates.expand(3, -1), rtol=1e-10, atol=1e-14)
 
     class Integrating(Shooting):

@@ -231,7 +231,7 @@ class BatchFitResult:
             residual_variance=float(self.residual_variance[i]), sigma_known=self.sigma_known,
             exact_mask=exact,
             n_observations=int(self.n_observations[i]), nfev=int(self.nfev),
-            method=self.fit_kwargs.get("method", "kantorovich"),
+            method=self._method_name(),
             model=self.model_of(i), solver_options=dict(self.solver_options), data=data,
             fit_kwargs=dict(self.fit_kwargs), index=i,
             lower=None if self.lower is None else self.lower.clone(),
@@ -243,6 +243,11 @@ class BatchFitResult:
             noise=self.noise, sigma_function=self.sigma_function,
             experiment_t0=None if self.experiment_t0 is None else list(self.experiment_t0),
             conditions=self.conditions)
+
+    def _method_name(self) -> str:
+        """The scheme's name (``method=`` may have been a :class:`torchql.schemes.Scheme`), as ``fit`` reports it."""
+        method = self.fit_kwargs.get("method", "kantorovich")
+        return method if isinstance(method, str) else method.name
 
     def __getitem__(self, i: int) -> FitResult:
         return self.sample(i)
