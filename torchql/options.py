@@ -17,7 +17,7 @@ import torch
 from . import _checks
 from .damping import DAMPING_MAX, DAMPING_MIN, DAMPING_START, DAMPINGS, damping_strategy
 from .integrate import default_tolerances
-from .schemes import METHODS, scheme_strategy
+from .schemes import METHODS, Scheme, scheme_strategy
 
 __all__ = ["DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX", "METHODS", "INITIAL_TRAJECTORIES", "Tolerances",
            "Limits", "FitOptions", "with_options", "expand_options", "accepts_options", "check_damping",
@@ -96,10 +96,10 @@ def check_damping(damping):
     return damping
 
 
-def check_scheme(method, initial_trajectory) -> tuple[str, str]:
+def check_scheme(method, initial_trajectory) -> tuple[Scheme, str]:
     """``(method, initial_trajectory)`` validated: ``method`` a registered scheme's name or a
-    :class:`torchql.schemes.Scheme` (:func:`torchql.schemes.scheme_strategy`), returned as its
-    name; ``initial_trajectory`` a string among :data:`INITIAL_TRAJECTORIES` (``TypeError``/
+    :class:`torchql.schemes.Scheme` (:func:`torchql.schemes.scheme_strategy`), returned as the
+    scheme; ``initial_trajectory`` a string among :data:`INITIAL_TRAJECTORIES` (``TypeError``/
     ``ValueError`` naming the valid ones); the data-built start only for a scheme whose iterates
     need not solve the model (Kantorovich)."""
     scheme = scheme_strategy(method)
@@ -110,7 +110,7 @@ def check_scheme(method, initial_trajectory) -> tuple[str, str]:
         raise ValueError(f"`initial_trajectory` must be one of {INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
     if initial_trajectory == "data" and scheme.integrates_model:
         raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
-    return scheme.name, initial_trajectory
+    return scheme, initial_trajectory
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,6 @@ from .noise import sigma_group_index
 from .sigma_function import SigmaFunction
 from .observations import LogObservation, ObservationOperator, Observations
 from .damping import damping_strategy
-from .schemes import scheme_strategy
 from .options import Limits, Tolerances, check_scheme
 from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
@@ -98,8 +97,8 @@ class Problem:
             raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
         check_solver(solver, auto=True)
         self.damping, self.solver = damping_strategy(damping), solver
-        self.method, self.initial_trajectory = check_scheme(method, initial_trajectory)
-        self.scheme = scheme_strategy(method)
+        self.scheme, self.initial_trajectory = check_scheme(method, initial_trajectory)
+        self.method = self.scheme.name
         if linear_solver is not None:
             check_linear_solver(linear_solver)
         limits = Limits.resolve(max_iter, max_steps)
