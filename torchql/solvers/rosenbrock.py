@@ -310,11 +310,13 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
 
     Parameters
     ----------
-    f : callable ``(t, y) -> dy/dt``
+    f : callable ``(t, y) -> dy/dt``, or a :class:`~torchql.solvers.field.BatchedField`
         One sample's right-hand side (``t`` 0-d, ``y (M,)`` -> ``(M,)``), written in torch
         operations that ``torch.func.jacrev`` (and, with ``vectorize``, ``torch.vmap``) can
         transform: an augmented system's ``system.f`` (coefficients as trailing components of
-        ``y``, whose zero rows make them constants) or a model's ``forward``.
+        ``y``, whose zero rows make them constants) or a model's ``forward``. A field given
+        already (with its own Jacobian, e.g. :class:`~torchql.solvers.sensitivity.SensitivityField`)
+        is used as it is, and ``vectorize`` is its own.
     y0 : Tensor ``(S, M)``
         Initial states at each sample's first node; float32 or float64, on any device.
     grid : Tensor ``(G,)`` or ``(S, G)``
@@ -348,7 +350,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     y0, grid = _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize)
     S, M = y0.shape
     n = M if error_components is None else error_components
-    field = BatchedField(f, vectorize=vectorize)
+    field = f if isinstance(f, BatchedField) else BatchedField(f, vectorize=vectorize)
     out = OutputGrid(grid, land, y0)
     status = torch.where(torch.isfinite(y0).all(dim=1), SUCCESS, NON_FINITE)
     t0 = grid[:, 0] if grid.dim() == 2 else grid[0].expand(S)
