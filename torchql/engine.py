@@ -260,14 +260,21 @@ class Engine(Evaluation, FinalPass):
             st.cur = self._evaluate(all_idx, st.z0, traj, z_dot, lin)
         else:
             kantorovich = not spec.scheme.integrates_model
-            guess = st.z0.unsqueeze(1).expand(S, self.G, st.z0.shape[1]) if kantorovich else None
-            traj, errors = self._nonlinear(all_idx, st.z0, loose=kantorovich, guess=guess)
+            W = None
+            if kantorovich or not self._joint_sensitivities:
+                guess = st.z0.unsqueeze(1).expand(S, self.G, st.z0.shape[1]) if kantorovich else None
+                traj, errors = self._nonlinear(all_idx, st.z0, loose=kantorovich, guess=guess)
+            else:
+                traj, W, errors = self._solve_with_sensitivities(all_idx, st.z0)
             bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=spec.device)
             for r in bad.nonzero().flatten().tolist():
                 st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
                 st.detail[r] = f" The solver said: {errors[r]}."
+            if W is not None:  # failed samples: any finite stand-in, as for a failed trial
+                traj = torch.where(bad.reshape(-1, 1, 1), st.z0.unsqueeze(1).expand_as(traj), traj)
+                W = torch.where(bad.reshape(-1, 1, 1, 1), spec.columns(st.z0).unsqueeze(1).expand_as(W), W)
             lin = self._linearize(all_idx, traj)
-            st.cur = self._evaluate(all_idx, st.z0, traj, lin.f, lin, solution=not kantorovich)
+            st.cur = self._evaluate(all_idx, st.z0, traj, lin.f, lin, solution=not kantorovich, W=W)
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)

@@ -18,6 +18,7 @@ from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS, rodas5p_batch
+from .solvers.sensitivity import SensitivityField, joint_state, split_joint
 from .superposition import propagate_linear
 from .trajectory import LinearizedReference
 
@@ -120,14 +121,19 @@ class Evaluation:
         total = torch.where(exact, zero, r2).sum(dim=1)
         return total + _EXACT_PENALTY * torch.where(exact, r2, zero).sum(dim=1) if penalty else total
 
-    def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False) -> dict:
+    def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False, W: torch.Tensor | None = None) -> dict:
         """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
 
         ``solution``: ``z`` is the model's own solution from ``z0`` (shooting), which then stands
         for the particular solution (its propagation would only add the propagator's error).
+        ``W (S, G, M, 1 + m)``: the solutions already found (:meth:`_solve_with_sensitivities`),
+        not propagated again.
         """
         spec = self.spec
-        W, failed = self._propagate(idx, z, z_dot, lin, spec.columns(z0))
+        if W is None:
+            W, failed = self._propagate(idx, z, z_dot, lin, spec.columns(z0))
+        else:
+            failed = torch.zeros(z.shape[0], dtype=torch.bool, device=z.device)
         if solution:
             W[..., 0] = z
         W_obs = self._at_obs(W, idx)
@@ -326,6 +332,47 @@ class Evaluation:
         for k, s in enumerate(sub.tolist()):
             if not bool(good[k]):
                 errors[s] = sol.message(k)
+
+    @property
+    def _joint_sensitivities(self) -> bool:
+        """Whether the model's solutions and their sensitivities are integrated together
+        (:meth:`_solve_with_sensitivities`): the linear propagator says so (``"rodas5p"``)."""
+        return self.spec.linear_solver.with_solution
+
+    def _solve_with_sensitivities(self, idx, z0) -> tuple[torch.Tensor, torch.Tensor, list]:
+        """The model integrated from ``z0 (S, M)`` together with its sensitivities to the
+        unknowns, by Rodas5P on the variational system (:mod:`torchql.solvers.sensitivity`),
+        on the grid of the chunk's samples ``idx`` (the steps landing on the observation times):
+        ``traj (S, G, M)``, ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the
+        homogeneous columns from :meth:`~torchql.problem.Problem.columns`) and error messages
+        (None: ok; NaN rows where a sample failed).
+
+        Each column is integrated scaled by its unknown's magnitude (1 for a zero one), so that the
+        error control holds it to the states' relative accuracy whatever the unknown's units.
+        """
+        spec, system, n, M, G = self.spec, self.system, self.system.n, self.system.M, self.G
+        columns = spec.columns(z0)[..., 1:]
+        m = columns.shape[-1]
+        scale = z0[:, spec.unknown_index].abs()
+        scale = torch.where(scale > 0, scale, torch.ones_like(scale)).unsqueeze(1)  # (S, 1, m)
+        grid = self._grid_of(idx)
+        S = z0.shape[0]
+        if grid.dim() == 1:
+            land = torch.zeros(G, dtype=torch.bool, device=z0.device)
+            land[self.obs] = True
+        else:
+            land = torch.zeros(S, G, dtype=torch.bool, device=z0.device)
+            land.scatter_(1, self.obs[idx], True)
+        budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
+        field = SensitivityField(system, m, vectorize=S > 1)
+        with torch.no_grad():
+            sol = rodas5p_batch(field, joint_state(z0, columns * scale, n), grid, rtol=spec.rtol, atol=spec.atol,
+                                land=land, error_components=n + n * m, vectorize=S > 1, **budget)
+        self.nfev += sol.n_f
+        z, V = split_joint(sol.y, n, M, m)
+        W = torch.cat([z.unsqueeze(-1), V / scale.unsqueeze(1)], dim=-1)
+        errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(S)]
+        return z, W, errors
 
     def _grid_solve_one(self, z0, grid, guess, rtol, atol, substeps):
         """:func:`~torchql.grid_solve.solve_on_grid` for one sample ``z0 (M,)`` on ``grid (G,)``

@@ -39,24 +39,7 @@ class FinalPass:
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
         final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
                              dtype=torch.bool, device=dev)
-        rows = final.nonzero().flatten()
-        if rows.numel():
-            guess = final_guess[rows]
-            traj, errors = self._nonlinear(rows, z0[rows], loose=False, guess=guess)
-            for k, r in enumerate(rows.tolist()):
-                if errors[k] is not None:
-                    codes[r] = Status.INTEGRATION_FAILED
-                    detail[r] = f" The solver said, at the final estimates: {errors[k]}."
-            good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=dev)
-            rows, traj = rows[good], traj[good]
-        if rows.numel():
-            lin = self._linearize(rows, traj)
-            W, failed = self._propagate(rows, traj, lin.f, lin, spec.columns(z0[rows]))
-            for r in rows[failed].tolist():
-                codes[r] = Status.INTEGRATION_FAILED
-                detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "
-                             "meet the tolerance.")
-            rows, traj, W = rows[~failed], traj[~failed], W[~failed]
+        rows, traj, W = self._final_solutions(final.nonzero().flatten(), z0, final_guess, codes, detail)
         if rows.numel():
             traj_obs = self._at_obs(traj, rows)
             C_mean, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
@@ -102,6 +85,36 @@ class FinalPass:
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.first_sse, z0_start=self.first_z0)
+
+    def _final_solutions(self, rows, z0, final_guess, codes, detail):
+        """The model integrated at the estimates ``z0`` of samples ``rows`` (from ``final_guess``,
+        a prediction of the trajectory), with its sensitivities: ``(rows, traj, W)`` of the samples
+        that integrated; the others' ``codes`` become INTEGRATION_FAILED with the solver's words."""
+        dev = z0.device
+        if not rows.numel():
+            return rows, None, None
+        W = None
+        if self._joint_sensitivities:  # the solution and its sensitivities on the same adaptive steps
+            traj, W, errors = self._solve_with_sensitivities(rows, z0[rows])
+        else:
+            traj, errors = self._nonlinear(rows, z0[rows], loose=False, guess=final_guess[rows])
+        for k, r in enumerate(rows.tolist()):
+            if errors[k] is not None:
+                codes[r] = Status.INTEGRATION_FAILED
+                detail[r] = f" The solver said, at the final estimates: {errors[k]}."
+        good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=dev)
+        rows, traj = rows[good], traj[good]
+        if W is not None:
+            return rows, traj, W[good]
+        if not rows.numel():
+            return rows, traj, None
+        lin = self._linearize(rows, traj)
+        W, failed = self._propagate(rows, traj, lin.f, lin, self.spec.columns(z0[rows]))
+        for r in rows[failed].tolist():
+            codes[r] = Status.INTEGRATION_FAILED
+            detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "
+                         "meet the tolerance.")
+        return rows[~failed], traj[~failed], W[~failed]
 
     def _used(self, rows) -> torch.Tensor:
         """The rows in use of samples ``rows``: the values present ``(S, R)``, and with a ``sigma(p)``

@@ -205,7 +205,12 @@ def fit(
         which integrates the nonlinear model too. ``"radau"`` (stiff models: Radau IIA
         collocation, stable at every stiffness) and ``"exponential"`` (the matrix exponential of
         frozen coefficients plus a Radau correction: exact for constant coefficients, fails at
-        intermediate stiffness): the nonlinear passes then use ``solver``. A
+        intermediate stiffness): the nonlinear passes then use ``solver``. ``"rodas5p"``: as
+        ``"radau"``, but where the reference is the model's own solution (``method="shooting"``,
+        every fit's final pass) its sensitivities are integrated with it by Rodas5P on the
+        solution's adaptive steps (:mod:`torchql.solvers.sensitivity`): for stiff models with fast
+        jumps inside grid intervals (relaxation oscillations) or intermediate stiffness per
+        interval, where the grid's transfers fail or need many substeps. A
         :class:`torchql.propagators.LinearPropagator` object is used as given (its ``grid_solver`` says whether the grid solver may be used).
     callback : callable, optional
         Called with each :class:`IterationRecord` as it is made.

@@ -10,20 +10,23 @@ one module here with a subclass, registered by :func:`register_propagator`.
 Registered: ``"taylor"`` (default, :mod:`.taylor`), ``"rk4_doubling"`` (:mod:`.rk4`),
 ``"torchdiffeq"`` (:mod:`.torchdiffeq`), ``"exponential"`` (:mod:`.exponential`: the matrix
 exponential of frozen coefficients corrected by Radau IIA collocation, exact for constant
-coefficients and stable for stiff ``A``) and ``"radau"`` (the same module: Radau IIA collocation of
-the whole transfer, for every stiffness; what ``solver="auto"`` takes for a stiff model).
+coefficients and stable for stiff ``A``), ``"radau"`` (the same module: Radau IIA collocation of
+the whole transfer, for every stiffness; what ``solver="auto"`` takes for a stiff model) and
+``"rodas5p"`` (the same module: ``"radau"``, but where the reference is the model's own solution
+its sensitivities are integrated with it by Rodas5P, on its adaptive steps).
 """
 
 from __future__ import annotations
 
 from ..registry import Registry
 from ._base import LinearPropagator
-from .exponential import ExponentialRadau, RadauCollocation
+from .exponential import ExponentialRadau, RadauCollocation, SensitivityRodas
 from .rk4 import RK4Doubling
 from .taylor import TaylorSeries
 from .torchdiffeq import Torchdiffeq
 
 __all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "ExponentialRadau", "RadauCollocation",
+           "SensitivityRodas",
            "PROPAGATORS", "DEFAULT_PROPAGATOR",
            "register_propagator", "linear_propagator"]
 
@@ -57,5 +60,6 @@ def linear_propagator(value: "str | LinearPropagator", arg: str = "linear_solver
                     f"received {type(value).__name__}")
 
 
-for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau(), RadauCollocation()):
+for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau(), RadauCollocation(),
+                    SensitivityRodas()):
     register_propagator(_propagator)

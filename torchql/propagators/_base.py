@@ -20,10 +20,15 @@ class LinearPropagator:
         Whether ``fit`` may also solve the nonlinear model on the grid (multiple shooting from a
         predicted trajectory, :mod:`torchql.grid_solve`) wherever a prediction is at hand; if
         not, every nonlinear pass is integrated by the adaptive ``solver``.
+    with_solution : bool
+        Whether, where the reference is the model's own solution (shooting's iterates, every
+        fit's final pass), the homogeneous solutions are integrated together with that solution
+        by Rodas5P (:mod:`torchql.solvers.sensitivity`) instead of by this propagator's transfers.
     """
 
     name: str = ""
     grid_solver: bool = True
+    with_solution: bool = False
 
     def transfers(self, system: "IntervalSystem", *, rtol: float, atol: float, solver: str,
                   max_steps: int | None) -> "tuple[Transfers, int]":

@@ -60,7 +60,7 @@ from ..integrate import IntegrationError
 from ..transfer import Transfers, _Coefficients, _product
 from ._base import LinearPropagator
 
-__all__ = ["ExponentialRadau", "RadauCollocation", "ExponentialTransfers", "exponential_series",
+__all__ = ["ExponentialRadau", "RadauCollocation", "SensitivityRodas", "ExponentialTransfers", "exponential_series",
            "exponential_transfers"]
 
 _SQRT6 = math.sqrt(6.0)
@@ -281,3 +281,21 @@ class RadauCollocation(ExponentialRadau):
 
     name = "radau"
     freeze = False
+
+
+class SensitivityRodas(RadauCollocation):
+    """``linear_solver="rodas5p"``: where the reference is the model's own solution (shooting's
+    iterates, every fit's final pass), its sensitivities are integrated with it by Rodas5P on the
+    variational system, on the solution's own adaptive steps (:mod:`torchql.solvers.sensitivity`);
+    Kantorovich's other references are propagated as by ``"radau"``.
+
+    For stiff models whose fast changes fall inside grid intervals (relaxation oscillations: van
+    der Pol with ``mu = 1000``, whose jumps no grid placed before the solution is known resolves)
+    or whose stiffness per interval is intermediate (``h |lambda| ~ 10^2 .. 10^5``, where Radau
+    transfers need many substeps: Boehm's STAT5 model), with ``method="shooting"``. Each step
+    costs a Jacobian at every stage, so on a model that the grid transfers handle at once
+    (Robertson kinetics) it is slower than ``"radau"``.
+    """
+
+    name = "rodas5p"
+    with_solution = True
