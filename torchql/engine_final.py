@@ -14,6 +14,7 @@ from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, null_detail, typical_magnitudes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
+from .solvers import STIFF_SOLVERS
 from .uncertainty import covariance
 
 __all__ = ["FinalPass"]
@@ -94,7 +95,10 @@ class FinalPass:
         if not rows.numel():
             return rows, None, None
         W = None
-        if self._joint_sensitivities:  # the solution and its sensitivities on the same adaptive steps
+        if self._joint_sensitivities or self.spec.solver in STIFF_SOLVERS:
+            # the solution and its sensitivities on the same adaptive steps: for a stiff model the
+            # grid's transfers may miss a fast change inside an interval, and the status and the
+            # covariance are only as true as this Jacobian
             traj, W, errors = self._solve_with_sensitivities(rows, z0[rows])
         else:
             traj, errors = self._nonlinear(rows, z0[rows], loose=False, guess=final_guess[rows])
