@@ -54,9 +54,14 @@ def boehm_experiment(problem: PetabProblem, values: Mapping[str, float]):
 
 
 def fit_boehm(problem: PetabProblem, values: Mapping[str, float], **options) -> torchql.FitResult:
-    """Fit Boehm's rates and noise sigmas from the guesses ``values`` (linear scale), with the problem's
-    integration tolerances unless ``options`` say otherwise (other ``options`` go to :func:`torchql.fit`)."""
+    """Fit Boehm's rates and noise sigmas from the guesses ``values`` (linear scale), by shooting with
+    ``linear_solver="rodas5p"`` and the problem's integration tolerances unless ``options`` say
+    otherwise (other ``options`` go to :func:`torchql.fit`)."""
     model, data, x0 = boehm_experiment(problem, values)
+    # shooting with the sensitivities integrated with each solution (linear_solver="rodas5p"): the
+    # stiff grid's Radau transfers need many substeps on this model's intermediate stiffness
+    options.setdefault("method", "shooting")
+    options.setdefault("linear_solver", "rodas5p")
     options.setdefault("rtol", problem.spec.rtol)
     options.setdefault("atol", problem.spec.atol)
     bounds = {name: (problem.parameters[name].lower, problem.parameters[name].upper) for name in RATES}
