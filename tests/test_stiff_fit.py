@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Relaxation, relaxation_solution
 from torchql.models import Robertson
 
 DT = torch.float64
@@ -97,11 +98,9 @@ def test_sensitivities_integrated_with_the_solution_give_the_grid_transfers_opti
     ``fit_many``'s first sample equals its own fit (1e-8; measured bit-identical), the second,
     from another guess, the same optimum (1e-7; measured 9e-10). The model relaxes fast (``k = 50``) onto a driven
     trajectory; the data are exact, x0 and k unknown."""
-    from solvers.test_sensitivity import Relaxation, closed_form
-
     t = torch.logspace(-2, 0, 8, dtype=DT)
     x0, k = torch.tensor(2.0, dtype=DT), torch.tensor(50.0, dtype=DT)
-    data = torchql.Observations(t, closed_form(t, x0, k).unsqueeze(-1), observe=["x"])
+    data = torchql.Observations(t, relaxation_solution(t, x0, k).unsqueeze(-1), observe=["x"])
     options = dict(t0=0.0, method="shooting", solver="rodas5p", rtol=1e-6, atol=1e-10)
     guess = torch.tensor([1.5], dtype=DT)
     grid = torchql.fit(Relaxation(k=80.0), data, guess, linear_solver="radau", **options)

@@ -48,3 +48,22 @@ class SIR(torchql.ODEModel):
         S, I = x[..., 0], x[..., 1]
         infection = self.beta * S * I / self.N
         return torch.stack([-infection, infection - self.gamma * I, self.gamma * I], -1)
+
+
+class Relaxation(torchql.ODEModel):
+    """``x' = -k (x - cos t)``: stiff for large ``k``, driven by the time-dependent ``cos t``."""
+
+    state_names = ("x",)
+
+    def __init__(self, k=1e3):
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return -self.k * (x - torch.cos(t))
+
+
+def relaxation_solution(t, x0, k):
+    """``x(t) = (x0 - x_p(0)) e^{-k t} + x_p(t)``, ``x_p = k (k cos t + sin t) / (k^2 + 1)``."""
+    particular = k * (k * torch.cos(t) + torch.sin(t)) / (k**2 + 1)
+    return (x0 - k**2 / (k**2 + 1)) * torch.exp(-k * t) + particular

@@ -270,9 +270,6 @@ class Engine(Evaluation, FinalPass):
             for r in bad.nonzero().flatten().tolist():
                 st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
                 st.detail[r] = f" The solver said: {errors[r]}."
-            if W is not None:  # failed samples: any finite stand-in, as for a failed trial
-                traj = torch.where(bad.reshape(-1, 1, 1), st.z0.unsqueeze(1).expand_as(traj), traj)
-                W = torch.where(bad.reshape(-1, 1, 1, 1), spec.columns(st.z0).unsqueeze(1).expand_as(W), W)
             lin = self._linearize(all_idx, traj)
             st.cur = self._evaluate(all_idx, st.z0, traj, lin.f, lin, solution=not kantorovich, W=W)
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)

@@ -275,7 +275,7 @@ class Evaluation:
         Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``, several samples,
         no ``max_steps``), then torchdiffeq per sample; fills ``traj``, ``ok`` and ``errors`` in place."""
         spec = self.spec
-        S, G = z0.shape[0], self.G
+        S = z0.shape[0]
         grid = self._grid_of(idx)
         shared = grid.dim() == 1
 
@@ -288,13 +288,7 @@ class Evaluation:
         stiff = spec.solver in STIFF_SOLVERS
         batched = spec.solver == "dopri5" and spec.max_steps is None and S > 1  # one sample: torchdiffeq's
         if sub.numel() and (stiff or batched):
-            # the steps land on the observation times, the other nodes from the dense output
-            if shared:
-                land = torch.zeros(G, dtype=torch.bool, device=z0.device)
-                land[self.obs] = True
-            else:
-                land = torch.zeros(sub.numel(), G, dtype=torch.bool, device=z0.device)
-                land.scatter_(1, self.obs[idx[sub]], True)
+            land = self._landing(idx[sub])
             if stiff:  # every sample by the implicit solver; its message kept for a failure
                 self._rodas(sub, z0, grid_of(sub), rtol, atol, land, traj, ok, errors)
                 return
@@ -345,34 +339,43 @@ class Evaluation:
         on the grid of the chunk's samples ``idx`` (the steps landing on the observation times):
         ``traj (S, G, M)``, ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the
         homogeneous columns from :meth:`~torchql.problem.Problem.columns`) and error messages
-        (None: ok; NaN rows where a sample failed).
+        (None: ok). A sample that failed keeps its initial state and columns at every node: a
+        finite stand-in, as a failed trial needs one.
 
         Each column is integrated scaled by its unknown's magnitude (1 for a zero one), so that the
         error control holds it to the states' relative accuracy whatever the unknown's units.
         """
-        spec, system, n, M, G = self.spec, self.system, self.system.n, self.system.M, self.G
+        spec, system, n, M = self.spec, self.system, self.system.n, self.system.M
         columns = spec.columns(z0)[..., 1:]
         m = columns.shape[-1]
         scale = z0[:, spec.unknown_index].abs()
         scale = torch.where(scale > 0, scale, torch.ones_like(scale)).unsqueeze(1)  # (S, 1, m)
         grid = self._grid_of(idx)
         S = z0.shape[0]
-        if grid.dim() == 1:
-            land = torch.zeros(G, dtype=torch.bool, device=z0.device)
-            land[self.obs] = True
-        else:
-            land = torch.zeros(S, G, dtype=torch.bool, device=z0.device)
-            land.scatter_(1, self.obs[idx], True)
         budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
         field = SensitivityField(system, m, vectorize=S > 1)
         with torch.no_grad():
             sol = rodas5p_batch(field, joint_state(z0, columns * scale, n), grid, rtol=spec.rtol, atol=spec.atol,
-                                land=land, error_components=n + n * m, vectorize=S > 1, **budget)
+                                land=self._landing(idx), error_components=n + n * m, vectorize=S > 1, **budget)
         self.nfev += sol.n_f
         z, V = split_joint(sol.y, n, M, m)
         W = torch.cat([z.unsqueeze(-1), V / scale.unsqueeze(1)], dim=-1)
+        failed = ~sol.ok
+        z = torch.where(failed.reshape(-1, 1, 1), z0.unsqueeze(1).expand_as(z), z)
+        W = torch.where(failed.reshape(-1, 1, 1, 1), spec.columns(z0).unsqueeze(1).expand_as(W), W)
         errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(S)]
         return z, W, errors
+
+    def _landing(self, rows: torch.Tensor) -> torch.Tensor:
+        """The nodes that an adaptive solver's steps land on for the samples of chunk indices
+        ``rows``: their observation times, ``(G,)`` on a shared grid or ``(S, G)`` (the other
+        nodes come from the dense output)."""
+        if self.grid.dim() == 1:
+            land = torch.zeros(self.G, dtype=torch.bool, device=self.grid.device)
+            land[self.obs] = True
+            return land
+        land = torch.zeros(rows.numel(), self.G, dtype=torch.bool, device=self.grid.device)
+        return land.scatter_(1, self.obs[rows], True)
 
     def _grid_solve_one(self, z0, grid, guess, rtol, atol, substeps):
         """:func:`~torchql.grid_solve.solve_on_grid` for one sample ``z0 (M,)`` on ``grid (G,)``

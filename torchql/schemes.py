@@ -96,15 +96,13 @@ class Shooting(Scheme):
     def trial(self, engine, act, cur, z0_new, z_new):
         guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
         W = None
-        if engine._joint_sensitivities:  # a stiff model: its solution and sensitivities in one pass
+        if engine._joint_sensitivities:  # the solution and its sensitivities in one pass (finite where failed)
             traj, W, errors = engine._solve_with_sensitivities(act, z0_new)
         else:
             traj, errors = engine._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True,
                                              reference=(_pick(cur["z0"], act), _pick(cur["rz"], act)))
         integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
         traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
-        if W is not None:
-            W = torch.where(integrated.reshape(-1, 1, 1, 1), W, engine.spec.columns(z0_new).unsqueeze(1).expand_as(W))
         lin = engine._linearize(act, traj)
         trial = engine._evaluate(act, z0_new, traj, lin.f, lin, solution=True, W=W)
         trial["defect"] = torch.zeros_like(trial["merit"])

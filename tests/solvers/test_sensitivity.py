@@ -10,7 +10,7 @@ tolerance-controlled integration's global error is a small multiple of one.
 import pytest
 import torch
 
-import torchql
+from testmodels import Relaxation, relaxation_solution
 from torchql.model import AugmentedSystem
 from torchql.models import Robertson
 from torchql.solvers import rodas5p_batch
@@ -18,25 +18,6 @@ from torchql.solvers.sensitivity import SensitivityField, joint_state, split_joi
 
 DT = torch.float64
 RTOL, ATOL = 1e-8, 1e-12
-
-
-class Relaxation(torchql.ODEModel):
-    """``x' = -k (x - cos t)``: stiff for large ``k``, driven by the time-dependent ``cos t``."""
-
-    state_names = ("x",)
-
-    def __init__(self, k=1e3):
-        super().__init__()
-        self.register_buffer("k", torch.tensor(k, dtype=DT))
-
-    def forward(self, t, x):
-        return -self.k * (x - torch.cos(t))
-
-
-def closed_form(t, x0, k):
-    """``x(t) = (x0 - x_p(0)) e^{-k t} + x_p(t)``, ``x_p = k (k cos t + sin t) / (k^2 + 1)``."""
-    particular = k * (k * torch.cos(t) + torch.sin(t)) / (k**2 + 1)
-    return (x0 - k**2 / (k**2 + 1)) * torch.exp(-k * t) + particular
 
 
 def solve(system, z0, columns, grid, vectorize):
@@ -53,7 +34,7 @@ def test_sensitivities_match_the_closed_form_derivatives(vectorize):
     system = AugmentedSystem(Relaxation(), ["k"], DT, torch.device("cpu"))
     grid = torch.tensor([0.0, 1e-4, 1e-3, 0.01, 0.1, 1.0, 3.0], dtype=DT)
     x0, k = torch.tensor(2.0, dtype=DT, requires_grad=True), torch.tensor(1e3, dtype=DT, requires_grad=True)
-    exact = closed_form(grid, x0, k)
+    exact = relaxation_solution(grid, x0, k)
     d_x0 = torch.stack([torch.autograd.grad(e, x0, retain_graph=True)[0] for e in exact])
     d_k = torch.stack([torch.autograd.grad(e, k, retain_graph=True)[0] for e in exact])
     # columns scaled as the engine scales them: d/dx0 by |x0|, d/dk by |k|

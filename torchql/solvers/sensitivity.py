@@ -52,7 +52,6 @@ class SensitivityField(BatchedField):
     """
 
     def __init__(self, system, m: int, vectorize: bool = True) -> None:
-        self.width = system.n + system.n * m + system.P + system.P * m
         self.n_f = 0
         self.n_jac = 0
         layout = _Layout(system.n, system.P, m)
@@ -72,8 +71,7 @@ class _Layout:
 
     def split(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``z (M,)`` and the columns ``V (M, m)`` of a joint state ``y (D,)``."""
-        z, V = split_joint(y, self.n, self.n + self.P, self.m)
-        return z, V
+        return split_joint(y, self.n, self.n + self.P, self.m)
 
     def joint(self, f: torch.Tensor, AV: torch.Tensor) -> torch.Tensor:
         """The joint vector ``(f, A V, 0, 0)`` from ``f (n,)`` and ``A V`` (``n m`` values)."""
