@@ -50,7 +50,8 @@ from .multi import experiment_result, stack_experiments, stack_observations
 from .observations import Observations
 from .options import FitOptions, Limits, accepts_options, recorded_options
 from .parameters import apply_parameters
-from .problem import Problem, check_data, inputs_all_or_none
+from .datasets import check_data, inputs_all_or_none
+from .problem import Problem
 from .propagators import LinearPropagator
 from .result import IterationRecord
 

@@ -112,6 +112,9 @@ class BatchFitResult:
         Each sample's negative log-likelihood at its estimates (:mod:`torchql.noise`).
     sigma : Tensor ``(B, G)`` or None
         The estimated standard deviations (``sigma="estimate"``), one per group ``sigma_names``.
+    sigma_stderr : Tensor ``(B, G)`` or None
+        Their standard errors, from the expected information (``sigma / sqrt(2 n_g)`` for a group
+        of ``n_g`` values; NaN where the fit did not converge).
     noise : str
         The data's noise distribution.
     sigma_function : bool
@@ -159,6 +162,7 @@ class BatchFitResult:
     nll: torch.Tensor | None = field(default=None, repr=False)
     sigma: torch.Tensor | None = field(default=None, repr=False)
     sigma_names: list[str] | None = field(default=None, repr=False)
+    sigma_stderr: torch.Tensor | None = field(default=None, repr=False)
     noise: str = field(default="normal", repr=False)
     sigma_function: bool = field(default=False, repr=False)
     experiment_t0: list[float] | None = field(default=None, repr=False)
@@ -240,6 +244,8 @@ class BatchFitResult:
             moved_guesses=dict(self.moved_guesses.get(i, {})),
             nll=math.nan if self.nll is None else float(self.nll[i]),
             sigma=None if self.sigma is None else dict(zip(self.sigma_names, self.sigma[i].tolist())),
+            sigma_stderr=(None if self.sigma_stderr is None
+                          else dict(zip(self.sigma_names, self.sigma_stderr[i].tolist()))),
             noise=self.noise, sigma_function=self.sigma_function,
             experiment_t0=None if self.experiment_t0 is None else list(self.experiment_t0),
             conditions=self.conditions)
@@ -351,6 +357,8 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         nll=None if any(p.nll is None for p in parts) else torch.cat([p.nll for p in parts]),
         sigma=None if any(p.sigma is None for p in parts) else torch.cat([p.sigma for p in parts]),
         sigma_names=first.sigma_names,
+        sigma_stderr=(None if any(p.sigma_stderr is None for p in parts)
+                      else torch.cat([p.sigma_stderr for p in parts])),
         noise=first.noise,
         sigma_function=first.sigma_function,
     )

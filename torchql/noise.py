@@ -13,15 +13,9 @@ group: ``None`` (default) one group per output, ``"shared"`` one for all, or a l
 (outputs with the same label share their sigma; with several experiments, the same label, or
 the same observed state by default, is one sigma for all experiments).
 
-**Estimation.** For fixed coefficients the likelihood's maximum over a group's sigma is
-``sigma_g^2 = SSE_g / n_g`` (the group's sum of squared residuals over its number of values), and
-the gradient of the profile negative log-likelihood ``sum_g n_g / 2 log SSE_g`` in the unknowns
-is that of the sum of squares weighted by ``1 / sigma_g^2``. So the maximum-likelihood estimates
-are the fixed point of: fit the weighted least squares, set each ``sigma_g`` from its residuals,
-repeat (:func:`run_with_noise`, warm-started each round from the last estimates) until the sigmas
-settle to :data:`SIGMA_RTOL`. At the fixed point the weighted sum of squares is the number of
-values, and the covariance of the unknowns is ``(J^T W J)^-1`` with those weights (the sigmas
-are asymptotically independent of the unknowns for Gaussian noise).
+**Estimation.** The sigmas are unknowns of the fit, estimated with the coefficients by maximum
+likelihood (:mod:`torchql.estimated_noise`); at the optimum each group's weighted sum of squares
+is its number of values (``sigma_g^2 = SSE_g / n_g``).
 
 **Likelihood.** Every fit reports the negative log-likelihood of its data at the estimates
 (:func:`negative_log_likelihood`): ``sum_i log sigma_i + n/2 log(2 pi) + SSE_w / 2`` over the
@@ -37,17 +31,10 @@ from collections.abc import Sequence
 
 import torch
 
-from .status import Status
-
-__all__ = ["NOISE_MODELS", "SIGMA_RTOL", "MAX_SIGMA_ROUNDS", "sigma_group_index", "estimate_sigma",
-           "negative_log_likelihood", "run_with_noise"]
+__all__ = ["NOISE_MODELS", "sigma_group_index", "estimate_sigma", "negative_log_likelihood", "run_with_noise"]
 
 #: The noise distributions of :class:`torchql.Observations`.
 NOISE_MODELS = ("normal", "lognormal")
-#: The estimated sigmas have settled when no one changes by more than this, relative.
-SIGMA_RTOL = 1e-9
-#: Most rounds of estimating the sigmas and re-fitting.
-MAX_SIGMA_ROUNDS = 50
 
 
 def sigma_group_index(groups, K: int, labels: Sequence[str]) -> tuple[list[str], list[int]]:
@@ -87,48 +74,16 @@ def negative_log_likelihood(sse_weighted: torch.Tensor, log_sigma_sum: torch.Ten
 
 
 def run_with_noise(spec, run):
-    """``run(spec)`` (the engine on the problem ``spec``, a :class:`torchql.problem.Problem`), and
-    with estimated sigmas the rounds of :mod:`torchql.noise` until they settle. Sets the result's
-    ``nll``, ``sigma`` and ``sigma_names``; returns it."""
+    """``run(spec)`` (the engine on the problem ``spec``, a :class:`torchql.problem.Problem`), with the
+    result's noise fields set: ``noise``, ``nll``, and with ``sigma="estimate"`` the sigmas moved out
+    of its unknowns (``sigma``, ``sigma_stderr``, ``sigma_names``). Returns the result."""
     result = run(spec)
-    if spec.sigma_estimated:
-        first, rounds = result, 1
-        total = result.iterations.clone()
-        while rounds < MAX_SIGMA_ROUNDS:
-            sigma = _sigma_of(spec, result)
-            used = spec.sigma_per_group  # those of `result`'s weights
-            if used is not None and bool(((sigma - used).abs() <= SIGMA_RTOL * used.abs()).all()):
-                break
-            if any(status is Status.MAX_TIME for status in result.status):
-                break  # out of time: the last round's estimates, at its sigmas
-            spec.set_sigma(sigma)
-            spec.warm_start(result.estimates)
-            result = run(spec)
-            total += result.iterations
-            rounds += 1
-        result.iterations = total
-        result.start_params, result.start_x0, result.sse_start = first.start_params, first.start_x0, first.sse_start
-        if spec.sigma_per_group is None:  # out of time in the first, unweighted, round: no estimate
-            result.sigma = torch.full((spec.B, len(spec.sigma_names)), float("nan"), dtype=spec.dtype,
-                                      device=spec.device)
-        else:
-            result.sigma = spec.sigma_per_group.clone()
-        result.sigma_names = list(spec.sigma_names)
     result.noise = spec.noise
-    result.sigma_function = spec.sigma_function is not None
+    result.sigma_function = spec.sigma_callable is not None and spec.estimated_noise is None
     _set_likelihood(spec, result)
+    if spec.estimated_noise is not None:
+        spec.estimated_noise.split(result, spec.m)
     return result
-
-
-def _sigma_of(spec, result) -> torch.Tensor:
-    """The sigmas ``(B, G)`` of ``result``'s residuals (unweighted) over its least-squares values."""
-    B, T, K = spec.y.shape
-    residual = result.residuals.reshape(B, T, K) / spec.weights.clamp(min=torch.finfo(spec.dtype).tiny)
-    counted = spec.mask & ~spec.exact
-    sigma = estimate_sigma(residual, counted, spec.sigma_group, len(spec.sigma_names))
-    floor = 1e3 * torch.finfo(spec.dtype).eps * spec.y.abs().amax(dim=(1, 2)).clamp(min=1.0).unsqueeze(-1)
-    # a group fitted exactly keeps a sigma at the data's rounding (the likelihood has no maximum there)
-    return torch.where(torch.isfinite(sigma), torch.maximum(sigma, floor), torch.ones_like(sigma))
 
 
 def _set_likelihood(spec, result) -> None:

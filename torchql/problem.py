@@ -21,17 +21,19 @@ from .grid import DEFAULT_INTERVALS, make_grid, make_grids, smooth_intervals
 from .integrate import check_solver
 from .linearize import linearize
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
+from .estimated_noise import EstimatedNoise
 from .noise import sigma_group_index
 from .sigma_function import SigmaFunction
 from .observations import LogObservation, ObservationOperator, Observations
 from .damping import damping_strategy
+from .datasets import check_data, shared_inputs
 from .options import Limits, Tolerances, check_scheme
 from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns
 from .initial_state import InitialStateExpressions, check_expressions
 
-__all__ = ["Problem", "check_data"]
+__all__ = ["Problem"]
 
 
 class Problem:
@@ -52,6 +54,11 @@ class Problem:
         self._options(model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
                       rtol, atol, xtol, ftol, rcond)
         self._stack(data, self.dtype, self.device)  # data: (B, T, K)
+        user_model = model
+        #: ``sigma="estimate"``: the sigmas as unknowns of the fit (:mod:`torchql.estimated_noise`)
+        self.estimated_noise = None
+        if self.sigma_estimated:
+            model, params, guesses, bounds, scale = self._estimated_noise(model, params, guesses, bounds, scale)
         per_sample, p0 = self._coefficients(model, params, guesses)
         system = self.system
         # --- times: t_obs (T,) shared or (B, T) per sample, t0 () shared or (B,) per sample
@@ -88,7 +95,7 @@ class Problem:
                 self.system, measured, self.unknown_index, self.z0[0], t0))
         #: ``"auto"`` chose the data: a sample whose fit fails is fitted again from the integrated guesses
         self.start_fallback = given == "auto" and self.initial_trajectory == "data"
-        self.model = model
+        self.model = user_model
 
     def _options(self, model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
                  rtol, atol, xtol, ftol, rcond) -> None:
@@ -106,6 +113,22 @@ class Problem:
         self.dtype, self.device = dtype, _ = model_dtype_device(model)
         tol = Tolerances.resolve(dtype, rtol, atol, xtol, ftol, rcond)
         self.rtol, self.atol, self.xtol, self.ftol, self.rcond = tol.rtol, tol.atol, tol.xtol, tol.ftol, tol.rcond
+
+    def _estimated_noise(self, model, params, guesses, bounds, scale):
+        """``sigma="estimate"``: the model's copy holding the sigmas as coefficients, and ``params``,
+        ``guesses``, ``bounds`` and ``scale`` with them added (log scale, bounded below by the floor,
+        started from the data's scatter). Arguments of the wrong type are passed on unchanged, for
+        their own checks to name."""
+        names = tuple(model.state_names)
+        labels = ObservationOperator(self.observe, names, self.K, self.dtype, self.device).labels()
+        group_names, group = sigma_group_index(self.sigma_groups, self.K, labels)
+        noise = self.estimated_noise = EstimatedNoise(group_names, group, list(coefficient_names(model)) + list(names))
+        y = self.y
+        if self.noise == "lognormal":
+            y = torch.log(torch.where(self.mask & (y > 0), y, torch.ones_like(y)))
+        self.sigma_callable = noise
+        return noise.added(model, params, guesses, bounds, scale, noise.start(self.t, y, self.mask),
+                           noise.floor(y, self.mask))
 
     def _coefficients(self, model, params, guesses) -> tuple[list[str], torch.Tensor]:
         """The estimated coefficients (``self.params``), the augmented system over them and the
@@ -300,13 +323,13 @@ class Problem:
     def _stack(self, data, dtype, device) -> None:
         data = check_data(data)
         if isinstance(data, Observations):
-            self.inputs = _shared_inputs([data.inputs_of(b) for b in range(data.batch_size)])
+            self.inputs = shared_inputs([data.inputs_of(b) for b in range(data.batch_size)])
             first, y, sigma, exact = data, data.y, data.sigma, data.exact
             t = data.t.to(dtype=dtype, device=device)
             low = [("data", data.y.dtype)] if _coarser(data.y.dtype, dtype) else []
         else:
             first = data[0]
-            self.inputs = _shared_inputs([d.inputs for d in data])
+            self.inputs = shared_inputs([d.inputs for d in data])
             t = torch.stack([d.t.to(dtype=dtype, device=device) for d in data])
             exact = torch.stack([d.exact for d in data])
             y = torch.stack([d.y.to(dtype) for d in data])
@@ -342,7 +365,6 @@ class Problem:
         likelihood's change of variable."""
         self.sigma_names, group = sigma_group_index(self.sigma_groups, self.K, self.operator.labels())
         self.sigma_group = torch.tensor(group, dtype=torch.long, device=self.device)
-        self.sigma_per_group = None
         self.log_y_sum = torch.zeros(self.B, dtype=self.dtype, device=self.device)
         if self.noise == "lognormal":
             counted = self.mask & ~self.exact
@@ -350,12 +372,6 @@ class Problem:
             self.log_y_sum = torch.where(counted, log_y, torch.zeros_like(log_y)).flatten(1).sum(dim=1)
             self.y = log_y
             self.operator = LogObservation(self.operator)
-
-    def set_sigma(self, sigma: torch.Tensor) -> None:
-        """Weigh every value by ``1 / sigma`` of its group: ``sigma (B, G)``."""
-        per_output = sigma[:, self.sigma_group].unsqueeze(1)  # (B, 1, K)
-        self.weights = torch.where(self.mask, 1.0 / per_output, torch.zeros_like(self.weights))
-        self.sigma_per_group = sigma.clone()
 
     def weights_at(self, estimates: torch.Tensor) -> torch.Tensor:
         """The values' weights ``1 / sigma (B, T, K)`` with the unknowns at ``estimates (B, m)``: the
@@ -366,14 +382,6 @@ class Problem:
         z0[:, self.unknown_index] = torch.where(torch.isfinite(estimates), estimates, z0[:, self.unknown_index])
         sigma, _ = self.sigma_function.evaluate(self.initial.complete(z0))
         return self.weights / sigma.unsqueeze(1)
-
-    def warm_start(self, estimates: torch.Tensor) -> None:
-        """Start from ``estimates (B, m)`` where they are finite (the next round of a noise estimate)."""
-        current = self.z0[:, self.unknown_index]
-        self.z0[:, self.unknown_index] = torch.where(torch.isfinite(estimates), estimates, current)
-        self.z0 = self.initial.complete(self.z0)
-        # the next round integrates from these estimates: a data-built start would discard them
-        self.initial_trajectory, self.start_fallback = "integrate", False
 
     def shifted(self, z0: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         """The augmented initial states ``z0 (S, M)`` with the unknowns moved by ``alpha (S, m)`` and
@@ -457,6 +465,9 @@ class Problem:
         base = getattr(self.operator, "inner", self.operator)
         self.operator.check(x0, base._params(self.z0[0]) if base.takes_params else None)
         if self.sigma_function is not None:
+            if self.has_exact and self.estimated_noise is not None:
+                raise ValueError("`exact` values cannot be combined with sigma='estimate': give the data a "
+                                 "fixed sigma, or drop `exact`")
             if self.has_exact:
                 raise ValueError("`exact` values cannot be combined with a `sigma` function of the coefficients: "
                                  "give the exact values' experiment a fixed sigma, or drop `exact`")
@@ -510,89 +521,6 @@ class Problem:
         return params
 
 
-def check_data(data) -> Observations | list[Observations]:
-    """``fit_many``'s ``data`` validated: one batched Observations as it is, or a list of datasets.
-
-    A list must hold one-dataset Observations with the same number ``T`` of observation times
-    (each its own times), the same ``observe`` specification and all or none giving ``sigma``
-    (a batched Observations has them in common by construction). Errors name the argument and
-    the dataset.
-    """
-    if isinstance(data, Observations):
-        if data.batch_size is None:
-            raise TypeError("`data` must be a list of torchql.Observations (one per dataset) or one Observations "
-                            "holding a batch, values (B, T, K); received a single dataset, values "
-                            f"{tuple(data.y.shape)} (a single dataset: use torchql.fit, or pass [data])")
-        return data
-    if not isinstance(data, (list, tuple)):
-        raise TypeError("`data` must be a list of torchql.Observations (one per dataset) or one Observations "
-                        f"holding a batch, values (B, T, K); received {type(data).__name__}")
-    if len(data) == 0:
-        raise ValueError("`data` is an empty list: give one torchql.Observations per dataset (B >= 1)")
-    for i, d in enumerate(data):
-        if not isinstance(d, Observations):
-            raise TypeError(f"`data[{i}]` must be a torchql.Observations; received {type(d).__name__}")
-        if d.batch_size is not None:
-            raise ValueError(f"`data[{i}]` holds a batch of {d.batch_size} datasets, values {tuple(d.y.shape)}: "
-                             "pass a batched Observations alone as `data`, not in a list")
-    items = list(data)
-    first = items[0]
-    for i, d in enumerate(items[1:], start=1):
-        if d.n_times != first.n_times:
-            raise ValueError(f"`data[{i}]` has T = {d.n_times} observation times but `data[0]` has "
-                             f"{first.n_times}: fit_many needs the same number of times in every dataset (each "
-                             "may have its own times); fit datasets with other numbers of times in another batch")
-        if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
-            raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
-                             "fit_many needs one observation operator for all datasets (the same names, matrix "
-                             "or callable object)")
-        if ((d.noise, d.sigma_estimated, d.sigma_groups) != (first.noise, first.sigma_estimated, first.sigma_groups)
-                or d.sigma_function is not first.sigma_function):
-            raise ValueError(f"`data[{i}]` has another noise model than `data[0]` (`noise`, sigma='estimate', "
-                             "`sigma_groups` or the sigma(p) function object differ): one batch has one noise model")
-        if d.sigma_given != first.sigma_given:
-            raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
-                             f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
-    return items
-
-
-def inputs_all_or_none(inputs: list) -> None:
-    """An error naming the first dataset that has inputs where ``data[0]`` has none, or the reverse."""
-    given = [item is not None for item in inputs]
-    if any(given) and not all(given):
-        b = given.index(not given[0])
-        raise ValueError(f"`data[{b}]` {'carries' if given[b] else 'carries no'} inputs but `data[0]` "
-                         f"{'does' if given[0] else 'does not'}: give inputs for every dataset or for none")
-
-
-def _shared_inputs(inputs: list):
-    """The samples' one input signal (``None`` without inputs); an error when they differ."""
-    first = inputs[0]
-    if all(first.same_as(item) if first is not None else item is None for item in inputs[1:]):
-        return first
-    inputs_all_or_none(inputs)
-    b = next(i for i, item in enumerate(inputs) if not first.same_as(item))
-    raise ValueError(f"`data[{b}]` has other inputs than `data[0]`: one problem takes one input signal for all its "
-                     "samples (torchql.fit_many groups samples by their inputs)")
-
-
 def _coarser(data_dtype: torch.dtype, dtype: torch.dtype) -> bool:
     """Whether data of ``data_dtype`` are rounded more coarsely than the computation's ``dtype``."""
     return torch.finfo(data_dtype).eps > torch.finfo(dtype).eps
-
-
-def _same_observe(a, b) -> bool:
-    if a is b:
-        return True
-    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
-        return a.shape == b.shape and torch.equal(a.to(torch.float64), b.to(torch.float64))
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return list(a) == list(b)
-    try:
-        import numpy as np
-
-        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-            return bool(np.array_equal(np.asarray(a), np.asarray(b)))
-    except ImportError:  # pragma: no cover
-        pass
-    return False

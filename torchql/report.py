@@ -194,8 +194,10 @@ def _statistics_section(result: "FitResult") -> list[str]:
     if result.noise != "normal":
         add(f"    noise              = {result.noise} (fitted on log y; sigma is that of log y)")
     if result.sigma is not None:
-        add("    sigma (estimated)  = " + ", ".join(f"{name}: {_g(value)}" for name, value in result.sigma.items())
-            + " (maximum likelihood; the residuals are in units of it)")
+        stderr = result.sigma_stderr or {}
+        add("    sigma (estimated)  = " + ", ".join(
+            f"{name}: {_g(value)}" + (f" ± {_g(stderr[name], 3)}" if math.isfinite(stderr.get(name, math.nan)) else "")
+            for name, value in result.sigma.items()) + " (maximum likelihood; the residuals are in units of it)")
     elif result.sigma_function:
         add("    sigma              = sigma(p), a function of the unknowns (maximum likelihood; the residuals are "
             "in units of it)")

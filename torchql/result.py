@@ -191,6 +191,8 @@ class FitResult:
     sigma : dict of str to float, or None
         The estimated standard deviations by group (``sigma="estimate"``); ``None`` otherwise.
         The weights, residuals, ``sse`` and covariance are then at these sigmas.
+    sigma_stderr : dict of str to float, or None
+        The estimated sigmas' standard errors (NaN when the fit did not converge).
     noise : str
         The data's noise distribution, ``"normal"`` or ``"lognormal"``.
     sigma_function : bool
@@ -235,6 +237,7 @@ class FitResult:
     index: int | None = field(default=None, repr=False)
     nll: float = field(default=math.nan, repr=False)
     sigma: dict[str, float] | None = field(default=None, repr=False)
+    sigma_stderr: dict[str, float] | None = field(default=None, repr=False)
     noise: str = field(default="normal", repr=False)
     sigma_function: bool = field(default=False, repr=False)
 

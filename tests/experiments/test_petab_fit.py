@@ -48,7 +48,7 @@ def test_bruno_problem_has_its_thirteen_unknowns():
 def test_boehm_problem_built_for_torchql_gives_the_reference_likelihood():
     """The data, observables and initial state that ``fit_boehm`` fits, at the nominal parameters and
     the nominal sigmas, give the reference negative log-likelihood (its fit itself, stiff and with
-    three sigmas estimated, takes minutes per iteration today)."""
+    three sigmas estimated, takes minutes: ``python experiments/petab_fit.py --problem Boehm``)."""
     problem = load_problem(PROBLEMS["Boehm_JProteomeRes2014"], PETAB)
     values = nominal_values(problem)
     model, data, x0 = boehm_experiment(problem, values)
