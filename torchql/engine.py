@@ -40,6 +40,10 @@ from .trajectory import DEFECT_TRUST
 __all__ = ["Engine", "run_engine"]
 
 _STATUSES = list(Status)
+#: The most damping (relative to the largest squared singular value) of a step that may end a fit
+#: by :meth:`Engine._flat`'s test: larger damping shortens every step, and a short step's small
+#: predicted decrease says little about the minimum.
+FLAT_DAMPING = 1e-3
 _RUNNING = -1
 
 
@@ -293,7 +297,10 @@ class Engine(Evaluation, FinalPass):
             return True
         trial, ok = self._propose(act, st.cur, alpha)
         accept = self._accepted(st, act, trial, ok, capped)
+        flat = self._flat(st, act, trial, accept, alpha)
         self._take(st, act, trial, accept)
+        if bool(flat.any()):
+            st.stop(act[flat], Status.CONVERGED_SSE)
         rejected = act[~accept]
         if rejected.numel():
             self._reject(st, rejected, alpha[~accept])
@@ -368,6 +375,25 @@ class Engine(Evaluation, FinalPass):
             if bool(conv_sse.any()):
                 st.stop(act[conv_sse], Status.CONVERGED_SSE)
         return act[~done], alpha[~done], capped[~done]
+
+    def _flat(self, st: "_Loop", act, trial, accept, alpha) -> torch.Tensor:
+        """Which accepted damped steps end their fits at a flat minimum (CONVERGED_SSE): as MINPACK's
+        ``ftol`` test, both the merit's actual change and the linear model's predicted decrease
+        ``|w d|^2 - |w (d - C alpha)|^2`` at most ``ftol`` relative, with damping at most
+        :data:`FLAT_DAMPING`. Undamped steps have :meth:`_converged`'s tests; this one serves a fit
+        whose Gauss–Newton steps along directions the data barely determine are too long to be
+        accepted undamped, so that no undamped step ever comes to be tested."""
+        spec, cur = self.spec, st.cur
+        damping = st.damping[act]
+        flat = accept & (damping > 0) & (damping <= FLAT_DAMPING)
+        if not spec.damping.filters or spec.has_exact or not bool(flat.any()):
+            return torch.zeros_like(accept)
+        C, d, w = _pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act)
+        left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
+        predicted = ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
+        new = trial["merit"]
+        tol = spec.ftol * new.abs()
+        return flat & (predicted <= tol) & ((cur["merit"][act] - new).abs() <= tol)
 
     def _accepted(self, st: "_Loop", act, trial, ok, capped) -> torch.Tensor:
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular

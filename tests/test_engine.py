@@ -1,0 +1,39 @@
+"""The engine's flat-minimum test (MINPACK's ``ftol`` test on accepted damped steps), on hand-made
+iterates: the linear problem ``C alpha ~ d`` with weights ``w``, the merits before and after."""
+
+from types import SimpleNamespace
+
+import torch
+
+from torchql.damping import LevenbergMarquardt, Undamped
+from torchql.engine import FLAT_DAMPING, Engine
+
+DT = torch.float64
+
+
+def _flat(damping, merit_new, alpha, *, filters=True, exact=False, accept=True):
+    """``Engine._flat`` for one sample: ``|d|^2 = 2`` (w = 1), C the identity on two rows, merit 1 -> ``merit_new``."""
+    C = torch.eye(2, dtype=DT).unsqueeze(0)
+    d = torch.tensor([[1.0, 1.0]], dtype=DT)
+    cur = {"C": C, "d": d, "w": torch.ones(1, 2, dtype=DT), "merit": torch.tensor([1.0], dtype=DT)}
+    st = SimpleNamespace(cur=cur, damping=torch.tensor([damping], dtype=DT))
+    spec = SimpleNamespace(ftol=1e-6, has_exact=exact, damping=LevenbergMarquardt() if filters else Undamped())
+    engine = SimpleNamespace(spec=spec)
+    trial = {"merit": torch.tensor([merit_new], dtype=DT)}
+    alpha = torch.tensor([alpha], dtype=DT)
+    return bool(Engine._flat(engine, st, torch.tensor([0]), trial, torch.tensor([accept]), alpha)[0])
+
+
+def test_a_damped_step_that_changes_nothing_ends_the_fit():
+    # predicted decrease |d|^2 - |d - alpha|^2 = 2 - 2 (1 - 1e-7)^2 ~ 4e-7 <= 1e-6, actual 5e-7
+    assert _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7])
+
+
+def test_the_flat_test_needs_every_condition():
+    assert not _flat(1e-4, 1.0 - 5e-7, [1e-3, 1e-3])  # the linear model promises more: 4e-3
+    assert not _flat(1e-4, 1.0 - 5e-6, [1e-7, 1e-7])  # the merit changed by more than ftol
+    assert not _flat(0.0, 1.0 - 5e-7, [1e-7, 1e-7])  # undamped steps: Engine._converged's tests
+    assert not _flat(10 * FLAT_DAMPING, 1.0 - 5e-7, [1e-7, 1e-7])  # too damped: short steps promise little
+    assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], accept=False)
+    assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], filters=False)
+    assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], exact=True)
