@@ -1,0 +1,95 @@
+"""One engine for ``fit`` and ``fit_many``: on seven kinds of problem, by both schemes, each sample of a
+``fit_many`` batch of seven datasets (each with its own noise) equals its own ``fit``: estimates and
+SSE to 1e-8, the same status and the same number of iterations.
+
+The problems: the thesis' linear and nonlinear oscillators, a coasting car, FitzHugh–Nagumo, a
+bounded rate problem (log scale), two experiments per sample, and a dataset with values met exactly.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchql
+from torchql.models import CoastingCar, FitzHughNagumo, LinearOscillator, NonlinearOscillator
+
+DT = torch.float64
+B = 7
+
+
+def _noisy(model, x0, t, noise: float, seed: int, observe=None) -> torch.Tensor:
+    x = torchql.simulate(model, x0, t, rtol=1e-12, atol=1e-14)
+    if observe is not None:
+        x = x[:, observe]
+    g = torch.Generator().manual_seed(seed)
+    return x + noise * x.abs().amax(dim=0) * torch.randn(x.shape, generator=g, dtype=DT)
+
+
+def _problem(name: str, seed: int):
+    """``(model, data, x0, options)`` of sample ``seed`` of problem ``name``."""
+    noise = 1e-3 * (1 + seed)  # each sample its own noise level and draw
+    if name == "linear_oscillator":
+        t = torch.linspace(0, 6, 25, dtype=DT)
+        y = _noisy(LinearOscillator(0.3, 4.0), torch.tensor([1.0, 0.0], dtype=DT), t, noise, seed)
+        return LinearOscillator(0.4, 3.5), torchql.Observations(t, y, observe=["y", "v"]), \
+            torch.tensor([0.9, 0.1], dtype=DT), {}
+    if name == "nonlinear_oscillator":
+        t = torch.linspace(0, 6, 25, dtype=DT)
+        y = _noisy(NonlinearOscillator(0.1, 3.0, 0.2, 4.0), torch.tensor([1.0, 0.0], dtype=DT), t, noise, seed,
+                   observe=[0])
+        return NonlinearOscillator(0.12, 2.8, 0.25, 3.7), torchql.Observations(t, y, observe=["y"]), \
+            torch.tensor([1.0, 0.0], dtype=DT), {"fixed_x0": ["y", "v"]}
+    if name == "car":
+        t = torch.linspace(0, 60, 31, dtype=DT)
+        truth = CoastingCar(frontal_area=2.0, mass=1500.0, C_D=0.35, mu=0.015)
+        y = _noisy(truth, torch.tensor([30.0], dtype=DT), t, noise, seed)
+        return CoastingCar(frontal_area=2.0, mass=1500.0, C_D=0.5, mu=0.03), \
+            torchql.Observations(t, y, observe=["v"]), torch.tensor([29.0], dtype=DT), \
+            {"params": ["C_D", "mu"]}
+    if name == "fitzhugh_nagumo":
+        t = torch.linspace(0, 10, 41, dtype=DT)
+        y = _noisy(FitzHughNagumo(0.2, 0.2, 3.0), torch.tensor([-1.0, 1.0], dtype=DT), t, noise, seed)
+        return FitzHughNagumo(0.25, 0.25, 2.8), torchql.Observations(t, y, observe=["V", "R"]), \
+            torch.tensor([-1.0, 1.0], dtype=DT), {"fixed_x0": ["V", "R"]}
+    if name == "bounded_rate":
+        t = torch.linspace(0, 6, 25, dtype=DT)
+        y = _noisy(LinearOscillator(0.3, 4.0), torch.tensor([1.0, 0.0], dtype=DT), t, noise, seed)
+        return LinearOscillator(0.4, 3.5), torchql.Observations(t, y, observe=["y", "v"]), \
+            torch.tensor([0.9, 0.1], dtype=DT), {"bounds": {"A": (0.05, 2.0), "B": (1.0, 10.0)},
+                                                 "scale": {"A": "log", "B": "log"}}
+    if name == "two_experiments":
+        t = torch.linspace(0, 6, 25, dtype=DT)
+        starts = [torch.tensor([1.0, 0.0], dtype=DT), torch.tensor([0.0, 2.0], dtype=DT)]
+        data = [torchql.Observations(t, _noisy(LinearOscillator(0.3, 4.0), x0, t, noise, 10 * seed + e),
+                                     observe=["y", "v"]) for e, x0 in enumerate(starts)]
+        return LinearOscillator(0.4, 3.5), data, torch.stack(starts), {"fixed_x0": ["y", "v"]}
+    if name == "exact_values":
+        t = torch.linspace(0, 6, 25, dtype=DT)
+        y = _noisy(LinearOscillator(0.3, 4.0), torch.tensor([1.0, 0.0], dtype=DT), t, noise, seed)
+        y[0] = torch.tensor([1.0, 0.0], dtype=DT)  # the start is known exactly
+        exact = torch.zeros(25, 2, dtype=torch.bool)
+        exact[0] = True
+        return LinearOscillator(0.4, 3.5), torchql.Observations(t, y, observe=["y", "v"], exact=exact), \
+            torch.tensor([0.9, 0.1], dtype=DT), {}
+    raise ValueError(name)
+
+
+PROBLEMS = ["linear_oscillator", "nonlinear_oscillator", "car", "fitzhugh_nagumo", "bounded_rate",
+            "two_experiments", "exact_values"]
+
+
+@pytest.mark.parametrize("method", ["kantorovich", "shooting"])
+@pytest.mark.parametrize("name", PROBLEMS)
+def test_each_fit_many_sample_equals_its_own_fit(name, method):
+    samples = [_problem(name, seed) for seed in range(B)]
+    model, _, x0, options = samples[0]
+    alone = [torchql.fit(model, data, x0=x0, method=method, **options) for _, data, _, _ in samples]
+    batch = torchql.fit_many(model, [data for _, data, _, _ in samples], x0=x0, method=method, **options)
+    assert sum(result.success for result in alone) >= B - 1, [result.message for result in alone]
+    for b, result in enumerate(alone):
+        got = batch[b]
+        assert got.status is result.status, (b, got.message, result.message)
+        assert got.iterations == result.iterations, b
+        torch.testing.assert_close(got.estimates, result.estimates, rtol=1e-8, atol=1e-12)
+        assert got.sse == pytest.approx(result.sse, rel=1e-8, abs=1e-20)
