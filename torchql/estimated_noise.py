@@ -14,7 +14,8 @@ The result holds the sigmas apart from the coefficients (:meth:`EstimatedNoise.s
 ``(B, G)`` and ``sigma_stderr`` ``(B, G)``, the unknowns, their covariance and the Jacobian over
 the model's unknowns alone. (The expected information of the Gaussian is block diagonal between
 the mean's unknowns and ``log sigma``, so dropping the sigmas leaves the coefficients' covariance
-as it is.)
+as it is.) While the fit runs, the iteration records a ``callback`` receives hold the sigmas among
+the coefficients, as ``sigma_<group>``; the result's ``history`` does not.
 
 **Start.** Each group's first sigma comes from the data alone: the scatter of every value about the
 straight line through its two neighbours in time (:func:`scatter_sigma`), which smooth noise-free
