@@ -35,6 +35,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
+from .lstsq import solve_update_batch
 from .model import coefficient_names
 
 __all__ = ["EstimatedNoise", "SIGMA_FLOOR", "scatter_sigma"]
@@ -150,9 +151,8 @@ class EstimatedNoise:
                                 for b, moved in result.moved_guesses.items()}
         result.moved_guesses = {b: moved for b, moved in result.moved_guesses.items() if moved}
         result.dof = result.dof + G  # as with known sigmas: values less the model's unknowns
-        for name in self.names:
-            for module in result.model.modules():
-                module._buffers.pop(name, None)
+        for name in self.names:  # registered on the copy's top module by attach
+            del result.model._buffers[name]
 
 
 def scatter_sigma(t: torch.Tensor, y: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -193,10 +193,9 @@ def _coefficient_names(group_names: Sequence[str], taken: set[str]) -> list[str]
 
 def _scaled_singular_values(J: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
     """The singular values ``(B, m)`` of each column-scaled Jacobian ``J (B, R, m)`` (unused rows
-    zero); ``fallback`` where a sample's Jacobian is not finite (not evaluated)."""
+    zero), as the engine's final pass computes them (:func:`torchql.lstsq.solve_update_batch`);
+    ``fallback`` where a sample's Jacobian is not finite (not evaluated)."""
+    rows = J.new_ones(J.shape[:2])
+    _, _, values = solve_update_batch(J, J.new_zeros(J.shape[:2]), rows, 1.0, None)
     finite = torch.isfinite(J).flatten(1).all(dim=1)
-    safe = torch.where(finite.reshape(-1, 1, 1), J, torch.zeros_like(J))
-    norm = torch.linalg.vector_norm(safe, dim=1, keepdim=True)
-    scaled = safe / torch.where(norm > 0, norm, torch.ones_like(norm))
-    values = torch.linalg.svdvals(scaled) if J.shape[1] else J.new_zeros(J.shape[0], 0)
-    return torch.where(finite.unsqueeze(1), values[:, :J.shape[2]], fallback)
+    return torch.where(finite.unsqueeze(1), values, fallback)

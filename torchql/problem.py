@@ -360,11 +360,8 @@ class Problem:
         self.L = self.mask.flatten(1).sum(dim=1)  # (B,)
 
     def _noise_model(self) -> None:
-        """The sigma groups (``sigma_group (K,)``, ``sigma_names``) and, for log-normal data, the
-        logarithms: ``y`` becomes ``log y``, the operator ``log h``, and ``log_y_sum (B,)`` the
-        likelihood's change of variable."""
-        self.sigma_names, group = sigma_group_index(self.sigma_groups, self.K, self.operator.labels())
-        self.sigma_group = torch.tensor(group, dtype=torch.long, device=self.device)
+        """For log-normal data, the logarithms: ``y`` becomes ``log y``, the operator ``log h``, and
+        ``log_y_sum (B,)`` the likelihood's change of variable."""
         self.log_y_sum = torch.zeros(self.B, dtype=self.dtype, device=self.device)
         if self.noise == "lognormal":
             counted = self.mask & ~self.exact
