@@ -28,10 +28,10 @@ import torch
 
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
-from .batch_integrate import _last_nodes
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import Evaluation, _pick, not_above
 from .engine_final import FinalPass
+from .grid import last_nodes
 from .lstsq import ExactRowsError, solve_update, solve_update_batch
 from .problem import Problem
 from .result import IterationRecord, Status
@@ -507,7 +507,7 @@ class Engine(Evaluation, FinalPass):
         spec = self.spec
         y = torch.where(self.mask, self.y, torch.full_like(self.y, float("nan")))
         sigma = torch.where(self.mask, 1.0 / self.w.clamp(min=torch.finfo(self.w.dtype).tiny), torch.ones_like(self.w))
-        ends = (_last_nodes(self.grid) + 1)[idx].tolist() if self.grid.dim() == 2 else [self.G] * idx.numel()
+        ends = (last_nodes(self.grid) + 1)[idx].tolist() if self.grid.dim() == 2 else [self.G] * idx.numel()
         z_ref, z_dot, z0 = data_reference(self.system, self.grid if self.grid.dim() == 1 else self.grid[idx], ends,
                                           self.t_obs if self.t_obs.dim() == 1 else self.t_obs[idx], y[idx],
                                           sigma[idx], self.mask[idx], spec.operator.observed_states, z0,

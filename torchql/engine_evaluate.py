@@ -12,7 +12,9 @@ import math
 
 import torch
 
-from .batch_integrate import dopri_batch, integrate_each, propagate_linear_batch, solve_on_grid_batch
+from .batch_integrate import integrate_each, propagate_linear_batch, solve_on_grid_batch
+from .dopri import dopri_batch
+from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import IntervalBudgetError, solve_on_grid
 from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
@@ -35,6 +37,10 @@ _GRID_NEWTON = 8
 #: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
 #: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
 _GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
+#: Fewest intervals the grid solver integrates over: on a coarser storage grid (``grid="smooth"``,
+#: a small ``grid=``) each interval is split into equal sub-intervals, further shooting nodes solved
+#: in parallel from the guess's cubic Hermite interpolant, instead of many sequential RK4 steps each.
+_GRID_SOLVE_INTERVALS = DEFAULT_INTERVALS
 #: RK4 steps over the whole span beyond which a trial step's trajectory counts as a blow-up
 #: (spread over the grid's intervals; on the default grid the per-interval caps above bind).
 _BLOWUP_STEPS = 16384
@@ -210,12 +216,13 @@ class Evaluation:
         ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
         errors: list = [None] * S
         substeps = _GRID_SUBSTEPS_LOOSE if loose else _GRID_SUBSTEPS
+        fine = (G - 1) * self._split
         if budget_is_final and G > 1:
-            substeps = max(substeps, 1 << max(0, (_BLOWUP_STEPS // (G - 1)).bit_length() - 1))
+            substeps = max(substeps, 1 << max(0, (_BLOWUP_STEPS // fine).bit_length() - 1))
         if spec.max_steps is not None:  # the user's step budget per grid interval binds this solver too
             substeps = min(substeps, 1 << (spec.max_steps.bit_length() - 1))
         with torch.no_grad():
-            if (guess is not None and S * (G - 1) <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
+            if (guess is not None and S * fine <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
                     and spec.solver not in STIFF_SOLVERS and substeps >= 2):
                 coarse = torch.tensor([int(i) in self.coarse_grid for i in idx.tolist()], dtype=torch.bool,
                                       device=z0.device)
@@ -259,16 +266,34 @@ class Evaluation:
         grid = self._grid_of(idx)
         sub = torch.isfinite(guess).flatten(1).all(dim=1).nonzero().flatten()
         over = torch.zeros_like(ok)
+        if not sub.numel():
+            return over
+        k = self._split
+        grid, guess = refine(grid if grid.dim() == 1 else grid[sub], guess[sub], self._slopes(grid, guess[sub]), k)
         if sub.numel() == 1 and grid.dim() == 1:  # one sample: its model with the coefficients bound
             s = int(sub[0])
-            traj[s], ok[s], over[s] = self._grid_solve_one(z0[s], grid, guess[s], rtol, atol, substeps)
-        elif sub.numel():
+            tr, ok[s], over[s] = self._grid_solve_one(z0[s], grid, guess[0], rtol, atol, substeps)
+            traj[s] = tr[::k]
+        else:
             tr, good, evals, over[sub] = solve_on_grid_batch(
-                self.system, z0[sub], grid if grid.dim() == 1 else grid[sub], rtol=rtol, atol=atol, guess=guess[sub],
+                self.system, z0[sub], grid, rtol=rtol, atol=atol, guess=guess,
                 max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
             self.nfev += evals
-            traj[sub[good]], ok[sub[good]] = tr[good], True
+            traj[sub[good]], ok[sub[good]] = tr[good][:, ::k], True
         return over
+
+    @property
+    def _split(self) -> int:
+        """Sub-intervals per grid interval in the grid solver (see :data:`_GRID_SOLVE_INTERVALS`)."""
+        return max(1, math.ceil(_GRID_SOLVE_INTERVALS / max(1, self.G - 1)))
+
+    def _slopes(self, grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """The augmented model's slopes ``(S, G, M)`` at ``z (S, G, M)`` on ``grid`` (``(G,)`` or
+        ``(S, G)``); not evaluated (zeros) where the grid solver needs no sub-intervals."""
+        if self._split == 1:
+            return torch.zeros_like(z)
+        t = grid.expand(z.shape[0], -1).reshape(-1)
+        return torch.vmap(self.system.f)(t, z.reshape(-1, z.shape[-1])).reshape(z.shape)
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:

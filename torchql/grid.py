@@ -16,8 +16,8 @@ import math
 
 import torch
 
-__all__ = ["make_grid", "make_grids", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
-           "EARLIEST", "SMOOTH_SAFETY"]
+__all__ = ["make_grid", "make_grids", "interval_counts", "last_nodes", "refine", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
+           "EARLIEST", "SMOOTH_SAFETY", "SMOOTH_SAMPLES", "SMOOTH_RTOL"]
 
 #: Uniform intervals of the default grid.
 DEFAULT_INTERVALS = 1000
@@ -26,6 +26,13 @@ MIN_INTERVALS = 20
 #: ``grid="smooth"``: the cubic Hermite interpolation error allowed between nodes, as a fraction
 #: of the tolerance ``atol + rtol |x|`` (a sixteenth: each halving of the intervals gains 16).
 SMOOTH_SAFETY = 1 / 16
+#: ``grid="smooth"``: uniform intervals at which the guesses' trajectories are sampled (the
+#: fourth derivative is estimated by third differences of the slopes at this spacing).
+SMOOTH_SAMPLES = 125
+#: ``grid="smooth"``: the guesses' trajectories are integrated at this relative tolerance (or the
+#: fit's, if looser): the fourth derivative is needed to a few percent, not to the fit's tolerance
+#: (on cars and oscillators 1e-6 to 1e-10 gave the same counts within one interval).
+SMOOTH_RTOL = 1e-8
 #: Geometric nodes per decade of ``t - t0`` added for stiff models.
 NODES_PER_DECADE = 10
 #: The earliest geometric node, as a fraction of the span after ``t0``. On Robertson kinetics to
@@ -106,20 +113,31 @@ def make_grids(grid, t0: torch.Tensor, t_obs: torch.Tensor, stiff: bool = False,
     return padded[inverse], sizes[inverse]
 
 
+def interval_counts(grid: torch.Tensor) -> torch.Tensor:
+    """Intervals of positive length of each sample's grid ``(S, G)``: ``(S,)`` (padding excluded)."""
+    return (grid[:, 1:] > grid[:, :-1]).sum(dim=1)
+
+
+def last_nodes(grid: torch.Tensor) -> torch.Tensor:
+    """Index of the first node at each sample's final time, ``(S,)``, of grids ``(S, G)`` (its padding follows)."""
+    return (grid < grid[:, -1:]).sum(dim=1)
+
+
 def smooth_intervals(times: torch.Tensor, x: torch.Tensor, slopes: torch.Tensor, rtol: float, atol: float) -> int:
     """The fewest uniform intervals whose cubic Hermite interpolation of trajectories meets the tolerance.
 
     ``times (G,)`` or per sample ``(S, G)``, uniform from ``t0`` to the end; ``x, slopes (S, G, n)``
     the trajectories and their slopes there. Over an interval of width ``h`` the interpolation error is at most
     ``h^4 / 384`` times the largest fourth derivative of ``x``, the third derivative of the
-    slopes, estimated by third differences over every eighth node. Each component's error must
+    slopes, estimated by third differences at a spacing of about ``1 / SMOOTH_SAMPLES`` of the span
+    (every node of :data:`SMOOTH_SAMPLES` intervals; every eighth of 1000). Each component's error must
     stay below :data:`SMOOTH_SAFETY` times ``atol + rtol max |x|``; the count is the largest any
     sample needs, between :data:`MIN_INTERVALS` and :data:`DEFAULT_INTERVALS` (the default where
     a trajectory is not finite).
     """
     S = x.shape[0]
     times = times.expand(S, times.shape[-1])
-    every = 8
+    every = max(1, (times.shape[-1] - 1) // SMOOTH_SAMPLES)
     f = slopes[:, ::every]
     span = times[:, -1] - times[:, 0]
     if f.shape[1] < 4 or not bool((span > 0).all()):
@@ -131,3 +149,27 @@ def smooth_intervals(times: torch.Tensor, x: torch.Tensor, slopes: torch.Tensor,
         return DEFAULT_INTERVALS
     width = (384 * tol / fourth.clamp(min=torch.finfo(x.dtype).tiny)) ** 0.25
     return min(DEFAULT_INTERVALS, max(MIN_INTERVALS, math.ceil(float((span / width.amin(dim=1)).max()))))
+
+
+def refine(grid: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor,
+           k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every interval of ``grid`` split into ``k`` equal sub-intervals, with values there.
+
+    ``grid``: ``(G,)`` shared or ``(S, G)`` per sample; ``values, slopes (S, G, M)`` at its nodes.
+    Returns the finer grid, ``((G - 1) k + 1,)`` or ``(S, (G - 1) k + 1)`` (node ``j`` of ``grid``
+    is its node ``j k``), and the cubic Hermite interpolants of ``values`` there ``(S, (G - 1) k + 1, M)``.
+    """
+    if k == 1:
+        return grid, values
+    s = torch.arange(k, dtype=grid.dtype, device=grid.device) / k  # (k,)
+    h = grid[..., 1:] - grid[..., :-1]  # (..., N)
+    fine = (grid[..., :-1, None] + h[..., None] * s).flatten(-2)
+    fine = torch.cat([fine, grid[..., -1:]], dim=-1)
+    s2, s3 = s * s, s * s * s
+    basis = [2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, 3 * s2 - 2 * s3, s3 - s2]  # each (k,)
+    hh = (h if grid.dim() == 2 else h.expand(values.shape[0], -1)).unsqueeze(-1).unsqueeze(-1)  # (S, N, 1, 1)
+    y0, y1 = values[:, :-1, None], values[:, 1:, None]  # (S, N, 1, M)
+    f0, f1 = hh * slopes[:, :-1, None], hh * slopes[:, 1:, None]
+    b = [c.reshape(1, 1, k, 1) for c in basis]
+    inner = (b[0] * y0 + b[1] * f0 + b[2] * y1 + b[3] * f1).flatten(1, 2)  # (S, N k, M)
+    return fine, torch.cat([inner, values[:, -1:]], dim=1)

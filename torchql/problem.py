@@ -16,8 +16,8 @@ from . import _checks
 from .batch_result import BatchFitResult
 from .bounds import Bounds, moved_record
 from .data_start import derivation_uses_unknowns, first_reference
-from .batch_integrate import dopri_batch
-from .grid import DEFAULT_INTERVALS, make_grid, make_grids, smooth_intervals
+from .dopri import dopri_batch
+from .grid import SMOOTH_RTOL, SMOOTH_SAMPLES, make_grid, make_grids, smooth_intervals
 from .integrate import check_solver
 from .linearize import linearize
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
@@ -278,13 +278,15 @@ class Problem:
             raise ValueError(f'`grid` must be a number of intervals, a tensor of times or "smooth"; received {grid!r}')
         if stiff:
             return None
-        n, u = self.system.n, torch.linspace(0.0, 1.0, DEFAULT_INTERVALS + 1, dtype=self.dtype, device=self.device)
+        n, u = self.system.n, torch.linspace(0.0, 1.0, SMOOTH_SAMPLES + 1, dtype=self.dtype, device=self.device)
         t0 = self.t0.expand(self.B).unsqueeze(1)
         times = t0 + (self.t_obs[..., -1].expand(self.B).unsqueeze(1) - t0) * u  # (B, G)
         land = torch.zeros_like(u, dtype=torch.bool)
         land[-1] = True
         with torch.no_grad():
-            traj, ok, _ = dopri_batch(self.system, self.z0, times, rtol=self.rtol, atol=self.atol, land=land)
+            rtol = max(self.rtol, SMOOTH_RTOL)
+            traj, ok, _ = dopri_batch(self.system, self.z0, times, rtol=rtol, atol=self.atol * rtol / self.rtol,
+                                      land=land)
             if not bool(ok.all()):
                 return None
             slopes = vmap(self.system.f)(times.reshape(-1), traj.reshape(-1, self.system.M)).reshape(traj.shape)
