@@ -80,7 +80,7 @@ def test_smooth_grid_fits_as_the_default_grid_on_fewer_nodes(cars):
 
 
 def test_unknown_grid_names_are_errors(cars):
-    match = r'`grid` must be a number of intervals, a tensor of times or "smooth"; received \'fine\''
+    match = r'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; received \'fine\''
     with pytest.raises(ValueError, match=match):
         torchql.fit(CoastingCar(AREA, MASS), cars[0], torch.tensor([117.0], dtype=DT), grid="fine")
     with pytest.raises(ValueError, match=match):

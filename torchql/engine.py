@@ -31,6 +31,7 @@ from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget,
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import Evaluation, _pick, not_above
 from .engine_final import FinalPass
+from .engine_grid import AutoGrid
 from .grid import last_nodes
 from .lstsq import ExactRowsError, solve_update, solve_update_batch
 from .problem import Problem
@@ -105,7 +106,7 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
     return result
 
 
-class Engine(Evaluation, FinalPass):
+class Engine(Evaluation, FinalPass, AutoGrid):
     """The iteration of one chunk of samples (indices ``index`` of the problem's batch)."""
 
     def __init__(self, spec: Problem, index: torch.Tensor, max_time: float | None = None, history: bool = False,
@@ -233,12 +234,15 @@ class Engine(Evaluation, FinalPass):
         for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
             self.callback(int(self.index[r]), self.history[r][-1])
 
-    def run(self, report) -> dict:
+    def run(self, report, first: tuple | None = None) -> dict:
         """Iterate every sample of the chunk to its status; then the final pass. ``report``
-        receives the number of samples stopped."""
+        receives the number of samples stopped; ``first``: the chunk's first references and grid
+        counts, already made (:meth:`~torchql.engine_grid.AutoGrid._run_groups`)."""
         st = _Loop(self, report)
         try:
-            self._start(st)
+            groups = self._start(st, first)
+            if groups:  # samples that chose different grids: each group on its own
+                return self._run_groups(groups, report)
             while self._iteration(st):
                 pass
         except TimeBudgetExceeded:  # inside a phase: the samples still running stop where they are
@@ -247,35 +251,36 @@ class Engine(Evaluation, FinalPass):
         for r in spent:
             st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {self.max_time:g} s)."
                             + st.detail[r])
+        polish = st.undamped_stop & (time_left() > 0)  # polishing steps only within the time budget
         with no_time_budget():  # the samples that finished in time get their final evaluation
-            return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess)
+            return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess, polish)
 
-    def _start(self, st: "_Loop") -> None:
+    def _start(self, st: "_Loop", first: tuple | None = None) -> list | None:
         """The first iterate of every sample: the data-built reference, or the model integrated
-        from the guesses (loosely, from a constant guess, for Kantorovich); the unknowns' typical
-        magnitudes and the model's sums of squares at the guesses."""
+        from the guesses (loosely, from a constant guess, for Kantorovich), on each sample's grid
+        (``grid="auto"``: chosen from this reference, :mod:`torchql.engine_grid`); the unknowns'
+        typical magnitudes and the model's sums of squares at the guesses. Returns the groups of
+        samples that chose different grids (to be fitted apart), else None."""
         spec, S, n, all_idx = self.spec, self.S, self.system.n, st.all_idx
-        if self.start == "data":
-            traj, z_dot, z0 = self._data_start(all_idx, st.z0)
-            check_time()  # out of time already: the samples keep their guesses, as an integrated start's do
-            st.z0 = z0
-            bad = torch.zeros(S, dtype=torch.bool, device=spec.device)
-            lin = self._linearize(all_idx, traj, z_dot)
-            st.cur = self._evaluate(all_idx, st.z0, traj, z_dot, lin)
+        if first is None:
+            z0, traj, z_dot, W, errors = self._first_reference(all_idx, st.z0)
+            counts = self._grid_counts(traj, errors) if spec.auto_grid else None
+            if counts is not None and S > 1 and counts.unique().numel() > 1:
+                return self._grid_groups(counts, (z0, traj, z_dot, W, errors))
         else:
-            kantorovich = not spec.scheme.integrates_model
-            W = None
-            if kantorovich or not self._joint_sensitivities:
-                guess = st.z0.unsqueeze(1).expand(S, self.G, st.z0.shape[1]) if kantorovich else None
-                traj, errors = self._nonlinear(all_idx, st.z0, loose=kantorovich, guess=guess)
-            else:
-                traj, W, errors = self._solve_with_sensitivities(all_idx, st.z0)
-            bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=spec.device)
-            for r in bad.nonzero().flatten().tolist():
-                st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
-                st.detail[r] = f" The solver said: {errors[r]}."
-            lin = self._linearize(all_idx, traj)
-            st.cur = self._evaluate(all_idx, st.z0, traj, lin.f, lin, solution=not kantorovich, W=W)
+            z0, traj, z_dot, W, errors, counts = self._given_start(first)
+        if counts is not None:
+            z0, traj, z_dot, W, errors = self._choose_grid(z0, traj, z_dot, W, errors, counts)
+        if self.start == "data":
+            check_time()  # out of time already: the samples keep their guesses, as an integrated start's do
+        st.z0 = z0
+        bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=spec.device)
+        for r in bad.nonzero().flatten().tolist():
+            st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
+            st.detail[r] = f" The solver said: {errors[r]}."
+        lin = self._linearize(all_idx, traj, z_dot)
+        st.cur = self._evaluate(all_idx, st.z0, traj, lin.f if z_dot is None else z_dot, lin,
+                                solution=spec.scheme.integrates_model, W=W)
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
@@ -284,6 +289,23 @@ class Engine(Evaluation, FinalPass):
         # integrated from the guesses, the first iterate's SSE is the model's own there (the final diagnosis')
         self.first_z0, self.first_sse = st.z0.clone(), st.cur["sse"].clone()
         st.report_stopped()
+        return None
+
+    def _first_reference(self, idx, z0):
+        """The first reference of the chunk's samples ``idx`` from their guesses ``z0 (S, M)``:
+        ``(z0, traj (S, G, M), z_dot or None, W or None, errors)``. From the data (``z0`` with the
+        matched coefficients, ``z_dot`` the reference's slopes), or the model integrated (``z_dot``
+        None; ``W`` its sensitivities where integrated with it; the solver's ``errors``)."""
+        if self.start == "data":
+            traj, z_dot, z0 = self._data_start(idx, z0)
+            return z0, traj, z_dot, None, [None] * idx.numel()
+        kantorovich = not self.spec.scheme.integrates_model
+        if kantorovich or not self._joint_sensitivities:
+            guess = z0.unsqueeze(1).expand(idx.numel(), self.G, z0.shape[1]) if kantorovich else None
+            traj, errors = self._nonlinear(idx, z0, loose=kantorovich, guess=guess)
+            return z0, traj, None, None, errors
+        traj, W, errors = self._solve_with_sensitivities(idx, z0)
+        return z0, traj, None, W, errors
 
     def _iteration(self, st: "_Loop") -> bool:
         """One round: every running sample tries one step (or starts its next iteration).
@@ -370,6 +392,7 @@ class Engine(Evaluation, FinalPass):
             st.final_guess[rows] = W[..., 0] + torch.einsum("sgmk,sk->sgm", W[..., 1:], alpha[done])
             self._annotate(rows, model_merit=self._model_merit(rows, cur))
             self._notify(rows)
+            st.undamped_stop[rows] = True
             if bool(conv.any()):
                 st.stop(act[conv], Status.CONVERGED)
             if bool(conv_sse.any()):
@@ -563,6 +586,8 @@ class _Loop:
         self.cur: dict = {}
         self.final_guess: torch.Tensor | None = None
         self.scaled: torch.Tensor | None = None
+        #: samples stopped by a convergence test on an undamped step (their estimates may be polished)
+        self.undamped_stop = torch.zeros(S, dtype=torch.bool, device=dev)
 
     def stop(self, rows: torch.Tensor, code: Status, text: str = "") -> None:
         """Samples ``rows`` end with ``code`` and the detail ``text``."""

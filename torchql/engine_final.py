@@ -2,6 +2,17 @@
 
 The reported SSE, residuals, Jacobian, singular values, status diagnosis and covariance are those
 of the fitted model itself, not of the last linear problem.
+
+A converged fit's estimates are a fixed point of the iteration's own discretization: Kantorovich's
+linear problems carry the storage grid's interpolation error (of order ``h^4`` in the interval
+width), so on a coarse grid they may sit a little off the model's own optimum. The final pass
+therefore checks them on the model itself: where the Gauss–Newton step from its accurate
+residuals is larger than the step bound of the convergence test that stopped the fit (``xtol``,
+or ``sqrt(xtol)`` for the sum-of-squares test; scaled as the iteration's steps), or promises to
+lower the sum of squares by more than ``ftol`` of it and the integration's own floor, it is
+taken, as a shooting iteration, at most :data:`POLISH_STEPS` times, each kept only if it lowers
+the model's merit. On the default grid the step is far below that bound and nothing is taken; a step short
+enough (:data:`LINEAR_STEP`) is taken along the sensitivities, with no new integration.
 """
 
 from __future__ import annotations
@@ -12,6 +23,7 @@ import torch
 
 from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, null_detail, typical_magnitudes
+from .engine_evaluate import not_above
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
 from .solvers import STIFF_SOLVERS
@@ -20,12 +32,23 @@ from .uncertainty import covariance
 __all__ = ["FinalPass"]
 
 _STATUSES = list(Status)
+#: Gauss–Newton steps on the model itself that the final pass may take from converged estimates
+#: (from a storage grid's fixed point one step reaches the model's optimum; a second one follows
+#: when the first still leaves more than ``xtol``).
+POLISH_STEPS = 2
+#: A polishing step whose scaled size is at most this fraction of ``sqrt(rtol)`` moves the solution
+#: and its residuals by their linear prediction (the sensitivities times the step) instead of a new
+#: integration: the second-order remainder, the step's square times the trajectory's relative
+#: curvature in the unknowns, stays below ``rtol`` where that curvature is below 100.
+LINEAR_STEP = 0.1
 
 
 class FinalPass:
     """The final evaluation (mixed into :class:`torchql.engine.Engine`)."""
 
-    def _finish(self, z0, status, detail, iterations, final_guess) -> dict:
+    def _finish(self, z0, status, detail, iterations, final_guess, polish) -> dict:
+        """The final evaluation of the estimates ``z0 (S, M)`` (changed in place by the polishing
+        steps of the samples ``polish (S,)`` allows, counted in ``iterations``)."""
         spec, S = self.spec, self.S
         m = spec.m
         dtype, dev = spec.dtype, spec.device
@@ -41,6 +64,8 @@ class FinalPass:
         final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
                              dtype=torch.bool, device=dev)
         rows, traj, W = self._final_solutions(final.nonzero().flatten(), z0, final_guess, codes, detail)
+        if rows.numel():
+            traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish)
         if rows.numel():
             traj_obs = self._at_obs(traj, rows)
             C_mean, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
@@ -91,34 +116,105 @@ class FinalPass:
         """The model integrated at the estimates ``z0`` of samples ``rows`` (from ``final_guess``,
         a prediction of the trajectory), with its sensitivities: ``(rows, traj, W)`` of the samples
         that integrated; the others' ``codes`` become INTEGRATION_FAILED with the solver's words."""
-        dev = z0.device
         if not rows.numel():
             return rows, None, None
-        W = None
-        if self._joint_sensitivities or self.spec.solver in STIFF_SOLVERS:
-            # the solution and its sensitivities on the same adaptive steps: for a stiff model the
-            # grid's transfers may miss a fast change inside an interval, and the status and the
-            # covariance are only as true as this Jacobian
-            traj, W, errors = self._solve_with_sensitivities(rows, z0[rows])
-        else:
-            traj, errors = self._nonlinear(rows, z0[rows], loose=False, guess=final_guess[rows])
+        good, traj, W, errors = self._model_at(rows, z0[rows], final_guess[rows])
         for k, r in enumerate(rows.tolist()):
             if errors[k] is not None:
                 codes[r] = Status.INTEGRATION_FAILED
                 detail[r] = f" The solver said, at the final estimates: {errors[k]}."
-        good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=dev)
-        rows, traj = rows[good], traj[good]
-        if W is not None:
-            return rows, traj, W[good]
-        if not rows.numel():
-            return rows, traj, None
-        lin = self._linearize(rows, traj)
-        W, failed = self._propagate(rows, traj, lin.f, lin, self.spec.columns(z0[rows]))
-        for r in rows[failed].tolist():
-            codes[r] = Status.INTEGRATION_FAILED
-            detail[r] = (" The solver said, at the final estimates: the transfer of a grid interval did not "
-                         "meet the tolerance.")
-        return rows[~failed], traj[~failed], W[~failed]
+        return rows[good], traj[good], W[good]
+
+    def _model_at(self, rows, z0, guess):
+        """The model integrated from ``z0 (S, M)`` of samples ``rows`` (``guess (S, G, M)``: a
+        prediction of the trajectory), with its sensitivities: ``(good (S,), traj (S, G, M),
+        W (S, G, M, 1 + m), errors)``, the solver's words for each sample that failed (None: good).
+        """
+        if self._joint_sensitivities or self.spec.solver in STIFF_SOLVERS:
+            # the solution and its sensitivities on the same adaptive steps: for a stiff model the
+            # grid's transfers may miss a fast change inside an interval, and the status and the
+            # covariance are only as true as this Jacobian
+            traj, W, errors = self._solve_with_sensitivities(rows, z0)
+        else:
+            traj, errors = self._nonlinear(rows, z0, loose=False, guess=guess)
+            good = [e is None for e in errors]
+            traj = torch.where(torch.tensor(good, device=z0.device).reshape(-1, 1, 1), traj, guess)
+            lin = self._linearize(rows, traj)
+            W, failed = self._propagate(rows, traj, lin.f, lin, self.spec.columns(z0))
+            for k in failed.nonzero().flatten().tolist():
+                errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
+        good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+        return good, traj, W, errors
+
+    def _polish(self, rows, traj, W, z0, iterations, codes, polish):
+        """Gauss–Newton steps on the model itself from the estimates ``z0`` of the converged
+        samples among ``rows`` that ``polish (S,)`` allows, with their solutions ``traj (R, G, M)``
+        and ``W (R, G, M, 1 + m)`` (see the module's description). A step is taken where its scaled
+        size exceeds ``xtol`` and kept where it lowers the merit; ``z0``, ``iterations`` and the
+        samples' records follow. Returns the solutions at the estimates kept."""
+        spec = self.spec
+        for _ in range(POLISH_STEPS):
+            take = polish[rows] & (iterations[rows] < spec.max_iter)
+            take &= torch.tensor([codes[r].success for r in rows.tolist()], dtype=torch.bool, device=take.device)
+            if not bool(take.any()):
+                break
+            k = take.nonzero().flatten()
+            r = rows[k]
+            here = self._evaluate(r, z0[r], traj[k], None, None, solution=True, W=W[k])
+            alpha, _, infeasible = self._solve(r, here, torch.zeros_like(here["sse"]))
+            u = z0[r][:, spec.unknown_index]
+            scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[r])).amax(dim=1)
+            # the step bound of the test that stopped the fit: xtol, or the sum-of-squares test's sqrt(xtol)
+            bound = torch.tensor([spec.xtol if codes[i] is Status.CONVERGED else math.sqrt(spec.xtol)
+                                  for i in r.tolist()], dtype=scaled.dtype, device=scaled.device)
+            need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
+            polish[r[~need]] = False
+            if not bool(need.any()):
+                break
+            k, r, alpha, scaled = k[need], r[need], alpha[need], scaled[need]
+            z0_new = spec.shifted(z0[r], alpha)
+            guess = traj[k] + torch.einsum("sgmk,sk->sgm", W[k][..., 1:], alpha)
+            # a step this short is the linear prediction's: its second-order remainder is below the tolerance
+            linear = scaled <= LINEAR_STEP * math.sqrt(spec.rtol)
+            good, traj_new, W_new = torch.ones_like(linear), guess, W[k].clone()
+            W_new[..., 0] = guess
+            far = (~linear).nonzero().flatten()
+            if far.numel():
+                good[far], traj_new[far], W_new[far], _ = self._model_at(r[far], z0_new[far], guess[far])
+            merit = torch.full_like(scaled, float("inf"))
+            g = good.nonzero().flatten()
+            if g.numel():
+                merit[g] = self._evaluate(r[g], z0_new[g], traj_new[g], None, None, solution=True, W=W_new[g])["merit"]
+            accept = good & not_above(merit, here["merit"][need])
+            polish[r[~accept]] = False
+            a = accept.nonzero().flatten()
+            if self.history is not None:
+                sse = here["sse"][need]
+                for j in a.tolist():
+                    record = self._record(int(r[j]), int(iterations[r[j]]), z0[r[j]], float(sse[j]), traj[k[j]])
+                    record.alpha, record.alpha_norm = alpha[j].detach().clone(), float(scaled[j])
+                    record.merit = record.model_merit = float(here["merit"][need][j])
+                    self.history[int(r[j])].append(record)
+                    self._notify(int(r[j]))
+            z0[r[a]], traj[k[a]], W[k[a]] = z0_new[a], traj_new[a], W_new[a]
+            iterations[r[a]] += 1
+        return traj, W
+
+    def _not_minimal(self, rows, here: dict, alpha: torch.Tensor) -> torch.Tensor:
+        """Whether the Gauss–Newton steps ``alpha (S, m)`` of the evaluated iterates ``here`` of
+        samples ``rows`` promise a decrease of the sum of squares ``|w d|^2 - |w (d - C alpha)|^2``
+        above ``ftol`` of it and above the integration's own floor, ``sum (w (atol + rtol |y|))^2``
+        over the values used: a storage grid's fixed point whose step is small in the unknowns'
+        scale (an initial state far below its trajectory's magnitude) but whose residuals are not
+        yet the model's least."""
+        spec = self.spec
+        C, d, w = here["C"], here["d"], here["w"]
+        left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
+        predicted = ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
+        y, used = self.y[rows].reshape(rows.numel(), -1), self.mask[rows].reshape(rows.numel(), -1)
+        scale = w[:, :y.shape[1]] * (spec.atol + spec.rtol * y.abs())
+        floor = torch.where(used, scale, torch.zeros_like(scale)).square().sum(dim=1)
+        return predicted > spec.ftol * here["sse"].abs() + floor
 
     def _used(self, rows) -> torch.Tensor:
         """The rows in use of samples ``rows``: the values present ``(S, R)``, and with a ``sigma(p)``

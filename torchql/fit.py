@@ -155,12 +155,18 @@ def fit(
     rcond : float, optional
         Relative singular-value threshold below which a direction of the unknowns counts as
         not identifiable. Default ``max(1e3 * rtol, 1e3 * eps)``.
-    grid : int, "smooth" or Tensor, optional
-        Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``
-        (default 1000), or extra times to include. Observation times and ``t0`` are always nodes.
-        ``"smooth"``: as few intervals as the guesses' trajectories need for their cubic Hermite
-        interpolation to stay within a sixteenth of the tolerance (:func:`torchql.grid.smooth_intervals`,
-        20 to 1000; the largest any sample needs in ``fit_many``; the default grid for a stiff model).
+    grid : int, "auto", "smooth" or Tensor, optional
+        Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``, or
+        extra times to include (with 1000 uniform intervals). Observation times and ``t0`` are
+        always nodes. ``"auto"`` (default, also ``None``): each dataset's own count, 20 to 1000,
+        chosen from its first reference (built on 200 intervals): the fewest whose cubic Hermite
+        interpolation of the model's solutions through it stays within ``sqrt(rtol) / 16`` of the
+        states (:mod:`torchql.engine_grid`); a stiff model keeps the default 1000 with geometric
+        early nodes. On any grid the final pass takes the Gauss–Newton steps on the model itself
+        that the grid's interpolation error leaves (:mod:`torchql.engine_final`).
+        ``"smooth"``: as few intervals as the guesses' integrated trajectories need for their
+        interpolation to stay within a sixteenth of the tolerance (:func:`torchql.grid.smooth_intervals`;
+        the largest any sample needs in ``fit_many``).
     initial_trajectory : {"auto", "integrate", "data"}
         Kantorovich's first reference. ``"auto"`` (default): ``"data"`` where the data can give
         it, else ``"integrate"`` (:func:`torchql.data_start.first_reference`: shooting, no state

@@ -4,6 +4,12 @@ One builder serves :func:`torchql.fit` and :func:`torchql.fit_many` (each sample
 ``fit`` builds for that dataset alone). The grid holds ``t0``, every observation time, and
 ``intervals`` uniform intervals (default :data:`DEFAULT_INTERVALS`) or the user's extra times.
 
+The default, ``grid="auto"``, chooses each sample's uniform intervals from its first reference
+(:func:`auto_counts`): the first reference is built on :data:`AUTO_PROBE` intervals, and the fit
+goes on with the fewest of :data:`AUTO_COUNTS` whose cubic Hermite interpolation of that trajectory
+stays within :data:`AUTO_SAFETY` times the tolerance, taken from the probe's nodes
+(:func:`coarse_index`) where they divide it, built anew where the trajectory needs more.
+
 A stiff model's solution has fast transients (Robertson kinetics: a boundary layer of width
 ``1e-4`` on a span of ``1e5``) that uniform nodes cannot represent: with ``stiff=True``
 :data:`NODES_PER_DECADE` geometrically spaced nodes per decade are added from
@@ -16,7 +22,8 @@ import math
 
 import torch
 
-__all__ = ["make_grid", "make_grids", "interval_counts", "last_nodes", "refine", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
+__all__ = ["make_grid", "make_grids", "interval_counts", "last_nodes", "refine", "needed_intervals", "auto_counts",
+           "uniform_nodes", "coarse_index", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
            "EARLIEST", "SMOOTH_SAFETY", "SMOOTH_SAMPLES", "SMOOTH_RTOL"]
 
 #: Uniform intervals of the default grid.
@@ -33,6 +40,19 @@ SMOOTH_SAMPLES = 125
 #: fit's, if looser): the fourth derivative is needed to a few percent, not to the fit's tolerance
 #: (on cars and oscillators 1e-6 to 1e-10 gave the same counts within one interval).
 SMOOTH_RTOL = 1e-8
+#: ``grid="auto"``: uniform intervals of the probe grid on which the first reference is built.
+AUTO_PROBE = 200
+#: ``grid="auto"``: the uniform interval counts it chooses from; those dividing :data:`AUTO_PROBE`
+#: take the probe's nodes (the first reference is not built again).
+AUTO_COUNTS = (20, 25, 40, 50, 100, 200, 250, 500, 1000)
+#: ``grid="auto"``: the cubic Hermite interpolation error allowed between nodes, relative to the
+#: states' magnitudes (``atol`` scaled alike): this fraction of ``sqrt(rtol)``. A storage grid's error
+#: enters a Kantorovich fixed point to first order, and the final pass's Gauss–Newton steps on the
+#: model itself take it out (:mod:`torchql.engine_final`), to the second order in it where the data
+#: are exact, and through the Jacobian's own error (a fraction of the estimates' standard errors)
+#: where they are noisy; so the grid need only be as fine as ``sqrt(rtol)``, where the fixed default
+#: asked ``rtol`` (4 to 18 times fewer intervals).
+AUTO_SAFETY = 1 / 16
 #: Geometric nodes per decade of ``t - t0`` added for stiff models.
 NODES_PER_DECADE = 10
 #: The earliest geometric node, as a fraction of the span after ``t0``. On Robertson kinetics to
@@ -138,17 +158,67 @@ def smooth_intervals(times: torch.Tensor, x: torch.Tensor, slopes: torch.Tensor,
     S = x.shape[0]
     times = times.expand(S, times.shape[-1])
     every = max(1, (times.shape[-1] - 1) // SMOOTH_SAMPLES)
-    f = slopes[:, ::every]
-    span = times[:, -1] - times[:, 0]
-    if f.shape[1] < 4 or not bool((span > 0).all()):
+    if slopes[:, ::every].shape[1] < 4 or not bool((times[:, -1] > times[:, 0]).all()):
         return DEFAULT_INTERVALS
-    H = (times[:, every] - times[:, 0]).unsqueeze(1)
-    fourth = ((f[:, 3:] - 3 * f[:, 2:-1] + 3 * f[:, 1:-2] - f[:, :-3]).abs().amax(dim=1) / H**3)  # (S, n)
-    tol = SMOOTH_SAFETY * (atol + rtol * x.abs().amax(dim=1))
-    if not (torch.isfinite(fourth).all() and torch.isfinite(tol).all()):
+    f, H = slopes[:, ::every], (times[:, every] - times[:, 0]).reshape(S, 1, 1)
+    fourth = (f[:, 3:] - 3 * f[:, 2:-1] + 3 * f[:, 1:-2] - f[:, :-3]) / H**3  # third differences of the slopes
+    needed = needed_intervals(fourth, x, SMOOTH_SAFETY * rtol, SMOOTH_SAFETY * atol, times[:, -1] - times[:, 0])
+    if not bool(torch.isfinite(needed).all()):
         return DEFAULT_INTERVALS
-    width = (384 * tol / fourth.clamp(min=torch.finfo(x.dtype).tiny)) ** 0.25
-    return min(DEFAULT_INTERVALS, max(MIN_INTERVALS, math.ceil(float((span / width.amin(dim=1)).max()))))
+    return min(DEFAULT_INTERVALS, max(MIN_INTERVALS, math.ceil(float(needed.max()))))
+
+
+def needed_intervals(fourth: torch.Tensor, x: torch.Tensor, rtol: float, atol: float,
+                     span: torch.Tensor) -> torch.Tensor:
+    """Uniform intervals ``(S,)`` (real-valued; inf where not finite) that a cubic Hermite
+    interpolation of trajectories needs to stay within ``atol + rtol max |x|`` per component.
+
+    ``fourth (S, P, n)``: the trajectories' fourth derivatives at nodes spread over the span;
+    ``x (S, G, n)``: their values (the scale of the tolerance); ``span (S,)``: the length to
+    cover. Over an interval of width ``h`` the error is at most ``h^4 / 384`` times the largest
+    fourth derivative.
+    """
+    tol = atol + rtol * x.abs().amax(dim=1)
+    width = (384 * tol / fourth.abs().amax(dim=1).clamp(min=torch.finfo(x.dtype).tiny)) ** 0.25
+    needed = span / width.amin(dim=1)
+    return torch.where(torch.isfinite(needed), needed, torch.full_like(needed, math.inf))
+
+
+def auto_counts(needed: torch.Tensor) -> torch.Tensor:
+    """The fewest of :data:`AUTO_COUNTS` at least ``needed (S,)``: ``(S,)`` long (the most where none is)."""
+    counts = torch.tensor(AUTO_COUNTS, dtype=needed.dtype, device=needed.device)
+    index = torch.searchsorted(counts, needed.contiguous()).clamp(max=len(AUTO_COUNTS) - 1)
+    return counts.to(torch.long)[index]
+
+
+def uniform_nodes(grid: torch.Tensor, t0: torch.Tensor, t_end: torch.Tensor, intervals: int) -> torch.Tensor:
+    """For each sample, the index of the node of ``grid`` (``(G,)`` or ``(S, G)``, sorted) nearest to each
+    of the ``intervals + 1`` uniform times from ``t0 (S,)`` to ``t_end (S,)``: ``(S, intervals + 1)``.
+
+    On a grid built with that many uniform intervals (:func:`make_grid`) these are its uniform
+    nodes, or the observation times that replaced them (within ``1e-6`` of an interval).
+    """
+    S = t0.shape[0]
+    u = torch.linspace(0.0, 1.0, intervals + 1, dtype=grid.dtype, device=grid.device)
+    times = t0.unsqueeze(1) + (t_end - t0).unsqueeze(1) * u  # (S, P)
+    sorted_grid = grid.expand(S, grid.shape[-1]).contiguous()
+    right = torch.searchsorted(sorted_grid, times.contiguous()).clamp(max=grid.shape[-1] - 1)
+    left = (right - 1).clamp(min=0)
+    closer_left = (times - sorted_grid.gather(1, left)).abs() < (sorted_grid.gather(1, right) - times).abs()
+    return torch.where(closer_left, left, right)
+
+
+def coarse_index(keep: torch.Tensor) -> torch.Tensor:
+    """The kept nodes of each sample, in order, ``(S, G')`` (``G'`` the most any sample keeps),
+    padded by repeating each sample's last kept node: the gather index of its coarser grid from
+    ``keep (S, G)``, a bool mask holding each sample's first node."""
+    S, G = keep.shape
+    order = torch.sort((~keep).to(torch.int8), dim=1, stable=True).indices  # kept nodes first, in order
+    kept = keep.sum(dim=1)
+    width = int(kept.max())
+    column = torch.arange(width, device=keep.device).expand(S, width)
+    last = (kept - 1).unsqueeze(1)
+    return order[:, :width].gather(1, torch.minimum(column, last))
 
 
 def refine(grid: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor,

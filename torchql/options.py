@@ -164,8 +164,9 @@ class FitOptions:
             if getattr(self, name) is not None:
                 _checks.positive_number(name, getattr(self, name))
         grid = self.grid
-        if isinstance(grid, str) and grid != "smooth":
-            raise ValueError(f'`grid` must be a number of intervals, a tensor of times or "smooth"; received {grid!r}')
+        if isinstance(grid, str) and grid not in ("auto", "smooth"):
+            raise ValueError(f'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; '
+                             f'received {grid!r}')
         if grid is not None and not isinstance(grid, (torch.Tensor, str)):
             _checks.positive_int("grid", grid)
 

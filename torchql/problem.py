@@ -17,7 +17,7 @@ from .batch_result import BatchFitResult
 from .bounds import Bounds, moved_record
 from .data_start import derivation_uses_unknowns, first_reference
 from .dopri import dopri_batch
-from .grid import SMOOTH_RTOL, SMOOTH_SAMPLES, make_grid, make_grids, smooth_intervals
+from .grid import AUTO_PROBE, SMOOTH_RTOL, SMOOTH_SAMPLES, make_grid, make_grids, smooth_intervals
 from .integrate import check_solver
 from .linearize import linearize
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
@@ -260,8 +260,15 @@ class Problem:
                                     (self.t_obs[..., -1] - self.t0).expand(self.B))
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
         stiff = self.solver in STIFF_SOLVERS
-        if isinstance(grid, str):
+        #: ``grid="auto"`` (the default, not for a stiff model): the engine chooses each sample's
+        #: intervals from its first reference, built on this probe grid (:mod:`torchql.grid`)
+        self.auto_grid = (grid is None or isinstance(grid, str) and grid == "auto") and not stiff
+        if self.auto_grid:
+            grid = AUTO_PROBE
+        elif isinstance(grid, str) and grid != "auto":
             grid = self._smooth_grid(grid, stiff)
+        elif isinstance(grid, str):
+            grid = None
         if self.t_obs.dim() == 1:
             self.grid = make_grid(grid, self.t0, self.t_obs, stiff=stiff, breakpoints=self.breakpoints)
             self.grid_size = None
@@ -275,7 +282,8 @@ class Problem:
         (:func:`torchql.grid.smooth_intervals`; integrated by Dormand–Prince, the nodes from its
         dense output); the default grid for a stiff model."""
         if grid != "smooth":
-            raise ValueError(f'`grid` must be a number of intervals, a tensor of times or "smooth"; received {grid!r}')
+            raise ValueError(f'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; '
+                             f'received {grid!r}')
         if stiff:
             return None
         n, u = self.system.n, torch.linspace(0.0, 1.0, SMOOTH_SAMPLES + 1, dtype=self.dtype, device=self.device)

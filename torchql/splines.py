@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["knot_slopes", "hermite", "hermite_basis"]
+__all__ = ["knot_slopes", "hermite", "hermite_basis", "hermite_per_sample"]
 
 
 def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -79,3 +79,30 @@ def hermite(knots: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, ind
     b00, b10, b01, b11 = hermite_basis(((tq - k0) / (k1 - k0)).unsqueeze(-1))
     return (b00 * values.index_select(0, index) + b10 * h * slopes.index_select(0, index)
             + b01 * values.index_select(0, index + 1) + b11 * h * slopes.index_select(0, index + 1))
+
+
+def hermite_per_sample(knots: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, tq: torch.Tensor,
+                       count: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cubic Hermite interpolation of ``S`` samples, each on its own knots: values and derivatives.
+
+    ``knots (S, N)`` increasing over each sample's first ``count (S,)`` entries (default all;
+    the rest may pad them); ``values, slopes (S, N, m)`` at the knots; ``tq (S, Q)`` query times
+    within each sample's knots. Returns ``(S, Q, m)`` values and ``(S, Q, m)`` first derivatives.
+    """
+    S, N = knots.shape
+    last = torch.full((S,), N - 2, dtype=torch.long, device=knots.device) if count is None else count - 2
+    index = torch.searchsorted(knots.contiguous(), tq.contiguous(), right=True) - 1
+    index = torch.minimum(index.clamp(min=0), last.clamp(min=0).unsqueeze(1))  # (S, Q)
+    k0, k1 = knots.gather(1, index), knots.gather(1, index + 1)
+    h = (k1 - k0).unsqueeze(-1)
+    s = ((tq - k0).unsqueeze(-1) / h)
+    b00, b10, b01, b11 = hermite_basis(s)
+    s2 = s * s
+    d00, d10, d01, d11 = (6 * s2 - 6 * s) / h, 3 * s2 - 4 * s + 1, (6 * s - 6 * s2) / h, 3 * s2 - 2 * s
+
+    def at(x, i):
+        return x.gather(1, i.unsqueeze(-1).expand(S, i.shape[1], x.shape[-1]))
+
+    y0, y1, f0, f1 = at(values, index), at(values, index + 1), at(slopes, index), at(slopes, index + 1)
+    return (b00 * y0 + b10 * h * f0 + b01 * y1 + b11 * h * f1,
+            d00 * y0 + d10 * f0 + d01 * y1 + d11 * f1)

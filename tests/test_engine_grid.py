@@ -1,0 +1,136 @@
+"""The automatic storage grid (``grid="auto"``, the default; torchql/engine_grid.py).
+
+Each dataset's intervals come from the fourth derivative of the model's solutions through its
+first reference: the count follows the closed-form bound for an oscillator, a coasting car gets
+the fewest, the fit on the chosen grid equals the fit on the fine fixed grid, and a batch whose
+samples choose different grids is fitted group by group, each sample as its own ``fit``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchql
+from torchql.engine_grid import fourth_derivative
+from torchql.grid import AUTO_COUNTS, AUTO_SAFETY, auto_counts
+from torchql.model import AugmentedSystem
+from torchql.models import CoastingCar, LinearOscillator
+
+DT = torch.float64
+
+
+class Logistic(torchql.ODEModel):
+    state_names = ("x",)
+
+    def __init__(self, r=1.0, K=10.0):
+        super().__init__()
+        self.register_buffer("r", torch.tensor(r, dtype=DT))
+        self.register_buffer("K", torch.tensor(K, dtype=DT))
+
+    def forward(self, t, x):
+        return self.r * x * (1 - x / self.K)
+
+
+def _grid_of(result) -> torch.Tensor:
+    return result.history[-1].trajectory_t
+
+
+def test_fourth_derivative_of_an_oscillator_is_omega_to_the_fourth_times_the_state():
+    omega = 2.0
+    system = AugmentedSystem(LinearOscillator(0.0, omega**2), ["A", "B"], DT, torch.device("cpu"))
+    t = torch.linspace(0, 3, 7, dtype=DT)
+    x = torch.stack([torch.cos(omega * t), -omega * torch.sin(omega * t)], dim=-1)
+    z = torch.cat([x, torch.tensor([0.0, omega**2], dtype=DT).expand(7, 2)], dim=-1)
+    fourth = fourth_derivative(system.f, t, z)
+    torch.testing.assert_close(fourth[:, :2], omega**4 * x, rtol=1e-13, atol=1e-12)
+    assert bool((fourth[:, 2:] == 0).all())  # the coefficients do not move
+
+
+def test_fourth_derivative_of_the_logistic_equals_its_closed_form():
+    r, K, x0 = 1.3, 10.0, 0.5
+    system = AugmentedSystem(Logistic(r, K), ["r", "K"], DT, torch.device("cpu"))
+    t = torch.linspace(0, 6, 13, dtype=DT, requires_grad=True)
+    x = K / (1 + (K / x0 - 1) * torch.exp(-r * t))
+    derivative = x
+    for _ in range(4):  # d^4 x / dt^4 of the closed form, by autograd
+        derivative = torch.autograd.grad(derivative.sum(), t, create_graph=True)[0]
+    z = torch.stack([x.detach(), torch.full_like(x, r).detach(), torch.full_like(x, K).detach()], dim=-1)
+    fourth = fourth_derivative(system.f, t.detach(), z)
+    torch.testing.assert_close(fourth[:, 0], derivative.detach(), rtol=1e-11, atol=1e-11)
+
+
+def test_auto_counts_take_the_fewest_listed_count_that_suffices():
+    needed = torch.tensor([0.5, 20.0, 20.5, 99.0, 201.0, 5000.0, math.inf], dtype=DT)
+    assert auto_counts(needed).tolist() == [20, 20, 25, 100, 250, 1000, 1000]
+    assert list(AUTO_COUNTS) == sorted(AUTO_COUNTS)
+
+
+def test_oscillator_gets_the_count_of_the_hermite_bound_and_a_car_the_fewest():
+    # exact data: the first reference is the data's interpolant, the model's solution to a few 1e-5
+    omega = 2.0
+    t = torch.linspace(0, 6, 25, dtype=DT)
+    x = torchql.simulate(LinearOscillator(0.0, omega**2), torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-12,
+                         atol=1e-14)
+    result = torchql.fit(LinearOscillator(0.05, 3.8), torchql.Observations(t, x, observe=["y", "v"]),
+                         torch.tensor([1.0, 0.0], dtype=DT))
+    assert result.success
+    # h^4 omega^4 / 384 = sqrt(rtol) / 16 gives 96.4 intervals over [0, 6]: the listed count 100
+    rtol = AUTO_SAFETY * math.sqrt(1e-10)
+    assert math.isclose(6 / ((384 * rtol) ** 0.25 / omega), 96.4, rel_tol=1e-3)
+    widths = _grid_of(result).diff()
+    assert float(widths.max()) <= 6 / 100 * (1 + 1e-9)
+    assert float(widths.max()) > 6 / 200
+    car_t = torch.linspace(0, 40, 9, dtype=DT)
+    v = torchql.simulate(CoastingCar(frontal_area=17.3, mass=80.43, C_D=0.5, mu=0.02),
+                         torch.tensor([117.0], dtype=DT), car_t, rtol=1e-12, atol=1e-12)
+    car = torchql.fit(CoastingCar(frontal_area=17.3, mass=80.43, C_D=0.4, mu=0.03),
+                      torchql.Observations(car_t, v, observe=["v"]), torch.tensor([116.0], dtype=DT),
+                      params=["C_D", "mu"])
+    assert car.success
+    assert float(_grid_of(car).diff().max()) == pytest.approx(40 / 20, rel=1e-9)  # the fewest listed, 20
+
+
+@pytest.mark.parametrize("noise", [0.0, 1e-3])
+def test_the_fit_on_the_chosen_grid_equals_the_fit_on_the_fine_grid(noise):
+    t = torch.linspace(0, 6, 25, dtype=DT)
+    x = torchql.simulate(LinearOscillator(0.3, 4.0), torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-12, atol=1e-14)
+    g = torch.Generator().manual_seed(3)
+    y = x[:, :1] + noise * torch.randn(25, 1, generator=g, dtype=DT)
+    data = torchql.Observations(t, y, observe=["y"])
+    auto = torchql.fit(LinearOscillator(0.4, 3.5), data, torch.tensor([0.9, 0.1], dtype=DT))
+    fine = torchql.fit(LinearOscillator(0.4, 3.5), data, torch.tensor([0.9, 0.1], dtype=DT), grid=1000)
+    assert auto.status == fine.status and auto.success
+    assert len(_grid_of(auto)) < len(_grid_of(fine)) // 4
+    if noise == 0.0:  # both at the truth, to the integration's accuracy
+        truth = torch.tensor([1.0, 0.0, 0.3, 4.0], dtype=DT)
+        assert float((auto.estimates - truth).abs().max()) < 1e-8
+    stderr = fine.covariance.diagonal().sqrt() if noise else torch.ones(4, dtype=DT)
+    # noisy: the grid's Jacobian error moves the optimum by a fraction of a standard error
+    assert float(((auto.estimates - fine.estimates) / stderr).abs().max()) < (1e-4 if noise else 1e-8)
+    assert auto.sse == pytest.approx(fine.sse, rel=1e-7, abs=1e-18)
+
+
+def test_samples_that_choose_different_grids_are_each_fitted_as_alone():
+    t = torch.linspace(0, 6, 31, dtype=DT)
+    rows, guesses = [], []
+    for k, B in enumerate([1.0, 16.0, 1.2, 14.0]):  # slow and fast oscillators, interleaved
+        x = torchql.simulate(LinearOscillator(0.2, B), torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-12, atol=1e-14)
+        g = torch.Generator().manual_seed(k)
+        rows.append(x[:, :1] + 1e-3 * torch.randn(31, 1, generator=g, dtype=DT))
+        guesses.append(B * 1.1)
+    data = torchql.Observations(t, torch.stack(rows), observe=["y"])
+    x0 = torch.tensor([1.0, 0.0], dtype=DT).expand(4, 2)
+    batch = torchql.fit_many(LinearOscillator(0.25, 1.0), data, x0, guesses={"B": torch.tensor(guesses, dtype=DT)})
+    widths = []
+    for k in range(4):
+        alone = torchql.fit(LinearOscillator(0.25, guesses[k]), torchql.Observations(t, rows[k], observe=["y"]),
+                            x0[k])
+        assert batch[k].status == alone.status and alone.success
+        assert batch[k].iterations == alone.iterations
+        torch.testing.assert_close(batch[k].estimates, alone.estimates, rtol=1e-10, atol=1e-12)
+        assert batch[k].sse == pytest.approx(alone.sse, rel=1e-10)
+        widths.append(float(_grid_of(alone).diff().max()))
+    assert min(widths[0], widths[2]) > 1.5 * max(widths[1], widths[3])  # two groups of grids
