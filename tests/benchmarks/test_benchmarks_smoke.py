@@ -1,5 +1,6 @@
-"""`benchmarks/fit_speed.py --quick` and `benchmarks/batch.py --quick` run end to end and write their tables (no
-timing assertions); the JAX peer of batch.py recovers exact data (skipped without jax, diffrax, optimistix)."""
+"""`benchmarks/fit_speed.py --quick`, `benchmarks/batch.py --quick` and a small `benchmarks/batch_families.py` run
+end to end and write their tables (no timing assertions); the JAX peer of batch.py recovers exact data (skipped
+without jax, diffrax, optimistix)."""
 
 import importlib.util
 import subprocess
@@ -112,3 +113,20 @@ def test_jax_peer_recovers_exact_data(family):
     assert result.estimates.shape == data.truth.shape
     assert np.max(batch.relative_difference(result.estimates, data.truth)) <= 1e-6
     assert result.seconds > 0 and result.compile_seconds > 0
+
+
+FAMILIES_SCRIPT = SCRIPT.parent / "batch_families.py"
+
+
+@pytest.mark.slow
+def test_batch_families_writes_a_row_per_family_and_size(tmp_path):
+    run = subprocess.run([sys.executable, str(FAMILIES_SCRIPT), "--sizes", "3", "--loop", "2", "--families",
+                          "logistic", "michaelis_menten", "--out", str(tmp_path)], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    table = (tmp_path / "batch_families.md").read_text()
+    rows = [_cells(line) for line in table.splitlines() if line.startswith("| logistic") or line.startswith("| mich")]
+    assert [(r[0], r[1]) for r in rows] == [("logistic", "3"), ("michaelis_menten", "3")]
+    for r in rows:
+        assert r[7] == "3/3" and r[9] == "yes"  # every batched fit converged, as its single fit
+        assert float(r[8]) <= 1e-8  # batched estimates equal the single fits'

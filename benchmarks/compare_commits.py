@@ -1,0 +1,123 @@
+"""Single fits of ``benchmarks/fit_speed.py``'s problems by two versions of torchql, interleaved in one process.
+
+The working tree's ``torchql`` and another revision's, exported from git (``git archive``) under
+the package name ``torchql_base`` (the package imports itself relatively, so the copy is
+independent), fit the same exact data with their default options: the linear oscillator (14
+points), the nonlinear oscillator (66 points) and the three coasting cars of the thesis, each
+model and dataset built from the version's own classes. For each problem and method the two fits
+alternate ``--repeats`` times after two untimed warm-ups of each, so that the machine's load
+hits them alike; the table gives the median times, their ratio (``< 1``: the working tree is
+faster), the iterations and the largest difference of the estimates.
+
+Run (from the repository root)::
+
+    python benchmarks/compare_commits.py --base HEAD~3                 # Kantorovich, 9 repeats
+    python benchmarks/compare_commits.py --base v0 --methods kantorovich shooting --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from io import BytesIO
+from pathlib import Path
+
+import torch
+
+import torchql
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import fit_speed as fs  # noqa: E402  (the problems' data)
+
+DTYPE = torch.float64
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def export(revision: str, folder: Path):
+    """``torchql`` at ``revision``, importable as ``torchql_base`` from ``folder``."""
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision, "torchql"], check=True,
+                             capture_output=True).stdout
+    with tarfile.open(fileobj=BytesIO(archive)) as tar:
+        try:
+            tar.extractall(folder, filter="data")
+        except TypeError:  # Python without extraction filters (before 3.10.12 / 3.11.4)
+            tar.extractall(folder)
+    (folder / "torchql").rename(folder / "torchql_base")
+    sys.path.insert(0, str(folder))
+    return importlib.import_module("torchql_base")
+
+
+def problems(pkg) -> list[tuple]:
+    """``(name, model factory, data, x0)`` of fit_speed's problems, in the classes of package ``pkg``."""
+    models = importlib.import_module(f"{pkg.__name__}.models")
+    out = []
+    for name, model, dt, n in (("linear oscillator", models.LinearOscillator, 0.5, 14),
+                               ("nonlinear oscillator", models.NonlinearOscillator, 0.1, 66)):
+        t = torch.arange(n, dtype=DTYPE) * dt
+        x = pkg.simulate(model(), torch.tensor([0.0, 1.0], dtype=DTYPE), t, rtol=fs.DATA_RTOL, atol=fs.DATA_ATOL)
+        guess = (0.5, 1.0) if n == 14 else (0.5, 2.0, 0.5, 2.0)
+        out.append((name, lambda m=model, g=guess: m(*g), pkg.Observations(t, x[:, :1], observe=["y"]),
+                    torch.tensor([0.5, 0.5], dtype=DTYPE)))
+    for name, area, mass, v in fs.CARS:
+        data = pkg.Observations(torch.tensor(fs.CAR_TIMES, dtype=DTYPE), torch.tensor(v, dtype=DTYPE).unsqueeze(-1),
+                                observe=["v"])
+        out.append((f"car: {name}", lambda a=area, m=mass: models.CoastingCar(a, m), data, None))
+    return out
+
+
+def compare(base, methods: list[str], repeats: int) -> list[str]:
+    lines = ["| problem | method | base: median | base: iterations | working tree: median | working tree: "
+             "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|---|"]
+    for method in methods:
+        for (name, make_a, data_a, x_a), (_, make_b, data_b, x_b) in zip(problems(base), problems(torchql)):
+            def fit_a():
+                return base.fit(make_a(), data_a, x_a, method=method)
+
+            def fit_b():
+                return torchql.fit(make_b(), data_b, x_b, method=method)
+
+            a, b = fit_a(), fit_b()
+            fit_a(), fit_b()
+            times_a, times_b = [], []
+            for _ in range(repeats):
+                for fit, times in ((fit_a, times_a), (fit_b, times_b)):
+                    start = time.perf_counter()
+                    fit()
+                    times.append(time.perf_counter() - start)
+            ma, mb = statistics.median(times_a), statistics.median(times_b)
+            diff = float((a.estimates - b.estimates).abs().max())
+            lines.append(f"| {name} | {method} | {1000 * ma:.1f} ms | {a.iterations} | {1000 * mb:.1f} ms | "
+                         f"{b.iterations} | **{mb / ma:.2f}** | {diff:.1e} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--base", required=True, help="the git revision to compare with (a commit, tag or branch)")
+    parser.add_argument("--methods", nargs="+", default=["kantorovich"], choices=["kantorovich", "shooting"])
+    parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--out", type=Path, default=None, help="also write the table to OUT/compare_commits.md")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    revision = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", args.base], check=True,
+                              capture_output=True, text=True).stdout.strip()
+    with tempfile.TemporaryDirectory() as folder:
+        base = export(args.base, Path(folder))
+        header = (f"Working tree against {args.base} ({revision}), interleaved in one process, median of "
+                  f"{args.repeats} repeats, torch {torch.__version__}, 1 thread.")
+        print(header)
+        lines = compare(base, args.methods, args.repeats)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "compare_commits.md").write_text("# compare_commits\n\n" + header + "\n\n" + "\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
