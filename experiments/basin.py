@@ -93,7 +93,7 @@ LABELS = {"kantorovich-data": "torchql kantorovich (data)", "kantorovich-integra
           "shooting": "torchql shooting", "scipy": "scipy least_squares + solve_ivp", "adam": "adjoint + Adam"}
 FULL = dict(starts=100, integrate_starts=30, shooting_starts=10, adam_starts=5, budget=120.0, adam_steps=2000,
             adam_time=10.0)
-QUICK = dict(starts=1, integrate_starts=1, shooting_starts=1, adam_starts=1, budget=4.0, adam_steps=3, adam_time=1.0)
+QUICK = dict(starts=1, integrate_starts=1, shooting_starts=1, adam_starts=1, budget=20.0, adam_steps=3, adam_time=1.0)
 #: The methods that run on the first starts only, and their key in FULL/QUICK.
 FEWER_STARTS = {"kantorovich-integrate": "integrate_starts", "shooting": "shooting_starts", "adam": "adam_starts"}
 #: Seconds a fit may run past its wall-time budget before its worker process is killed: the in-fit
