@@ -52,7 +52,8 @@ class VanDerPol(ODEModel):
 
     States ``(y, v = y')``: ``y' = v``, ``v' = mu (1 - y^2) v - y`` (dimensionless). For large
     ``mu`` (default 1000) the limit cycle alternates slow drifts along ``|y|`` from 2 to 1,
-    lasting about ``(3 - 2 ln 2) mu ~ 1614`` time units each at ``mu = 1000``, with jumps of
+    lasting about ``(3/2 - ln 2) mu ~ 807`` time units each at ``mu = 1000`` (the period is
+    ``(3 - 2 ln 2) mu ~ 1614``; from ``(2, 0)`` the first jump comes at ``t = 807``), with jumps of
     duration ``O(mu^(-1/3))``: a standard stiff test (Hairer and Wanner, *Solving ODEs II*, IV.1).
     The usual start is ``(2, 0)``.
     """
