@@ -12,17 +12,18 @@ Two problems of the stiff-model issue, each fitted from guesses 0.3-3x the truth
   periods, t to 3000, also at 337-565), so a local method started there stays there.
 
 torchql runs with its defaults (``solver="auto"`` detects the stiffness and takes Rodas5P for
-every nonlinear pass and Radau IIA collocation for the linear transfers; the first reference
-is built from the data) and positivity bounds, at ``rtol=1e-8`` as scipy; scipy runs
+every nonlinear pass and Radau IIA collocation for the linear transfers; a stiff model's first
+reference is integrated from the guesses; for van der Pol a labelled row builds it from the data,
+``initial_trajectory="data"``) and positivity bounds, at ``rtol=1e-8`` as scipy; scipy runs
 ``least_squares`` (trust-region reflective in log parameters, finite differences,
 ``x_scale="jac"``) over ``solve_ivp(method="Radau")`` at the same ``rtol`` and ``atol``, with the
 right-hand side and its analytic Jacobian written in NumPy (the fair peer: a torch-evaluated
 right-hand side costs scipy about 4x). ``fit_many`` fits the same dataset with ``B`` different
 guesses in one call (per-fit time = total / B).
 
-Reported: wall time (best of ``--repeats``), the optimum's SSE (sum of squared weighted
-residuals, both evaluated by torchql's ``simulate`` at tight tolerance) and the largest relative
-difference of the estimates from the best optimum found.
+Reported: wall time (best of ``--repeats``), status and iterations, the optimum's SSE (sum of
+squared weighted residuals; both methods' estimates evaluated by torchql's ``simulate`` at tight
+tolerance) and whether it is within 1e-6 relative of the best SSE either method found.
 
 Run (from the repository root)::
 
