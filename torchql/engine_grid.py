@@ -40,11 +40,6 @@ class AutoGrid:
         t_end = (self.t_obs[..., -1]).expand(self.S)
         return t0, t_end, uniform_nodes(self.grid, t0, t_end, AUTO_PROBE)
 
-    def _grid_counts(self, traj: torch.Tensor, errors: list) -> torch.Tensor:
-        """Each sample's uniform intervals ``(S,)`` from its first reference ``traj (S, G, M)`` on the
-        probe grid (:meth:`_needed_counts`)."""
-        return self._needed_counts(*self._probe_nodes(), traj, errors)
-
     def _grid_groups(self, counts: torch.Tensor, first: tuple) -> list:
         """The chunk's samples grouped by their grid counts ``(S,)``, each group with its part of
         the first references ``first = (z0, traj, z_dot, W, errors)``: ``[(rows, (..., counts))]``."""
@@ -151,11 +146,13 @@ class AutoGrid:
             errors[k] = e
         return errors
 
-    def _needed_counts(self, t0, t_end, probe, traj, errors) -> torch.Tensor:
-        """Each sample's count of :data:`AUTO_COUNTS` from the model's slopes along its reference
-        ``traj`` at the probe's uniform nodes ``probe (S, P + 1)`` (:func:`fourth_derivative_scale`);
-        the probe's own count where the reference failed."""
+    def _grid_counts(self, traj: torch.Tensor, errors: list) -> torch.Tensor:
+        """Each sample's uniform intervals ``(S,)``, a count of :data:`AUTO_COUNTS`, from the model's
+        slopes along its first reference ``traj (S, G, M)`` at the probe grid's uniform nodes
+        (:func:`fourth_derivative_scale`); the probe's own count where the reference failed
+        (``errors``, one per sample)."""
         n, S = self.system.n, self.S
+        t0, t_end, probe = self._probe_nodes()
         times = self.grid.expand(S, self.G).gather(1, probe)
         nodes = traj.gather(1, probe.unsqueeze(-1).expand(S, -1, traj.shape[-1]))  # (S, P + 1, M)
         with torch.no_grad():
