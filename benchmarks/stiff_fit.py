@@ -47,33 +47,11 @@ from scipy.optimize import least_squares
 import torchql
 from torchql.models import Robertson, VanDerPol
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stiff_simulate import robertson_numpy, vdp_numpy  # noqa: E402  (the models in NumPy, for scipy)
+
 DT = torch.float64
 RTOL, ATOL_ROBERTSON, ATOL_VDP = 1e-8, 1e-14, 1e-10
-
-
-def robertson_numpy(p):
-    """Robertson's right-hand side and Jacobian in NumPy at coefficients ``p`` (dict)."""
-    k1, k2, k3 = p["k1"], p["k2"], p["k3"]
-
-    def f(t, x):
-        return np.array([-k1 * x[0] + k3 * x[1] * x[2], k1 * x[0] - k3 * x[1] * x[2] - k2 * x[1] ** 2, k2 * x[1] ** 2])
-
-    def jac(t, x):
-        return np.array([[-k1, k3 * x[2], k3 * x[1]], [k1, -k3 * x[2] - 2 * k2 * x[1], -k3 * x[1]],
-                         [0.0, 2 * k2 * x[1], 0.0]])
-    return f, jac
-
-
-def vdp_numpy(p):
-    """Van der Pol's right-hand side and Jacobian in NumPy at ``p = {"mu": ...}``."""
-    mu = p["mu"]
-
-    def f(t, x):
-        return np.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0]])
-
-    def jac(t, x):
-        return np.array([[0.0, 1.0], [-2 * mu * x[0] * x[1] - 1, mu * (1 - x[0] ** 2)]])
-    return f, jac
 
 
 def robertson_problem():

@@ -54,14 +54,20 @@ HIRES_K = (1.71, 0.43, 8.32, 0.69, 0.035, 8.32, 280.0, 0.69, 0.69)
 MU = 1000.0
 
 
-def robertson_f(t, y):
-    return np.array([-0.04 * y[0] + 1e4 * y[1] * y[2], 0.04 * y[0] - 1e4 * y[1] * y[2] - 3e7 * y[1] ** 2,
-                     3e7 * y[1] ** 2])
+def robertson_numpy(p: dict) -> tuple[Callable, Callable]:
+    """Robertson's right-hand side and Jacobian in NumPy at coefficients ``p = {"k1", "k2", "k3"}``."""
+    k1, k2, k3 = p["k1"], p["k2"], p["k3"]
+
+    def f(t, y):
+        return np.array([-k1 * y[0] + k3 * y[1] * y[2], k1 * y[0] - k3 * y[1] * y[2] - k2 * y[1] ** 2, k2 * y[1] ** 2])
+
+    def jac(t, y):
+        return np.array([[-k1, k3 * y[2], k3 * y[1]], [k1, -k3 * y[2] - 2 * k2 * y[1], -k3 * y[1]],
+                         [0.0, 2 * k2 * y[1], 0.0]])
+    return f, jac
 
 
-def robertson_jac(t, y):
-    return np.array([[-0.04, 1e4 * y[2], 1e4 * y[1]], [0.04, -1e4 * y[2] - 6e7 * y[1], -1e4 * y[1]],
-                     [0.0, 6e7 * y[1], 0.0]])
+robertson_f, robertson_jac = robertson_numpy({"k1": 0.04, "k2": 3e7, "k3": 1e4})
 
 
 def hires_f(t, y):
@@ -87,12 +93,19 @@ def hires_jac(t, y):
     return J
 
 
-def vdp_f(t, y):
-    return np.array([y[1], MU * (1 - y[0] ** 2) * y[1] - y[0]])
+def vdp_numpy(p: dict) -> tuple[Callable, Callable]:
+    """Van der Pol's right-hand side and Jacobian in NumPy at ``p = {"mu": ...}``."""
+    mu = p["mu"]
+
+    def f(t, y):
+        return np.array([y[1], mu * (1 - y[0] ** 2) * y[1] - y[0]])
+
+    def jac(t, y):
+        return np.array([[0.0, 1.0], [-2 * mu * y[0] * y[1] - 1, mu * (1 - y[0] ** 2)]])
+    return f, jac
 
 
-def vdp_jac(t, y):
-    return np.array([[0.0, 1.0], [-2 * MU * y[0] * y[1] - 1, MU * (1 - y[0] ** 2)]])
+vdp_f, vdp_jac = vdp_numpy({"mu": MU})
 
 
 @dataclass
