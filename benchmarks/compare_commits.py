@@ -24,7 +24,6 @@ import subprocess
 import sys
 import tarfile
 import tempfile
-import time
 from io import BytesIO
 from pathlib import Path
 
@@ -76,20 +75,10 @@ def compare(base, methods: list[str], repeats: int) -> list[str]:
              "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|---|"]
     for method in methods:
         for (name, make_a, data_a, x_a), (_, make_b, data_b, x_b) in zip(problems(base), problems(torchql)):
-            def fit_a():
-                return base.fit(make_a(), data_a, x_a, method=method)
-
-            def fit_b():
-                return torchql.fit(make_b(), data_b, x_b, method=method)
-
-            a, b = fit_a(), fit_b()
-            fit_a(), fit_b()
-            times_a, times_b = [], []
-            for _ in range(repeats):
-                for fit, times in ((fit_a, times_a), (fit_b, times_b)):
-                    start = time.perf_counter()
-                    fit()
-                    times.append(time.perf_counter() - start)
+            timed = fs.time_interleaved(
+                {"base": lambda: base.fit(make_a(), data_a, x_a, method=method),
+                 "working": lambda: torchql.fit(make_b(), data_b, x_b, method=method)}, repeats)
+            (times_a, a), (times_b, b) = timed["base"], timed["working"]
             ma, mb = statistics.median(times_a), statistics.median(times_b)
             diff = float((a.estimates - b.estimates).abs().max())
             lines.append(f"| {name} | {method} | {1000 * ma:.1f} ms | {a.iterations} | {1000 * mb:.1f} ms | "
