@@ -459,9 +459,11 @@ class Problem:
 
         check(0)
         try:
-            linearize(system, t0[:1], self.z0[:1])
+            for order in ("reverse", "forward"):  # small grids take the one, large grids the other
+                linearize(system, t0[:1], self.z0[:1], order=order)
         except Exception as exc:  # noqa: BLE001
-            raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd and jvp under vmap): "
+            raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd, jacrev and jvp "
+                             "under vmap): "
                              f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
                              "values.") from exc
         with torch.no_grad():
