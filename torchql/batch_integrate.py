@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import torch
 
-from .grid_solve import _SAFETY as _GRID_SAFETY, _Field, _rk4_pair as _grid_rk4_pair
+from .grid_solve import _Field, more_steps, newton_matrices, rk4_pair
 from .budget import check_time
 from .integrate import CountedField, IntegrationError, interval_tolerances, solve
 from .dopri import dopri_batch
@@ -200,7 +200,8 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
 
 
 def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=None):
-    """``phi (N, M)``, ``S (N, M, M)`` of every interval and ``failed (N,)``; ``steps`` updated in place.
+    """``phi (N, M)`` of every interval within tolerance, ``failed (N,)`` and the evaluations of
+    ``f`` (points); ``steps`` updated in place.
 
     ``rtol``, ``atol``: floats, or Tensors ``(N, 1)`` (each interval its own). ``owner (N,)``: each
     interval's sample; when one interval of a sample exceeds ``max_substeps``, the sample's other
@@ -208,7 +209,6 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=Non
     """
     N, M = x0.shape
     phi = x0.new_empty(N, M)
-    S = x0.new_empty(N, M, M)
     ratio = x0.new_empty(N)
     failed = torch.zeros(N, dtype=torch.bool, device=x0.device)
     n_evals = 0
@@ -219,8 +219,7 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=Non
             group = todo[steps[todo] == n]
             rt = rtol[group] if isinstance(rtol, torch.Tensor) else rtol
             at = atol[group] if isinstance(atol, torch.Tensor) else atol
-            p, s, r, evals = _grid_rk4_pair(field, t0[group], h[group], x0[group], n, rt, at)
-            phi[group], S[group], ratio[group] = p, s, r
+            phi[group], ratio[group], evals = rk4_pair(field, t0[group], h[group], x0[group], n, rt, at)
             n_evals += evals * group.numel()
         todo = todo[~(ratio[todo] <= 1.0)]
         if not todo.numel():
@@ -233,10 +232,8 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=Non
             failed[todo[dead]] = True
             capped = capped | dead
         todo, current = todo[~capped], current[~capped]
-        r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        factor = torch.ceil(torch.log2((_GRID_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
-        steps[todo] = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps // 2))
-    return phi, S, failed, n_evals
+        steps[todo] = more_steps(current, ratio[todo], max_substeps)
+    return phi, failed, n_evals
 
 
 def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
@@ -308,10 +305,11 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         else:
             ta, hs, rt, at = t0.repeat(A), h.repeat(A), rtol_j, atol_j
         owner = torch.arange(A, device=z0.device).repeat_interleave(N) if report_budget else None
-        phi, Sj, failed, evals = _integrate_each(field, ta, hs, Xa[:, :-1].reshape(-1, M), st, rt, at,
-                                                 max_substeps, owner)
+        x0 = Xa[:, :-1].reshape(-1, M)
+        phi, failed, evals = _integrate_each(field, ta, hs, x0, st, rt, at, max_substeps, owner)
         steps[active] = st.reshape(A, N)
-        n_evals += evals
+        Sj, jac_evals = newton_matrices(field, ta, hs, x0, st)
+        n_evals += evals + jac_evals * A * N
         failed = failed.reshape(A, N).any(dim=1)
         over_budget[active[failed]] = True
         defect = phi.reshape(A, N, M) - Xa[:, 1:]

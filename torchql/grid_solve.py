@@ -8,13 +8,16 @@ removed by Newton's method. Newton's correction obeys ``delta_{j+1} = S_j delta_
 ``delta_0 = 0``: an affine recurrence, composed by the prefix scan of :mod:`torchql.transfer`.
 Convergence is quadratic from a good guess (for instance the linear prediction of a
 quasilinearization iterate); for a linear model one Newton step is exact whatever the guess.
-A correction within ``sqrt(rtol)`` of the solution is followed by a chord step: the new nodes'
-defects, integrated without the variational equations, propagated by the last sensitivities.
+Once a correction is within ``sqrt(rtol)`` of the solution, the next steps are chord steps:
+the new nodes' defects propagated by the last sensitivities, which are not evaluated again.
 
 Each interval's integration is controlled like the interval transfers': ``n`` and ``2n`` RK4
 steps, the difference over 15 as the error estimate (max-norm, tolerances divided by the square
 root of the number of intervals), the Richardson extrapolation as the result, and more steps
-for the intervals that fail.
+for the intervals that fail. Only the defects need that accuracy: the sensitivities ``S_j`` are
+Newton's matrices, which set how fast the corrections shrink and not where they end, and are
+integrated once, by the ``n`` RK4 steps of the variational equations that met the tolerance
+(the Jacobian of ``f``, from :func:`torch.func.jacrev`, costs about six evaluations of ``f``).
 """
 
 from __future__ import annotations
@@ -52,8 +55,8 @@ class GridSolveInfo(NamedTuple):
     newton_iterations : int
         Newton updates of the node values.
     n_evals : int
-        Batched evaluations of ``f`` with its Jacobian (each one at one stage of every interval
-        being integrated).
+        Batched evaluations of ``f``, or of ``f`` with its Jacobian (each one at one stage of
+        the intervals being integrated).
     max_defect : float
         Largest node defect ``|phi_j(X_j) - X_{j+1}|`` at the end (max-norm).
     max_substeps : int
@@ -117,11 +120,15 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     t0, h = grid[:-1], grid[1:] - grid[:-1]
     steps = torch.full((intervals,), 1, dtype=torch.long, device=grid.device)  # coarse steps per interval
     n_evals = 0
-    previous = float("inf")  # the last Newton correction's size
+    previous = float("inf")  # the last correction's size
+    S = None  # Newton's matrices, kept for chord steps once the corrections are small
     for iteration in range(1, max_newton + 1):
         check_time()
-        phi, S, evals = _integrate_controlled(field, t0, h, X[:-1], steps, rtol_j, atol_j, max_substeps, grid)
+        phi, evals = _integrate_controlled(field, t0, h, X[:-1], steps, rtol_j, atol_j, max_substeps, grid)
         n_evals += evals
+        if S is None:
+            S, evals = newton_matrices(field, t0, h, X[:-1], steps)
+            n_evals += evals
         defect = phi - X[1:]
         # Newton: delta_{j+1} = S_j delta_j + d_j from delta_0 = 0, by the prefix scan
         T = torch.zeros(intervals, M + 1, M + 1, dtype=z0.dtype, device=z0.device)
@@ -137,24 +144,10 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
             raise IntegrationError(f"Newton on the node defects is not converging (correction {size:.3g} after "
                                    f"{previous:.3g}); pass a closer `guess`")
         previous = size
-        small = (delta.abs() <= 0.1 * (atol + rtol * X.abs())).all()
-        if bool(small):
-            max_defect = float(defect.abs().max())
-            return X, GridSolveInfo(iteration, n_evals, max_defect, int(2 * steps.max()))
-        if bool((delta.abs() <= math.sqrt(rtol) * (atol / rtol + X.abs())).all()):
-            # close: one chord step (the defects of the new nodes, propagated by these sensitivities)
-            # settles it at a quarter of a Newton step's cost, no Jacobian being evaluated
-            phi, _, evals = _integrate_controlled(field, t0, h, X[:-1], steps, rtol_j, atol_j, max_substeps, grid,
-                                                  values_only=True)
-            n_evals += evals
-            defect = phi - X[1:]
-            T[:, :M, M] = defect
-            delta = compose_transfers(Transfers.from_full(T), torch.zeros(M, 1, dtype=z0.dtype, device=z0.device))[:, :, 0]
-            if not torch.isfinite(delta).all():
-                raise IntegrationError("the solution on the grid became non-finite (NaN or inf)")
-            X = X + delta
-            if bool((delta.abs() <= 0.1 * (atol + rtol * X.abs())).all()):
-                return X, GridSolveInfo(iteration, n_evals, float(defect.abs().max()), int(2 * steps.max()))
+        if bool((delta.abs() <= 0.1 * (atol + rtol * X.abs())).all()):
+            return X, GridSolveInfo(iteration, n_evals, float(defect.abs().max()), int(2 * steps.max()))
+        if not bool((delta.abs() <= math.sqrt(rtol) * (atol / rtol + X.abs())).all()):
+            S = None  # still far: Newton's matrices again at the new nodes
     raise IntegrationError(f"Newton on the node defects did not converge in `max_newton` = {max_newton} iterations "
                            f"(last correction {float(delta.abs().max()):.3g}); pass a closer `guess`")
 
@@ -178,22 +171,18 @@ class _Field:
         return self.batched(t, x)
 
 
-def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, grid, values_only: bool = False):
-    """``phi_j(x0_j) (N, M)`` and ``S_j (N, M, M)`` (None with ``values_only``) within tolerance;
+def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, grid):
+    """``phi_j(x0_j) (N, M)`` within tolerance and the batched evaluations of ``f`` it took;
     ``steps`` (coarse) is updated in place."""
     N, M = x0.shape
     phi = x0.new_empty(N, M)
-    S = None if values_only else x0.new_empty(N, M, M)
     ratio = x0.new_empty(N)
     n_evals = 0
     todo = torch.arange(N, device=x0.device)
     while todo.numel():
         for n in steps[todo].unique().tolist():
             group = todo[steps[todo] == n]
-            p, s, r, evals = _rk4_pair(field, t0[group], h[group], x0[group], n, rtol, atol, values_only)
-            phi[group], ratio[group] = p, r
-            if S is not None:
-                S[group] = s
+            phi[group], ratio[group], evals = rk4_pair(field, t0[group], h[group], x0[group], n, rtol, atol)
             n_evals += evals
         bad = ~(ratio[todo] <= 1.0)
         todo = todo[bad]
@@ -205,39 +194,62 @@ def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, gri
             raise IntervalBudgetError(
                 f"the nonlinear model could not be integrated to the tolerance over the grid interval starting "
                 f"at t = {float(grid[worst]):.6g} with {max_substeps} RK4 steps; refine the grid or loosen `rtol`/`atol`")
-        r = ratio[todo].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        # a huge finite ratio asks for 2**factor beyond int64 (negative steps); max_substeps binds anyway
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
-        steps[todo] = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps // 2))
-    return phi, S, n_evals
+        steps[todo] = more_steps(current, ratio[todo], max_substeps)
+    return phi, n_evals
 
 
-def _rk4_pair(field, t0, h, x0, n, rtol, atol, values_only: bool = False):
-    """RK4 with ``n`` and ``2n`` steps from ``x0 (I, M)``: extrapolated end state, sensitivity (None
-    with ``values_only``), error ratio, evaluations."""
-    coarse_x, coarse_S, e1 = _rk4(field, t0, h, x0, n, values_only)
-    fine_x, fine_S, e2 = _rk4(field, t0, h, x0, 2 * n, values_only)
-    diff = (fine_x - coarse_x) / 15
-    scale = atol + rtol * torch.maximum(x0.abs(), fine_x.abs())
+def more_steps(current: torch.Tensor, ratio: torch.Tensor, max_substeps: int) -> torch.Tensor:
+    """The next coarse step counts of intervals that took ``current`` steps with error ratios
+    ``ratio`` above 1: RK4's error falls as the fourth power of the step, with :data:`_SAFETY`."""
+    r = ratio.nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
+    # a huge finite ratio asks for 2**factor beyond int64 (negative steps); max_substeps binds anyway
+    factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
+    return torch.minimum(current * 2**factor, torch.full_like(current, max_substeps // 2))
+
+
+def newton_matrices(field, t0, h, x0, steps) -> tuple[torch.Tensor, int]:
+    """``S_j = d phi_j / d x0_j (N, M, M)`` by ``steps[j]`` RK4 steps of the variational
+    equations (the coarse count that met the tolerance), and the batched evaluations of ``f``
+    with its Jacobian it took."""
+    N, M = x0.shape
+    S = x0.new_empty(N, M, M)
+    n_evals = 0
+    for n in steps.unique().tolist():
+        group = (steps == n).nonzero().flatten()
+        _, S[group] = _rk4(field, t0[group], h[group], x0[group], n)
+        n_evals += 4 * n
+    return S, n_evals
+
+
+def rk4_pair(field, t0, h, x0, n, rtol, atol):
+    """RK4 with ``n`` and ``2n`` steps from ``x0 (I, M)`` (their first stage shared): the
+    extrapolated end states ``(I, M)``, error ratios ``(I,)`` and batched evaluations of ``f``."""
+    first = field.values(t0, x0)
+    coarse = _rk4_values(field, t0, h, x0, n, first)
+    fine = _rk4_values(field, t0, h, x0, 2 * n, first)
+    diff = (fine - coarse) / 15
+    scale = atol + rtol * torch.maximum(x0.abs(), fine.abs())
     ratio = (diff.abs() / scale).amax(dim=-1)
-    sensitivity = None if values_only else fine_S + (fine_S - coarse_S) / 15
-    return fine_x + diff, sensitivity, ratio, e1 + e2
+    return fine + diff, ratio, 12 * n - 1
 
 
-def _rk4(field, t0, h, x, n, values_only: bool = False):
-    """``n`` RK4 steps of the state and its sensitivity (None with ``values_only``) over every
-    interval: ``(I, M)``, ``(I, M, M)``, evaluations."""
+def _rk4_values(field, t0, h, x, n, first):
+    """``n`` RK4 steps of the state over every interval ``(I, M)``, ``first = f(t0, x)`` given."""
+    d = (h / n).unsqueeze(-1)
+    for k in range(n):
+        t = t0 + k * h / n
+        f1 = first if k == 0 else field.values(t, x)
+        f2 = field.values(t + d[:, 0] / 2, x + d / 2 * f1)
+        f3 = field.values(t + d[:, 0] / 2, x + d / 2 * f2)
+        f4 = field.values(t + d[:, 0], x + d * f3)
+        x = x + d / 6 * (f1 + 2 * (f2 + f3) + f4)
+    return x
+
+
+def _rk4(field, t0, h, x, n):
+    """``n`` RK4 steps of the state and its sensitivity over every interval: ``(I, M)``, ``(I, M, M)``."""
     I, M = x.shape
     d = (h / n).unsqueeze(-1)
-    if values_only:
-        for k in range(n):
-            t = t0 + k * h / n
-            f1 = field.values(t, x)
-            f2 = field.values(t + d[:, 0] / 2, x + d / 2 * f1)
-            f3 = field.values(t + d[:, 0] / 2, x + d / 2 * f2)
-            f4 = field.values(t + d[:, 0], x + d * f3)
-            x = x + d / 6 * (f1 + 2 * (f2 + f3) + f4)
-        return x, None, 4 * n
     S = torch.eye(M, dtype=x.dtype, device=x.device).expand(I, M, M)
     dm = d.unsqueeze(-1)
     for k in range(n):
@@ -252,4 +264,4 @@ def _rk4(field, t0, h, x, n, values_only: bool = False):
         K4 = J4 @ (S + dm * K3)
         x = x + d / 6 * (f1 + 2 * (f2 + f3) + f4)
         S = S + dm / 6 * (K1 + 2 * (K2 + K3) + K4)
-    return x, S, 4 * n
+    return x, S
