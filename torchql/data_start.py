@@ -21,7 +21,7 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
-from torch.func import jacfwd, jacrev, vmap
+from torch.func import jacrev, vmap
 
 from .lstsq import solve_update_batch
 from .schemes import scheme_strategy
@@ -280,7 +280,7 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
     :data:`MATCH_STEPS` kept steps, a step below :data:`MATCH_XTOL` (kept, or undamped: the
     Gauss–Newton step at a stationary point), a change of cost below :data:`MATCH_FTOL`, or
     damping past its limit. Each evaluation gives the residuals and their Jacobian in one
-    forward-mode pass. ``s`` scales each state's slopes to unit size; padding nodes (``live`` 0) do not count.
+    reverse-mode pass. ``s`` scales each state's slopes to unit size; padding nodes (``live`` 0) do not count.
     """
     n = system.n
     S = z0.shape[0]
@@ -291,9 +291,11 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
         value = system.rhs(t, z[:n], p)
         return value, value
 
-    # Only the model runs under the transforms: arithmetic with tensors that carry no tangent
-    # (the slopes, scales, mask) costs torch a Python-level kernel per operation in forward mode.
-    per_node = vmap(jacfwd(slope, has_aux=True))  # the Jacobian and the value in one pass
+    # Only the model runs under the transforms. Reverse mode: the n slopes are fewer than (or as
+    # many as) the coefficients, and forward mode costs torch a Python-level kernel per operation
+    # that mixes tangents; on 40 to 4e4 nodes of 1- to 4-state models reverse mode took 0.3 to 0.7
+    # of forward mode's time.
+    per_node = vmap(jacrev(slope, has_aux=True))  # the Jacobian and the value in one pass
     G = z_ref.shape[1]
     times = (grid.expand(S, G) if grid.dim() == 1 else grid).reshape(-1)
     nodes = z_ref.reshape(S * G, -1)
