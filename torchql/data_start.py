@@ -291,10 +291,9 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
         value = system.rhs(t, z[:n], p)
         return value, value
 
-    # Only the model runs under the transforms. Reverse mode: the n slopes are fewer than (or as
-    # many as) the coefficients, and forward mode costs torch a Python-level kernel per operation
-    # that mixes tangents; on 40 to 4e4 nodes of 1- to 4-state models reverse mode took 0.3 to 0.7
-    # of forward mode's time.
+    # Only the model runs under the transforms. Reverse mode: forward mode costs torch a
+    # Python-level kernel per model operation that mixes tangents; on 40 to 4e4 nodes of 1- to
+    # 4-state models reverse mode took 0.3 to 0.7 of forward mode's time.
     per_node = vmap(jacrev(slope, has_aux=True))  # the Jacobian and the value in one pass
     G = z_ref.shape[1]
     times = (grid.expand(S, G) if grid.dim() == 1 else grid).reshape(-1)
