@@ -74,7 +74,10 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
         Slopes of the trajectory; default ``f(t_j, z_j)`` (a solution of the model).
     order : {"reverse", "forward"}, optional
         ``"reverse"`` (reverse over forward) or ``"forward"`` (forward over forward); default by
-        :data:`REVERSE_WORK_LIMIT`. Both give the same values to rounding.
+        :data:`REVERSE_WORK_LIMIT`, among ``system.linearization_orders``, the orders torch.func
+        can take on the model as far as known: reverse mode (which :class:`~torchql.problem.Problem`
+        checks) stands in where forward mode fails (a model's operation without a forward-mode
+        derivative), and forward mode is not tried again. Both give the same values to rounding.
 
     Returns
     -------
@@ -85,11 +88,24 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
 
     if order is None:
         order = "reverse" if t.shape[0] * system.M**2 <= REVERSE_WORK_LIMIT else "forward"
+        if order not in system.linearization_orders:
+            order = "reverse"
+        if order == "forward":
+            try:
+                return _linearize(order, system.f, t, z, z_dot)
+            except Exception:  # noqa: BLE001 -- the model's forward does not take nested forward mode
+                system.linearization_orders = ("reverse",)
+                order = "reverse"
+    return _linearize(order, system.f, t, z, z_dot)
+
+
+def _linearize(order: str, f, t, z, z_dot) -> Linearization:
+    """The linearization in ``order`` (``"reverse"`` or ``"forward"``), vmapped over the nodes."""
     if order == "reverse":
-        f, jac, f_dot, jac_dot = vmap(_reverse_over_forward(system.f))(t, z, z_dot)
+        value, jac, value_dot, jac_dot = vmap(_reverse_over_forward(f))(t, z, z_dot)
     else:
-        (f, jac), (f_dot, jac_dot) = vmap(_forward_over_forward(system.f))(t, z, z_dot)
-    return Linearization(f=f, jac=jac, f_dot=f_dot, jac_dot=jac_dot)
+        (value, jac), (value_dot, jac_dot) = vmap(_forward_over_forward(f))(t, z, z_dot)
+    return Linearization(f=value, jac=jac, f_dot=value_dot, jac_dot=jac_dot)
 
 
 def _reverse_over_forward(f):

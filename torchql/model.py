@@ -226,6 +226,10 @@ class AugmentedSystem:
         self.param_names = list(param_names)
         self.param_shapes = [buffers[name].shape for name in self.param_names]
         self.param_sizes = [math.prod(shape) for shape in self.param_shapes]
+        #: the orders of differentiation of :func:`torchql.linearize.linearize` that torch.func
+        #: can take on the model as far as known (reverse mode is checked; forward mode is
+        #: dropped when it fails)
+        self.linearization_orders: tuple[str, ...] = ("reverse", "forward")
         self.n = len(model.state_names)
         self.P = sum(self.param_sizes)
         self.M = self.n + self.P

@@ -458,13 +458,11 @@ class Problem:
                                   sample)
 
         check(0)
-        try:
-            for order in ("reverse", "forward"):  # small grids take the one, large grids the other
-                linearize(system, t0[:1], self.z0[:1], order=order)
+        try:  # reverse mode: the linearization of small grids, the grid solver's and the data start's Jacobians
+            linearize(system, t0[:1], self.z0[:1], order="reverse")
         except Exception as exc:  # noqa: BLE001
-            raise ValueError("`model` forward could not be differentiated with torch.func (jacfwd, jacrev and jvp "
-                             "under vmap): "
-                             f"{exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
+            raise ValueError("`model` forward could not be differentiated with torch.func (jacrev and jvp under "
+                             f"vmap): {exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
                              "values.") from exc
         with torch.no_grad():
             finite = torch.isfinite(vmap(system.f)(t0, self.z0)).all(dim=1)
