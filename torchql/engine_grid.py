@@ -2,8 +2,9 @@
 
 The first reference of every sample is built on the probe grid (:data:`torchql.grid.AUTO_PROBE`
 uniform intervals with the observation times). From the size of the fourth derivative of the
-model's solutions along it (:func:`fourth_derivative_scale`, from the model's slopes at the
-probe's uniform nodes), the engine takes for each sample the fewest of :data:`torchql.grid.AUTO_COUNTS` uniform intervals whose cubic Hermite
+model's solutions along it (:func:`fourth_derivative_scale`, from the model's slopes and their
+rates of change along its flow at the probe's uniform nodes), the engine takes for each sample
+the fewest of :data:`torchql.grid.AUTO_COUNTS` uniform intervals whose cubic Hermite
 interpolation of those solutions stays within :data:`torchql.grid.AUTO_SAFETY` times
 ``sqrt(rtol)`` of the states (:func:`torchql.grid.needed_intervals`). A count that divides the
 probe's keeps every ``k``-th of its uniform nodes and all its fixed ones (``t0``, the
@@ -22,7 +23,7 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.func import vmap
+from torch.func import jvp, vmap
 
 from .grid import (AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, last_nodes, make_grids, needed_intervals,
                    uniform_nodes)
@@ -148,16 +149,21 @@ class AutoGrid:
 
     def _grid_counts(self, traj: torch.Tensor, errors: list) -> torch.Tensor:
         """Each sample's uniform intervals ``(S,)``, a count of :data:`AUTO_COUNTS`, from the model's
-        slopes along its first reference ``traj (S, G, M)`` at the probe grid's uniform nodes
-        (:func:`fourth_derivative_scale`); the probe's own count where the reference failed
+        slopes and their rates of change along its first reference ``traj (S, G, M)`` at the probe
+        grid's uniform nodes (:func:`fourth_derivative_scale`); the probe's own count where the reference failed
         (``errors``, one per sample)."""
         n, S = self.system.n, self.S
         t0, t_end, probe = self._probe_nodes()
         times = self.grid.expand(S, self.G).gather(1, probe)
         nodes = traj.gather(1, probe.unsqueeze(-1).expand(S, -1, traj.shape[-1]))  # (S, P + 1, M)
+        f = self.system.f
+
+        def slope_and_rate(t, z):  # x' = f and x'' = f_t + f_x f along the model's flow through z
+            return jvp(f, (t, z), (torch.ones_like(t), f(t, z)))
+
         with torch.no_grad():
-            slopes = vmap(self.system.f)(times.reshape(-1), nodes.reshape(-1, nodes.shape[-1])).reshape(nodes.shape)
-        fourth = fourth_derivative_scale(slopes[..., :n], (t_end - t0) / AUTO_PROBE)
+            slopes, rates = vmap(slope_and_rate)(times.reshape(-1), nodes.reshape(-1, nodes.shape[-1]))
+        fourth = fourth_derivative_scale(slopes.reshape(nodes.shape)[..., :n], rates.reshape(nodes.shape)[..., :n])
         rtol = AUTO_SAFETY * math.sqrt(self.spec.rtol)
         needed = needed_intervals(fourth, traj[..., :n], rtol, self.spec.atol * rtol / self.spec.rtol, span=t_end - t0)
         counts = auto_counts(needed)
@@ -198,22 +204,23 @@ class AutoGrid:
         self.G = self.grid.shape[-1]
 
 
-def fourth_derivative_scale(slopes: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-    """The size ``(S, 1, n)`` of the fourth derivatives of trajectories whose slopes ``(S, P, n)`` are
-    known at uniform nodes ``h (S,)`` apart: ``max |x''|^3 / max |x'|^2`` per component, ``x''``
-    from the slopes' first differences.
+def fourth_derivative_scale(slopes: torch.Tensor, rates: torch.Tensor) -> torch.Tensor:
+    """The size ``(S, 1, n)`` of the fourth derivatives of trajectories from their first and second
+    derivatives ``slopes, rates (S, P, n)`` at nodes spread over the span: ``max |x''|^3 / max |x'|^2``
+    per component.
 
     The trajectory's fastest time scale is ``tau = max |x'| / max |x''|``, and its fourth
     derivative about ``max |x''| / tau^2``: exact for oscillations and exponentials (``omega^4``
     and ``k^4`` times the amplitude), a ninth for a logistic curve's (where the count of
-    intervals, which goes as its fourth root, is 1.7 times too small). Only the model's slopes
-    enter, one evaluation at every node: along a reference built from the data, whose derived
-    states are only once differentiable (a smoothing spline's slopes), higher differences follow
-    the spline's knots and ends instead of the model (an oscillator's exact data: 5 to 35 times
-    its fourth derivative), and nested forward-mode derivatives cost more than a small fit.
+    intervals, which goes as its fourth root, is 1.7 times too small). The engine takes ``x'``
+    and ``x''`` from the model along the first reference (``x'' = f_t + f_x f``, one forward-mode
+    derivative at every node), not from differences of the reference: one built from the data
+    has derived states that are only once differentiable (a smoothing spline's slopes), whose
+    differences follow the spline's knots instead of the model (on an oscillator's exact data,
+    3.5 times its fourth derivative), and higher derivatives of the model cost more than a small fit.
     """
     first = slopes.abs().amax(dim=1, keepdim=True)
-    second = ((slopes[:, 1:] - slopes[:, :-1]) / h.reshape(-1, 1, 1)).abs().amax(dim=1, keepdim=True)
+    second = rates.abs().amax(dim=1, keepdim=True)
     tiny = torch.finfo(slopes.dtype).tiny
     return torch.where(first > 0, second**3 / first.clamp(min=tiny) ** 2, torch.zeros_like(first))
 
