@@ -103,11 +103,11 @@ from torchql.models.car import AIR_DENSITY, GRAVITY
 
 DTYPE = torch.float64
 AREA, MASS = 17.3, 80.43
-#: The tuned rows: each changes one option of the default fit.
-#: Rows of other settings at the largest ``B``: tuned ones (faster, their accuracy columns say at what cost)
-#: and the former fixed default grid (1000 intervals), for comparison.
-TUNED = {"tuned (grid=20)": dict(grid=20), "tuned (rtol=1e-8)": dict(rtol=1e-8),
-         "grid=1000 (the former fixed default)": dict(grid=1000)}
+#: Rows of other settings at the largest ``B``, each changing one option of the default fit: the
+#: tuned ones (kind ``tuned``: faster, their accuracy columns say at what cost) and the former
+#: fixed default grid of 1000 intervals (kind ``former``), for comparison.
+TUNED = {"tuned (grid=20)": dict(grid=20), "tuned (rtol=1e-8)": dict(rtol=1e-8)}
+FORMER = {"grid=1000 (the former fixed default)": dict(grid=1000)}
 PEER_RTOL, PEER_ATOL = 1e-10, 1e-12
 PEER_LSQ = dict(method="trf", jac="2-point", diff_step=1e-5, x_scale="jac", xtol=1e-12, ftol=1e-14, gtol=1e-14,
                 max_nfev=2000)
@@ -312,8 +312,8 @@ def peak_rss_mb() -> float:
 class Row:
     """One row of a family's table: ``B`` datasets (the first ``B``), estimates ``(B, m)``, wall seconds.
 
-    ``kind``: ``fit_many`` (default options), ``tuned``, ``threads``, ``jax``, ``loop`` (torchql fit)
-    or ``scipy``. ``dsse`` and ``diff`` are filled by :func:`score_rows`.
+    ``kind``: ``fit_many`` (default options), ``tuned``, ``former`` (the former default grid),
+    ``threads``, ``jax``, ``loop`` (torchql fit) or ``scipy``. ``dsse`` and ``diff`` are filled by :func:`score_rows`.
     """
 
     label: str
@@ -349,10 +349,11 @@ def fit_many_rows(family: Family, data: Data, sizes: list[int], repeat: int, all
         result, seconds = best_of(repeat, lambda: run_fit_many(family, data.head(B)))
         rows.append(torchql_row("torchql fit_many", "fit_many", result, seconds, peak_rss_mb()))
     B = max(sizes)
-    for name, options in TUNED.items():
-        print(f"... {family.key}: fit_many B = {B}, {name}", file=sys.stderr, flush=True)
-        result, seconds = best_of(repeat, lambda: run_fit_many(family, data.head(B), **options))
-        rows.append(torchql_row(f"torchql fit_many, {name}", "tuned", result, seconds))
+    for kind, settings in (("tuned", TUNED), ("former", FORMER)):
+        for name, options in settings.items():
+            print(f"... {family.key}: fit_many B = {B}, {name}", file=sys.stderr, flush=True)
+            result, seconds = best_of(repeat, lambda: run_fit_many(family, data.head(B), **options))
+            rows.append(torchql_row(f"torchql fit_many, {name}", kind, result, seconds))
     if not all_cores:
         return rows
     threads = os.cpu_count() or 1
@@ -416,7 +417,7 @@ def score_rows(family: Family, data: Data, rows: list[Row]) -> None:
 
 
 #: The order of the rows in a table.
-ROW_ORDER = ("fit_many", "tuned", "threads", "jax", "loop", "scipy")
+ROW_ORDER = ("fit_many", "tuned", "former", "threads", "jax", "loop", "scipy")
 
 
 def benchmark_family(family: Family, sizes: list[int], subset: int, repeat: int, seed: int,
@@ -465,7 +466,7 @@ def table_lines(res: dict) -> list[str]:
     jax_rate = {r.B: r.rate for r in rows if r.kind == "jax"}
     lines = [HEADER, "|" + "---|" * (HEADER.count("|") - 1)]
     for r in rows:
-        vs_jax = r.rate / jax_rate[r.B] if r.kind in ("fit_many", "tuned", "threads") and r.B in jax_rate else np.nan
+        vs_jax = r.rate / jax_rate[r.B] if r.kind in ("fit_many", "tuned", "former", "threads") and r.B in jax_rate else np.nan
         vs_scipy = _ratio(r.rate / scipy_rate)
         lines.append(
             f"| {r.label} | {r.B} | {r.seconds:.2f} s | {r.rate:.1f} | "
@@ -494,8 +495,7 @@ def notes(res: dict) -> list[str]:
         f"Median relative error of fit_many's estimates against the true values (noise {fam.noise:g}): " + ", ".join(
             f"{name} {e:.1e}" for name, e in zip(largest.extra["result"].unknown_names, truth_err)) + ".",
     ]
-    tuned = [r for r in rows if r.kind == "tuned" and r.B == largest.B and r.label.endswith(")")
-             and "tuned" in r.label]
+    tuned = [r for r in rows if r.kind == "tuned" and r.B == largest.B]
     if tuned:
         best = max(tuned, key=lambda r: r.rate)
         out.append(f"Defaults against the fastest tuned row at B = {largest.B} ({best.label.split(', ', 1)[1]}): "
@@ -543,7 +543,8 @@ def plot(results: list[dict], path: Path) -> None:
     for ax, res in zip(axes[0], results):
         rows = res["rows"]
         for kind, label, style in (("fit_many", "torchql fit_many (default)", "o-"), ("jax", "JAX LM + diffrax", "s-"),
-                                   ("tuned", "torchql fit_many, tuned", "^")):
+                                   ("tuned", "torchql fit_many, tuned", "^"),
+                                   ("former", "torchql fit_many, grid=1000 (former default)", "x")):
             pts = sorted((r.B, r.rate) for r in rows if r.kind == kind)
             if pts:
                 ax.loglog(*zip(*pts), style, label=label)

@@ -67,6 +67,7 @@ def test_batch_quick_writes_table_and_plot(tmp_path):
         labels = [_cells(row)[0] for row in rows]
         assert [_cells(row)[1] for row in rows if _cells(row)[0] == "torchql fit_many"] == sizes
         assert "torchql fit_many, tuned (grid=20)" in labels and "torchql fit_many, tuned (rtol=1e-8)" in labels
+        assert "torchql fit_many, grid=1000 (the former fixed default)" in labels
         assert "torchql fit, loop" in labels and "scipy least_squares + solve_ivp DOP853, loop" in labels
         jax_rows = [row for row in rows if _cells(row)[0].startswith("JAX")]
         assert [_cells(row)[1] for row in jax_rows] == (sizes if jax else [])
