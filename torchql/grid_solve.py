@@ -7,7 +7,8 @@ equations for ``S_j = d phi_j / d X_j``), and the defects ``d_j = phi_j(X_j) - X
 removed by Newton's method. Newton's correction obeys ``delta_{j+1} = S_j delta_j + d_j``,
 ``delta_0 = 0``: an affine recurrence, composed by the prefix scan of :mod:`torchql.transfer`.
 Convergence is quadratic from a good guess (for instance the linear prediction of a
-quasilinearization iterate); for a linear model one Newton step is exact whatever the guess.
+quasilinearization iterate); for a linear model one Newton step lands within the integration
+error whatever the guess.
 Once a correction is within ``sqrt(rtol)`` of the solution, the next steps are chord steps:
 the new nodes' defects propagated by the last sensitivities, which are not evaluated again.
 
