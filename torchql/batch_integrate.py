@@ -27,6 +27,8 @@ so one vmapped right-hand side serves every sample.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .grid_solve import _Field, more_steps, newton_matrices, rk4_pair
@@ -287,11 +289,15 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         rtol_j, atol_j = (torch.tensor(v, dtype=z0.dtype, device=z0.device).unsqueeze(-1) for v in zip(*tolerances))
     else:
         rtol_j, atol_j = interval_tolerances(rtol, atol, N, z0.dtype)
-    field = _Field(system.f)
+    n = system.n  # the coefficients are constant on every interval: Newton moves the states only
+    X[:, 1:, n:] = z0[:, n:].unsqueeze(1)  # and they are the samples' own at every node, whatever the guess
+    field = _Field(system.f, n)
     active = torch.arange(S, device=z0.device)
     steps = torch.ones(S, N, dtype=torch.long, device=z0.device)
     t0, h = grid[..., :-1], grid[..., 1:] - grid[..., :-1]
     n_evals = 0
+    matrices = z0.new_empty(S, N, n, n)  # Newton's, per sample; kept for chord steps once its corrections are small
+    stale = torch.ones(S, dtype=torch.bool, device=z0.device)
     for _ in range(max_newton):
         if not active.numel():
             break
@@ -308,18 +314,24 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         x0 = Xa[:, :-1].reshape(-1, M)
         phi, failed, evals = _integrate_each(field, ta, hs, x0, st, rt, at, max_substeps, owner)
         steps[active] = st.reshape(A, N)
-        Sj, _ = newton_matrices(field, ta, hs, x0, st)
-        n_evals += evals + 4 * int(st.sum())  # each interval's n steps: 4 n points with the Jacobian
+        n_evals += evals
+        renew = stale[active].repeat_interleave(N)
+        if bool(renew.any()):
+            fresh, _ = newton_matrices(field, ta[renew], hs[renew], x0[renew], st[renew])
+            matrices[active[stale[active]]] = fresh.reshape(-1, N, n, n)
+            n_evals += 4 * int(st[renew].sum())  # each interval's n steps: 4 n points with the Jacobian
         failed = failed.reshape(A, N).any(dim=1)
         over_budget[active[failed]] = True
-        defect = phi.reshape(A, N, M) - Xa[:, 1:]
+        defect = phi.reshape(A, N, M)[..., :n] - Xa[:, 1:, :n]
         # delta_{j+1} = S_j delta_j + d_j, delta_0 = 0: the affine recurrence, by the prefix scan
-        Y = torch.cat([Sj.reshape(A, N, M, M), defect.unsqueeze(-1)], dim=-1).permute(0, 2, 3, 1)  # (A, M, M+1, N)
-        delta = prefix_products(Y)[:, :, M, :].transpose(1, 2)  # (A, N, M)
+        Y = torch.cat([matrices[active], defect.unsqueeze(-1)], dim=-1).permute(0, 2, 3, 1)  # (A, n, n+1, N)
+        delta = prefix_products(Y)[:, :, n, :].transpose(1, 2)  # (A, N, n)
         finite = torch.isfinite(delta).flatten(1).all(dim=1)
         Xa = Xa.clone()
-        Xa[:, 1:] = Xa[:, 1:] + delta
-        small = (delta.abs() <= 0.1 * (atol + rtol * Xa[:, 1:].abs())).flatten(1).all(dim=1)
+        Xa[:, 1:, :n] = Xa[:, 1:, :n] + delta
+        scale = Xa[:, 1:, :n].abs()
+        small = (delta.abs() <= 0.1 * (atol + rtol * scale)).flatten(1).all(dim=1)
+        stale[active] = ~(delta.abs() <= math.sqrt(rtol) * (atol / rtol + scale)).flatten(1).all(dim=1)
         X[active] = Xa
         done = small & finite & ~failed
         ok[active[done]] = True

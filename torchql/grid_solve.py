@@ -154,17 +154,22 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
 
 
 class _Field:
-    """``f`` and its Jacobian, vmapped over a batch of times and states (:meth:`values`: ``f`` alone)."""
+    """``f`` and its Jacobian, vmapped over a batch of times and states (:meth:`values`: ``f`` alone).
 
-    def __init__(self, func) -> None:
+    ``n``: the Jacobian's size, that of the first ``n`` components of ``f`` in the first ``n`` of
+    the state (default all): an augmented state's coefficients are constant along every
+    interval, so Newton's correction never moves them, and only the states' block is needed.
+    """
+
+    def __init__(self, func, n: int | None = None) -> None:
         def value_and_jacobian(t, x):
-            def twice(x):
-                fx = func(t, x)
-                return fx, fx
+            def states(xs):
+                fx = func(t, xs if n is None else torch.cat([xs, x[n:]]))
+                return (fx if n is None else fx[:n]), fx
 
-            jac, fx = jacrev(twice, has_aux=True)(x)
-            return fx, jac
+            return tuple(reversed(jacrev(states, has_aux=True)(x if n is None else x[:n])))
 
+        self.n = n
         self.batched = vmap(value_and_jacobian)
         self.values = vmap(func)
 
@@ -209,11 +214,12 @@ def more_steps(current: torch.Tensor, ratio: torch.Tensor, max_substeps: int) ->
 
 
 def newton_matrices(field, t0, h, x0, steps) -> tuple[torch.Tensor, int]:
-    """``S_j = d phi_j / d x0_j (N, M, M)`` by ``steps[j]`` RK4 steps of the variational
+    """``S_j = d phi_j / d x0_j (N, K, K)`` (``K``: the field's ``n``, else ``M``) by ``steps[j]`` RK4 steps of the variational
     equations (the coarse count that met the tolerance), and the batched evaluations of ``f``
     with its Jacobian it took."""
     N, M = x0.shape
-    S = x0.new_empty(N, M, M)
+    size = M if field.n is None else field.n
+    S = x0.new_empty(N, size, size)
     n_evals = 0
     for n in steps.unique().tolist():
         group = (steps == n).nonzero().flatten()
@@ -248,10 +254,12 @@ def _rk4_values(field, t0, h, x, n, first):
 
 
 def _rk4(field, t0, h, x, n):
-    """``n`` RK4 steps of the state and its sensitivity over every interval: ``(I, M)``, ``(I, M, M)``."""
+    """``n`` RK4 steps of the state and its sensitivity over every interval: ``(I, M)``, ``(I, K, K)``
+    (``K``: the field's ``n``, else ``M``)."""
     I, M = x.shape
+    K = M if field.n is None else field.n
     d = (h / n).unsqueeze(-1)
-    S = torch.eye(M, dtype=x.dtype, device=x.device).expand(I, M, M)
+    S = torch.eye(K, dtype=x.dtype, device=x.device).expand(I, K, K)
     dm = d.unsqueeze(-1)
     for k in range(n):
         t = t0 + k * h / n
