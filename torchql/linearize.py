@@ -15,7 +15,7 @@ Two orders of differentiation give the same values (to rounding), at different c
 * **forward over forward** (:func:`torch.func.jvp` of :func:`torch.func.jacfwd`): nested
   forward mode makes torch run each elementwise model operation through a Python reference
   implementation (about 0.1 ms each, whatever the grid size), but the arithmetic is ``M``
-  forward passes per node. The faster on large grids (batches of samples): 0.35 to 0.4 of the
+  forward passes per node. The faster on large grids (batches of samples): 0.31 to 0.35 of the
   time of the other order on ``10^5`` nodes.
 
 :func:`linearize` takes reverse over forward while ``nodes * M**2`` is at most
