@@ -9,11 +9,13 @@ samples choose different grids is fitted group by group, each sample as its own 
 from __future__ import annotations
 
 import math
+from unittest import mock
 
 import pytest
 import torch
 
 import torchql
+import torchql.engine_grid as engine_grid
 from torchql.engine_grid import fourth_derivative_scale
 from torchql.grid import AUTO_COUNTS, AUTO_SAFETY, auto_counts
 from torchql.models import CoastingCar, LinearOscillator
@@ -62,8 +64,6 @@ def test_fourth_derivative_scale_along_a_data_reference_is_the_models():
 
     x = torchql.simulate(LinearOscillator(0.0, omega**2), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-12,
                          atol=1e-14)
-    import torchql.engine_grid as engine_grid
-    from unittest import mock
     with mock.patch.object(engine_grid, "fourth_derivative_scale", spy):
         result = torchql.fit(LinearOscillator(0.05, 2.5), torchql.Observations(t, x[:, :1], observe=["y"]),
                              torch.tensor([0.0, 0.9], dtype=DT))

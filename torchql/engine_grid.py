@@ -150,8 +150,8 @@ class AutoGrid:
     def _grid_counts(self, traj: torch.Tensor, errors: list) -> torch.Tensor:
         """Each sample's uniform intervals ``(S,)``, a count of :data:`AUTO_COUNTS`, from the model's
         slopes and their rates of change along its first reference ``traj (S, G, M)`` at the probe
-        grid's uniform nodes (:func:`fourth_derivative_scale`); the probe's own count where the reference failed
-        (``errors``, one per sample)."""
+        grid's uniform nodes (:func:`fourth_derivative_scale`); the probe's own count where the
+        reference failed (``errors``, one per sample)."""
         n, S = self.system.n, self.S
         t0, t_end, probe = self._probe_nodes()
         times = self.grid.expand(S, self.G).gather(1, probe)

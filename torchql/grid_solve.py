@@ -167,7 +167,8 @@ class _Field:
                 fx = func(t, xs if n is None else torch.cat([xs, x[n:]]))
                 return (fx if n is None else fx[:n]), fx
 
-            return tuple(reversed(jacrev(states, has_aux=True)(x if n is None else x[:n])))
+            jac, fx = jacrev(states, has_aux=True)(x if n is None else x[:n])
+            return fx, jac
 
         self.n = n
         self.batched = vmap(value_and_jacobian)
@@ -214,9 +215,9 @@ def more_steps(current: torch.Tensor, ratio: torch.Tensor, max_substeps: int) ->
 
 
 def newton_matrices(field, t0, h, x0, steps) -> tuple[torch.Tensor, int]:
-    """``S_j = d phi_j / d x0_j (N, K, K)`` (``K``: the field's ``n``, else ``M``) by ``steps[j]`` RK4 steps of the variational
-    equations (the coarse count that met the tolerance), and the batched evaluations of ``f``
-    with its Jacobian it took."""
+    """``S_j = d phi_j / d x0_j (N, K, K)`` (``K``: the field's ``n``, else ``M``) by ``steps[j]``
+    RK4 steps of the variational equations (the coarse count that met the tolerance), and the
+    batched evaluations of ``f`` with its Jacobian it took."""
     N, M = x0.shape
     size = M if field.n is None else field.n
     S = x0.new_empty(N, size, size)
@@ -257,9 +258,9 @@ def _rk4(field, t0, h, x, n):
     """``n`` RK4 steps of the state and its sensitivity over every interval: ``(I, M)``, ``(I, K, K)``
     (``K``: the field's ``n``, else ``M``)."""
     I, M = x.shape
-    K = M if field.n is None else field.n
+    size = M if field.n is None else field.n
     d = (h / n).unsqueeze(-1)
-    S = torch.eye(K, dtype=x.dtype, device=x.device).expand(I, K, K)
+    S = torch.eye(size, dtype=x.dtype, device=x.device).expand(I, size, size)
     dm = d.unsqueeze(-1)
     for k in range(n):
         t = t0 + k * h / n
