@@ -1,5 +1,5 @@
-"""The linearization along a trajectory: both orders of differentiation, the choice between them,
-and reverse mode standing in where a model does not take nested forward mode."""
+"""The linearization along a trajectory: the three ways of differentiating, the choice between them,
+the others standing in where a model does not take one, and the per-node Jacobians."""
 
 from unittest import mock
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchql import linearize as lin_module
-from torchql.linearize import REVERSE_WORK_LIMIT, linearize
+from torchql.linearize import AUTOGRAD_STATES, REVERSE_WORK_LIMIT, linearize, node_jacobian
 from torchql.model import AugmentedSystem
 from torchql.models import FitzHughNagumo
 
@@ -40,7 +40,7 @@ def _by_hand(z: torch.Tensor, z_dot: torch.Tensor):
     return A, A_dot
 
 
-@pytest.mark.parametrize("order", ["reverse", "forward"])
+@pytest.mark.parametrize("order", ["autograd", "reverse", "forward"])
 def test_each_order_gives_the_jacobian_and_its_time_derivative(order):
     system = _system()
     t, z, z_dot = _nodes(7)
@@ -52,24 +52,59 @@ def test_each_order_gives_the_jacobian_and_its_time_derivative(order):
     torch.testing.assert_close(lin.jac_dot, A_dot, rtol=0, atol=1e-14)
 
 
-def test_small_grids_take_reverse_mode_and_large_grids_forward_mode():
-    system = _system()
-    taken = []
+def _spy(taken: list):
     real = lin_module._linearize
 
     def spy(order, *args):
         taken.append(order)
         return real(order, *args)
 
+    return spy
+
+
+def test_models_of_few_states_take_autograd_on_any_grid():
+    system = _system()
+    assert system.n <= AUTOGRAD_STATES
+    taken = []
+    with mock.patch.object(lin_module, "_linearize", _spy(taken)):
+        linearize(system, *_nodes(5))
+        linearize(system, *_nodes(REVERSE_WORK_LIMIT // system.M**2 + 1))
+    assert taken == ["autograd", "autograd"]
+
+
+def test_more_states_take_reverse_mode_on_small_grids_and_forward_mode_on_large_ones():
+    system = _system()
+    taken = []
     largest_reverse = REVERSE_WORK_LIMIT // system.M**2
-    with mock.patch.object(lin_module, "_linearize", spy):
+    with mock.patch.object(lin_module, "AUTOGRAD_STATES", system.n - 1), \
+            mock.patch.object(lin_module, "_linearize", _spy(taken)):
         linearize(system, *_nodes(largest_reverse))
         linearize(system, *_nodes(largest_reverse + 1))
     assert taken == ["reverse", "forward"]
 
 
+def test_reverse_mode_stands_in_where_autograd_fails_and_autograd_is_not_tried_again():
+    system = _system()
+    t, z, z_dot = _nodes(7)
+    expected = linearize(system, t, z, z_dot, order="reverse")
+    calls = []
+
+    def no_double_backward(f, t, z, z_dot, n):
+        calls.append(1)
+        raise RuntimeError("trying to differentiate twice a function that was marked with @once_differentiable")
+
+    with mock.patch.object(lin_module, "_by_autograd", no_double_backward):
+        first = linearize(system, t, z, z_dot)
+        second = linearize(system, t, z, z_dot)
+    assert "autograd" not in system.linearization_orders
+    assert len(calls) == 1
+    for got in (first, second):
+        torch.testing.assert_close(got.jac_dot, expected.jac_dot, rtol=0, atol=0)
+
+
 def test_reverse_mode_stands_in_where_forward_mode_fails_and_forward_mode_is_not_tried_again():
     system = _system()
+    system.linearization_orders = ("reverse", "forward")
     t, z, z_dot = _nodes(REVERSE_WORK_LIMIT // system.M**2 + 1)
     expected = linearize(system, t, z, z_dot, order="reverse")
     calls = []
@@ -87,3 +122,38 @@ def test_reverse_mode_stands_in_where_forward_mode_fails_and_forward_mode_is_not
     assert len(calls) == 1
     for got in (first, second):
         torch.testing.assert_close(got.jac_dot, expected.jac_dot, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("rows", [2, AUTOGRAD_STATES + 1])
+def test_node_jacobian_by_either_path_matches_the_jacobian_node_by_node(rows):
+    """Up to AUTOGRAD_STATES rows by autograd, more by jacrev: each node's own Jacobian."""
+    gen = torch.Generator().manual_seed(3)
+    K = AUTOGRAD_STATES + 2
+    W = torch.randn(K, 3, dtype=torch.float64, generator=gen)
+
+    def f(p, t, x):  # K outputs, nonlinear in p and x, with t
+        return torch.sin(W @ x) * p[0] + p[1] * torch.exp(t) * (W @ x) ** 2
+
+    N = 9
+    p = torch.rand(N, 2, dtype=torch.float64, generator=gen)
+    t = torch.linspace(0.0, 1.0, N, dtype=torch.float64)
+    x = torch.randn(N, 3, dtype=torch.float64, generator=gen)
+    value, (J_p, J_x) = node_jacobian(f, (p, t, x), (0, 2), rows)
+    assert J_p.shape == (N, rows, 2) and J_x.shape == (N, rows, 3)
+    for j in range(N):
+        torch.testing.assert_close(value[j], f(p[j], t[j], x[j]), rtol=0, atol=1e-14)
+        Jp, Jx = torch.autograd.functional.jacobian(lambda a, b: f(a, t[j], b), (p[j], x[j]))
+        torch.testing.assert_close(J_p[j], Jp[:rows], rtol=1e-14, atol=1e-14)
+        torch.testing.assert_close(J_x[j], Jx[:rows], rtol=1e-14, atol=1e-14)
+
+
+def test_node_jacobian_falls_back_to_jacrev_where_autograd_fails():
+    x = torch.linspace(0.5, 2.0, 6, dtype=torch.float64).reshape(3, 2)
+
+    def f(x):
+        return torch.stack([x[0] * x[1], x[0] ** 2])
+
+    with mock.patch.object(lin_module, "_node_jacobian_by_autograd", side_effect=RuntimeError("no autograd")):
+        value, (J,) = node_jacobian(f, (x,), (0,), 2)
+    expected = torch.stack([torch.stack([x[:, 1], x[:, 0]], 1), torch.stack([2 * x[:, 0], 0 * x[:, 0]], 1)], 1)
+    torch.testing.assert_close(J, expected, rtol=0, atol=1e-15)

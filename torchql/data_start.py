@@ -21,8 +21,9 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
-from torch.func import jacrev, vmap
+from torch.func import jacrev
 
+from .linearize import node_jacobian
 from .lstsq import solve_update_batch
 from .schemes import scheme_strategy
 from .damping import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
@@ -279,8 +280,9 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
     kept (damping / 10), one that does not is retried with more damping; a sample stops after
     :data:`MATCH_STEPS` kept steps, a step below :data:`MATCH_XTOL` (kept, or undamped: the
     Gauss–Newton step at a stationary point), a change of cost below :data:`MATCH_FTOL`, or
-    damping past its limit. Each evaluation gives the residuals and their Jacobian in one
-    reverse-mode pass. ``s`` scales each state's slopes to unit size; padding nodes (``live`` 0) do not count.
+    damping past its limit. Each evaluation gives the residuals and their Jacobian
+    (:func:`torchql.linearize.node_jacobian`). ``s`` scales each state's slopes to unit size;
+    padding nodes (``live`` 0) do not count.
     """
     n = system.n
     S = z0.shape[0]
@@ -288,13 +290,8 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
     scale = torch.where(scale > 0, scale, torch.ones_like(scale))
 
     def slope(p, t, z):
-        value = system.rhs(t, z[:n], p)
-        return value, value
+        return system.rhs(t, z[:n], p)
 
-    # Only the model runs under the transforms. Reverse mode: forward mode costs torch a
-    # Python-level kernel per model operation that mixes tangents; on 40 to 4e4 nodes of 1- to
-    # 4-state models reverse mode took 0.3 to 0.7 of forward mode's time.
-    per_node = vmap(jacrev(slope, has_aux=True))  # the Jacobian and the value in one pass
     G = z_ref.shape[1]
     times = (grid.expand(S, G) if grid.dim() == 1 else grid).reshape(-1)
     nodes = z_ref.reshape(S * G, -1)
@@ -304,7 +301,7 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
     est = unknown_index[m_states:] - n  # the estimated coefficients among p (not the per-sample constants)
 
     def residuals_and_jacobian(p):
-        J, value = per_node(p.repeat_interleave(G, dim=0), times, nodes)
+        value, (J,) = node_jacobian(slope, (p.repeat_interleave(G, dim=0), times, nodes), (0,), n)
         r = (value.reshape(S, G * n) - target) * weight
         return r, J[:, :, est].reshape(S, G * n, -1) * weight.unsqueeze(-1)
 
@@ -357,10 +354,12 @@ def _derive_hidden(system, grid, z_ref, z_dot, observed: list[int], hidden: list
     z, zd = z_ref.reshape(S * G, M), z_dot.reshape(S * G, M)
 
     def mismatch(xh, t, z, zd):
-        r = system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
-        return r, r
+        return system.f(t, z.index_put((hid,), xh))[obs] - zd[obs]
 
-    residuals_and_jacobian = vmap(jacrev(mismatch, has_aux=True))  # the Jacobian and the value in one pass
+    def residuals_and_jacobian(xh, t, z, zd):
+        r, (J,) = node_jacobian(mismatch, (xh, t, z, zd), (0,), len(observed))
+        return J, r
+
     xh = z[:, hid].clone()
     with torch.no_grad():
         J, r = residuals_and_jacobian(xh, times, z, zd)

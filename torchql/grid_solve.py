@@ -18,7 +18,7 @@ root of the number of intervals), the Richardson extrapolation as the result, an
 for the intervals that fail. Only the defects need that accuracy: the sensitivities ``S_j`` are
 Newton's matrices, which set how fast the corrections shrink and not where they end, and are
 integrated once, by the ``n`` RK4 steps of the variational equations that met the tolerance
-(the Jacobian of ``f``, from :func:`torch.func.jacrev`, costs about six evaluations of ``f``).
+(the Jacobian of ``f``, from :func:`torchql.linearize.node_jacobian`, costs a few evaluations of ``f``).
 """
 
 from __future__ import annotations
@@ -27,10 +27,11 @@ import math
 from typing import Callable, NamedTuple
 
 import torch
-from torch.func import jacrev, vmap
+from torch.func import vmap
 
 from .budget import check_time
 from .integrate import IntegrationError, interval_tolerances
+from .linearize import node_jacobian
 from .transfer import Transfers, compose_transfers
 
 __all__ = ["GridSolveInfo", "IntervalBudgetError", "solve_on_grid"]
@@ -79,7 +80,7 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     ----------
     func : callable ``(t, x) -> dx/dt``
         For one time (0-dim tensor) and one state ``(M,)``; it is vmapped over the intervals and
-        differentiated with :func:`torch.func.jacrev`.
+        differentiated with :func:`torchql.linearize.node_jacobian`.
     z0 : Tensor ``(M,)``
         Initial state.
     grid : Tensor ``(G,)``
@@ -162,20 +163,14 @@ class _Field:
     """
 
     def __init__(self, func, n: int | None = None) -> None:
-        def value_and_jacobian(t, x):
-            def states(xs):
-                fx = func(t, xs if n is None else torch.cat([xs, x[n:]]))
-                return (fx if n is None else fx[:n]), fx
-
-            jac, fx = jacrev(states, has_aux=True)(x if n is None else x[:n])
-            return fx, jac
-
+        self.func = func
         self.n = n
-        self.batched = vmap(value_and_jacobian)
         self.values = vmap(func)
 
     def __call__(self, t: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.batched(t, x)
+        rows = x.shape[1] if self.n is None else self.n
+        value, (jac,) = node_jacobian(self.func, (t, x), (1,), rows)
+        return value, jac[:, :, :rows]
 
 
 def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, grid):

@@ -31,12 +31,15 @@ from torch.func import jacfwd, jacrev, jvp, vmap
 
 from .model import AugmentedSystem
 
-__all__ = ["Linearization", "linearize", "REVERSE_WORK_LIMIT"]
+__all__ = ["Linearization", "linearize", "node_jacobian", "REVERSE_WORK_LIMIT", "AUTOGRAD_STATES"]
 
 #: Largest ``nodes * M**2`` linearized in reverse over forward mode (see the module docstring).
 #: Measured crossovers: 7e4 to 1.5e5 on 3- to 6-component nonlinear models, below 6.4e4 on a
 #: 16-component linear one (few operations, so little Python-kernel overhead to save).
 REVERSE_WORK_LIMIT = 16_384
+#: Most model states linearized by torch.autograd (see the module docstring): its cost grows with
+#: the states (two backward passes each), the others' with the augmented dimension.
+AUTOGRAD_STATES = 4
 
 
 class Linearization(NamedTuple):
@@ -88,20 +91,27 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
         z_dot = vmap(system.f)(t, z)
 
     if order is None:
+        if system.n <= AUTOGRAD_STATES and "autograd" in system.linearization_orders:
+            try:
+                return _linearize("autograd", system.f, t, z, z_dot, system.n)
+            except Exception:  # noqa: BLE001 -- the model's forward does not take double backward
+                system.linearization_orders = tuple(o for o in system.linearization_orders if o != "autograd")
         order = "reverse" if t.shape[0] * system.M**2 <= REVERSE_WORK_LIMIT else "forward"
         if order not in system.linearization_orders:
             order = "reverse"
         if order == "forward":
             try:
-                return _linearize(order, system.f, t, z, z_dot)
+                return _linearize(order, system.f, t, z, z_dot, system.n)
             except Exception:  # noqa: BLE001 -- the model's forward does not take nested forward mode
                 system.linearization_orders = ("reverse",)
                 order = "reverse"
-    return _linearize(order, system.f, t, z, z_dot)
+    return _linearize(order, system.f, t, z, z_dot, system.n)
 
 
-def _linearize(order: str, f, t, z, z_dot) -> Linearization:
+def _linearize(order: str, f, t, z, z_dot, n: int | None = None) -> Linearization:
     """The linearization in ``order`` (``"reverse"`` or ``"forward"``), vmapped over the nodes."""
+    if order == "autograd":
+        return _by_autograd(f, t, z, z_dot, n)
     if order == "reverse":
         value, jac, value_dot, jac_dot = vmap(_reverse_over_forward(f))(t, z, z_dot)
     else:
@@ -133,3 +143,92 @@ def _forward_over_forward(f):
         return jvp(value_and_jacobian, (ti, zi), (torch.ones_like(ti), zdi))
 
     return node
+
+
+def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: int) -> Linearization:
+    """The linearization by torch.autograd through the model vmapped over the nodes: ``2 n`` backward
+    passes over the whole grid at once (a node's outputs depend on its own inputs only, so the
+    gradient of an output summed over the nodes is, at each node, that node's derivative).
+
+    For each state ``i < n``: ``g = d f_i / d(z, t)`` with a graph (row ``i`` of ``A`` and ``f_t``),
+    then ``d/dt A_i = d/dz (g_z . z' + g_t)``, a Hessian-vector product. The coefficients' rows are
+    zero (``p' = 0``).
+    """
+    G, M = z.shape
+    jac = torch.zeros(G, M, M, dtype=z.dtype, device=z.device)
+    jac_dot = torch.zeros_like(jac)
+    value_dot = torch.zeros_like(z)
+    with torch.enable_grad():
+        tt = t.detach().requires_grad_()
+        zz = z.detach().requires_grad_()
+        value = vmap(f)(tt, zz)
+        for i in range(n):
+            g_z, g_t = torch.autograd.grad(value[:, i].sum(), (zz, tt), create_graph=True, allow_unused=True)
+            if g_z is None:
+                continue  # f_i constant (its rows stay zero)
+            tangent = (g_z * z_dot).sum(dim=1) + (g_t if g_t is not None else 0.0)
+            jac[:, i] = g_z.detach()
+            value_dot[:, i] = tangent.detach()
+            if tangent.requires_grad:
+                (h,) = torch.autograd.grad(tangent.sum(), zz, retain_graph=i < n - 1, allow_unused=True)
+                if h is not None:
+                    jac_dot[:, i] = h
+    return Linearization(f=value.detach(), jac=jac, f_dot=value_dot, jac_dot=jac_dot)
+
+
+
+def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int) -> tuple[torch.Tensor, tuple]:
+    """A per-node function over many nodes, with the Jacobians of its first ``rows`` outputs.
+
+    Up to :data:`AUTOGRAD_STATES` rows by torch.autograd through ``vmap(f)``: one backward pass
+    per row over all the nodes at once (node ``j``'s outputs depend on row ``j`` of the arguments
+    only, so the gradient of an output summed over the nodes is, at each node, that node's
+    derivative); more by :func:`torch.func.jacrev` under :func:`torch.func.vmap`, which also stands
+    in where autograd fails.
+
+    Parameters
+    ----------
+    f : callable
+        One node's function: ``f(*node_args) -> (K,)``.
+    args : tuple of Tensor
+        Its arguments over ``N`` nodes, each with the nodes first: ``(N,)`` or ``(N, D)``.
+    wrt : tuple of int
+        The arguments to differentiate in.
+    rows : int
+        The Jacobians' rows: those of the first ``rows`` outputs.
+
+    Returns
+    -------
+    value : Tensor ``(N, K)``
+    jacobians : tuple of Tensor, one per ``wrt``: ``(N, rows, *arg.shape[1:])``.
+    """
+    if rows <= AUTOGRAD_STATES:
+        try:
+            return _node_jacobian_by_autograd(vmap(f), args, wrt, rows)
+        except Exception:  # noqa: BLE001 -- functorch's error (or the same one) comes below
+            pass
+
+    def first_rows(*node_args):
+        value = f(*node_args)
+        return value[:rows], value
+
+    jacobians, value = vmap(jacrev(first_rows, argnums=wrt, has_aux=True))(*args)
+    return value, tuple(jacobians)
+
+
+def _node_jacobian_by_autograd(batched_f, args, wrt, rows):
+    """:func:`node_jacobian` by ``rows`` backward passes through ``batched_f``."""
+    with torch.enable_grad():
+        inputs = [a.detach().requires_grad_() if k in wrt else a for k, a in enumerate(args)]
+        value = batched_f(*inputs)
+        targets = [inputs[k] for k in wrt]
+        jacobians = [torch.zeros(value.shape[0], rows, *a.shape[1:], dtype=a.dtype, device=a.device)
+                     for a in targets]
+        for i in range(rows):
+            if not value.requires_grad:
+                break
+            grads = torch.autograd.grad(value[:, i].sum(), targets, retain_graph=i < rows - 1, allow_unused=True)
+            for jac, g in zip(jacobians, grads):
+                if g is not None:
+                    jac[:, i] = g
+    return value.detach(), tuple(jacobians)

@@ -229,7 +229,7 @@ class AugmentedSystem:
         #: the orders of differentiation of :func:`torchql.linearize.linearize` that torch.func
         #: can take on the model as far as known (reverse mode is checked; forward mode is
         #: dropped when it fails)
-        self.linearization_orders: tuple[str, ...] = ("reverse", "forward")
+        self.linearization_orders: tuple[str, ...] = ("autograd", "reverse", "forward")
         self.n = len(model.state_names)
         self.P = sum(self.param_sizes)
         self.M = self.n + self.P
