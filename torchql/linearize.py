@@ -6,20 +6,29 @@ carries a forward-mode tangent along the trajectory (:func:`torch.func.jvp`), wh
 time derivatives of ``f`` and of ``A`` at the nodes for the cubic Hermite interpolation between
 them. ``d/dt A`` is the Jacobian of that tangent ``f_t + A z'`` in ``z`` (``z'`` held fixed).
 
-Two orders of differentiation give the same values (to rounding), at different costs:
+Three ways of differentiating give the same values (to rounding), at different costs:
 
+* **torch.autograd** through the vmapped model: a node's outputs depend on its own inputs only,
+  so one backward pass of a state's output summed over all the nodes gives that row of every
+  node's ``A`` (and ``f_t``), and a second (a Hessian-vector product) the row of ``d/dt A``:
+  ``2 n`` passes, each one C++ kernel per model operation, whatever the grid size. The fastest
+  for few states: on 41 to 2e4 nodes of 1- to 4-state models it takes 0.4 to 0.75 of the time of
+  reverse over forward and no more than forward over forward; with 8 states (HIRES) it takes
+  twice reverse mode's time on small grids.
 * **reverse over forward** (:func:`torch.func.jacrev` of the tangent): torch runs each model
   operation as one kernel; the backward pass costs about ``2 M`` vector products per node.
-  The faster on small grids: on 50 to 1,000 nodes of 3- to 6-component models it takes 0.4 to
-  0.6 of the time of the other order.
+  On small grids: on 50 to 1,000 nodes of 3- to 6-component models it takes 0.4 to 0.6 of the
+  time of forward over forward.
 * **forward over forward** (:func:`torch.func.jvp` of :func:`torch.func.jacfwd`): nested
   forward mode makes torch run each elementwise model operation through a Python reference
   implementation (about 0.1 ms each, whatever the grid size), but the arithmetic is ``M``
-  forward passes per node. The faster on large grids (batches of samples): 0.31 to 0.35 of the
-  time of the other order on ``10^5`` nodes.
+  forward passes per node. On large grids (batches of samples) of larger models: 0.31 to 0.35 of
+  the time of reverse over forward on ``10^5`` nodes.
 
-:func:`linearize` takes reverse over forward while ``nodes * M**2`` is at most
-:data:`REVERSE_WORK_LIMIT`, forward over forward above.
+:func:`linearize` takes autograd for models of at most :data:`AUTOGRAD_STATES` states; for
+larger ones reverse over forward while ``nodes * M**2`` is at most :data:`REVERSE_WORK_LIMIT`,
+forward over forward above. :func:`node_jacobian` gives other per-node Jacobians (the grid
+solver's, the data start's) the same way.
 """
 
 from __future__ import annotations
@@ -76,12 +85,13 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
         Augmented states.
     z_dot : Tensor ``(G, M)``, optional
         Slopes of the trajectory; default ``f(t_j, z_j)`` (a solution of the model).
-    order : {"reverse", "forward"}, optional
-        ``"reverse"`` (reverse over forward) or ``"forward"`` (forward over forward); default by
-        :data:`REVERSE_WORK_LIMIT`, among ``system.linearization_orders``, the orders torch.func
-        can take on the model as far as known: reverse mode (which :class:`~torchql.problem.Problem`
-        checks) stands in where forward mode fails (a model's operation without a forward-mode
-        derivative), and forward mode is not tried again. Both give the same values to rounding.
+    order : {"autograd", "reverse", "forward"}, optional
+        ``"autograd"``, ``"reverse"`` (reverse over forward) or ``"forward"`` (forward over
+        forward); default by :data:`AUTOGRAD_STATES` and :data:`REVERSE_WORK_LIMIT`, among
+        ``system.linearization_orders``, the ways torch can take on the model as far as known:
+        reverse mode (which :class:`~torchql.problem.Problem` checks) stands in where autograd
+        (a backward without a derivative) or forward mode (an operation without a forward-mode
+        derivative) fails, and the failed way is not tried again. All give the same values to rounding.
 
     Returns
     -------
@@ -177,7 +187,8 @@ def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: in
 
 
 
-def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int) -> tuple[torch.Tensor, tuple]:
+def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bool = True
+                  ) -> tuple[torch.Tensor, tuple]:
     """A per-node function over many nodes, with the Jacobians of its first ``rows`` outputs.
 
     Up to :data:`AUTOGRAD_STATES` rows by torch.autograd through ``vmap(f)``: one backward pass
@@ -196,23 +207,34 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int) -> tuple[torc
         The arguments to differentiate in.
     rows : int
         The Jacobians' rows: those of the first ``rows`` outputs.
+    vectorize : bool
+        ``False``: one node (``N = 1``), ``f`` called on it directly, without :func:`torch.func.vmap`
+        (which spares its overhead and allows Python control flow on tensor values in ``f``).
 
     Returns
     -------
     value : Tensor ``(N, K)``
     jacobians : tuple of Tensor, one per ``wrt``: ``(N, rows, *arg.shape[1:])``.
     """
-    if rows <= AUTOGRAD_STATES:
-        try:
-            return _node_jacobian_by_autograd(vmap(f), args, wrt, rows)
-        except Exception:  # noqa: BLE001 -- functorch's error (or the same one) comes below
-            pass
-
     def first_rows(*node_args):
         value = f(*node_args)
         return value[:rows], value
 
-    jacobians, value = vmap(jacrev(first_rows, argnums=wrt, has_aux=True))(*args)
+    if vectorize:
+        batched_f, derivatives = vmap(f), vmap(jacrev(first_rows, argnums=wrt, has_aux=True))
+    else:
+        def batched_f(*batch_args):
+            return f(*(a[0] for a in batch_args)).unsqueeze(0)
+
+        def derivatives(*batch_args):
+            jacobians, value = jacrev(first_rows, argnums=wrt, has_aux=True)(*(a[0] for a in batch_args))
+            return tuple(j.unsqueeze(0) for j in jacobians), value.unsqueeze(0)
+    if rows <= AUTOGRAD_STATES:
+        try:
+            return _node_jacobian_by_autograd(batched_f, args, wrt, rows)
+        except Exception:  # noqa: BLE001 -- functorch's error (or the same one) comes below
+            pass
+    jacobians, value = derivatives(*args)
     return value, tuple(jacobians)
 
 

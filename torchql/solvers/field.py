@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from torch.func import jacrev
+
+from ..linearize import node_jacobian
 
 __all__ = ["BatchedField", "JacobianError"]
 
@@ -35,20 +36,12 @@ class BatchedField:
     """
 
     def __init__(self, f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], vectorize: bool = True) -> None:
-        def with_value(t: torch.Tensor, y: torch.Tensor):
-            value = f(t, y)
-            return value, value
+        self._f = torch.vmap(f) if vectorize else (lambda t, y: f(t[0], y[0]).unsqueeze(0))
 
-        derivatives = jacrev(with_value, argnums=(0, 1), has_aux=True)
-        if vectorize:
-            self._f, self._derivatives = torch.vmap(f), torch.vmap(derivatives)
-        else:
-            self._f = lambda t, y: f(t[0], y[0]).unsqueeze(0)
-
-            def single(t, y):
-                (ft, J), value = derivatives(t[0], y[0])
-                return (ft.unsqueeze(0), J.unsqueeze(0)), value.unsqueeze(0)
-            self._derivatives = single
+        def derivatives(t, y):
+            value, (ft, J) = node_jacobian(f, (t, y), (0, 1), y.shape[1], vectorize=vectorize)
+            return (ft, J), value
+        self._derivatives = derivatives
         self.n_f = 0
         self.n_jac = 0
 
