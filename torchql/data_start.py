@@ -365,8 +365,7 @@ def _derive_hidden(system, grid, z_ref, z_dot, observed: list[int], hidden: list
         J, r = residuals_and_jacobian(xh, times, z, zd)
         best = r.square().sum(-1)
         for _ in range(DERIVE_STEPS):
-            step = torch.linalg.pinv(J, rtol=1e-8) @ r.unsqueeze(-1)
-            trial = xh - step.squeeze(-1)
+            trial = xh - _least_squares_step(J, r)
             J_trial, r_trial = residuals_and_jacobian(trial, times, z, zd)
             norm = r_trial.square().sum(-1)
             better = torch.isfinite(norm) & (norm < best)
@@ -379,3 +378,16 @@ def _derive_hidden(system, grid, z_ref, z_dot, observed: list[int], hidden: list
     out = z.clone()
     out[:, hid] = xh
     return out.reshape(S, G, M)
+
+
+def _least_squares_step(J: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """The minimum-norm least-squares solutions ``(N, h)`` of ``J d = r`` at ``N`` nodes (``J (N, k, h)``,
+    ``r (N, k)``; singular values below ``1e-8`` of the largest dropped). One unknown (a hidden
+    velocity, the common case) in closed form: ``pinv``'s batched SVD of ``10^5`` one-by-one matrices
+    costs 70 ms, this 1 ms."""
+    if J.shape[-1] == 1:
+        column = J[..., 0]
+        norm2 = column.square().sum(dim=-1)
+        return torch.where(norm2 > 0, (column * r).sum(dim=-1) / torch.where(norm2 > 0, norm2, 1.0),
+                           torch.zeros_like(norm2)).unsqueeze(-1)
+    return (torch.linalg.pinv(J, rtol=1e-8) @ r.unsqueeze(-1)).squeeze(-1)
