@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
-from torch.func import functional_call
 
 if TYPE_CHECKING:
     from .inputs import Inputs
@@ -266,8 +265,30 @@ class AugmentedSystem:
         return values
 
     def rhs(self, t: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """Model right-hand side ``f(t, x; p)`` for a single state ``x`` of shape ``(n,)``."""
-        return functional_call(self.model, self.unpack_params(p), (t, x))
+        """Model right-hand side ``f(t, x; p)`` for a single state ``x`` of shape ``(n,)``.
+
+        The unknown buffers of :attr:`model` (this system's own copy of the user's model) hold
+        ``p``'s values during the call and their own after it, as
+        :func:`torch.func.functional_call` substitutes them, without its general machinery (tied
+        tensors, parameters, strictness checks), which cost twice the forward of a small model
+        under :func:`torch.vmap`, where every solver evaluates it.
+        """
+        owners = self._owners()
+        saved = []
+        try:
+            for (owner, leaf), value in zip(owners, self.unpack_params(p).values()):
+                saved.append(owner._buffers[leaf])
+                owner._buffers[leaf] = value
+            return self.model(t, x)
+        finally:
+            for (owner, leaf), old in zip(owners, saved):
+                owner._buffers[leaf] = old
+
+    def _owners(self) -> list[tuple[nn.Module, str]]:
+        """The submodule and buffer name of each unknown coefficient, in :attr:`param_names` order."""
+        if getattr(self, "_owner_cache", None) is None:
+            self._owner_cache = [_owner(self.model, name) for name in self.param_names]
+        return self._owner_cache
 
     def f(self, t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Augmented right-hand side for ``z`` of shape ``(M,)``: ``(f(t, x; p), 0)``."""
