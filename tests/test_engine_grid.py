@@ -128,15 +128,8 @@ def test_the_fit_on_the_chosen_grid_equals_the_fit_on_the_fine_grid(noise):
 
 
 def test_samples_that_choose_different_grids_are_each_fitted_as_alone():
-    t = torch.linspace(0, 6, 31, dtype=DT)
-    rows, guesses = [], []
-    for k, B in enumerate([1.0, 16.0, 1.2, 14.0]):  # slow and fast oscillators, interleaved
-        x = torchql.simulate(LinearOscillator(0.2, B), torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-12, atol=1e-14)
-        g = torch.Generator().manual_seed(k)
-        rows.append(x[:, :1] + 1e-3 * torch.randn(31, 1, generator=g, dtype=DT))
-        guesses.append(B * 1.1)
-    data = torchql.Observations(t, torch.stack(rows), observe=["y"])
-    x0 = torch.tensor([1.0, 0.0], dtype=DT).expand(4, 2)
+    data, x0, guesses = _four_oscillators()
+    t, rows, guesses = data.t, [data.y[k] for k in range(4)], guesses["B"].tolist()
     batch = torchql.fit_many(LinearOscillator(0.25, 1.0), data, x0, guesses={"B": torch.tensor(guesses, dtype=DT)})
     widths = []
     for k in range(4):
@@ -148,3 +141,52 @@ def test_samples_that_choose_different_grids_are_each_fitted_as_alone():
         assert batch[k].sse == pytest.approx(alone.sse, rel=1e-10)
         widths.append(float(_grid_of(alone).diff().max()))
     assert min(widths[0], widths[2]) > 1.5 * max(widths[1], widths[3])  # two groups of grids
+
+
+def _four_oscillators():
+    """Two slow and two fast oscillators (interleaved): two groups of grids."""
+    t = torch.linspace(0, 6, 31, dtype=DT)
+    rows, guesses = [], []
+    for k, B in enumerate([1.0, 16.0, 1.2, 14.0]):
+        x = torchql.simulate(LinearOscillator(0.2, B), torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-12, atol=1e-14)
+        g = torch.Generator().manual_seed(k)
+        rows.append(x[:, :1] + 1e-3 * torch.randn(31, 1, generator=g, dtype=DT))
+        guesses.append(B * 1.1)
+    data = torchql.Observations(t, torch.stack(rows), observe=["y"])
+    return data, torch.tensor([1.0, 0.0], dtype=DT).expand(4, 2), {"B": torch.tensor(guesses, dtype=DT)}
+
+
+def test_groups_of_grids_share_one_final_dormand_prince_pass_with_the_same_results():
+    """Where each group's final pass would call the batched Dormand–Prince (here: no sample-interval
+    budget for the grid solver), the groups' final solutions come from one call, each sample on
+    its own padded grid, and every result is the one the groups' own calls give."""
+    import torchql.engine_evaluate as engine_evaluate
+    import torchql.engine_final as engine_final
+
+    data, x0, guesses = _four_oscillators()
+    calls = []
+    real = engine_evaluate.dopri_batch
+
+    def spy(system, z0, grid, **kwargs):
+        calls.append((z0.shape[0], grid.shape, kwargs["rtol"]))
+        return real(system, z0, grid, **kwargs)
+
+    def fit():
+        calls.clear()
+        with mock.patch.object(engine_evaluate, "_SHOOTING_POINTS", 0), \
+                mock.patch.object(engine_final, "_SHOOTING_POINTS", 0), \
+                mock.patch.object(engine_evaluate, "dopri_batch", spy), mock.patch.object(engine_final, "dopri_batch", spy):
+            result = torchql.fit_many(LinearOscillator(0.25, 1.0), data, x0, guesses=guesses)
+        rtol = result.solver_options["rtol"]
+        return result, [c for c in calls if c[2] == rtol]
+
+    shared, shared_calls = fit()
+    with mock.patch.object(engine_final.FinalPass, "_share_final_solutions", lambda self, parts: None):
+        apart, apart_calls = fit()
+    assert len(apart_calls) == 2 and sorted(c[0] for c in apart_calls) == [2, 2]  # one per group
+    assert len(shared_calls) == 1 and shared_calls[0][0] == 4 and len(shared_calls[0][1]) == 2  # padded (4, G)
+    assert [s for s in shared.status] == [s for s in apart.status] and all(shared.success)
+    assert torch.equal(shared.iterations, apart.iterations)
+    torch.testing.assert_close(shared.estimates, apart.estimates, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(shared.sse, apart.sse, rtol=1e-12, atol=1e-18)
+    torch.testing.assert_close(shared.covariance, apart.covariance, rtol=1e-10, atol=1e-18)

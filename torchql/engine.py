@@ -32,6 +32,7 @@ from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .engine_grid import AutoGrid
+from .engine_state import RUNNING, LoopState, put_samples
 from .grid import last_nodes
 from .lstsq import ExactRowsError, solve_update, solve_update_batch
 from .problem import Problem
@@ -45,7 +46,6 @@ _STATUSES = list(Status)
 #: by :meth:`Engine._flat`'s test: larger damping shortens every step, and a short step's small
 #: predicted decrease says little about the minimum.
 FLAT_DAMPING = 1e-3
-_RUNNING = -1
 
 
 def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | None], None],
@@ -129,6 +129,8 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         self.first_sse = torch.full((index.numel(),), float("nan"), dtype=spec.dtype, device=spec.device)
         self.S = index.numel()
         self.nfev = 0
+        #: chunk row: (estimates, final solution) integrated with other groups' (FinalPass._share_final_solutions)
+        self.shared_solutions: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None
         #: samples whose current iterate needs more grid-solver steps than a trial may take (their
         #: trials are integrated by the adaptive solvers; see Evaluation._nonlinear)
         self.coarse_grid: set[int] = set()
@@ -238,7 +240,13 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         """Iterate every sample of the chunk to its status; then the final pass. ``report``
         receives the number of samples stopped; ``first``: the chunk's first references and grid
         counts, already made (:meth:`~torchql.engine_grid.AutoGrid._run_groups`)."""
-        st = _Loop(self, report)
+        st = self._iterate(report, first)
+        return st if isinstance(st, dict) else self._conclude(st)
+
+    def _iterate(self, report, first: tuple | None = None) -> "LoopState | dict":
+        """:meth:`run` up to the final pass: the samples' iteration state, or (samples that chose
+        different grids) the groups' results."""
+        st = LoopState(self, report)
         try:
             groups = self._start(st, first)
             if groups:  # samples that chose different grids: each group on its own
@@ -246,16 +254,20 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             while self._iteration(st):
                 pass
         except TimeBudgetExceeded:  # inside a phase: the samples still running stop where they are
-            st.stop((st.status == _RUNNING).nonzero().flatten(), Status.MAX_TIME)
-        spent = [r for r, c in enumerate(st.status.tolist()) if c == _STATUSES.index(Status.MAX_TIME)]
-        for r in spent:
-            st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {self.max_time:g} s)."
-                            + st.detail[r])
-        polish = st.undamped_stop & (time_left() > 0)  # polishing steps only within the time budget
-        with no_time_budget():  # the samples that finished in time get their final evaluation
-            return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess, polish)
+            st.stop((st.status == RUNNING).nonzero().flatten(), Status.MAX_TIME)
+        for r, c in enumerate(st.status.tolist()):
+            if c == _STATUSES.index(Status.MAX_TIME):
+                st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {self.max_time:g} "
+                                "s)." + st.detail[r])
+        st.polish = st.undamped_stop & (time_left() > 0)  # polishing steps only within the time budget
+        return st
 
-    def _start(self, st: "_Loop", first: tuple | None = None) -> list | None:
+    def _conclude(self, st: LoopState) -> dict:
+        """:meth:`run`'s final pass of the iteration state ``st``."""
+        with no_time_budget():  # the samples that finished in time get their final evaluation
+            return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess, st.polish)
+
+    def _start(self, st: LoopState, first: tuple | None = None) -> list | None:
         """The first iterate of every sample: the data-built reference, or the model integrated
         from the guesses (loosely, from a constant guess, for Kantorovich), on each sample's grid
         (``grid="auto"``: chosen from this reference, :mod:`torchql.engine_grid`); the unknowns'
@@ -307,7 +319,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         traj, W, errors = self._solve_with_sensitivities(idx, z0)
         return z0, traj, None, W, errors
 
-    def _iteration(self, st: "_Loop") -> bool:
+    def _iteration(self, st: LoopState) -> bool:
         """One round: every running sample tries one step (or starts its next iteration).
         ``False`` when no sample is running."""
         act = self._begin(st)
@@ -328,13 +340,13 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             self._reject(st, rejected, alpha[~accept])
         return True
 
-    def _begin(self, st: "_Loop") -> torch.Tensor:
+    def _begin(self, st: LoopState) -> torch.Tensor:
         """The time budget; for samples at a fresh iterate, ``max_iter``, the iterate's record and
         its rows' finiteness. Returns the samples still running."""
-        running = st.status == _RUNNING
+        running = st.status == RUNNING
         if time_left() <= 0 and bool(running.any()):
             st.stop(running.nonzero().flatten(), Status.MAX_TIME)
-            running = st.status == _RUNNING
+            running = st.status == RUNNING
         start = running & st.fresh
         maxed = start & (st.iterations >= self.spec.max_iter)
         if bool(maxed.any()):
@@ -350,9 +362,9 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             st.stop(diverged, Status.DIVERGED, " The residuals became non-finite.")
             self._notify(diverged)
         st.fresh &= ~start
-        return (st.status == _RUNNING).nonzero().flatten()
+        return (st.status == RUNNING).nonzero().flatten()
 
-    def _update(self, st: "_Loop", act: torch.Tensor):
+    def _update(self, st: LoopState, act: torch.Tensor):
         """The damped updates ``alpha`` of samples ``act`` and whether a bounded step was capped;
         samples whose exact rows cannot be met, or whose update is not finite, stop. Also their
         scaled sizes ``st.scaled``, recorded."""
@@ -371,7 +383,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         st.scaled = scaled
         return act, alpha, capped
 
-    def _converged(self, st: "_Loop", act, alpha, capped):
+    def _converged(self, st: LoopState, act, alpha, capped):
         """The convergence tests, on undamped steps only: the scaled step below ``xtol``, or the
         SSE unchanged to ``ftol`` with the step below ``sqrt(xtol)``. Converged samples take
         their last step and stop; returns the others."""
@@ -399,7 +411,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
                 st.stop(act[conv_sse], Status.CONVERGED_SSE)
         return act[~done], alpha[~done], capped[~done]
 
-    def _flat(self, st: "_Loop", act, trial, accept, alpha) -> torch.Tensor:
+    def _flat(self, st: LoopState, act, trial, accept, alpha) -> torch.Tensor:
         """Which accepted damped steps end their fits at a flat minimum (CONVERGED_SSE): as MINPACK's
         ``ftol`` test, both the merit's actual change and the linear model's predicted decrease
         ``|w d|^2 - |w (d - C alpha)|^2`` at most ``ftol`` relative, with damping at most
@@ -418,7 +430,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         tol = spec.ftol * new.abs()
         return flat & (predicted <= tol) & ((cur["merit"][act] - new).abs() <= tol)
 
-    def _accepted(self, st: "_Loop", act, trial, ok, capped) -> torch.Tensor:
+    def _accepted(self, st: LoopState, act, trial, ok, capped) -> torch.Tensor:
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
         solutions' sums of squares) for trials near solving the model whose step was not capped
         at a bound's largest internal move; otherwise the model's own sums of squares, integrated
@@ -438,7 +450,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             better[rows] = not_above(t_sse, c_sse)
         return ok & better
 
-    def _take(self, st: "_Loop", act, trial, accept) -> None:
+    def _take(self, st: LoopState, act, trial, accept) -> None:
         """The accepted trials become their samples' iterates (damping back to 0)."""
         if not bool(accept.any()):
             return
@@ -446,7 +458,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         target = act[rows]
         self._annotate(target, model_merit=self._model_merit(target, st.cur))
         self._notify(target)
-        _put(st.cur, target, trial, rows)
+        put_samples(st.cur, target, trial, rows)
         st.last_damping[target] = st.damping[target]
         st.damping[target] = 0.0
         st.iterations[target] += 1
@@ -454,7 +466,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         st.z0[target] = trial["z0"][rows]
         st.final_guess[target] = _pick(trial["W"], rows)[..., 0]
 
-    def _reject(self, st: "_Loop", rejected, alpha) -> None:
+    def _reject(self, st: LoopState, rejected, alpha) -> None:
         """Rejected trials: without a filtering damping the iteration fails; Kantorovich
         re-anchors an undamped rejection about the model's own solution once; otherwise the
         damping strategy raises the damping (:meth:`torchql.damping.Damping.raised`), and past
@@ -481,7 +493,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             self._notify(stalled)
             st.stop(stalled, Status.STALLED)
 
-    def _reanchor(self, st: "_Loop", rejected) -> torch.Tensor:
+    def _reanchor(self, st: LoopState, rejected) -> torch.Tensor:
         """Kantorovich's undamped rejections, not yet anchored, re-linearized about the model's
         own solution from their estimates (where it integrates); returns those samples."""
         cur, n = st.cur, self.system.n
@@ -502,7 +514,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         if bool(failed.any()):
             self._fail_integration_rows(rows[failed], st.status, st.detail)
         keep = (~failed).nonzero().flatten()
-        _put(cur, rows[keep], anchored, keep)
+        put_samples(cur, rows[keep], anchored, keep)
         if self.history is not None:
             for r in rows[keep].tolist():
                 record = self.history[r][-1]
@@ -536,65 +548,3 @@ class Engine(Evaluation, FinalPass, AutoGrid):
                                           sigma[idx], self.mask[idx], spec.operator.observed_states, z0,
                                           spec.unknown_index, spec.bounds, spec.rcond)
         return z_ref, z_dot, spec.initial.complete(z0)
-
-
-#: Entries of a trial iterate that only decide its acceptance and are not kept.
-_TRIAL_ONLY = ("failed", "defect")
-
-
-def _put(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None:
-    """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur`` (sorted, distinct indices).
-
-    When ``target`` is every sample of ``cur`` and ``rows`` every sample of ``new``, ``cur`` takes
-    ``new``'s arrays instead of copying them (``new`` is not used after).
-    """
-    if target.numel() == cur["z0"].shape[0] and rows.numel() == new["z0"].shape[0]:
-        for key, value in new.items():
-            if key not in _TRIAL_ONLY:
-                cur[key] = value
-        return
-    for key, value in new.items():
-        if key in _TRIAL_ONLY:
-            continue
-        if key == "lin":
-            for old, fresh in zip(cur["lin"], value):
-                old[target] = fresh[rows]
-        else:
-            cur[key][target] = value[rows]
-
-
-class _Loop:
-    """The mutable state of one chunk's iteration: per sample ``status`` (a code of
-    ``_STATUSES``, ``_RUNNING`` while iterating) and ``detail``, ``iterations``, ``damping`` and
-    the previous iterate's ``last_damping``, ``fresh`` (at the start of an iteration),
-    ``rejected`` trials at this iterate, ``sse_prev``, the estimates ``z0 (S, M)``, the current
-    iterate ``cur`` and ``final_guess (S, G, M)``, a prediction of the final trajectory."""
-
-    def __init__(self, engine: Engine, report) -> None:
-        S, dev, dtype = engine.S, engine.spec.device, engine.spec.dtype
-        self.report = report
-        self.status = torch.full((S,), _RUNNING, dtype=torch.long, device=dev)
-        self.detail = [""] * S
-        self.iterations = torch.zeros(S, dtype=torch.long, device=dev)
-        self.damping = torch.zeros(S, dtype=dtype, device=dev)
-        self.last_damping = torch.zeros(S, dtype=dtype, device=dev)
-        self.fresh = torch.ones(S, dtype=torch.bool, device=dev)
-        self.rejected = torch.zeros(S, dtype=torch.long, device=dev)
-        self.sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
-        self.z0 = engine.z0_guess.clone()
-        self.all_idx = torch.arange(S, device=dev)
-        self.cur: dict = {}
-        self.final_guess: torch.Tensor | None = None
-        self.scaled: torch.Tensor | None = None
-        #: samples stopped by a convergence test on an undamped step (their estimates may be polished)
-        self.undamped_stop = torch.zeros(S, dtype=torch.bool, device=dev)
-
-    def stop(self, rows: torch.Tensor, code: Status, text: str = "") -> None:
-        """Samples ``rows`` end with ``code`` and the detail ``text``."""
-        self.status[rows] = _STATUSES.index(code)
-        for r in rows.tolist():
-            self.detail[r] = text
-        self.report_stopped()
-
-    def report_stopped(self) -> None:
-        self.report(int((self.status != _RUNNING).sum()))

@@ -312,12 +312,15 @@ class Evaluation:
         sub = pending()
         stiff = spec.solver in STIFF_SOLVERS
         batched = spec.solver == "dopri5" and spec.max_steps is None and S > 1  # one sample: torchdiffeq's
-        if sub.numel() and (stiff or batched):
-            land = self._landing(idx[sub])
-            if stiff:  # every sample by the implicit solver; its message kept for a failure
-                self._rodas(sub, z0, grid_of(sub), rtol, atol, land, traj, ok, errors)
-                return
-            tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol, land=land)
+        if sub.numel() and stiff:  # every sample by the implicit solver; its message kept for a failure
+            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors)
+            return
+        if sub.numel() and batched:
+            self._take_shared_solutions(idx, sub, z0, rtol, traj, ok)
+            sub = pending()
+        if sub.numel() and batched:
+            tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
+                                          land=self._landing(idx[sub]))
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
             sub = pending()
@@ -331,6 +334,17 @@ class Evaluation:
                     traj[s], ok[s] = tr[k], True
                 else:
                     errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
+
+    def _take_shared_solutions(self, idx, sub, z0, rtol, traj, ok) -> None:
+        """Fill ``traj`` and ``ok`` of the samples ``sub`` (chunk indices ``idx[sub]``, states
+        ``z0``) whose solution at exactly these estimates and ``rtol`` was integrated together
+        with other groups' (:meth:`~torchql.engine_final.FinalPass._share_final_solutions`)."""
+        if not self.shared_solutions or rtol != self.spec.rtol:
+            return
+        for s in sub.tolist():
+            kept = self.shared_solutions.get(int(idx[s]))
+            if kept is not None and torch.equal(kept[0], z0[s]):
+                traj[s], ok[s] = kept[1], True
 
     def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors) -> None:
         """Samples ``sub`` by :func:`~torchql.solvers.rodas5p_batch` on ``grid``; one sample with its

@@ -23,7 +23,10 @@ import torch
 
 from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, null_detail, typical_magnitudes
-from .engine_evaluate import not_above
+from .budget import no_time_budget
+from .dopri import dopri_batch
+from .engine_evaluate import _SHOOTING_POINTS, not_above
+from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
 from .solvers import STIFF_SOLVERS
@@ -32,6 +35,8 @@ from .uncertainty import covariance
 __all__ = ["FinalPass"]
 
 _STATUSES = list(Status)
+#: The statuses whose samples get no final evaluation (nothing to evaluate, or no time left).
+_NOT_EVALUATED = tuple(_STATUSES.index(s) for s in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME))
 #: Gauss–Newton steps on the model itself that the final pass may take from converged estimates
 #: (from a storage grid's fixed point one step reaches the model's optimum; a second one follows
 #: when the first still leaves more than ``xtol``).
@@ -61,9 +66,7 @@ class FinalPass:
         exact_residual = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
-        final = torch.tensor([c not in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME) for c in codes],
-                             dtype=torch.bool, device=dev)
-        rows, traj, W = self._final_solutions(final.nonzero().flatten(), z0, final_guess, codes, detail)
+        rows, traj, W = self._final_solutions(_evaluated(status), z0, final_guess, codes, detail)
         if rows.numel():
             traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish)
         if rows.numel():
@@ -111,6 +114,44 @@ class FinalPass:
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.first_sse, z0_start=self.first_z0)
+
+    def _share_final_solutions(self, parts: list) -> None:
+        """The final solutions of several groups of the chunk's samples (``parts``: ``[(engine,
+        iteration state)]``, the engines of groups that chose different grids) in one batched
+        Dormand–Prince call, where each group's final pass would make one: its cost is in its
+        rounds, each advancing every sample at once, so one call for all the groups costs about
+        what one group's does. Each sample keeps its own steps and output nodes (its grid padded by
+        its last node), so its solution is the one its group's call would give; the engines keep
+        them (``shared_solutions``) for their final passes."""
+        items = [(engine, st, rows) for engine, st in parts if not isinstance(st, dict)
+                 for rows in [_evaluated(st.status)] if rows.numel() and engine._final_by_dopri(rows.numel())]
+        if len(items) < 2:
+            return
+        width = max(engine.G for engine, _, _ in items)
+        grids, lands = [], []
+        for engine, _, rows in items:
+            grids.append(pad_nodes(engine._grid_of(rows).expand(rows.numel(), engine.G), width))
+            land = torch.zeros(rows.numel(), width, dtype=torch.bool, device=engine.grid.device)
+            land[:, :engine.G] = engine._landing(rows)
+            lands.append(land)
+        z0 = torch.cat([st.z0[rows] for _, st, rows in items])
+        with no_time_budget(), torch.no_grad():
+            traj, ok, evals = dopri_batch(self.system, z0, torch.cat(grids), rtol=self.spec.rtol, atol=self.spec.atol,
+                                          land=torch.cat(lands))
+        self.nfev += evals
+        start = 0
+        for engine, st, rows in items:
+            engine.shared_solutions = {r: (st.z0[r].clone(), traj[start + k, :engine.G])
+                                       for k, r in enumerate(rows.tolist()) if bool(ok[start + k])}
+            start += rows.numel()
+
+    def _final_by_dopri(self, count: int) -> bool:
+        """Whether this chunk's final pass integrates ``count`` samples by the batched Dormand–Prince
+        (:meth:`~torchql.engine_evaluate.Evaluation._nonlinear`: ``solver="dopri5"`` without a
+        ``max_steps``, several samples, too many sample-intervals for the grid solver)."""
+        spec = self.spec
+        return (spec.solver == "dopri5" and spec.max_steps is None and count > 1 and not self._joint_sensitivities
+                and (count * (self.G - 1) * self._split > _SHOOTING_POINTS or not spec.linear_solver.grid_solver))
 
     def _final_solutions(self, rows, z0, final_guess, codes, detail):
         """The model integrated at the estimates ``z0`` of samples ``rows`` (from ``final_guess``,
@@ -284,3 +325,8 @@ def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:
         rows = used[k]
         cov[k] = covariance(J[k][rows], exact[k][rows], float(sse[k]), spec.sigma_known, spec.rcond).matrix
     return cov
+
+
+def _evaluated(status: torch.Tensor) -> torch.Tensor:
+    """The samples (indices) whose status ``(S,)`` (codes of ``Status``) gets a final evaluation."""
+    return (~torch.isin(status, torch.tensor(_NOT_EVALUATED, device=status.device))).nonzero().flatten()

@@ -29,7 +29,7 @@ from .grid import (AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, last_node
                    uniform_nodes)
 from .splines import hermite_per_sample
 
-__all__ = ["AutoGrid", "fourth_derivative_scale"]
+__all__ = ["AutoGrid", "fourth_derivative_scale", "pad_nodes"]
 
 
 class AutoGrid:
@@ -63,15 +63,20 @@ class AutoGrid:
     def _run_groups(self, groups: list, report) -> dict:
         """Fit each group of the chunk's samples (:meth:`_grid_groups`) as a chunk of its own, on
         the grids its samples chose (a sample's fit is the same alone or in its group), and put
-        their results together in the chunk's order."""
+        their results together in the chunk's order. The groups' final solutions are integrated
+        together (:meth:`~torchql.engine_final.FinalPass._share_final_solutions`)."""
         out: dict = {}
         done = 0
+        children = []
         for rows, first in groups:
             child = type(self)(self.spec, self.index[rows], self.max_time, history=self.history is not None,
                                callback=self.callback, start=self.start)
-            part = child.run(lambda count, offset=done: report(offset + count), first=first)
-            self.nfev += child.nfev
+            children.append((rows, child, child._iterate(lambda count, offset=done: report(offset + count), first)))
             done += rows.numel()
+        self._share_final_solutions([(child, st) for _, child, st in children])
+        for rows, child, st in children:
+            part = child._conclude(st)
+            self.nfev += child.nfev
             for key, value in part.items():
                 if value is None:
                     out[key] = None
@@ -106,9 +111,9 @@ class AutoGrid:
                 rows = fine[counts[fine] == c]
                 pieces.append((rows, make_grids(c, t0[rows], t_obs[rows], breakpoints=spec.breakpoints)[0]))
             width = max(grid.shape[1], *(g.shape[1] for _, g in pieces))
-            grid, index = _pad(grid, width), _pad(index, width)
+            grid, index = pad_nodes(grid, width), pad_nodes(index, width)
             for rows, g in pieces:
-                grid[rows] = _pad(g, width)
+                grid[rows] = pad_nodes(g, width)
         probe_grid, probe_traj, probe_dot = self.grid.expand(S, self.G), traj, z_dot
         self._set_grid(grid)
         traj = _gather(traj, index)
@@ -225,7 +230,7 @@ def fourth_derivative_scale(slopes: torch.Tensor, rates: torch.Tensor) -> torch.
     return torch.where(first > 0, second**3 / first.clamp(min=tiny) ** 2, torch.zeros_like(first))
 
 
-def _pad(x: torch.Tensor, width: int) -> torch.Tensor:
+def pad_nodes(x: torch.Tensor, width: int) -> torch.Tensor:
     """``x (S, G, ...)`` padded along its second dimension to ``width`` by repeating its last entry."""
     if x.shape[1] >= width:
         return x.clone()

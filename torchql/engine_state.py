@@ -1,0 +1,81 @@
+"""The state of one chunk's iteration between the engine's phases, sample by sample."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+
+from .result import Status
+
+if TYPE_CHECKING:
+    from .engine import Engine
+
+__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples"]
+
+_STATUSES = list(Status)
+#: The status code of a sample still iterating.
+RUNNING = -1
+
+#: Entries of a trial iterate that only decide its acceptance and are not kept.
+TRIAL_ONLY = ("failed", "defect")
+
+
+def put_samples(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None:
+    """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur`` (sorted, distinct indices).
+
+    When ``target`` is every sample of ``cur`` and ``rows`` every sample of ``new``, ``cur`` takes
+    ``new``'s arrays instead of copying them (``new`` is not used after).
+    """
+    if target.numel() == cur["z0"].shape[0] and rows.numel() == new["z0"].shape[0]:
+        for key, value in new.items():
+            if key not in TRIAL_ONLY:
+                cur[key] = value
+        return
+    for key, value in new.items():
+        if key in TRIAL_ONLY:
+            continue
+        if key == "lin":
+            for old, fresh in zip(cur["lin"], value):
+                old[target] = fresh[rows]
+        else:
+            cur[key][target] = value[rows]
+
+
+class LoopState:
+    """The mutable state of one chunk's iteration: per sample ``status`` (the position of a
+    ``Status``, :data:`RUNNING` while iterating) and ``detail``, ``iterations``, ``damping`` and
+    the previous iterate's ``last_damping``, ``fresh`` (at the start of an iteration),
+    ``rejected`` trials at this iterate, ``sse_prev``, the estimates ``z0 (S, M)``, the current
+    iterate ``cur``, ``final_guess (S, G, M)``, a prediction of the final trajectory, and which
+    samples the final pass may ``polish``."""
+
+    def __init__(self, engine: "Engine", report) -> None:
+        S, dev, dtype = engine.S, engine.spec.device, engine.spec.dtype
+        self.report = report
+        self.status = torch.full((S,), RUNNING, dtype=torch.long, device=dev)
+        self.detail = [""] * S
+        self.iterations = torch.zeros(S, dtype=torch.long, device=dev)
+        self.damping = torch.zeros(S, dtype=dtype, device=dev)
+        self.last_damping = torch.zeros(S, dtype=dtype, device=dev)
+        self.fresh = torch.ones(S, dtype=torch.bool, device=dev)
+        self.rejected = torch.zeros(S, dtype=torch.long, device=dev)
+        self.sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        self.z0 = engine.z0_guess.clone()
+        self.all_idx = torch.arange(S, device=dev)
+        self.cur: dict = {}
+        self.final_guess: torch.Tensor | None = None
+        self.scaled: torch.Tensor | None = None
+        #: samples stopped by a convergence test on an undamped step (their estimates may be polished)
+        self.undamped_stop = torch.zeros(S, dtype=torch.bool, device=dev)
+        self.polish = self.undamped_stop  # those of them that stopped within the time budget
+
+    def stop(self, rows: torch.Tensor, code: Status, text: str = "") -> None:
+        """Samples ``rows`` end with ``code`` and the detail ``text``."""
+        self.status[rows] = _STATUSES.index(code)
+        for r in rows.tolist():
+            self.detail[r] = text
+        self.report_stopped()
+
+    def report_stopped(self) -> None:
+        self.report(int((self.status != RUNNING).sum()))
