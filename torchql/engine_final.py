@@ -123,8 +123,11 @@ class FinalPass:
         what one group's does. Each sample keeps its own steps and output nodes (its grid padded by
         its last node), so its solution is the one its group's call would give; the engines keep
         them (``shared_solutions``) for their final passes."""
-        items = [(engine, st, rows) for engine, st in parts if not isinstance(st, dict)
-                 for rows in [_evaluated(st.status)] if rows.numel() and engine._final_by_dopri(rows.numel())]
+        items = []
+        for engine, st in parts:
+            rows = _evaluated(st.status)
+            if rows.numel() and engine._final_by_dopri(rows.numel()):
+                items.append((engine, st, rows))
         if len(items) < 2:
             return
         width = max(engine.G for engine, _, _ in items)
