@@ -539,7 +539,7 @@ def plot(results: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 5), squeeze=False)
     for ax, res in zip(axes[0], results):
         rows = res["rows"]
         for kind, label, style in (("fit_many", "torchql fit_many (default)", "o-"), ("jax", "JAX LM + diffrax", "s-"),
@@ -554,7 +554,8 @@ def plot(results: list[dict], path: Path) -> None:
         ax.set_ylabel("fits per second")
         ax.set_title(f"{res['family'].title}: batched fitting throughput")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        # below the axes: inside them it hid a marker (the oscillators' single-B rows share one x)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
