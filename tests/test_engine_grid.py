@@ -174,7 +174,6 @@ def test_groups_of_grids_share_one_final_dormand_prince_pass_with_the_same_resul
     def fit():
         calls.clear()
         with mock.patch.object(engine_evaluate, "_SHOOTING_POINTS", 0), \
-                mock.patch.object(engine_final, "_SHOOTING_POINTS", 0), \
                 mock.patch.object(engine_evaluate, "dopri_batch", spy), mock.patch.object(engine_final, "dopri_batch", spy):
             result = torchql.fit_many(LinearOscillator(0.25, 1.0), data, x0, guesses=guesses)
         rtol = result.solver_options["rtol"]

@@ -222,8 +222,7 @@ class Evaluation:
         if spec.max_steps is not None:  # the user's step budget per grid interval binds this solver too
             substeps = min(substeps, 1 << (spec.max_steps.bit_length() - 1))
         with torch.no_grad():
-            if (guess is not None and S * fine <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
-                    and spec.solver not in STIFF_SOLVERS and substeps >= 2):
+            if guess is not None and self._grid_solves(S) and substeps >= 2:
                 coarse = torch.tensor([int(i) in self.coarse_grid for i in idx.tolist()], dtype=torch.bool,
                                       device=z0.device)
                 if bool(coarse.any()):
@@ -282,6 +281,18 @@ class Evaluation:
             traj[sub[good]], ok[sub[good]] = tr[good][:, ::k], True
         return over
 
+    def _grid_solves(self, count: int) -> bool:
+        """Whether :meth:`_nonlinear` takes ``count`` samples (with a guess) to the grid solver: at most
+        ``_SHOOTING_POINTS`` sample-intervals, a propagator that allows it, a non-stiff ``solver``."""
+        spec = self.spec
+        return (count * (self.G - 1) * self._split <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
+                and spec.solver not in STIFF_SOLVERS)
+
+    def _batched_dopri(self, count: int) -> bool:
+        """Whether :meth:`_adaptive` integrates ``count`` samples by the batched Dormand–Prince
+        (``solver="dopri5"`` without a ``max_steps``, several samples; one sample: torchdiffeq's)."""
+        return self.spec.solver == "dopri5" and self.spec.max_steps is None and count > 1
+
     @property
     def _split(self) -> int:
         """Sub-intervals per grid interval in the grid solver (see :data:`_GRID_SOLVE_INTERVALS`)."""
@@ -311,7 +322,7 @@ class Evaluation:
             return (~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=ok.device)).nonzero().flatten()
         sub = pending()
         stiff = spec.solver in STIFF_SOLVERS
-        batched = spec.solver == "dopri5" and spec.max_steps is None and S > 1  # one sample: torchdiffeq's
+        batched = self._batched_dopri(S)
         if sub.numel() and stiff:  # every sample by the implicit solver; its message kept for a failure
             self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors)
             return

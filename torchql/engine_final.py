@@ -25,7 +25,7 @@ from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, null_detail, typical_magnitudes
 from .budget import no_time_budget
 from .dopri import dopri_batch
-from .engine_evaluate import _SHOOTING_POINTS, not_above
+from .engine_evaluate import not_above
 from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
@@ -150,11 +150,8 @@ class FinalPass:
 
     def _final_by_dopri(self, count: int) -> bool:
         """Whether this chunk's final pass integrates ``count`` samples by the batched Dormand–Prince
-        (:meth:`~torchql.engine_evaluate.Evaluation._nonlinear`: ``solver="dopri5"`` without a
-        ``max_steps``, several samples, too many sample-intervals for the grid solver)."""
-        spec = self.spec
-        return (spec.solver == "dopri5" and spec.max_steps is None and count > 1 and not self._joint_sensitivities
-                and (count * (self.G - 1) * self._split > _SHOOTING_POINTS or not spec.linear_solver.grid_solver))
+        (:meth:`~torchql.engine_evaluate.Evaluation._nonlinear`'s choice, without joint sensitivities)."""
+        return self._batched_dopri(count) and not self._grid_solves(count) and not self._joint_sensitivities
 
     def _final_solutions(self, rows, z0, final_guess, codes, detail):
         """The model integrated at the estimates ``z0`` of samples ``rows`` (from ``final_guess``,
