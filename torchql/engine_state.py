@@ -68,7 +68,8 @@ class LoopState:
         self.scaled: torch.Tensor | None = None
         #: samples stopped by a convergence test on an undamped step (their estimates may be polished)
         self.undamped_stop = torch.zeros(S, dtype=torch.bool, device=dev)
-        self.polish = self.undamped_stop  # those of them that stopped within the time budget
+        #: those of them that stopped within the time budget (set when the iteration ends)
+        self.polish = torch.zeros(S, dtype=torch.bool, device=dev)
 
     def stop(self, rows: torch.Tensor, code: Status, text: str = "") -> None:
         """Samples ``rows`` end with ``code`` and the detail ``text``."""

@@ -118,8 +118,9 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
     return _linearize(order, system.f, t, z, z_dot, system.n)
 
 
-def _linearize(order: str, f, t, z, z_dot, n: int | None = None) -> Linearization:
-    """The linearization in ``order`` (``"reverse"`` or ``"forward"``), vmapped over the nodes."""
+def _linearize(order: str, f, t, z, z_dot, n: int) -> Linearization:
+    """The linearization in ``order`` (``"autograd"``, ``"reverse"`` or ``"forward"``) at every node;
+    ``n``: the model's states (the rows autograd differentiates)."""
     if order == "autograd":
         return _by_autograd(f, t, z, z_dot, n)
     if order == "reverse":
@@ -186,7 +187,6 @@ def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: in
     return Linearization(f=value.detach(), jac=jac, f_dot=value_dot, jac_dot=jac_dot)
 
 
-
 def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bool = True
                   ) -> tuple[torch.Tensor, tuple]:
     """A per-node function over many nodes, with the Jacobians of its first ``rows`` outputs.
@@ -216,26 +216,23 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bo
     value : Tensor ``(N, K)``
     jacobians : tuple of Tensor, one per ``wrt``: ``(N, rows, *arg.shape[1:])``.
     """
-    def first_rows(*node_args):
-        value = f(*node_args)
-        return value[:rows], value
-
-    if vectorize:
-        batched_f, derivatives = vmap(f), vmap(jacrev(first_rows, argnums=wrt, has_aux=True))
-    else:
-        def batched_f(*batch_args):
-            return f(*(a[0] for a in batch_args)).unsqueeze(0)
-
-        def derivatives(*batch_args):
-            jacobians, value = jacrev(first_rows, argnums=wrt, has_aux=True)(*(a[0] for a in batch_args))
-            return tuple(j.unsqueeze(0) for j in jacobians), value.unsqueeze(0)
     if rows <= AUTOGRAD_STATES:
+        batched_f = vmap(f) if vectorize else (lambda *one: f(*(a[0] for a in one)).unsqueeze(0))
         try:
             return _node_jacobian_by_autograd(batched_f, args, wrt, rows)
         except Exception:  # noqa: BLE001 -- functorch's error (or the same one) comes below
             pass
-    jacobians, value = derivatives(*args)
-    return value, tuple(jacobians)
+
+    def first_rows(*node_args):
+        value = f(*node_args)
+        return value[:rows], value
+
+    derivatives = jacrev(first_rows, argnums=wrt, has_aux=True)
+    if vectorize:
+        jacobians, value = vmap(derivatives)(*args)
+        return value, tuple(jacobians)
+    jacobians, value = derivatives(*(a[0] for a in args))
+    return value.unsqueeze(0), tuple(j.unsqueeze(0) for j in jacobians)
 
 
 def _node_jacobian_by_autograd(batched_f, args, wrt, rows):
@@ -246,9 +243,7 @@ def _node_jacobian_by_autograd(batched_f, args, wrt, rows):
         targets = [inputs[k] for k in wrt]
         jacobians = [torch.zeros(value.shape[0], rows, *a.shape[1:], dtype=a.dtype, device=a.device)
                      for a in targets]
-        for i in range(rows):
-            if not value.requires_grad:
-                break
+        for i in range(rows if value.requires_grad else 0):  # (an output free of them: zero Jacobians)
             grads = torch.autograd.grad(value[:, i].sum(), targets, retain_graph=i < rows - 1, allow_unused=True)
             for jac, g in zip(jacobians, grads):
                 if g is not None:

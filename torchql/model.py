@@ -225,9 +225,11 @@ class AugmentedSystem:
         self.param_names = list(param_names)
         self.param_shapes = [buffers[name].shape for name in self.param_names]
         self.param_sizes = [math.prod(shape) for shape in self.param_shapes]
-        #: the orders of differentiation of :func:`torchql.linearize.linearize` that torch.func
-        #: can take on the model as far as known (reverse mode is checked; forward mode is
-        #: dropped when it fails)
+        #: the submodule and buffer name of each unknown coefficient in :attr:`model` (for :meth:`rhs`)
+        self._owners = [_owner(self.model, name) for name in self.param_names]
+        #: the ways of differentiating of :func:`torchql.linearize.linearize` that torch can take
+        #: on the model as far as known (reverse mode is checked; autograd and forward mode are
+        #: dropped when they fail)
         self.linearization_orders: tuple[str, ...] = ("autograd", "reverse", "forward")
         self.n = len(model.state_names)
         self.P = sum(self.param_sizes)
@@ -273,7 +275,7 @@ class AugmentedSystem:
         tensors, parameters, strictness checks), which cost twice the forward of a small model
         under :func:`torch.vmap`, where every solver evaluates it.
         """
-        owners = self._owners()
+        owners = self._owners
         saved = []
         try:
             for (owner, leaf), value in zip(owners, self.unpack_params(p).values()):
@@ -283,12 +285,6 @@ class AugmentedSystem:
         finally:
             for (owner, leaf), old in zip(owners, saved):
                 owner._buffers[leaf] = old
-
-    def _owners(self) -> list[tuple[nn.Module, str]]:
-        """The submodule and buffer name of each unknown coefficient, in :attr:`param_names` order."""
-        if getattr(self, "_owner_cache", None) is None:
-            self._owner_cache = [_owner(self.model, name) for name in self.param_names]
-        return self._owner_cache
 
     def f(self, t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Augmented right-hand side for ``z`` of shape ``(M,)``: ``(f(t, x; p), 0)``."""
