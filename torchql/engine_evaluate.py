@@ -19,8 +19,8 @@ from .grid_solve import IntervalBudgetError, solve_on_grid
 from .integrate import CountedField, IntegrationError
 from .linearize import Linearization, linearize
 from .sigma_function import noise_rows
-from .solvers import STIFF_SOLVERS, rodas5p_batch
-from .solvers.sensitivity import SensitivityField, joint_state, split_joint
+from .solvers import STIFF_SOLVERS
+from .solvers.sensitivity import rodas5p_model, rodas5p_sensitivities
 from .superposition import propagate_linear
 from .trajectory import LinearizedReference
 
@@ -358,18 +358,9 @@ class Evaluation:
                 traj[s], ok[s] = kept[1], True
 
     def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors) -> None:
-        """Samples ``sub`` by :func:`~torchql.solvers.rodas5p_batch` on ``grid``; one sample with its
-        model's coefficients bound (no vmap over the augmented state)."""
-        spec, n, G = self.spec, self.system.n, self.G
-        budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
-        if sub.numel() == 1:
-            sol = rodas5p_batch(self.system.model_with(z0[sub[0], n:]), z0[sub, :n], grid, rtol=rtol, atol=atol,
-                                land=land, vectorize=False, **budget)
-            y = torch.cat([sol.y, z0[sub, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
-        else:
-            sol = rodas5p_batch(self.system.f, z0[sub], grid, rtol=rtol, atol=atol, land=land, error_components=n,
-                                **budget)
-            y = sol.y
+        """Samples ``sub`` by :func:`~torchql.solvers.sensitivity.rodas5p_model` on ``grid``."""
+        budget = {} if self.spec.max_steps is None else {"max_steps": self.spec.max_steps}
+        sol, y = rodas5p_model(self.system, z0[sub], grid, rtol=rtol, atol=atol, land=land, **budget)
         self.nfev += sol.n_f
         good = sol.ok
         traj[sub[good]], ok[sub[good]] = y[good], True
@@ -384,36 +375,26 @@ class Evaluation:
         return self.spec.linear_solver.with_solution
 
     def _solve_with_sensitivities(self, idx, z0) -> tuple[torch.Tensor, torch.Tensor, list]:
-        """The model integrated from ``z0 (S, M)`` together with its sensitivities to the
-        unknowns, by Rodas5P on the variational system (:mod:`torchql.solvers.sensitivity`),
-        on the grid of the chunk's samples ``idx`` (the steps landing on the observation times):
-        ``traj (S, G, M)``, ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the
-        homogeneous columns from :meth:`~torchql.problem.Problem.columns`) and error messages
-        (None: ok). A sample that failed keeps its initial state and columns at every node: a
-        finite stand-in, as a failed trial needs one.
-
-        Each column is integrated scaled by its unknown's magnitude (1 for a zero one), so that the
-        error control holds it to the states' relative accuracy whatever the unknown's units.
+        """The model integrated from ``z0 (S, M)`` by Rodas5P together with its sensitivities to the
+        unknowns, its steps differentiated (:mod:`torchql.solvers.sensitivity`), on the grid of
+        the chunk's samples ``idx`` (the steps landing on the observation times): ``traj (S, G,
+        M)``, ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
+        :meth:`~torchql.problem.Problem.columns`) and error messages (None: ok). A sample that
+        failed keeps its initial state and columns at every node: a finite stand-in, as a failed
+        trial needs one.
         """
-        spec, system, n, M = self.spec, self.system, self.system.n, self.system.M
-        columns = spec.columns(z0)[..., 1:]
-        m = columns.shape[-1]
-        scale = z0[:, spec.unknown_index].abs()
-        scale = torch.where(scale > 0, scale, torch.ones_like(scale)).unsqueeze(1)  # (S, 1, m)
-        grid = self._grid_of(idx)
-        S = z0.shape[0]
+        spec = self.spec
+        first = spec.columns(z0)
         budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
-        field = SensitivityField(system, m, vectorize=S > 1)
         with torch.no_grad():
-            sol = rodas5p_batch(field, joint_state(z0, columns * scale, n), grid, rtol=spec.rtol, atol=spec.atol,
-                                land=self._landing(idx), error_components=n + n * m, vectorize=S > 1, **budget)
+            sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
+                                              atol=spec.atol, land=self._landing(idx), **budget)
         self.nfev += sol.n_f
-        z, V = split_joint(sol.y, n, M, m)
-        W = torch.cat([z.unsqueeze(-1), V / scale.unsqueeze(1)], dim=-1)
+        W = torch.cat([z.unsqueeze(-1), V], dim=-1)
         failed = ~sol.ok
         z = torch.where(failed.reshape(-1, 1, 1), z0.unsqueeze(1).expand_as(z), z)
-        W = torch.where(failed.reshape(-1, 1, 1, 1), spec.columns(z0).unsqueeze(1).expand_as(W), W)
-        errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(S)]
+        W = torch.where(failed.reshape(-1, 1, 1, 1), first.unsqueeze(1).expand_as(W), W)
+        errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
         return z, W, errors
 
     def _landing(self, rows: torch.Tensor) -> torch.Tensor:

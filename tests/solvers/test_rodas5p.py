@@ -181,3 +181,18 @@ def test_adjoint_fit_refuses_the_stiff_solver_by_name():
     with pytest.raises(ValueError, match="`solver` of adjoint_fit must be a torchdiffeq method"):
         torchql.baselines.adjoint_fit(Robertson(), data, x0=torch.tensor([1.0, 0.0, 0.0], dtype=DT),
                                       solver="rodas5p")
+
+
+def test_nodes_passed_on_per_sample_padded_grids_equal_the_single_solves():
+    """Nodes filled from the recorded steps' dense output on per-sample grids ``(S, G)`` (the
+    shorter padded by its last node): each sample as its own solve on its own grid."""
+    system, z0, _ = _robertson_batch()
+    grid = torch.tensor([[0.0, 1e-3, 0.01, 0.1, 1.0, 10.0], [0.0, 0.02, 0.3, 2.0, 2.0, 2.0],
+                         [0.0, 1e-4, 5e-4, 0.5, 0.7, 5.0]], dtype=DT)
+    land = torch.zeros_like(grid, dtype=torch.bool)
+    sol = rodas5p_batch(system.f, z0, grid, rtol=1e-7, atol=1e-14, error_components=3, land=land)
+    assert sol.ok.all()
+    for s in range(3):
+        alone, _ = rodas5p_solve(system.model_with(z0[s, 3:]), z0[s, :3], grid[s], rtol=1e-7, atol=1e-14)
+        torch.testing.assert_close(sol.y[s, :, :3], alone, rtol=1e-12, atol=1e-18)
+    torch.testing.assert_close(sol.y[1, 3:], sol.y[1, 3:4].expand(3, -1), rtol=0, atol=0)

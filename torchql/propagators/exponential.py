@@ -285,9 +285,9 @@ class RadauCollocation(ExponentialRadau):
 
 class SensitivityRodas(RadauCollocation):
     """``linear_solver="rodas5p"``: where the reference is the model's own solution (shooting's
-    iterates, every fit's final pass), its sensitivities are integrated with it by Rodas5P on the
-    variational system, on the solution's own adaptive steps (:mod:`torchql.solvers.sensitivity`);
-    Kantorovich's other references are propagated as by ``"radau"``.
+    iterates, every fit's final pass), its sensitivities are those of its Rodas5P steps, on the
+    solution's own adaptive steps (:mod:`torchql.solvers.sensitivity`); Kantorovich's other
+    references are propagated as by ``"radau"``.
 
     For stiff models whose fast changes fall inside grid intervals (relaxation oscillations: van
     der Pol with ``mu = 1000``, whose jumps no grid placed before the solution is known resolves)

@@ -4,12 +4,16 @@ steps land on exactly, and the values recorded at the nodes.
 A grid is shared, ``(G,)``, or each sample's own, ``(S, G)``: a row is non-decreasing, and a
 sample whose grid is shorter than ``G`` repeats its last node up to ``G`` (its padding). A sample
 is finished at the first node of its final time, which its steps always land on; the padding then
-takes its value. Nodes not landed on are filled from the dense output of the step that passes them.
+takes its value. Nodes not landed on are filled at the end from the dense output of the steps
+that pass them (:mod:`torchql.solvers.steps`).
 """
 
 from __future__ import annotations
 
 import torch
+
+from . import tableau
+from .steps import StepRecord, dense_value
 
 __all__ = ["OutputGrid"]
 
@@ -80,24 +84,39 @@ class OutputGrid:
         self.out[rows, self.node[rows]] = values
         self.node[rows] += 1
 
-    def fill_passed(self, rows: torch.Tensor, t_new: torch.Tensor, interpolate) -> None:
-        """Fill the nodes strictly before ``t_new (R,)`` that samples ``rows`` passed without landing.
+    def skip_passed(self, rows: torch.Tensor, t_new: torch.Tensor) -> None:
+        """Move samples ``rows`` past the nodes strictly before ``t_new (R,)`` that their steps
+        passed without landing (:meth:`fill_between` fills them)."""
+        node = self.node[rows]
+        times = self._times if self.base is None else self._times.view(self.S, self.G)[rows]
+        first = torch.searchsorted(times, t_new.unsqueeze(-1) if self.base is not None else t_new)
+        first = first.squeeze(-1) if self.base is not None else first
+        limit = self._next[self._flat(rows, node.clamp(max=self.G - 1))]
+        self.node[rows] = torch.maximum(node, torch.minimum(first, limit))
 
-        ``interpolate(k, times) -> (K, M)``: the dense output of sample ``rows[k]``'s step at ``times (K,)``.
-        """
-        if not self.dense:
+    def fill_between(self, steps: StepRecord) -> None:
+        """Fill every node not landed on (and before each sample's end) from the dense output
+        of the recorded ``steps`` that pass it."""
+        landing = self._landing.view(-1, self.G).expand(self.S, self.G)
+        grid = self._times.view(-1, self.G).expand(self.S, self.G)
+        end = torch.full((self.S,), self.G, device=grid.device) if self.end is None else self.end
+        index = torch.arange(self.G, device=grid.device)
+        fill = ~landing & (index < end.unsqueeze(1)) & (index > 0)
+        if not steps.t.shape[0] or not bool(fill.any()):
             return
-        local = torch.arange(rows.numel(), device=rows.device)
-        while local.numel():
-            node = self.node[rows[local]].clamp(max=self.G - 1)
-            flat = self._flat(rows[local], node)
-            passed = (self._times[flat] < t_new[local]) & ~self._landing[flat]
-            local = local[passed]
-            if not local.numel():
-                return
-            r = rows[local]
-            self.out[r, self.node[r]] = interpolate(local, self._times[flat[passed]])
-            self.node[r] += 1
+        where = fill.nonzero(as_tuple=True)
+        step, theta = steps.locate(grid)
+        step, theta = step[where], theta[where].unsqueeze(-1)
+        K = steps.K[:, step]
+        weights = torch.tensor(tableau.DENSE, dtype=K.dtype, device=K.device)
+        q = (weights @ K.reshape(K.shape[0], -1)).view(3, *K.shape[1:])
+        end_weights = torch.tensor(tableau.M, dtype=K.dtype, device=K.device)
+        y0 = steps.y[step]
+        y1 = y0 + (end_weights @ K.reshape(K.shape[0], -1)).view(K.shape[1:])
+        counts, _ = steps.counts(self.S)
+        values = dense_value(y0, y1, q, theta)
+        stepped = counts[where[0]] > 0
+        self.out[where[0][stepped], where[1][stepped]] = values[stepped]
 
     def result(self, ok: torch.Tensor) -> torch.Tensor:
         """The output ``(S, G, M)``: each sample's padding repeats its last value; NaN where not ``ok``."""

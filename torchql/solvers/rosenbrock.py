@@ -40,6 +40,7 @@ from ..budget import check_time
 from . import tableau
 from .field import BatchedField
 from .output import OutputGrid
+from .steps import StepRecord
 
 __all__ = ["RosenbrockSolution", "rodas5p_batch", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS"]
 
@@ -74,6 +75,8 @@ class RosenbrockSolution:
         in ``n_f``).
     max_steps : int
         The step budget the solution ran under (for the messages).
+    steps : StepRecord or None
+        Every accepted step, where asked for (``keep_steps``).
     """
 
     y: torch.Tensor
@@ -84,6 +87,7 @@ class RosenbrockSolution:
     n_f: int
     n_jac: int
     max_steps: int
+    steps: "StepRecord | None" = None
 
     @property
     def ok(self) -> torch.Tensor:
@@ -145,13 +149,6 @@ def _stages(field: BatchedField, tab: _Tableau, t, h, y, f0, J, ft) -> tuple[tor
                 rhs = rhs.add_(hft, alpha=tableau.D[i])
         K[i] = torch.linalg.lu_solve(LU, pivots, rhs.unsqueeze(-1)).squeeze(-1)
     return arg + K[-1], K, (LU, pivots)
-
-
-def _dense(tab: _Tableau, y0, y1, K, theta) -> torch.Tensor:
-    """The step's dense output at ``theta (R, 1)`` in ``[0, 1]``: ``(R, M)`` (``y0``, ``y1 (R, M)``, ``K (8, R, M)``)."""
-    q1, q2, q3 = (tab.dense @ K.reshape(K.shape[0], -1)).view(3, *y0.shape)
-    one_minus = 1.0 - theta
-    return one_minus * y0 + theta * (y1 + one_minus * (q1 + theta * (q2 + theta * q3)))
 
 
 def _dense_error(field: BatchedField, tab: _Tableau, t, h, y, y_new, K, lu) -> torch.Tensor:
@@ -245,9 +242,11 @@ def _controller(ratio, accept, he, st, exponent) -> tuple[torch.Tensor, torch.Te
 
 
 def _round(field: BatchedField, tab: _Tableau, grid: OutputGrid, samples: _Samples, active: torch.Tensor,
-           n: int, rtol: float, atol: float, norm) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+           n: int, rtol: float, atol: float, norm, steps: list | None
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One trial step of every sample in ``active``: the accepted mask, the next step sizes and
-    whether the trial's values were finite, each ``(A,)``."""
+    whether the trial's values were finite, each ``(A,)``; the accepted steps appended to
+    ``steps`` (unless None) as :meth:`~torchql.solvers.steps.StepRecord.join` takes them."""
     rows = None if active.numel() == samples.t.shape[0] else active
     st = samples.take(rows)
     stale = ~st["fresh"]
@@ -288,14 +287,12 @@ def _round(field: BatchedField, tab: _Tableau, grid: OutputGrid, samples: _Sampl
     st["n_accepted"], st["n_rejected"] = st["n_accepted"] + accept, st["n_rejected"] + ~accept
     samples.put(rows, st)
     glob = active
-    if grid.dense and bool(accept.any()):  # nodes passed inside accepted steps, from the dense output
+    if steps is not None:
+        kept = (accept & ~empty).nonzero().flatten()
+        steps.append((glob[kept], t[kept], he[kept], t_new[kept], y[kept], K[:, kept]))
+    if grid.dense and bool(accept.any()):  # nodes passed inside accepted steps: filled from the steps at the end
         local = accept.nonzero().flatten()
-
-        def interpolate(k, times):
-            i = local[k]
-            theta = ((times - t[i]) / he[i]).unsqueeze(-1)
-            return _dense(tab, y[i], y_new[i], K[:, i], theta)
-        grid.fill_passed(glob[local], t_new[local], interpolate)
+        grid.skip_passed(glob[local], t_new[local])
     landed = accept & clipped
     if bool(landed.any()):
         grid.land(glob[landed], y_new[landed])
@@ -305,7 +302,8 @@ def _round(field: BatchedField, tab: _Tableau, grid: OutputGrid, samples: _Sampl
 def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: torch.Tensor, grid: torch.Tensor, *,
                   rtol: float, atol: float, max_steps: int = 100_000, land: torch.Tensor | None = None,
                   error_components: int | None = None, norm: Callable | None = None,
-                  first_step: float | None = None, vectorize: bool = True) -> RosenbrockSolution:
+                  first_step: float | None = None, vectorize: bool = True, keep_steps: bool = False
+                  ) -> RosenbrockSolution:
     """``y' = f(t, y)`` from ``y0 (S, M)`` over ``grid`` by Rodas5P, each sample on its own steps.
 
     Parameters
@@ -315,8 +313,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         operations that ``torch.func.jacrev`` (and, with ``vectorize``, ``torch.vmap``) can
         transform: an augmented system's ``system.f`` (coefficients as trailing components of
         ``y``, whose zero rows make them constants) or a model's ``forward``. A field given
-        already (with its own Jacobian, e.g. :class:`~torchql.solvers.sensitivity.SensitivityField`)
-        is used as it is, and ``vectorize`` is its own.
+        already (with its own Jacobian) is used as it is, and ``vectorize`` is its own.
     y0 : Tensor ``(S, M)``
         Initial states at each sample's first node; float32 or float64, on any device.
     grid : Tensor ``(G,)`` or ``(S, G)``
@@ -340,6 +337,8 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         The first trial step (default: Hairer's estimate per sample).
     vectorize : bool
         ``False`` calls ``f`` on the one sample (``S = 1``) without ``torch.vmap``.
+    keep_steps : bool
+        Return every accepted step (:class:`StepRecord`), e.g. to differentiate them.
 
     Returns
     -------
@@ -356,7 +355,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     t0 = grid[:, 0] if grid.dim() == 2 else grid[0].expand(S)
     if grid.shape[-1] == 1:
         return RosenbrockSolution(out.result(status == SUCCESS), status, t0.clone(), *[torch.zeros_like(status)] * 2,
-                                  0, 0, max_steps)
+                                  0, 0, max_steps, StepRecord.join([], y0) if keep_steps else None)
     samples = _Samples(field, y0, t0)
     span = grid[..., -1] - grid[..., 0]
     if first_step is None:
@@ -367,9 +366,10 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     tiny = torch.finfo(y0.dtype).tiny
     eps = torch.finfo(y0.dtype).eps
     active = ((status == SUCCESS) & out.unfinished()).nonzero().flatten()
+    steps = [] if keep_steps or out.dense else None
     while active.numel():
         check_time()
-        accept, h_next, finite = _round(field, tab, out, samples, active, n, rtol, atol, norm)
+        accept, h_next, finite = _round(field, tab, out, samples, active, n, rtol, atol, norm, steps)
         finished = ~out.unfinished()[active]
         ta = samples.t[active]
         underflow = (h_next <= 10 * eps * ta.abs()) | (h_next <= tiny)
@@ -380,8 +380,11 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         code = torch.where(finished, SUCCESS, code)
         status[active] = code
         active = active[(code == SUCCESS) & ~finished]
+    record = None if steps is None else StepRecord.join(steps, y0)
+    if out.dense:
+        out.fill_between(record)
     return RosenbrockSolution(out.result(status == SUCCESS), status, samples.t, samples.n_accepted,
-                              samples.n_rejected, field.n_f, field.n_jac, max_steps)
+                              samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None)
 
 
 def _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize):

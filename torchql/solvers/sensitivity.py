@@ -1,180 +1,194 @@
-"""A stiff model's solution and its sensitivities together, by Rodas5P on the variational system.
+"""A stiff model's solution and its sensitivities: Rodas5P's own steps, differentiated.
 
 The shooting scheme, and every scheme's final pass, need the model's solution ``x(t)`` from the
 estimates and its derivatives with respect to the unknowns: the homogeneous columns ``V(t)`` of
 the model linearized about that solution, ``V' = A(t) V`` with ``A = df/dz`` of the augmented
 state ``z = (x, p)``. On a grid, as the non-stiff propagators take them, a stiff ``A`` needs many
 implicit substeps per interval (the intervals are placed before the solution is known, so most of
-them sit where the solution is smooth but the stiffness is not). Integrated with ``x`` by the
-adaptive implicit solver instead, the columns take the steps that ``x`` takes: the forward
-sensitivity method of CVODES and AMICI.
+them sit where the solution is smooth but the stiffness is not). Here the columns take the steps
+that ``x`` takes.
 
-The joint state of one sample is ``y = (x, Vx, p, Vp)``: the states ``(n,)``, their
-sensitivities ``(n, m)`` row-major, the unknown coefficients ``(P,)`` and their (constant) rows
-of the columns ``(P, m)``. Its right-hand side is ``(f, A V, 0, 0)``. Rodas5P keeps its order only
-with the exact Jacobian of the joint system; it is block lower triangular::
+**The steps differentiated.** Rodas5P applied to the joint system ``(x, V)`` with its exact
+(block lower triangular) Jacobian gives, on the ``x`` rows, the steps of ``x`` alone, and on the
+``V`` rows the derivative of those steps with respect to the start (the step sizes held fixed):
+the internal numerical differentiation of H. G. Bock, whose columns are the exact derivatives of
+the computed solution, as a Gauss–Newton method wants them. With the ``x`` steps known, each
+step's ``V`` rows are linear in the step's starting columns. So this module integrates ``x`` alone
+(:func:`rodas5p_model`, the error controlled on ``x``), keeps its accepted steps, rebuilds every
+step's stages and computes every step's linear map at once, batched over all the steps of all the
+samples (:func:`step_sensitivities`), and composes the maps along each sample's steps. The joint
+integration it replaces took a Jacobian of the model at every stage of every step, one step at a
+time; here those Jacobians are one batched call.
 
-    [[A_x,        0,          A_p,        0         ],
-     [d(A V)/dx,  A_x (x) I,  d(A V)/dp,  A_p (x) I ],
-     [0 ...                                         ]]
+For one step from ``(t0, x0)`` of size ``h`` with stage increments ``k_i`` and stage arguments
+``u_i = x0 + sum_j a_ij k_j`` (:mod:`torchql.solvers.tableau`), the columns' increments are::
 
-and is assembled from ``A`` and the second derivatives ``dA/dz`` (one reverse-over-reverse
-pass), never by differentiating the joint function as a whole. The local error is controlled on
-``x`` and on the columns, each column scaled by its unknown's magnitude (CVODES' ``pbar``), so a
-column is as accurate relative to the effect of its unknown as the states are.
+    (I / (h gamma) - A_x(t0, z0)) K_i = A(t_i, u_i) (V0 + sum_j a_ij K_j) + sum_j (C_ij / h) K_j
+                                        + h d_i A_t(t0, z0) V0 + (dA/dx(t0, z0) . k_i) V0,
+
+(``K_j`` the ``x`` rows; the coefficients' rows of ``V`` are constant), ``V1 = V0 + sum_i m_i K_i``
+and the dense output between is the method's, applied to ``K``. The columns' accuracy is that of
+the steps of ``x``, whose error the solver controls (the columns' own is not tested, as
+CVODES without ``errconS``): a column is the exact derivative of the computed ``x``.
 """
 
 from __future__ import annotations
 
 import torch
-from torch.func import jacrev
+from torch.func import jacrev, vmap
 
-from .field import BatchedField
+from ..linearize import node_jacobian
+from . import tableau
+from .rosenbrock import RosenbrockSolution, rodas5p_batch
+from .steps import StepRecord, dense_value
 
-__all__ = ["SensitivityField", "joint_state", "split_joint"]
+__all__ = ["rodas5p_model", "rodas5p_sensitivities", "step_sensitivities"]
 
-
-class SensitivityField(BatchedField):
-    """The joint right-hand side ``(f, A V, 0, 0)`` of an augmented system and its exact Jacobian.
-
-    Parameters
-    ----------
-    system : AugmentedSystem
-        The model with its unknown coefficients as trailing state components (``n`` states, ``P``
-        coefficients, ``rhs(t, x, p)``).
-    m : int
-        Number of sensitivity columns.
-    vectorize : bool
-        As :class:`~torchql.solvers.field.BatchedField`: map samples by ``torch.vmap`` with
-        ``torch.func`` derivatives (any ``S``); ``False``: one sample, differentiated by
-        ``torch.autograd`` with batched cotangents, which costs about half of ``torch.func``'s
-        transforms per call (they dominate a small model's step).
-    """
-
-    def __init__(self, system, m: int, vectorize: bool = True) -> None:
-        self.n_f = 0
-        self.n_jac = 0
-        layout = _Layout(system.n, system.P, m)
-        if vectorize:
-            value, derivatives = _transformed(system, layout)
-            self._f, self._derivatives = torch.vmap(value), torch.vmap(derivatives)
-        else:
-            self._f, self._derivatives = _differentiated(system, layout)
+#: Steps whose maps are computed in one batched call (bounds the memory of the stages' Jacobians).
+STEP_CHUNK = 4096
 
 
-class _Layout:
-    """Where the parts of one sample's joint state ``(x, Vx, p, Vp)`` lie."""
-
-    def __init__(self, n: int, P: int, m: int) -> None:
-        self.n, self.P, self.m = n, P, m
-        self.width = n + n * m + P + P * m
-
-    def split(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``z (M,)`` and the columns ``V (M, m)`` of a joint state ``y (D,)``."""
-        return split_joint(y, self.n, self.n + self.P, self.m)
-
-    def joint(self, f: torch.Tensor, AV: torch.Tensor) -> torch.Tensor:
-        """The joint vector ``(f, A V, 0, 0)`` from ``f (n,)`` and ``A V`` (``n m`` values)."""
-        zeros = torch.zeros(self.P + self.P * self.m, dtype=f.dtype, device=f.device)
-        return torch.cat([f, AV.reshape(-1), zeros])
-
-    def jacobian(self, A: torch.Tensor, AV_z: torch.Tensor) -> torch.Tensor:
-        """The joint Jacobian ``(D, D)`` from ``A (n, M)`` and ``d(A V)/dz (n m, M)`` (rows ``(i, k)``)."""
-        n, P, m = self.n, self.P, self.m
-        eye = torch.eye(m, dtype=A.dtype, device=A.device)
-        A_x, A_p = A[:, :n], A[:, n:]
-        coefficients = slice(n + n * m, n + n * m + P)
-        J = A.new_zeros(self.width, self.width)
-        J[:n, :n], J[:n, coefficients] = A_x, A_p
-        rows = slice(n, n + n * m)
-        J[rows, :n], J[rows, coefficients] = AV_z[:, :n], AV_z[:, n:]
-        J[rows, n:n + n * m] = (A_x[:, None, :, None] * eye[None, :, None, :]).reshape(n * m, n * m)
-        J[rows, n + n * m + P:] = (A_p[:, None, :, None] * eye[None, :, None, :]).reshape(n * m, P * m)
-        return J
+def rodas5p_model(system, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
+                  land: torch.Tensor | None = None, keep_steps: bool = False, **budget
+                  ) -> tuple[RosenbrockSolution, torch.Tensor]:
+    """The augmented model integrated from ``z0 (S, M)`` over ``grid`` by Rodas5P, the error
+    controlled on the states: ``(solution, z (S, G, M))`` (NaN where a sample failed). One sample
+    is integrated with its coefficients bound in its model (no ``vmap`` over the augmented state)."""
+    n, G = system.n, grid.shape[-1]
+    if z0.shape[0] == 1:
+        sol = rodas5p_batch(system.model_with(z0[0, n:]), z0[:, :n], grid, rtol=rtol, atol=atol, land=land,
+                            vectorize=False, keep_steps=keep_steps, **budget)
+        return sol, torch.cat([sol.y, z0[:, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
+    sol = rodas5p_batch(system.f, z0, grid, rtol=rtol, atol=atol, land=land, error_components=n,
+                        keep_steps=keep_steps, **budget)
+    return sol, sol.y
 
 
-def _transformed(system, layout: _Layout):
-    """One sample's ``value(t, y)`` and ``derivatives(t, y) -> ((ft, J), value)`` by ``torch.func``
-    (reverse over reverse for the second derivatives), for ``torch.vmap``."""
+def rodas5p_sensitivities(system, z0: torch.Tensor, columns: torch.Tensor, grid: torch.Tensor, *, rtol: float,
+                          atol: float, land: torch.Tensor | None = None, **budget
+                          ) -> tuple[RosenbrockSolution, torch.Tensor, torch.Tensor]:
+    """The model from ``z0 (S, M)`` and its columns from ``columns (S, M, m)`` (their values at the
+    first node) over ``grid`` (``(G,)`` or ``(S, G)``): ``(solution, z (S, G, M), V (S, G, M, m))``.
+    Arguments as :func:`rodas5p_model`; a failed sample's values are not meaningful."""
+    sol, z = rodas5p_model(system, z0, grid, rtol=rtol, atol=atol, land=land, keep_steps=True, **budget)
+    return sol, z, step_sensitivities(system, sol.steps, z0[:, system.n:], columns, grid)
+
+
+def step_sensitivities(system, steps: StepRecord, p: torch.Tensor, columns: torch.Tensor,
+                       grid: torch.Tensor) -> torch.Tensor:
+    """The columns ``V (S, G, M, m)`` at the nodes of ``grid`` (``(G,)`` or ``(S, G)``) along the
+    accepted Rodas5P ``steps`` of ``S`` samples (their states first in ``steps.y``), with
+    coefficients ``p (S, P)`` and the columns' values ``columns (S, M, m)`` at the first node."""
+    n = system.n
+    S = columns.shape[0]
+    grid = grid.expand(S, grid.shape[-1])
+    counts, offsets = steps.counts(S)
+    step, theta = steps.locate(grid)
+    landed = theta >= 1
+    dense = torch.zeros(steps.t.shape[0], dtype=torch.bool, device=grid.device)
+    dense[step[~landed]] = True
+    change, dense_q = _step_maps(system, steps, p, dense)
+    V_start, _ = _compose(change, columns, counts, offsets)
+    V0 = V_start[step]  # (S, G, M, m)
+    Vx = V0[..., :n, :] + change[step] @ V0  # at the steps' ends
+    if dense_q.shape[1]:
+        q = dense_q[:, dense.cumsum(0).sub(1).clamp(min=0)[step]] @ V0  # (3, S, G, n, m); unused where landed
+        between = dense_value(V0[..., :n, :], Vx, q, theta[..., None, None])
+        Vx = torch.where(landed[..., None, None], Vx, between)
+    V = torch.cat([Vx, V0[..., n:, :]], dim=-2)
+    none = counts == 0  # a sample without steps (one node, or failed at once): its first columns throughout
+    return torch.where(none[:, None, None, None], columns.unsqueeze(1), V)
+
+
+def _step_maps(system, steps: StepRecord, p: torch.Tensor, dense: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every step's change of the columns' state rows, ``V1_x - V0_x = change @ V0`` (``change
+    (N, n, M)``), and the dense output's vectors ``q_r = dense_q[r] @ V0`` (``(3, D, n, M)``) of the
+    ``D`` steps that ``dense (N,)`` selects, in their order."""
+    n, M = system.n, system.M
+    N = steps.t.shape[0]
+    change = steps.y.new_zeros(N, n, M)
+    dense_q = steps.y.new_zeros(3, int(dense.sum()), n, M)
+    done = 0
+    for start in range(0, N, STEP_CHUNK):
+        c = slice(start, min(start + STEP_CHUNK, N))
+        K = _column_increments(system, steps.t[c], steps.h[c], steps.y[c, :n], steps.K[:, c, :n],
+                               p[steps.sample[c]])
+        flat = K.reshape(tableau.STAGES, -1)
+        weights = torch.tensor(tableau.M, dtype=K.dtype, device=K.device)
+        change[c] = (weights @ flat).view(K.shape[1:])
+        chosen = dense[c]
+        if bool(chosen.any()):
+            dense_weights = torch.tensor(tableau.DENSE, dtype=K.dtype, device=K.device)
+            q = (dense_weights @ K[:, chosen].reshape(tableau.STAGES, -1)).view(3, -1, n, M)
+            dense_q[:, done:done + q.shape[1]] = q
+            done += q.shape[1]
+    return change, dense_q
+
+
+def _column_increments(system, t, h, x0, k, p) -> torch.Tensor:
+    """The stage increments ``(8, N, n, M)`` of the columns' state rows for the basis ``V0 = I``
+    (``M`` columns) of ``N`` steps: ``t``, ``h (N,)``, ``x0 (N, n)``, the states' increments
+    ``k (8, N, n)``, coefficients ``p (N, P)`` (see the module's description)."""
+    n, M = system.n, system.M
+    N = t.shape[0]
+    a = [torch.tensor(row, dtype=x0.dtype, device=x0.device) for row in tableau.A]
+    C = [torch.tensor(row, dtype=x0.dtype, device=x0.device) for row in tableau.C]
+    flat_k = k.reshape(tableau.STAGES, -1)
+    args = torch.stack([x0] + [x0 + (a[i] @ flat_k[:i]).view(N, n) for i in range(1, tableau.STAGES)])
+    nodes = torch.tensor(tableau.NODES, dtype=t.dtype, device=t.device)
+    times = t + nodes.unsqueeze(1) * h  # (8, N)
+    z = torch.cat([args, p.expand(tableau.STAGES, N, -1)], dim=-1)
+    _, (A,) = node_jacobian(_state_rows(system), (times.reshape(-1), z.reshape(-1, M)), (1,), n)
+    A = A.view(tableau.STAGES, N, n, M)
+    A_t, A_z = vmap(jacrev(_jacobian(system), argnums=(0, 1)))(t, z[0])  # (N, n, M), (N, n, M, M)
+    coupling = torch.einsum("nimj,snj->snim", A_z[..., :n], k)  # (dA/dx . k_i), (8, N, n, M)
+    W = -A[0, :, :, :n]
+    W.diagonal(dim1=-2, dim2=-1).add_((1.0 / (tableau.GAMMA * h)).unsqueeze(-1))
+    LU, pivots, _ = torch.linalg.lu_factor_ex(W)
+    hc = h.view(N, 1, 1)
+    h_At = hc * A_t
+    Kc = A.new_empty(tableau.STAGES, N, n, M)
+    flat = Kc.view(tableau.STAGES, -1)
+    for i in range(tableau.STAGES):
+        rhs = A[i] + coupling[i]
+        if i:
+            rhs = rhs + A[i, :, :, :n] @ (a[i] @ flat[:i]).view(N, n, M) + (C[i] @ flat[:i]).view(N, n, M) / hc
+        if tableau.D[i]:
+            rhs = rhs + tableau.D[i] * h_At
+        Kc[i] = torch.linalg.lu_solve(LU, pivots, rhs)
+    return Kc
+
+
+def _compose(change: torch.Tensor, columns: torch.Tensor, counts: torch.Tensor, offsets: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The columns at the start of every step ``(N, M, m)`` and at each sample's end ``(S, M, m)``:
+    the steps' maps applied in order along each sample's steps, from ``columns (S, M, m)``."""
+    n = change.shape[1]
+    V = columns.clone()
+    V_start = columns.new_empty(change.shape[0], *columns.shape[1:])
+    if columns.shape[0] == 1:
+        for k in range(int(counts[0])):
+            V_start[k] = V[0]
+            V[0, :n] += change[k] @ V[0]
+        return V_start, V
+    for k in range(int(counts.max()) if counts.numel() else 0):
+        rows = (counts > k).nonzero().flatten()
+        ids = offsets[rows] + k
+        V_start[ids] = V[rows]
+        V[rows, :n] += change[ids] @ V[rows]
+    return V_start, V
+
+
+def _state_rows(system):
+    """One node's state rows of the augmented right-hand side, ``(t, z (M,)) -> (n,)``."""
     n = system.n
 
-    def g(t, z):
-        value = system.rhs(t, z[:n], z[n:])
-        return value, value
-
-    jacobian = jacrev(g, argnums=1, has_aux=True)  # (A (n, M), f (n,))
-
-    def inner(t, z):
-        A, value = jacobian(t, z)
-        return (A, value), (A, value)
-
-    second = jacrev(inner, argnums=(0, 1), has_aux=True)  # d(A, f)/d(t, z)
-
-    def value(t, y):
-        z, V = layout.split(y)
-        A, f = jacobian(t, z)
-        return layout.joint(f, A @ V)
-
-    def derivatives(t, y):
-        z, V = layout.split(y)
-        ((A_t, A_z), (f_t, _)), (A, f) = second(t, z)
-        J = layout.jacobian(A, torch.einsum("ijl,jk->ikl", A_z, V).reshape(n * layout.m, -1))
-        return (layout.joint(f_t, A_t @ V), J), layout.joint(f, A @ V)
-
-    return value, derivatives
+    def rows(t, z):
+        return system.rhs(t, z[:n], z[n:])
+    return rows
 
 
-def _differentiated(system, layout: _Layout):
-    """One sample's ``f(t (1,), y (1, D))`` and ``derivatives`` as :class:`BatchedField` calls
-    them, by ``torch.autograd`` with batched cotangents."""
-    n, m = system.n, layout.m
-
-    def tracked(t, y):
-        z, V = layout.split(y)
-        t, z = t.detach().requires_grad_(True), z.detach().requires_grad_(True)
-        return t, z, V, system.rhs(t, z[:n], z[n:])
-
-    def value(t, y):
-        with torch.enable_grad():
-            _, z, V, f = tracked(t[0], y[0])
-            (A,) = _grad(f, (z,))
-        return layout.joint(f.detach(), A @ V).unsqueeze(0)
-
-    def derivatives(t, y):
-        with torch.enable_grad():
-            t, z, V, f = tracked(t[0], y[0])
-            f_t, A = _grad(f, (t, z), create_graph=True)
-            AV = (A @ V).reshape(-1)
-            if AV.requires_grad:
-                AV_t, AV_z = _grad(AV, (t, z))
-            else:  # a model linear in z: no second derivatives
-                AV_t, AV_z = torch.zeros_like(AV), AV.new_zeros(n * m, z.shape[0])
-        J = layout.jacobian(A.detach(), AV_z)
-        ft, value = layout.joint(f_t.detach(), AV_t), layout.joint(f.detach(), AV.detach())
-        return (ft.unsqueeze(0), J.unsqueeze(0)), value.unsqueeze(0)
-
-    return value, derivatives
-
-
-def _grad(outputs: torch.Tensor, inputs: tuple, create_graph: bool = False) -> tuple:
-    """The Jacobians ``(k, *x.shape)`` of the ``k`` ``outputs`` with respect to each of ``inputs``."""
-    eye = torch.eye(outputs.shape[0], dtype=outputs.dtype, device=outputs.device)
-    grads = torch.autograd.grad(outputs, inputs, eye, is_grads_batched=True, create_graph=create_graph,
-                                allow_unused=True, materialize_grads=True)
-    # an input the outputs do not use gets one unbatched zero: one per output
-    return tuple(g if g.dim() > x.dim() else g.expand(outputs.shape[0], *x.shape) for g, x in zip(grads, inputs))
-
-
-def joint_state(z0: torch.Tensor, columns: torch.Tensor, n: int) -> torch.Tensor:
-    """The joint initial states ``(S, D)`` from ``z0 (S, M)`` and the columns ``(S, M, m)``."""
-    S, M, m = columns.shape
-    return torch.cat([z0[:, :n], columns[:, :n].reshape(S, n * m), z0[:, n:], columns[:, n:].reshape(S, (M - n) * m)],
-                     dim=1)
-
-
-def split_joint(y: torch.Tensor, n: int, M: int, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(z (..., M), V (..., M, m))`` from joint states ``y (..., D)``."""
-    P = M - n
-    x, Vx = y[..., :n], y[..., n:n + n * m].unflatten(-1, (n, m))
-    p, Vp = y[..., n + n * m:n + n * m + P], y[..., n + n * m + P:].unflatten(-1, (P, m))
-    return torch.cat([x, p], dim=-1), torch.cat([Vx, Vp], dim=-2)
+def _jacobian(system):
+    """One node's ``A = d(state rows)/dz``, ``(t, z) -> (n, M)``."""
+    return jacrev(_state_rows(system), argnums=1)
