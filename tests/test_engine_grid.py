@@ -189,3 +189,39 @@ def test_groups_of_grids_share_one_final_dormand_prince_pass_with_the_same_resul
     torch.testing.assert_close(shared.estimates, apart.estimates, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(shared.sse, apart.sse, rtol=1e-12, atol=1e-18)
     torch.testing.assert_close(shared.covariance, apart.covariance, rtol=1e-10, atol=1e-18)
+
+
+def test_difference_slopes_are_exact_for_quadratics_on_uneven_and_padded_grids():
+    grid = torch.tensor([[0.0, 0.1, 0.4, 0.5, 1.3, 2.0], [0.0, 0.3, 0.35, 1.0, 1.0, 1.0]], dtype=DT)
+    x = torch.stack([3 * grid**2 - grid + 2, -grid**2 + 5 * grid], dim=-1)  # (S, G, 2)
+    slopes = engine_grid.difference_slopes(grid, x)
+    exact = torch.stack([6 * grid - 1, -2 * grid + 5], dim=-1)
+    # second order everywhere, one-sided at the ends and at the padded grid's last node (its padding is not read)
+    real = torch.tensor([[True] * 6, [True] * 4 + [False] * 2])
+    torch.testing.assert_close(slopes[real], exact[real], rtol=1e-12, atol=1e-12)
+    assert torch.isfinite(slopes).all()
+    two = torch.tensor([[0.0, 0.5]], dtype=DT)  # one interval: its mean slope at both ends
+    torch.testing.assert_close(engine_grid.difference_slopes(two, (two**2).unsqueeze(-1)),
+                               torch.full((1, 2, 1), 0.5, dtype=DT), rtol=1e-12, atol=0)
+
+
+def test_a_stiff_models_grid_keeps_its_geometric_nodes_and_chooses_its_uniform_intervals():
+    """``grid="auto"`` on the stiff path: the geometric early nodes stay, the uniform intervals
+    besides are the fewest that interpolate the first reference (here far fewer than the fixed
+    1,000), and the fit equals the one on the fixed grid within its tolerance."""
+    from testmodels import Relaxation
+
+    t = torch.logspace(-4, 0.5, 30, dtype=DT)
+    x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
+                         solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
+    data = torchql.Observations(t, x, observe=["x"])
+    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    auto = torchql.fit(Relaxation(k=700.0), data, torch.tensor([2.0], dtype=DT), **options)
+    fixed = torchql.fit(Relaxation(k=700.0), data, torch.tensor([2.0], dtype=DT), grid=1000, **options)
+    assert auto.success and fixed.success, (auto.message, fixed.message)
+    nodes, fine = _grid_of(auto), _grid_of(fixed)
+    assert len(nodes) < len(fine) // 4
+    assert float(nodes[1]) < 1e-11  # the earliest geometric node, 3e-13 after t0
+    early = nodes[(nodes > 0) & (nodes < 1e-4)]
+    assert float((early[1:] / early[:-1]).max()) < 1.3  # ten per decade, none dropped
+    torch.testing.assert_close(auto.estimates, fixed.estimates, rtol=1e-7, atol=1e-10)

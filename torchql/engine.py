@@ -276,7 +276,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         spec, S, n, all_idx = self.spec, self.S, self.system.n, st.all_idx
         if first is None:
             z0, traj, z_dot, W, errors = self._first_reference(all_idx, st.z0)
-            counts = self._grid_counts(traj, errors) if spec.auto_grid else None
+            counts = self._grid_counts(traj, z_dot, errors) if spec.auto_grid else None
             if counts is not None and S > 1 and counts.unique().numel() > 1:
                 return self._grid_groups(counts, (z0, traj, z_dot, W, errors))
         else:

@@ -25,8 +25,8 @@ import math
 import torch
 from torch.func import jvp, vmap
 
-from .grid import (AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, last_nodes, make_grids, needed_intervals,
-                   uniform_nodes)
+from .grid import (AUTO_COUNTS, AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, geometric_nodes, last_nodes, make_grids,
+                   nearest_nodes, needed_intervals, uniform_nodes)
 from .splines import hermite_per_sample
 
 __all__ = ["AutoGrid", "fourth_derivative_scale", "pad_nodes"]
@@ -109,7 +109,8 @@ class AutoGrid:
             pieces = []
             for c in counts[fine].unique().tolist():
                 rows = fine[counts[fine] == c]
-                pieces.append((rows, make_grids(c, t0[rows], t_obs[rows], breakpoints=spec.breakpoints)[0]))
+                pieces.append((rows, make_grids(c, t0[rows], t_obs[rows], stiff=spec.stiff,
+                                                breakpoints=spec.breakpoints)[0]))
             width = max(grid.shape[1], *(g.shape[1] for _, g in pieces))
             grid, index = pad_nodes(grid, width), pad_nodes(index, width)
             for rows, g in pieces:
@@ -127,7 +128,9 @@ class AutoGrid:
         """The first reference of the samples ``fine`` on their grids finer than the probe, in
         place in ``traj``, ``z_dot`` and ``W``: the probe's reference interpolated (cubic Hermite,
         with its slopes: the data's, or the model's), the Kantorovich reference as it is; a
-        shooting reference is the model's own solution, found again from that prediction."""
+        shooting reference, and a stiff model's integrated one (whose interpolant across the
+        probe's wide intervals misses its fast layers), is the model's own solution, found again
+        from that prediction."""
         grid = self.grid.expand(self.S, self.G)[fine]
         slopes = probe_dot
         if slopes is None:
@@ -141,9 +144,11 @@ class AutoGrid:
         traj[fine] = values
         if z_dot is not None:
             z_dot[fine] = derivatives
-        if not self.spec.scheme.integrates_model:
+        if not self.spec.scheme.integrates_model and not (self.spec.stiff and self.start != "data"):
             return errors
-        if W is not None:  # the solution with its sensitivities, on the new grid
+        if not self.spec.scheme.integrates_model:  # a stiff model's reference is no interpolant: solved again
+            traj[fine], again = self._nonlinear(fine, z0[fine], loose=True, guess=values)
+        elif W is not None:  # the solution with its sensitivities, on the new grid
             traj[fine], W[fine], again = self._solve_with_sensitivities(fine, z0[fine])
         else:
             traj[fine], again = self._nonlinear(fine, z0[fine], loose=False, guess=values)
@@ -152,12 +157,21 @@ class AutoGrid:
             errors[k] = e
         return errors
 
-    def _grid_counts(self, traj: torch.Tensor, errors: list) -> torch.Tensor:
+    def _grid_counts(self, traj: torch.Tensor, z_dot: torch.Tensor | None, errors: list) -> torch.Tensor:
         """Each sample's uniform intervals ``(S,)``, a count of :data:`AUTO_COUNTS`, from the model's
         slopes and their rates of change along its first reference ``traj (S, G, M)`` at the probe
-        grid's uniform nodes (:func:`fourth_derivative_scale`); the probe's own count where the
-        reference failed (``errors``, one per sample)."""
+        grid's uniform nodes (:func:`fourth_derivative_scale`), or for a stiff model from the
+        interpolation error of that reference itself (:meth:`_stiff_counts`); the probe's own count
+        where the reference failed (``errors``, one per sample), and for a stiff model's reference
+        built from the data (which is as smooth as the data allow, not as the model's solutions:
+        on van der Pol's it asked for the most intervals, where the model's solution asks for the
+        fewest)."""
         n, S = self.system.n, self.S
+        if self.spec.stiff:
+            counts = (self._stiff_counts(traj) if self.start != "data"
+                      else torch.full((S,), AUTO_PROBE, dtype=torch.long, device=traj.device))
+            failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=counts.device)
+            return torch.where(failed, torch.full_like(counts, AUTO_PROBE), counts)
         t0, t_end, probe = self._probe_nodes()
         times = self.grid.expand(S, self.G).gather(1, probe)
         nodes = traj.gather(1, probe.unsqueeze(-1).expand(S, -1, traj.shape[-1]))  # (S, P + 1, M)
@@ -175,16 +189,55 @@ class AutoGrid:
         failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=counts.device)
         return torch.where(failed, torch.full_like(counts, AUTO_PROBE), counts)
 
+    def _stiff_counts(self, traj: torch.Tensor) -> torch.Tensor:
+        """A stiff model's uniform intervals ``(S,)``: the fewest of the counts dividing
+        :data:`AUTO_PROBE` whose grid (its uniform nodes, the observation times and the geometric
+        early nodes) interpolates the first reference ``traj (S, G, M)`` at every node of the probe
+        within :data:`AUTO_SAFETY` times ``sqrt(rtol)``, the slopes at its nodes by differences of
+        the reference's values (:func:`difference_slopes`).
+
+        Why not the model's slopes, or its fourth derivative as for the other models: a stiff
+        component's value off its slow manifold by the solver's error ``delta`` has the slope
+        error ``lambda delta``, and over a grid interval ``h`` an interpolation error
+        ``h lambda delta`` (Robertson: 1e4 times the tolerance at ``t = 1500``), which says
+        nothing of how finely the trajectory must be stored; and the fourth-derivative estimate
+        takes the fastest time scale anywhere (the initial layer, which the geometric nodes
+        resolve) as everywhere's. Beyond the probe's count the needed count is extrapolated from
+        the error at half of it (the error falls as the fourth power of the width)."""
+        n, S = self.system.n, self.S
+        grid = self.grid.expand(S, self.G)
+        z_dot = difference_slopes(grid, traj[..., :n])
+        rtol = AUTO_SAFETY * math.sqrt(self.spec.rtol)
+        tol = self.spec.atol * rtol / self.spec.rtol + rtol * traj[..., :n].abs().amax(dim=1, keepdim=True)
+        _, _, probe = self._probe_nodes()
+        counts = torch.full((S,), AUTO_PROBE, dtype=torch.long, device=traj.device)
+        found = torch.zeros(S, dtype=torch.bool, device=traj.device)
+        ratio = torch.full((S,), math.inf, dtype=traj.dtype, device=traj.device)
+        for c in sorted(c for c in AUTO_COUNTS if AUTO_PROBE % c == 0 and c < AUTO_PROBE):
+            keep = self._kept_nodes(probe, torch.full_like(counts, c), torch.ones_like(found))
+            index = coarse_index(keep)
+            values, _ = hermite_per_sample(grid.gather(1, index), _gather(traj, index)[..., :n],
+                                           _gather(z_dot, index), grid, count=keep.sum(dim=1))
+            ratio = ((values - traj[..., :n]).abs() / tol).amax(dim=(1, 2)).nan_to_num(nan=math.inf)
+            counts = torch.where(~found & (ratio <= 1), c, counts)
+            found |= ratio <= 1
+        # the last ratio is the largest count's below the probe's (its half): beyond the probe, extrapolated
+        beyond = auto_counts(AUTO_PROBE / 2 * ratio.clamp(max=1e30) ** 0.25)
+        return torch.where(found, counts, torch.maximum(beyond, torch.full_like(counts, AUTO_PROBE)))
+
     def _kept_nodes(self, probe, counts, coarse) -> torch.Tensor:
         """``(S, G)`` bool: the probe grid's nodes a coarsened sample keeps (every ``P / count``-th
-        uniform node, the first, the observation nodes and the breakpoints); the first node only
-        for the others (their grids are built anew)."""
+        uniform node, the first, the observation nodes, the breakpoints and a stiff model's
+        geometric nodes); the first node only for the others (their grids are built anew)."""
         S, G = self.S, self.G
         keep = torch.zeros(S, G, dtype=torch.bool, device=probe.device)
         step = torch.where(coarse, AUTO_PROBE // counts, torch.ones_like(counts))
         every = (torch.arange(AUTO_PROBE + 1, device=probe.device).unsqueeze(0) % step.unsqueeze(1)) == 0
         keep.scatter_(1, torch.where(every, probe, probe[:, :1]), True)
         keep.scatter_(1, self.obs.expand(S, -1), True)
+        if self.spec.stiff:
+            t0, t_end, _ = self._probe_nodes()
+            keep.scatter_(1, nearest_nodes(self.grid, geometric_nodes(t0, t_end)), True)
         breakpoints = self.spec.breakpoints
         if breakpoints is not None:
             grid = self.grid.expand(S, G).contiguous()
@@ -228,6 +281,33 @@ def fourth_derivative_scale(slopes: torch.Tensor, rates: torch.Tensor) -> torch.
     second = rates.abs().amax(dim=1, keepdim=True)
     tiny = torch.finfo(slopes.dtype).tiny
     return torch.where(first > 0, second**3 / first.clamp(min=tiny) ** 2, torch.zeros_like(first))
+
+
+def difference_slopes(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Slopes ``(S, G, n)`` of values ``x (S, G, n)`` on grids ``(S, G)`` by second-order differences:
+    the three-point formula of a node and its uneven neighbours, one-sided (the node and the next
+    two on its side) at the ends and at a padded grid's last node; first order where a grid has
+    only one interval on that side."""
+    tiny = torch.finfo(x.dtype).tiny
+    h = torch.cat([torch.zeros_like(grid[:, :1]), grid[:, 1:] - grid[:, :-1], torch.zeros_like(grid[:, :1])], dim=1)
+    pad = torch.cat([x[:, :1], x, x[:, -1:]], dim=1)  # neighbours, repeated at the ends (their h is 0)
+    left, right = h[:, :-1].unsqueeze(-1), h[:, 1:].unsqueeze(-1)  # (S, G, 1) each
+    dl, dr = x - pad[:, :-2], pad[:, 2:] - x
+    central = (left * left * dr + right * right * dl) / (left * right * (left + right)).clamp(min=tiny)
+    # one-sided: the slope of the interval on the node's side, corrected by its neighbour interval's
+    h2 = torch.cat([h[:, 2:], torch.zeros_like(h[:, :2])], dim=1)[:, :-1].unsqueeze(-1)  # (S, G, 1): next-but-one
+    h2b = torch.cat([torch.zeros_like(h[:, :2]), h[:, :-2]], dim=1)[:, 1:].unsqueeze(-1)  # previous-but-one
+    x2 = torch.cat([x[:, 2:], x[:, -1:].expand(-1, 2, -1)], dim=1)
+    x2b = torch.cat([x[:, :1].expand(-1, 2, -1), x[:, :-2]], dim=1)
+    forward = dr / right.clamp(min=tiny)
+    backward = dl / left.clamp(min=tiny)
+    forward2 = forward - right * ((x2 - pad[:, 2:]) / h2.clamp(min=tiny) - forward) / (right + h2).clamp(min=tiny)
+    backward2 = backward + left * (backward - (pad[:, :-2] - x2b) / h2b.clamp(min=tiny)) / (left + h2b).clamp(min=tiny)
+    forward = torch.where(h2 > 0, forward2, forward)
+    backward = torch.where(h2b > 0, backward2, backward)
+    one_sided = torch.where(right > 0, forward, backward)
+    return torch.where((left > 0) & (right > 0), central, torch.where((left > 0) | (right > 0), one_sided,
+                                                                       torch.zeros_like(x)))
 
 
 def pad_nodes(x: torch.Tensor, width: int) -> torch.Tensor:

@@ -161,8 +161,10 @@ def fit(
         always nodes. ``"auto"`` (default, also ``None``): each dataset's own count, 20 to 1000,
         chosen from its first reference (built on 200 intervals): the fewest whose cubic Hermite
         interpolation of the model's solutions through it stays within ``sqrt(rtol) / 16`` of the
-        states (:mod:`torchql.engine_grid`); a stiff model keeps the default 1000 with geometric
-        early nodes. On any grid the final pass takes the Gauss–Newton steps on the model itself
+        states (:mod:`torchql.engine_grid`); a stiff model's grid has geometric early nodes besides,
+        and its count (20 to 200, more only where half the probe's is far off) is the fewest that
+        interpolates the first reference's values at the probe's nodes within that bound (a
+        reference built from the data keeps the probe's 200). On any grid the final pass takes the Gauss–Newton steps on the model itself
         that the grid's interpolation error leaves (:mod:`torchql.engine_final`).
         ``"smooth"``: as few intervals as the guesses' integrated trajectories need for their
         interpolation to stay within a sixteenth of the tolerance (:func:`torchql.grid.smooth_intervals`;

@@ -13,7 +13,9 @@ stays within :data:`AUTO_SAFETY` times the tolerance, taken from the probe's nod
 A stiff model's solution has fast transients (Robertson kinetics: a boundary layer of width
 ``1e-4`` on a span of ``1e5``) that uniform nodes cannot represent: with ``stiff=True``
 :data:`NODES_PER_DECADE` geometrically spaced nodes per decade are added from
-``t0 + EARLIEST * span`` to the end, so every interval is short against the time since ``t0``.
+``t0 + EARLIEST * span`` to the end (:func:`geometric_nodes`), so every interval is short against
+the time since ``t0``; ``grid="auto"`` then chooses the uniform intervals besides them
+(:meth:`torchql.engine_grid.AutoGrid._stiff_counts`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import math
 import torch
 
 __all__ = ["make_grid", "make_grids", "interval_counts", "last_nodes", "refine", "needed_intervals", "auto_counts",
-           "uniform_nodes", "coarse_index", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
+           "uniform_nodes", "nearest_nodes", "geometric_nodes", "coarse_index", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
            "EARLIEST", "SMOOTH_SAFETY", "SMOOTH_SAMPLES", "SMOOTH_RTOL"]
 
 #: Uniform intervals of the default grid.
@@ -100,10 +102,7 @@ def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = Fals
         return t0.reshape(1)
     uniform = torch.linspace(float(t0), float(t_end), intervals + 1, dtype=dtype, device=device)
     if stiff:
-        decades = -torch.log10(torch.tensor(EARLIEST, dtype=torch.float64))
-        count = round(float(decades)) * NODES_PER_DECADE
-        early = float(t0) + span * torch.logspace(-float(decades), 0.0, count + 1, dtype=dtype, device=device)
-        uniform = torch.cat([uniform, early[:-1]])
+        uniform = torch.cat([uniform, geometric_nodes(t0.reshape(1), t_end.reshape(1))[0]])
     fixed = torch.cat([t0.reshape(1), t_obs])
     # drop free nodes that nearly coincide with a fixed node (tiny intervals help nothing)
     gap = torch.cdist(uniform.unsqueeze(-1), fixed.unsqueeze(-1)).min(dim=1).values
@@ -191,6 +190,14 @@ def auto_counts(needed: torch.Tensor) -> torch.Tensor:
     return counts.to(torch.long)[index]
 
 
+def geometric_nodes(t0: torch.Tensor, t_end: torch.Tensor) -> torch.Tensor:
+    """The geometric nodes of a stiff model's grid, ``(S, K)``, from ``t0 + EARLIEST * span`` on
+    (:data:`NODES_PER_DECADE` per decade; the end excluded), for ``t0``, ``t_end (S,)``."""
+    decades = round(-math.log10(EARLIEST))
+    ratios = torch.logspace(-float(decades), 0.0, decades * NODES_PER_DECADE + 1, dtype=t0.dtype, device=t0.device)
+    return t0.unsqueeze(1) + (t_end - t0).unsqueeze(1) * ratios[:-1]
+
+
 def uniform_nodes(grid: torch.Tensor, t0: torch.Tensor, t_end: torch.Tensor, intervals: int) -> torch.Tensor:
     """For each sample, the index of the node of ``grid`` (``(G,)`` or ``(S, G)``, sorted) nearest to each
     of the ``intervals + 1`` uniform times from ``t0 (S,)`` to ``t_end (S,)``: ``(S, intervals + 1)``.
@@ -198,9 +205,14 @@ def uniform_nodes(grid: torch.Tensor, t0: torch.Tensor, t_end: torch.Tensor, int
     On a grid built with that many uniform intervals (:func:`make_grid`) these are its uniform
     nodes, or the observation times that replaced them (within ``1e-6`` of an interval).
     """
-    S = t0.shape[0]
     u = torch.linspace(0.0, 1.0, intervals + 1, dtype=grid.dtype, device=grid.device)
-    times = t0.unsqueeze(1) + (t_end - t0).unsqueeze(1) * u  # (S, P)
+    return nearest_nodes(grid, t0.unsqueeze(1) + (t_end - t0).unsqueeze(1) * u)
+
+
+def nearest_nodes(grid: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+    """For each sample, the index of the node of ``grid`` (``(G,)`` or ``(S, G)``, sorted) nearest
+    to each of its ``times (S, K)``: ``(S, K)``."""
+    S = times.shape[0]
     sorted_grid = grid.expand(S, grid.shape[-1]).contiguous()
     right = torch.searchsorted(sorted_grid, times.contiguous()).clamp(max=grid.shape[-1] - 1)
     left = (right - 1).clamp(min=0)

@@ -259,10 +259,11 @@ class Problem:
                                     self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
                                     (self.t_obs[..., -1] - self.t0).expand(self.B))
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
-        stiff = self.solver in STIFF_SOLVERS
-        #: ``grid="auto"`` (the default, not for a stiff model): the engine chooses each sample's
-        #: intervals from its first reference, built on this probe grid (:mod:`torchql.grid`)
-        self.auto_grid = (grid is None or isinstance(grid, str) and grid == "auto") and not stiff
+        #: whether the fit takes the stiff path (its grids then have geometric early nodes)
+        self.stiff = stiff = self.solver in STIFF_SOLVERS
+        #: ``grid="auto"`` (the default): the engine chooses each sample's uniform intervals from
+        #: its first reference, built on this probe grid (:mod:`torchql.grid`)
+        self.auto_grid = grid is None or isinstance(grid, str) and grid == "auto"
         if self.auto_grid:
             grid = AUTO_PROBE
         elif isinstance(grid, str) and grid != "auto":
