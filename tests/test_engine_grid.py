@@ -225,3 +225,33 @@ def test_a_stiff_models_grid_keeps_its_geometric_nodes_and_chooses_its_uniform_i
     early = nodes[(nodes > 0) & (nodes < 1e-4)]
     assert float((early[1:] / early[:-1]).max()) < 1.3  # ten per decade, none dropped
     torch.testing.assert_close(auto.estimates, fixed.estimates, rtol=1e-7, atol=1e-10)
+
+
+def test_a_stiff_fits_early_transfers_are_loose_and_its_converged_iterate_tight():
+    """Inexact transfers on the stiff path (engine_evaluate.INEXACT_FACTOR): the first iterate's
+    and the long steps' trials are propagated at the loose tolerance, the iterate that converges at
+    ``rtol``; the estimates equal those of a fit with every transfer at ``rtol``."""
+    from testmodels import Relaxation
+    import torchql.batch_integrate as batch_integrate
+    import torchql.engine_evaluate as engine_evaluate
+
+    t = torch.logspace(-4, 0.5, 30, dtype=DT)
+    x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
+                         solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
+    data = torchql.Observations(t, x, observe=["x"])
+    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    tolerances = []
+    propagate = batch_integrate.propagate_linear_batch
+
+    def recorded(*args, rtol, **kwargs):
+        tolerances.append(rtol)
+        return propagate(*args, rtol=rtol, **kwargs)
+
+    with mock.patch.object(engine_evaluate, "propagate_linear_batch", recorded):
+        inexact = torchql.fit(Relaxation(k=300.0), data, torch.tensor([2.0], dtype=DT), **options)
+    with mock.patch("torchql.engine.INEXACT_FACTOR", 0.0), mock.patch("torchql.engine._LOOSE_RTOL", 0.0):
+        exact = torchql.fit(Relaxation(k=300.0), data, torch.tensor([2.0], dtype=DT), **options)
+    assert inexact.success and exact.success, (inexact.message, exact.message)
+    assert tolerances[0] == 1e-6 and tolerances[1] == 1e-6 and tolerances[-1] == 1e-8, tolerances
+    assert inexact.params["k"].item() == pytest.approx(1e3, rel=1e-7)
+    torch.testing.assert_close(inexact.estimates, exact.estimates, rtol=1e-8, atol=0)

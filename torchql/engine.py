@@ -29,7 +29,7 @@ import torch
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
-from .engine_evaluate import Evaluation, _pick, not_above
+from .engine_evaluate import _LOOSE_RTOL, INEXACT_FACTOR, Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, put_samples
@@ -136,6 +136,9 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         self.coarse_grid: set[int] = set()
         #: per sample, the current iterate (its initial state's bytes) seen to fit in that budget
         self.fits_grid: dict[int, bytes] = {}
+        #: the tolerance of the trials' linear transfers while they are proposed (None: ``rtol``;
+        #: see :data:`~torchql.engine_evaluate.INEXACT_FACTOR`)
+        self.trial_rtol: float | None = None
         if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)
             self.grid, self.obs, self.t_obs = spec.grid, spec.obs_in_grid, spec.t_obs
         else:  # per sample: grids (S, G), trimmed to the chunk's longest, nodes (S, T)
@@ -291,8 +294,13 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
             st.detail[r] = f" The solver said: {errors[r]}."
         lin = self._linearize(all_idx, traj, z_dot)
-        st.cur = self._evaluate(all_idx, st.z0, traj, lin.f if z_dot is None else z_dot, lin,
-                                solution=spec.scheme.integrates_model, W=W)
+        if spec.stiff:  # the first step is long (and an iterate propagated loosely is not taken as converged)
+            self.trial_rtol = max(spec.rtol, _LOOSE_RTOL)
+        try:
+            st.cur = self._evaluate(all_idx, st.z0, traj, lin.f if z_dot is None else z_dot, lin,
+                                    solution=spec.scheme.integrates_model, W=W)
+        finally:
+            self.trial_rtol = None
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
@@ -389,9 +397,11 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         their last step and stop; returns the others."""
         spec, cur, scaled = self.spec, st.cur, st.scaled
         zero = st.damping[act] == 0
+        # an iterate whose transfers were integrated loosely (INEXACT_FACTOR) takes its step first
+        tight = zero & (cur["rtol"][act] <= spec.rtol)
         sse = cur["sse"][act]
-        conv = zero & (scaled <= spec.xtol)
-        conv_sse = (zero & ~conv & torch.isfinite(st.sse_prev[act]) & (sse != 0)
+        conv = tight & (scaled <= spec.xtol)
+        conv_sse = (tight & ~conv & torch.isfinite(st.sse_prev[act]) & (sse != 0)
                     & ((sse - st.sse_prev[act]).abs() <= spec.ftol * sse.abs()) & (scaled <= math.sqrt(spec.xtol)))
         moving = zero & ~conv & ~conv_sse
         st.sse_prev[act[moving]] = sse[moving]
@@ -531,8 +541,18 @@ class Engine(Evaluation, FinalPass, AutoGrid):
 
     def _propose(self, act, cur, alpha):
         """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where
-        usable (the scheme's :meth:`~torchql.schemes.Scheme.propose`)."""
-        return self.spec.scheme.propose(self, act, cur, alpha)
+        usable (the scheme's :meth:`~torchql.schemes.Scheme.propose`). On the stiff path their
+        linear transfers are integrated at the inexact tolerance of the longest step
+        (:data:`~torchql.engine_evaluate.INEXACT_FACTOR`)."""
+        spec = self.spec
+        if spec.stiff:
+            u = _pick(cur["z0"], act)[:, spec.unknown_index]
+            scaled = float((alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax())
+            self.trial_rtol = min(max(spec.rtol, INEXACT_FACTOR * scaled**2), max(spec.rtol, _LOOSE_RTOL))
+        try:
+            return spec.scheme.propose(self, act, cur, alpha)
+        finally:
+            self.trial_rtol = None
 
     def _data_start(self, idx, z0):
         """Each sample's first reference from its data (:func:`torchql.data_start.data_reference`,

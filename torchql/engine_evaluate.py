@@ -46,6 +46,12 @@ _GRID_SOLVE_INTERVALS = DEFAULT_INTERVALS
 _BLOWUP_STEPS = 16384
 #: Tolerance of the first Kantorovich reference, integrated from the guesses.
 _LOOSE_RTOL = 1e-6
+#: On the stiff path a trial's linear transfers are integrated at ``INEXACT_FACTOR`` times the square
+#: of its step's scaled size (between ``rtol`` and :data:`_LOOSE_RTOL`): near a solution the next
+#: step is of the order of that square, and the transfers' error moves it by about their tolerance,
+#: so early, long steps need no more (inexact Newton). A stiff interval's Radau IIA substeps grow as
+#: the tolerance's cube root: on Robertson kinetics the first transfers took most of a fit's time.
+INEXACT_FACTOR = 1e-2
 #: A trial step is accepted when its merit exceeds the current one by at most ``_MERIT_SLACK`` times
 #: its magnitude (rounding of the sums of squares must not reject a converging step).
 _MERIT_SLACK = 1e-10
@@ -136,8 +142,9 @@ class Evaluation:
         not propagated again.
         """
         spec = self.spec
+        rtol = spec.rtol if self.trial_rtol is None or W is not None else self.trial_rtol
         if W is None:
-            W, failed = self._propagate(idx, z, z_dot, lin, spec.columns(z0))
+            W, failed = self._propagate(idx, z, z_dot, lin, spec.columns(z0), rtol)
         else:
             failed = torch.zeros(z.shape[0], dtype=torch.bool, device=z.device)
         if solution:
@@ -148,22 +155,25 @@ class Evaluation:
         sse, merit = self._ssq(idx, resid, w) + log_term, self._ssq(idx, d, w, penalty=True) + log_term
         S = idx.numel()
         return dict(z0=z0, rz=z, rzd=z_dot, lin=lin, W=W, C=C_w, d=d_w, w=w, log=log_term, sse=sse, merit=merit,
-                    failed=failed,
+                    failed=failed, rtol=torch.full_like(sse, rtol),
                     anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
                     nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
 
-    def _propagate(self, idx, z, z_dot, lin, w0):
+    def _propagate(self, idx, z, z_dot, lin, w0, rtol: float | None = None):
         """The particular and homogeneous solutions ``W (S, G, M, 1 + m)`` of the chunk's samples
-        ``idx`` about ``z`` from ``w0 (S, M, 1 + m)``, and ``failed (S,)``.
+        ``idx`` about ``z`` from ``w0 (S, M, 1 + m)``, and ``failed (S,)``, at ``rtol`` (default the
+        fit's; ``atol`` scaled alike).
 
         A propagator with a batched form takes every sample at once
         (:func:`~torchql.batch_integrate.propagate_linear_batch`); another one each sample in turn
         (:func:`torchql.superposition.propagate_linear`), a failure marking that sample.
         """
         spec = self.spec
+        rtol = spec.rtol if rtol is None else rtol
+        atol = spec.atol * rtol / spec.rtol
         if spec.linear_solver.batched:
-            W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=spec.rtol,
-                                                      atol=spec.atol, propagator=spec.linear_solver)
+            W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=rtol,
+                                                      atol=atol, propagator=spec.linear_solver)
             self.nfev += evals
             return W, failed
         S, G = z.shape[:2]
@@ -174,7 +184,7 @@ class Evaluation:
             t = grid if grid.dim() == 1 else grid[k]
             reference = LinearizedReference(t, z[k], z_dot[k], Linearization(*(v[k] for v in lin)))
             try:
-                W[k], evals = propagate_linear(reference, w0[k], solver=spec.solver, rtol=spec.rtol, atol=spec.atol,
+                W[k], evals = propagate_linear(reference, w0[k], solver=spec.solver, rtol=rtol, atol=atol,
                                                max_steps=spec.max_steps, linear_solver=spec.linear_solver)
                 self.nfev += evals
             except IntegrationError as exc:
