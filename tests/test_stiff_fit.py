@@ -49,9 +49,9 @@ def test_robertson_rates_from_guesses_2x_off_by_shooting(robertson_data):
 
 @pytest.mark.slow
 def test_robertson_kantorovich_fit_and_fit_many_agree(robertson_data):
-    """Kantorovich converges to within 1e-5 of the truth (measured 6e-6: its fixed point on the
-    storage grid, whose earliest interval after t0 = 0 is [0, 1e-8], lies that far from the
-    model's optimum; shooting's lies within 4e-8); fit_many over two starts gives
+    """Kantorovich converges to within 1e-5 of the truth (measured 4e-8, as shooting: its fixed
+    point on the storage grid lies up to 6e-6 from the model's optimum, and the final pass's
+    Gauss–Newton step on the model takes that out); fit_many over two starts gives
     the first start the result of fit from it, and the second the same optimum. Both with the
     default ``solver="auto"``, which finds the model stiff along the data and takes the stiff path."""
     data, x0 = robertson_data
