@@ -94,9 +94,9 @@ class OutputGrid:
         limit = self._next[self._flat(rows, node.clamp(max=self.G - 1))]
         self.node[rows] = torch.maximum(node, torch.minimum(first, limit))
 
-    def fill_between(self, steps: StepRecord) -> None:
+    def fill_between(self, steps: StepRecord, tab: tableau.Tensors) -> None:
         """Fill every node not landed on (and before each sample's end) from the dense output
-        of the recorded ``steps`` that pass it."""
+        of the recorded ``steps`` that pass it (``tab``: the method's coefficients)."""
         landing = self._landing.view(-1, self.G).expand(self.S, self.G)
         grid = self._times.view(-1, self.G).expand(self.S, self.G)
         end = torch.full((self.S,), self.G, device=grid.device) if self.end is None else self.end
@@ -108,13 +108,9 @@ class OutputGrid:
         step, theta = steps.locate(grid)
         step, theta = step[where], theta[where].unsqueeze(-1)
         K = steps.K[:, step]
-        weights = torch.tensor(tableau.DENSE, dtype=K.dtype, device=K.device)
-        q = (weights @ K.reshape(K.shape[0], -1)).view(3, *K.shape[1:])
-        end_weights = torch.tensor(tableau.M, dtype=K.dtype, device=K.device)
         y0 = steps.y[step]
-        y1 = y0 + (end_weights @ K.reshape(K.shape[0], -1)).view(K.shape[1:])
         counts, _ = steps.counts(self.S)
-        values = dense_value(y0, y1, q, theta)
+        values = dense_value(y0, y0 + tableau.stage_sums(tab.m, K), tableau.stage_sums(tab.dense, K), theta)
         stepped = counts[where[0]] > 0
         self.out[where[0][stepped], where[1][stepped]] = values[stepped]
 

@@ -40,7 +40,7 @@ from ..budget import check_time
 from . import tableau
 from .field import BatchedField
 from .output import OutputGrid
-from .steps import StepRecord
+from .steps import StepRecord, dense_value
 
 __all__ = ["RosenbrockSolution", "rodas5p_batch", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS"]
 
@@ -109,18 +109,7 @@ class RosenbrockSolution:
         return None
 
 
-class _Tableau:
-    """:mod:`torchql.solvers.tableau` as tensors of one dtype and device."""
-
-    def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
-        def tensor(values):
-            return torch.tensor(values, dtype=dtype, device=device)
-        self.a = [tensor(row) for row in tableau.A]
-        self.c = [tensor(row) for row in tableau.C]
-        self.dense = tensor(tableau.DENSE)
-
-
-def _stages(field: BatchedField, tab: _Tableau, t, h, y, f0, J, ft) -> tuple[torch.Tensor, torch.Tensor, tuple]:
+def _stages(field: BatchedField, tab: tableau.Tensors, t, h, y, f0, J, ft) -> tuple[torch.Tensor, torch.Tensor, tuple]:
     """One Rodas5P step of every sample: the new states ``(A, M)``, the stage increments ``(8, A, M)``
     and the LU factorisation of ``I / (h gamma) - J``.
 
@@ -151,7 +140,7 @@ def _stages(field: BatchedField, tab: _Tableau, t, h, y, f0, J, ft) -> tuple[tor
     return arg + K[-1], K, (LU, pivots)
 
 
-def _dense_error(field: BatchedField, tab: _Tableau, t, h, y, y_new, K, lu) -> torch.Tensor:
+def _dense_error(field: BatchedField, tab: tableau.Tensors, t, h, y, y_new, K, lu) -> torch.Tensor:
     """An estimate ``(A, M)`` of the dense output's error at the step's midpoint, from its defect.
 
     The dense output is of order 4 on smooth (non-stiff) components but of lower order on stiff
@@ -163,9 +152,9 @@ def _dense_error(field: BatchedField, tab: _Tableau, t, h, y, y_new, K, lu) -> t
     ``h gamma delta`` on smooth ones (within a small factor of the true error, which the step's
     own estimate bounds there).
     """
-    q1, q2, q3 = (tab.dense @ K.reshape(K.shape[0], -1)).view(3, *y.shape)
-    mid = 0.5 * (y + y_new) + 0.25 * (q1 + 0.5 * q2 + 0.25 * q3)
-    slope = (y_new - y + 0.25 * (q2 + q3)) / h.unsqueeze(-1)
+    q = tableau.stage_sums(tab.dense, K)
+    mid = dense_value(y, y_new, q, 0.5)
+    slope = (y_new - y + 0.25 * (q[1] + q[2])) / h.unsqueeze(-1)
     defect = slope - field(t + 0.5 * h, mid)
     return torch.linalg.lu_solve(lu[0], lu[1], defect.unsqueeze(-1)).squeeze(-1)
 
@@ -241,7 +230,7 @@ def _controller(ratio, accept, he, st, exponent) -> tuple[torch.Tensor, torch.Te
     return he * growth, h_prev, err_prev
 
 
-def _round(field: BatchedField, tab: _Tableau, grid: OutputGrid, samples: _Samples, active: torch.Tensor,
+def _round(field: BatchedField, tab: tableau.Tensors, grid: OutputGrid, samples: _Samples, active: torch.Tensor,
            n: int, rtol: float, atol: float, norm, steps: list | None
            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One trial step of every sample in ``active``: the accepted mask, the next step sizes and
@@ -362,7 +351,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         samples.h = _initial_step(field, samples.t, samples.y, samples.f0, span.expand(S), n, rtol, atol)
     else:
         samples.h = torch.full_like(samples.t, float(first_step))
-    tab = _Tableau(y0.dtype, y0.device)
+    tab = tableau.Tensors(y0.dtype, y0.device)
     tiny = torch.finfo(y0.dtype).tiny
     eps = torch.finfo(y0.dtype).eps
     active = ((status == SUCCESS) & out.unfinished()).nonzero().flatten()
@@ -382,7 +371,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         active = active[(code == SUCCESS) & ~finished]
     record = None if steps is None else StepRecord.join(steps, y0)
     if out.dense:
-        out.fill_between(record)
+        out.fill_between(record, tab)
     return RosenbrockSolution(out.result(status == SUCCESS), status, samples.t, samples.n_accepted,
                               samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None)
 

@@ -87,7 +87,7 @@ def step_sensitivities(system, steps: StepRecord, p: torch.Tensor, columns: torc
     landed = theta >= 1
     dense = torch.zeros(steps.t.shape[0], dtype=torch.bool, device=grid.device)
     dense[step[~landed]] = True
-    change, dense_q = _step_maps(system, steps, p, dense)
+    change, dense_q = _step_maps(system, steps, p, dense, tableau.Tensors(columns.dtype, columns.device))
     V_start, _ = _compose(change, columns, counts, offsets)
     V0 = V_start[step]  # (S, G, M, m)
     Vx = V0[..., :n, :] + change[step] @ V0  # at the steps' ends
@@ -100,11 +100,11 @@ def step_sensitivities(system, steps: StepRecord, p: torch.Tensor, columns: torc
     return torch.where(none[:, None, None, None], columns.unsqueeze(1), V)
 
 
-def _step_maps(system, steps: StepRecord, p: torch.Tensor, dense: torch.Tensor
+def _step_maps(system, steps: StepRecord, p: torch.Tensor, dense: torch.Tensor, tab: tableau.Tensors
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Every step's change of the columns' state rows, ``V1_x - V0_x = change @ V0`` (``change
     (N, n, M)``), and the dense output's vectors ``q_r = dense_q[r] @ V0`` (``(3, D, n, M)``) of the
-    ``D`` steps that ``dense (N,)`` selects, in their order."""
+    ``D`` steps that ``dense (N,)`` selects, in their order (``tab``: the method's coefficients)."""
     n, M = system.n, system.M
     N = steps.t.shape[0]
     change = steps.y.new_zeros(N, n, M)
@@ -112,32 +112,27 @@ def _step_maps(system, steps: StepRecord, p: torch.Tensor, dense: torch.Tensor
     done = 0
     for start in range(0, N, STEP_CHUNK):
         c = slice(start, min(start + STEP_CHUNK, N))
-        K = _column_increments(system, steps.t[c], steps.h[c], steps.y[c, :n], steps.K[:, c, :n],
+        K = _column_increments(system, tab, steps.t[c], steps.h[c], steps.y[c, :n], steps.K[:, c, :n],
                                p[steps.sample[c]])
-        flat = K.reshape(tableau.STAGES, -1)
-        weights = torch.tensor(tableau.M, dtype=K.dtype, device=K.device)
-        change[c] = (weights @ flat).view(K.shape[1:])
+        change[c] = tableau.stage_sums(tab.m, K)
         chosen = dense[c]
         if bool(chosen.any()):
-            dense_weights = torch.tensor(tableau.DENSE, dtype=K.dtype, device=K.device)
-            q = (dense_weights @ K[:, chosen].reshape(tableau.STAGES, -1)).view(3, -1, n, M)
+            q = tableau.stage_sums(tab.dense, K[:, chosen])
             dense_q[:, done:done + q.shape[1]] = q
             done += q.shape[1]
     return change, dense_q
 
 
-def _column_increments(system, t, h, x0, k, p) -> torch.Tensor:
+def _column_increments(system, tab: tableau.Tensors, t, h, x0, k, p) -> torch.Tensor:
     """The stage increments ``(8, N, n, M)`` of the columns' state rows for the basis ``V0 = I``
     (``M`` columns) of ``N`` steps: ``t``, ``h (N,)``, ``x0 (N, n)``, the states' increments
     ``k (8, N, n)``, coefficients ``p (N, P)`` (see the module's description)."""
     n, M = system.n, system.M
     N = t.shape[0]
-    a = [torch.tensor(row, dtype=x0.dtype, device=x0.device) for row in tableau.A]
-    C = [torch.tensor(row, dtype=x0.dtype, device=x0.device) for row in tableau.C]
+    a, C = tab.a, tab.c
     flat_k = k.reshape(tableau.STAGES, -1)
     args = torch.stack([x0] + [x0 + (a[i] @ flat_k[:i]).view(N, n) for i in range(1, tableau.STAGES)])
-    nodes = torch.tensor(tableau.NODES, dtype=t.dtype, device=t.device)
-    times = t + nodes.unsqueeze(1) * h  # (8, N)
+    times = t + tab.nodes.unsqueeze(1) * h  # (8, N)
     z = torch.cat([args, p.expand(tableau.STAGES, N, -1)], dim=-1)
     _, (A,) = node_jacobian(_state_rows(system), (times.reshape(-1), z.reshape(-1, M)), (1,), n)
     A = A.view(tableau.STAGES, N, n, M)
@@ -167,11 +162,6 @@ def _compose(change: torch.Tensor, columns: torch.Tensor, counts: torch.Tensor, 
     n = change.shape[1]
     V = columns.clone()
     V_start = columns.new_empty(change.shape[0], *columns.shape[1:])
-    if columns.shape[0] == 1:
-        for k in range(int(counts[0])):
-            V_start[k] = V[0]
-            V[0, :n] += change[k] @ V[0]
-        return V_start, V
     for k in range(int(counts.max()) if counts.numel() else 0):
         rows = (counts > k).nonzero().flatten()
         ids = offsets[rows] + k

@@ -16,7 +16,9 @@ running solution, so ``m`` is the last row of ``a`` followed by ones.
 
 from __future__ import annotations
 
-__all__ = ["GAMMA", "A", "C", "NODES", "D", "M", "DENSE", "STAGES"]
+import torch
+
+__all__ = ["GAMMA", "A", "C", "NODES", "D", "M", "DENSE", "STAGES", "Tensors", "stage_sums"]
 
 #: The diagonal ``gamma`` of the method.
 GAMMA = 0.21193756319429014
@@ -72,3 +74,21 @@ DENSE = (
 
 #: Number of stages.
 STAGES = 8
+
+
+class Tensors:
+    """The coefficients as tensors of one dtype and device: ``a[i]``, ``c[i]`` (rows of :data:`A`
+    and :data:`C`), ``nodes``, ``m`` (the solution's weights) and ``dense`` ``(3, 8)``."""
+
+    def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
+        def tensor(values):
+            return torch.tensor(values, dtype=dtype, device=device)
+        self.a = [tensor(row) for row in A]
+        self.c = [tensor(row) for row in C]
+        self.nodes, self.m, self.dense = tensor(NODES), tensor(M), tensor(DENSE)
+
+
+def stage_sums(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """``sum_i weights[..., i] K[i]`` of stage increments ``K (8, ...)``: ``(*weights.shape[:-1], ...)``
+    (the step's change with :attr:`Tensors.m`, the dense output's vectors with :attr:`Tensors.dense`)."""
+    return (weights @ K.reshape(K.shape[0], -1)).view(*weights.shape[:-1], *K.shape[1:])
