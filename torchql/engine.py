@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from contextlib import contextmanager
 
 import torch
 
@@ -294,13 +295,10 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             st.status[r] = _STATUSES.index(Status.INTEGRATION_FAILED)
             st.detail[r] = f" The solver said: {errors[r]}."
         lin = self._linearize(all_idx, traj, z_dot)
-        if spec.stiff:  # the first step is long (and an iterate propagated loosely is not taken as converged)
-            self.trial_rtol = max(spec.rtol, _LOOSE_RTOL)
-        try:
+        # on the stiff path the first step is long (and an iterate propagated loosely is not taken as converged)
+        with self._transfers_at(_LOOSE_RTOL if spec.stiff else None):
             st.cur = self._evaluate(all_idx, st.z0, traj, lin.f if z_dot is None else z_dot, lin,
                                     solution=spec.scheme.integrates_model, W=W)
-        finally:
-            self.trial_rtol = None
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
@@ -381,8 +379,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         if bool(infeasible.any()):
             st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
             act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
-        u = cur["z0"][act][:, spec.unknown_index]
-        scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax(dim=1)
+        scaled = self._scaled(act, cur, alpha)
         bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
         if bool(bad.any()):
             st.stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
@@ -545,12 +542,25 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         linear transfers are integrated at the inexact tolerance of the longest step
         (:data:`~torchql.engine_evaluate.INEXACT_FACTOR`)."""
         spec = self.spec
+        rtol = None
         if spec.stiff:
-            u = _pick(cur["z0"], act)[:, spec.unknown_index]
-            scaled = float((alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax())
-            self.trial_rtol = min(max(spec.rtol, INEXACT_FACTOR * scaled**2), max(spec.rtol, _LOOSE_RTOL))
-        try:
+            rtol = min(INEXACT_FACTOR * float(self._scaled(act, cur, alpha).amax()) ** 2, _LOOSE_RTOL)
+        with self._transfers_at(rtol):
             return spec.scheme.propose(self, act, cur, alpha)
+
+    def _scaled(self, act, cur, alpha) -> torch.Tensor:
+        """The scaled sizes ``(S,)`` of the updates ``alpha (S, m)`` of ``cur``'s samples ``act``:
+        ``max_i |alpha_i| / max(|u_i|, s_i)`` (the convergence test's measure)."""
+        u = _pick(cur["z0"], act)[:, self.spec.unknown_index]
+        return (alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax(dim=1)
+
+    @contextmanager
+    def _transfers_at(self, rtol: float | None):
+        """Within the block, the linear transfers of the iterates evaluated are integrated at
+        ``rtol`` (never below the fit's; None: at the fit's), as :attr:`trial_rtol` says."""
+        self.trial_rtol = None if rtol is None else max(self.spec.rtol, rtol)
+        try:
+            yield
         finally:
             self.trial_rtol = None
 
