@@ -124,9 +124,11 @@ def test_reverse_mode_stands_in_where_forward_mode_fails_and_forward_mode_is_not
         torch.testing.assert_close(got.jac_dot, expected.jac_dot, rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("rows", [2, AUTOGRAD_STATES + 1])
-def test_node_jacobian_by_either_path_matches_the_jacobian_node_by_node(rows):
-    """Up to AUTOGRAD_STATES rows by autograd, more by jacrev: each node's own Jacobian."""
+@pytest.mark.parametrize("replicate", [False, True])
+@pytest.mark.parametrize("rows", [2, AUTOGRAD_STATES, AUTOGRAD_STATES + 1])
+def test_node_jacobian_by_either_path_matches_the_jacobian_node_by_node(rows, replicate):
+    """Up to AUTOGRAD_STATES rows by autograd (one backward pass per row, or one through copies of
+    the nodes), more by jacrev: each node's own Jacobian."""
     gen = torch.Generator().manual_seed(3)
     K = AUTOGRAD_STATES + 2
     W = torch.randn(K, 3, dtype=torch.float64, generator=gen)
@@ -138,13 +140,29 @@ def test_node_jacobian_by_either_path_matches_the_jacobian_node_by_node(rows):
     p = torch.rand(N, 2, dtype=torch.float64, generator=gen)
     t = torch.linspace(0.0, 1.0, N, dtype=torch.float64)
     x = torch.randn(N, 3, dtype=torch.float64, generator=gen)
-    value, (J_p, J_x) = node_jacobian(f, (p, t, x), (0, 2), rows)
+    value, (J_p, J_x) = node_jacobian(f, (p, t, x), (0, 2), rows, replicate=replicate)
+    assert value.shape == (N, K)
     assert J_p.shape == (N, rows, 2) and J_x.shape == (N, rows, 3)
     for j in range(N):
         torch.testing.assert_close(value[j], f(p[j], t[j], x[j]), rtol=0, atol=1e-14)
         Jp, Jx = torch.autograd.functional.jacobian(lambda a, b: f(a, t[j], b), (p[j], x[j]))
         torch.testing.assert_close(J_p[j], Jp[:rows], rtol=1e-14, atol=1e-14)
         torch.testing.assert_close(J_x[j], Jx[:rows], rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("replicate", [False, True])
+def test_node_jacobian_of_arguments_an_output_ignores_is_zero(replicate):
+    """An argument that no output uses (an autonomous model's time) and outputs free of every
+    argument get zero Jacobians, not an error."""
+    t = torch.linspace(0.0, 1.0, 4, dtype=torch.float64)
+    x = torch.rand(4, 2, dtype=torch.float64)
+    value, (J_t, J_x) = node_jacobian(lambda t, x: torch.stack([x[0] * x[1], x[1]]), (t, x), (0, 1), 2,
+                                      replicate=replicate)
+    assert torch.equal(J_t, torch.zeros(4, 2, dtype=torch.float64))
+    torch.testing.assert_close(J_x[:, 0], torch.stack([x[:, 1], x[:, 0]], 1), rtol=0, atol=0)
+    value, (J_x,) = node_jacobian(lambda x: torch.ones(2, dtype=x.dtype), (x,), (0,), 2, replicate=replicate)
+    assert torch.equal(value, torch.ones(4, 2, dtype=torch.float64))
+    assert torch.equal(J_x, torch.zeros(4, 2, 2, dtype=torch.float64))
 
 
 def test_node_jacobian_falls_back_to_jacrev_where_autograd_fails():

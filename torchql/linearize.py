@@ -187,8 +187,8 @@ def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: in
     return Linearization(f=value.detach(), jac=jac, f_dot=value_dot, jac_dot=jac_dot)
 
 
-def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bool = True
-                  ) -> tuple[torch.Tensor, tuple]:
+def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bool = True,
+                  replicate: bool = False) -> tuple[torch.Tensor, tuple]:
     """A per-node function over many nodes, with the Jacobians of its first ``rows`` outputs.
 
     Up to :data:`AUTOGRAD_STATES` rows by torch.autograd through ``vmap(f)``: one backward pass
@@ -210,6 +210,11 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bo
     vectorize : bool
         ``False``: one node (``N = 1``), ``f`` called on it directly, without :func:`torch.func.vmap`
         (which spares its overhead and allows Python control flow on tensor values in ``f``).
+    replicate : bool
+        With ``vectorize``: one backward pass through ``rows`` copies of every node (copy ``i``
+        seeded with output ``i``) instead of ``rows`` passes. The forward work is ``rows`` times
+        larger, the operations fewer: the better choice where the nodes are few and each call's
+        overhead dominates (the implicit solver's Jacobian at the current point of ``S`` samples).
 
     Returns
     -------
@@ -219,6 +224,8 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bo
     if rows <= AUTOGRAD_STATES:
         batched_f = vmap(f) if vectorize else (lambda *one: f(*(a[0] for a in one)).unsqueeze(0))
         try:
+            if replicate and vectorize:
+                return _node_jacobian_by_copies(batched_f, args, wrt, rows)
             return _node_jacobian_by_autograd(batched_f, args, wrt, rows)
         except Exception:  # noqa: BLE001 -- functorch's error (or the same one) comes below
             pass
@@ -236,16 +243,39 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bo
 
 
 def _node_jacobian_by_autograd(batched_f, args, wrt, rows):
-    """:func:`node_jacobian` by ``rows`` backward passes through ``batched_f``."""
+    """:func:`node_jacobian` by ``rows`` backward passes through ``batched_f``, each seeded with one
+    output row at every node."""
     with torch.enable_grad():
         inputs = [a.detach().requires_grad_() if k in wrt else a for k, a in enumerate(args)]
         value = batched_f(*inputs)
         targets = [inputs[k] for k in wrt]
-        jacobians = [torch.zeros(value.shape[0], rows, *a.shape[1:], dtype=a.dtype, device=a.device)
-                     for a in targets]
-        for i in range(rows if value.requires_grad else 0):  # (an output free of them: zero Jacobians)
-            grads = torch.autograd.grad(value[:, i].sum(), targets, retain_graph=i < rows - 1, allow_unused=True)
-            for jac, g in zip(jacobians, grads):
-                if g is not None:
-                    jac[:, i] = g
-    return value.detach(), tuple(jacobians)
+        columns: list[list] = [[] for _ in targets]
+        if value.requires_grad:  # (an output free of them: zero Jacobians)
+            seeds = torch.zeros(rows, *value.shape, dtype=value.dtype, device=value.device)
+            seeds.diagonal(dim1=0, dim2=2).fill_(1.0)  # seeds[i] selects output row i at every node
+            for i in range(rows):
+                grads = torch.autograd.grad(value, targets, grad_outputs=seeds[i], retain_graph=i < rows - 1,
+                                            allow_unused=True)
+                for column, g, a in zip(columns, grads, targets):
+                    column.append(torch.zeros_like(a) if g is None else g)
+        jacobians = tuple(torch.stack(column, dim=1) if column else
+                          torch.zeros(value.shape[0], rows, *a.shape[1:], dtype=a.dtype, device=a.device)
+                          for column, a in zip(columns, targets))
+    return value.detach(), jacobians
+
+
+def _node_jacobian_by_copies(batched_f, args, wrt, rows):
+    """:func:`node_jacobian` by one backward pass through ``rows`` copies of every node."""
+    N = args[0].shape[0]
+    with torch.enable_grad():
+        inputs = [a.detach().repeat_interleave(rows, dim=0) for a in args]
+        inputs = [a.requires_grad_() if k in wrt else a for k, a in enumerate(inputs)]
+        value = batched_f(*inputs)  # (N rows, K): copy i of node j in row j rows + i
+        targets = [inputs[k] for k in wrt]
+        grads = [None] * len(targets)
+        if value.requires_grad:  # (an output free of them: zero Jacobians)
+            seeds = torch.eye(rows, value.shape[1], dtype=value.dtype, device=value.device).repeat(N, 1)
+            grads = torch.autograd.grad(value, targets, grad_outputs=seeds, allow_unused=True)
+    jacobians = tuple((torch.zeros_like(a) if g is None else g).view(N, rows, *a.shape[1:])
+                      for g, a in zip(grads, targets))
+    return value.detach().view(N, rows, -1)[:, 0], jacobians

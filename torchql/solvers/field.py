@@ -39,7 +39,7 @@ class BatchedField:
         self._f = torch.vmap(f) if vectorize else (lambda t, y: f(t[0], y[0]).unsqueeze(0))
 
         def derivatives(t, y):
-            value, (ft, J) = node_jacobian(f, (t, y), (0, 1), y.shape[1], vectorize=vectorize)
+            value, (ft, J) = node_jacobian(f, (t, y), (0, 1), y.shape[1], vectorize=vectorize, replicate=True)
             return (ft, J), value
         self._derivatives = derivatives
         self.n_f = 0

@@ -118,22 +118,24 @@ def _stages(field: BatchedField, tab: tableau.Tensors, t, h, y, f0, J, ft) -> tu
     """
     A, M = y.shape
     hc = h.unsqueeze(-1)
+    inv_h = hc.reciprocal()
     W = -J
-    W.diagonal(dim1=-2, dim2=-1).add_((1.0 / (tableau.GAMMA * hc)))
+    W.diagonal(dim1=-2, dim2=-1).add_(inv_h, alpha=1.0 / tableau.GAMMA)
     LU, pivots, _ = torch.linalg.lu_factor_ex(W)
     K = y.new_empty(tableau.STAGES, A, M)
     flat = K.view(tableau.STAGES, A * M)  # combinations of the increments as one matrix product each
-    inv_h, hft = hc.reciprocal(), hc * ft
+    times, hft = t + tab.nodes.unsqueeze(-1) * h, hc * ft
     arg = y
     for i in range(tableau.STAGES):
         if i == 0:
             rhs = torch.add(f0, hft, alpha=tableau.D[0])
         else:
-            if i <= 5:
-                arg = y + (tab.a[i] @ flat[:i]).view(A, M)
+            if i <= 5:  # the stage's argument and its right-hand side's increments in one product
+                sums = (tab.ac[i] @ flat[:i]).view(2, A, M)
+                arg, increments = y + sums[0], sums[1]
             else:  # the stiffly accurate stages run on at t + h
-                arg = arg + K[i - 1]
-            rhs = torch.addcmul(field(t + tableau.NODES[i] * h, arg), inv_h, (tab.c[i] @ flat[:i]).view(A, M))
+                arg, increments = arg + K[i - 1], (tab.c[i] @ flat[:i]).view(A, M)
+            rhs = torch.addcmul(field(times[i], arg), inv_h, increments)
             if tableau.D[i]:
                 rhs = rhs.add_(hft, alpha=tableau.D[i])
         K[i] = torch.linalg.lu_solve(LU, pivots, rhs.unsqueeze(-1)).squeeze(-1)
@@ -238,13 +240,16 @@ def _round(field: BatchedField, tab: tableau.Tensors, grid: OutputGrid, samples:
     ``steps`` (unless None) as :meth:`~torchql.solvers.steps.StepRecord.join` takes them."""
     rows = None if active.numel() == samples.t.shape[0] else active
     st = samples.take(rows)
+    t, y, h = st["t"], st["y"], st["h"]
     stale = ~st["fresh"]
     if bool(stale.any()):  # the linearization at the points reached by the last accepted steps
-        where = stale.nonzero().flatten()
-        f0, J, ft = field.linearize(st["t"][where], st["y"][where])
-        st["f0"], st["J"], st["ft"] = st["f0"].clone(), st["J"].clone(), st["ft"].clone()
-        st["f0"][where], st["J"][where], st["ft"][where] = f0, J, ft
-    t, y, h = st["t"], st["y"], st["h"]
+        if bool(stale.all()):
+            st["f0"], st["J"], st["ft"] = field.linearize(t, y)
+        else:
+            where = stale.nonzero().flatten()
+            f0, J, ft = field.linearize(t[where], y[where])
+            st["f0"], st["J"], st["ft"] = st["f0"].clone(), st["J"].clone(), st["ft"].clone()
+            st["f0"][where], st["J"][where], st["ft"][where] = f0, J, ft
     target = grid.target(rows)
     gap = target - t
     clipped = h >= gap

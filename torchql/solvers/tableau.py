@@ -78,13 +78,15 @@ STAGES = 8
 
 class Tensors:
     """The coefficients as tensors of one dtype and device: ``a[i]``, ``c[i]`` (rows of :data:`A`
-    and :data:`C`), ``nodes``, ``m`` (the solution's weights) and ``dense`` ``(3, 8)``."""
+    and :data:`C`), ``ac[i]`` (the two stacked, ``(2, i)``), ``nodes``, ``m`` (the solution's
+    weights) and ``dense`` ``(3, 8)``."""
 
     def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
         def tensor(values):
             return torch.tensor(values, dtype=dtype, device=device)
         self.a = [tensor(row) for row in A]
         self.c = [tensor(row) for row in C]
+        self.ac = [torch.stack((a, c)) for a, c in zip(self.a, self.c)]
         self.nodes, self.m, self.dense = tensor(NODES), tensor(M), tensor(DENSE)
 
 
