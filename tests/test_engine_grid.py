@@ -255,3 +255,31 @@ def test_a_stiff_fits_early_transfers_are_loose_and_its_converged_iterate_tight(
     assert tolerances[0] == 1e-6 and tolerances[1] == 1e-6 and tolerances[-1] == 1e-8, tolerances
     assert inexact.params["k"].item() == pytest.approx(1e3, rel=1e-7)
     torch.testing.assert_close(inexact.estimates, exact.estimates, rtol=1e-8, atol=0)
+
+
+def test_a_stiff_fits_first_iterate_is_integrated_once_from_the_guesses():
+    """The first reference of a stiff Kantorovich fit is the model's loose solution from the guesses
+    on the fit's grid: the second opinion on the first iterate (and its re-anchoring) reuse it
+    instead of integrating the same solution again; the fit still converges to the truth."""
+    from testmodels import Relaxation
+    import torchql.engine_evaluate as engine_evaluate
+
+    t = torch.logspace(-4, 0.5, 30, dtype=DT)
+    x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
+                         solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
+    data = torchql.Observations(t, x, observe=["x"])
+    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    starts = []
+    model = engine_evaluate.rodas5p_model
+
+    def recorded(system, z0, grid, **kwargs):
+        starts.append((z0[0, -1].item(), kwargs["rtol"]))
+        return model(system, z0, grid, **kwargs)
+
+    with mock.patch.object(engine_evaluate, "rodas5p_model", recorded):
+        result = torchql.fit(Relaxation(k=100.0), data, torch.tensor([2.0], dtype=DT), **options)
+    assert result.success, result.message
+    assert result.params["k"].item() == pytest.approx(1e3, rel=1e-7)
+    assert starts.count((100.0, 1e-6)) == 1, starts
+    assert len(starts) >= 2  # the later iterates did get their second opinions
+    assert math.isfinite(result.history[0].model_merit)  # the first iterate's model SSE, known from the start

@@ -300,6 +300,13 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             st.cur = self._evaluate(all_idx, st.z0, traj, lin.f if z_dot is None else z_dot, lin,
                                     solution=spec.scheme.integrates_model, W=W)
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
+        if spec.stiff and self.start != "data" and not spec.scheme.integrates_model:
+            # Kantorovich's first reference of a stiff model is the model's own loose solution from the
+            # guesses on this grid (a subset of the probe's, or solved again): the second opinion on
+            # the first iterate, and its re-anchoring, would integrate it once more
+            good = (~bad).nonzero().flatten()
+            self._keep_model_sse(all_idx, st.cur, good, traj[good], [None] * good.numel())
+            st.cur["anchored"][good] = True
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
         typical = torch.where(typical > 0, typical, torch.ones_like(typical))

@@ -449,16 +449,22 @@ class Evaluation:
         if need.numel():
             traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
                                            budget_is_final=True)
-            n = self.spec.operator.width
-            value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[need])[..., :n].reshape(-1, n))
-            y, mask = self.y[idx[need]], self.mask[idx[need]]
-            resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
-            sse = self._ssq(idx[need], resid.reshape(need.numel(), -1), it["w"][need], penalty=True) + it["log"][need]
-            failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
-            sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
-            it["nl_sse"][need] = sse
-            it["nl_traj"][need] = traj
+            self._keep_model_sse(idx, it, need, traj, errors)
         return it["nl_sse"][rows]
+
+    def _keep_model_sse(self, idx, it: dict, rows: torch.Tensor, traj: torch.Tensor, errors: list) -> None:
+        """Keep in ``it`` the model's solutions ``traj (R, G, M)`` from the estimates of its samples
+        ``rows`` (``errors``: the solver's, None where it succeeded) and their sums of squares
+        (inf where not integrable), as :meth:`_nonlinear_sse` caches them."""
+        n = self.spec.operator.width
+        value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[rows])[..., :n].reshape(-1, n))
+        y, mask = self.y[idx[rows]], self.mask[idx[rows]]
+        resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
+        sse = self._ssq(idx[rows], resid.reshape(rows.numel(), -1), it["w"][rows], penalty=True) + it["log"][rows]
+        failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
+        sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
+        it["nl_sse"][rows] = sse
+        it["nl_traj"][rows] = traj
 
 
 def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
