@@ -325,6 +325,35 @@ def test_table_4_5_damped_kantorovich_reaches_the_least_squares_optimum(table_4_
     assert abs(damped.params["B"].item() - 3.0) < 0.05  # not the thesis' B = .67
 
 
+def test_a_reanchoring_whose_transfers_fail_raises_the_damping_instead_of_ending_the_fit(table_4_5_two_digit):
+    """Re-anchoring an undamped rejection is a second try: where the transfers about the model's
+    own solution fail (a fast layer inside a grid interval, on a stiff model), the sample keeps
+    its iterate and its damping is raised, and the fit reaches the same optimum."""
+    import sys
+    from unittest import mock
+
+    import torchql.engine as engine
+
+    guess = dict(A=0.5, B=2.0, C=0.5, D=2.0)
+    x0 = torch.tensor([0.5, 0.5], dtype=DT)
+    evaluate, failed = engine.Engine._evaluate, []
+
+    def failing_when_reanchored(self, *args, **kwargs):
+        out = evaluate(self, *args, **kwargs)
+        if sys._getframe(1).f_code.co_name == "_reanchor":
+            out["failed"] = torch.ones_like(out["failed"])
+            failed.append(True)
+        return out
+
+    with mock.patch.object(engine.Engine, "_evaluate", failing_when_reanchored):
+        damped = torchql.fit(NonlinearOscillator(**guess), table_4_5_two_digit, x0=x0, max_steps=200)
+    reference = torchql.fit(NonlinearOscillator(**guess), table_4_5_two_digit, x0=x0, max_steps=200)
+    assert failed  # the re-anchorings were tried, and failed
+    assert damped.success, damped.message
+    torch.testing.assert_close(damped.estimates, reference.estimates, rtol=1e-7, atol=1e-8)
+    assert damped.sse == pytest.approx(reference.sse, rel=1e-9)
+
+
 def test_data_driven_first_trajectory_derives_unobserved_states(linear_data):
     """Only y is observed; y' = v gives v from the smoothed data, far better than the guess."""
     result = torchql.fit(LinearOscillator(0.5, 1.0), linear_data, x0=torch.tensor([0.5, 0.5], dtype=DT),

@@ -509,7 +509,10 @@ class Engine(Evaluation, FinalPass, AutoGrid):
 
     def _reanchor(self, st: LoopState, rejected) -> torch.Tensor:
         """Kantorovich's undamped rejections, not yet anchored, re-linearized about the model's
-        own solution from their estimates (where it integrates); returns those samples."""
+        own solution from their estimates (where it integrates and its transfers succeed); returns
+        those samples. A sample whose re-linearized transfers fail (a fast layer of the model's
+        solution inside a grid interval) keeps its iterate, as one whose solution does not
+        integrate: re-anchoring is a second try, and the damping is raised instead."""
         cur, n = st.cur, self.system.n
         candidates = rejected[(st.damping[rejected] == 0) & ~cur["anchored"][rejected]]
         if self.spec.scheme.integrates_model or not candidates.numel():  # the model's own solution already
@@ -524,13 +527,12 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         anchored = self._evaluate(rows, cur["z0"][rows], traj, lin.f, lin)
         anchored["anchored"][:] = True
         anchored["nl_sse"], anchored["nl_traj"] = cur["nl_sse"][rows], traj
-        failed = anchored["failed"]
-        if bool(failed.any()):
-            self._fail_integration_rows(rows[failed], st.status, st.detail)
-        keep = (~failed).nonzero().flatten()
-        put_samples(cur, rows[keep], anchored, keep)
+        cur["anchored"][candidates] = True  # tried once
+        keep = (~anchored["failed"]).nonzero().flatten()
+        rows = rows[keep]
+        put_samples(cur, rows, anchored, keep)
         if self.history is not None:
-            for r in rows[keep].tolist():
+            for r in rows.tolist():
                 record = self.history[r][-1]
                 record.sse, record.merit = float(cur["sse"][r]), float(cur["merit"][r])
                 record.trajectory = cur["rz"][r, :, :n].detach().clone()
