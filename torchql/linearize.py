@@ -276,6 +276,7 @@ def _node_jacobian_by_copies(batched_f, args, wrt, rows):
         if value.requires_grad:  # (an output free of them: zero Jacobians)
             seeds = torch.eye(rows, value.shape[1], dtype=value.dtype, device=value.device).repeat(N, 1)
             grads = torch.autograd.grad(value, targets, grad_outputs=seeds, allow_unused=True)
-    jacobians = tuple((torch.zeros_like(a) if g is None else g).view(N, rows, *a.shape[1:])
+    # (autograd may hand back an expanded gradient, which later in-place updates must not receive)
+    jacobians = tuple((torch.zeros_like(a) if g is None else g.contiguous()).view(N, rows, *a.shape[1:])
                       for g, a in zip(grads, targets))
     return value.detach().view(N, rows, -1)[:, 0], jacobians

@@ -61,4 +61,6 @@ class BatchedField:
                 "explicit solver") from exc
         self.n_f += y.shape[0]
         self.n_jac += y.shape[0]
-        return value, J, ft
+        # each sample's own memory: jacrev under vmap may return expanded (shared) rows, which the
+        # solver's per-sample updates would write through
+        return value.contiguous(), J.contiguous(), ft.contiguous()
