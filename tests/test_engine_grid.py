@@ -19,6 +19,7 @@ import torchql.engine_grid as engine_grid
 from torchql.engine_grid import fourth_derivative_scale
 from torchql.grid import AUTO_COUNTS, AUTO_SAFETY, auto_counts
 from torchql.models import CoastingCar, LinearOscillator
+from testmodels import Relaxation
 
 DT = torch.float64
 
@@ -205,17 +206,21 @@ def test_difference_slopes_are_exact_for_quadratics_on_uneven_and_padded_grids()
                                torch.full((1, 2, 1), 0.5, dtype=DT), rtol=1e-12, atol=0)
 
 
-def test_a_stiff_models_grid_keeps_its_geometric_nodes_and_chooses_its_uniform_intervals():
-    """``grid="auto"`` on the stiff path: the geometric early nodes stay, the uniform intervals
-    besides are the fewest that interpolate the first reference (here far fewer than the fixed
-    1,000), and the fit equals the one on the fixed grid within its tolerance."""
-    from testmodels import Relaxation
-
+def _stiff_relaxation():
+    """Exact values of the stiff relaxation (k = 1e3, x(0) = 2) at 30 log-spaced times over
+    [1e-4, 10^0.5], and the options of a fit of k by Rodas5P at rtol 1e-8."""
     t = torch.logspace(-4, 0.5, 30, dtype=DT)
     x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
                          solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
     data = torchql.Observations(t, x, observe=["x"])
-    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    return data, dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+
+
+def test_a_stiff_models_grid_keeps_its_geometric_nodes_and_chooses_its_uniform_intervals():
+    """``grid="auto"`` on the stiff path: the geometric early nodes stay, the uniform intervals
+    besides are the fewest that interpolate the first reference (here far fewer than the fixed
+    1,000), and the fit equals the one on the fixed grid within its tolerance."""
+    data, options = _stiff_relaxation()
     auto = torchql.fit(Relaxation(k=700.0), data, torch.tensor([2.0], dtype=DT), **options)
     fixed = torchql.fit(Relaxation(k=700.0), data, torch.tensor([2.0], dtype=DT), grid=1000, **options)
     assert auto.success and fixed.success, (auto.message, fixed.message)
@@ -231,15 +236,10 @@ def test_a_stiff_fits_early_transfers_are_loose_and_its_converged_iterate_tight(
     """Inexact transfers on the stiff path (engine_evaluate.INEXACT_FACTOR): the first iterate's
     and the long steps' trials are propagated at the loose tolerance, the iterate that converges at
     ``rtol``; the estimates equal those of a fit with every transfer at ``rtol``."""
-    from testmodels import Relaxation
     import torchql.batch_integrate as batch_integrate
     import torchql.engine_evaluate as engine_evaluate
 
-    t = torch.logspace(-4, 0.5, 30, dtype=DT)
-    x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
-                         solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
-    data = torchql.Observations(t, x, observe=["x"])
-    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    data, options = _stiff_relaxation()
     tolerances = []
     propagate = batch_integrate.propagate_linear_batch
 
@@ -261,14 +261,9 @@ def test_a_stiff_fits_first_iterate_is_integrated_once_from_the_guesses():
     """The first reference of a stiff Kantorovich fit is the model's loose solution from the guesses
     on the fit's grid: the second opinion on the first iterate (and its re-anchoring) reuse it
     instead of integrating the same solution again; the fit still converges to the truth."""
-    from testmodels import Relaxation
     import torchql.engine_evaluate as engine_evaluate
 
-    t = torch.logspace(-4, 0.5, 30, dtype=DT)
-    x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
-                         solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
-    data = torchql.Observations(t, x, observe=["x"])
-    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    data, options = _stiff_relaxation()
     starts = []
     model = engine_evaluate.rodas5p_model
 
