@@ -15,7 +15,7 @@ import torchql
 from torchql.integrate import IntegrationError, solve
 from torchql.model import AugmentedSystem
 from torchql.models import Robertson
-from torchql.solvers import MAX_STEPS, NON_FINITE, SUCCESS, rodas5p_batch, rodas5p_solve
+from torchql.solvers import MAX_STEPS, NON_FINITE, STOPPED, SUCCESS, rodas5p_batch, rodas5p_solve
 
 DT = torch.float64
 LAMBDA = -1e6
@@ -111,6 +111,35 @@ def test_per_sample_grids_and_failures_do_not_touch_the_others():
     torch.testing.assert_close(sol.y[0, :, 0], torch.exp(0.25 * grid[0]), rtol=1e-8, atol=0)
     assert torch.isnan(sol.y[1]).all() and "non-finite" in sol.message(1)
     assert abs(sol.t[1].item() - math.log(2) / 2) < 1e-6 and sol.message(0) is None
+
+
+def test_a_stop_test_ends_a_sample_at_a_landed_node_and_leaves_the_others():
+    """``stop`` is asked after landings only (not at the last node), sees the values landed so far
+    and NaN from the next node on, and ends the samples it names as ``STOPPED``; the other samples'
+    steps and values are those of the run without it."""
+    z0 = torch.tensor([[1.0, 0.5], [1.0, 1.0], [1.0, 0.25]], dtype=DT)
+    grid = torch.linspace(0.0, 1.0, 11, dtype=DT)
+    land = torch.zeros(11, dtype=torch.bool)
+    land[[2, 5, 8]] = True  # the others (but the last) from the dense output
+    asked = []
+
+    def stop(rows, y, reached):
+        asked.append((rows.clone(), reached.clone()))
+        for k, r in enumerate(rows.tolist()):
+            landed = [g for g in (0, 2, 5, 8) if g < reached[k]]
+            torch.testing.assert_close(y[k, landed, 0], torch.exp(z0[r, 1] * grid[landed]), rtol=1e-7, atol=0)
+            assert torch.isnan(y[k, int(reached[k]):]).all()
+        return (rows == 1) & (y[:, :, 0].nan_to_num(0).amax(dim=1) > 1.5)  # sample 1 once e^t > 1.5
+
+    sol = rodas5p_batch(barrier, z0, grid, rtol=1e-9, atol=1e-12, error_components=1, land=land, stop=stop)
+    free = rodas5p_batch(barrier, z0, grid, rtol=1e-9, atol=1e-12, error_components=1, land=land)
+    assert sol.status.tolist() == [SUCCESS, STOPPED, SUCCESS]
+    assert sol.t[1].item() == pytest.approx(grid[5].item())  # e^0.4 < 1.5 < e^0.5: at the second landing
+    assert torch.isnan(sol.y[1]).all() and "stopped at t = 0.5" in sol.message(1) and not sol.ok[1]
+    for s in (0, 2):
+        assert torch.equal(sol.y[s], free.y[s]) and sol.n_accepted[s] == free.n_accepted[s]
+    reached = torch.cat([r for _, r in asked])
+    assert set(reached.tolist()) <= {3, 6, 9} and torch.cat([rows for rows, _ in asked]).numel() == 3 + 3 + 2
 
 
 def test_float32_on_the_models_dtype():

@@ -11,11 +11,12 @@ Why Rodas5P (and not Radau IIA): see :mod:`torchql.solvers.rosenbrock`.
 """
 
 from .field import BatchedField, JacobianError
-from .rosenbrock import (MAX_STEPS, NON_FINITE, STEP_UNDERFLOW, SUCCESS, RosenbrockSolution, rodas5p_batch)
+from .rosenbrock import (MAX_STEPS, NON_FINITE, STEP_UNDERFLOW, STOPPED, SUCCESS, RosenbrockSolution,
+                         rodas5p_batch)
 from .single import MAX_COMPONENTS, rodas5p_solve
 
 #: Names of the implicit solvers, as ``solver=`` takes them.
 STIFF_SOLVERS: tuple[str, ...] = ("rodas5p",)
 
 __all__ = ["rodas5p_batch", "rodas5p_solve", "RosenbrockSolution", "BatchedField", "JacobianError",
-           "STIFF_SOLVERS", "MAX_COMPONENTS", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS"]
+           "STIFF_SOLVERS", "MAX_COMPONENTS", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS", "STOPPED"]

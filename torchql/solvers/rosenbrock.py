@@ -42,10 +42,10 @@ from .field import BatchedField
 from .output import OutputGrid
 from .steps import StepRecord, dense_value
 
-__all__ = ["RosenbrockSolution", "rodas5p_batch", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS"]
+__all__ = ["RosenbrockSolution", "rodas5p_batch", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS", "STOPPED"]
 
 #: Per-sample status codes of :class:`RosenbrockSolution`.
-SUCCESS, NON_FINITE, STEP_UNDERFLOW, MAX_STEPS = 0, 1, 2, 3
+SUCCESS, NON_FINITE, STEP_UNDERFLOW, MAX_STEPS, STOPPED = 0, 1, 2, 3, 4
 
 _SAFETY = 0.9
 _MIN_FACTOR, _MAX_FACTOR = 0.2, 6.0
@@ -64,7 +64,8 @@ class RosenbrockSolution:
     y : Tensor ``(S, G, M)``
         The solutions at the grid nodes (NaN for the samples that failed).
     status : long Tensor ``(S,)``
-        ``SUCCESS`` (0), ``NON_FINITE`` (1), ``STEP_UNDERFLOW`` (2) or ``MAX_STEPS`` (3).
+        ``SUCCESS`` (0), ``NON_FINITE`` (1), ``STEP_UNDERFLOW`` (2), ``MAX_STEPS`` (3) or
+        ``STOPPED`` (4: the caller's ``stop`` test ended it at a node).
     t : Tensor ``(S,)``
         The time each sample reached (its final time where it succeeded).
     n_accepted, n_rejected : long Tensor ``(S,)``
@@ -106,6 +107,8 @@ class RosenbrockSolution:
         if code == MAX_STEPS:
             return (f"the step budget (max_steps={self.max_steps}) was spent at t = {t:.6g}: raise "
                     "`max_steps`, loosen `rtol`/`atol`, or check that the model is not far stiffer than expected")
+        if code == STOPPED:
+            return f"stopped at t = {t:.6g} by the caller's test on the values so far"
         return None
 
 
@@ -234,10 +237,11 @@ def _controller(ratio, accept, he, st, exponent) -> tuple[torch.Tensor, torch.Te
 
 def _round(field: BatchedField, tab: tableau.Tensors, grid: OutputGrid, samples: _Samples, active: torch.Tensor,
            n: int, rtol: float, atol: float, norm, steps: list | None
-           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One trial step of every sample in ``active``: the accepted mask, the next step sizes and
-    whether the trial's values were finite, each ``(A,)``; the accepted steps appended to
-    ``steps`` (unless None) as :meth:`~torchql.solvers.steps.StepRecord.join` takes them."""
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One trial step of every sample in ``active``: the accepted mask, the next step sizes,
+    whether the trial's values were finite and whether the step landed on a node, each ``(A,)``;
+    the accepted steps appended to ``steps`` (unless None) as
+    :meth:`~torchql.solvers.steps.StepRecord.join` takes them."""
     rows = None if active.numel() == samples.t.shape[0] else active
     st = samples.take(rows)
     t, y, h = st["t"], st["y"], st["h"]
@@ -290,13 +294,14 @@ def _round(field: BatchedField, tab: tableau.Tensors, grid: OutputGrid, samples:
     landed = accept & clipped
     if bool(landed.any()):
         grid.land(glob[landed], y_new[landed])
-    return accept, h_next, finite
+    return accept, h_next, finite, landed
 
 
 def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: torch.Tensor, grid: torch.Tensor, *,
                   rtol: float, atol: float, max_steps: int = 100_000, land: torch.Tensor | None = None,
                   error_components: int | None = None, norm: Callable | None = None,
-                  first_step: float | None = None, vectorize: bool = True, keep_steps: bool = False
+                  first_step: float | None = None, vectorize: bool = True, keep_steps: bool = False,
+                  stop: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
                   ) -> RosenbrockSolution:
     """``y' = f(t, y)`` from ``y0 (S, M)`` over ``grid`` by Rodas5P, each sample on its own steps.
 
@@ -333,6 +338,12 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         ``False`` calls ``f`` on the one sample (``S = 1``) without ``torch.vmap``.
     keep_steps : bool
         Return every accepted step (:class:`StepRecord`), e.g. to differentiate them.
+    stop : callable, optional
+        ``stop(rows (L,), y (L, G, M), reached (L,)) -> bool (L,)``, asked after the samples
+        ``rows`` landed on a node (before their last), with their values at the nodes so far
+        (NaN at nodes not yet reached or filled by the dense output, and at every node from
+        ``reached`` on): the samples it says end there, ``STOPPED`` (e.g. a trial whose sum of
+        squares over the data passed already exceeds the one it must beat).
 
     Returns
     -------
@@ -363,7 +374,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     steps = [] if keep_steps or out.dense else None
     while active.numel():
         check_time()
-        accept, h_next, finite = _round(field, tab, out, samples, active, n, rtol, atol, norm, steps)
+        accept, h_next, finite, landed = _round(field, tab, out, samples, active, n, rtol, atol, norm, steps)
         finished = ~out.unfinished()[active]
         ta = samples.t[active]
         underflow = (h_next <= 10 * eps * ta.abs()) | (h_next <= tiny)
@@ -372,6 +383,8 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         # a sample that keeps failing on non-finite values ends as such, not as an underflow
         code = torch.where((code == STEP_UNDERFLOW) & ~finite, NON_FINITE, code)
         code = torch.where(finished, SUCCESS, code)
+        if stop is not None:
+            code = _stopped(stop, out, active, landed & (code == SUCCESS) & ~finished, code)
         status[active] = code
         active = active[(code == SUCCESS) & ~finished]
     record = None if steps is None else StepRecord.join(steps, y0)
@@ -379,6 +392,16 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         out.fill_between(record, tab)
     return RosenbrockSolution(out.result(status == SUCCESS), status, samples.t, samples.n_accepted,
                               samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None)
+
+
+def _stopped(stop, out: OutputGrid, active, asked, code) -> torch.Tensor:
+    """``code`` with ``STOPPED`` where ``stop`` ends the samples ``active[asked]``."""
+    if not bool(asked.any()):
+        return code
+    rows = active[asked]
+    ended = torch.zeros_like(asked)
+    ended[asked] = stop(rows, out.out[rows], out.node[rows])
+    return torch.where(ended, STOPPED, code)
 
 
 def _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize):

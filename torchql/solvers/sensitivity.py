@@ -49,18 +49,22 @@ STEP_CHUNK = 4096
 
 
 def rodas5p_model(system, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
-                  land: torch.Tensor | None = None, keep_steps: bool = False, **budget
+                  land: torch.Tensor | None = None, keep_steps: bool = False, stop=None, **budget
                   ) -> tuple[RosenbrockSolution, torch.Tensor]:
     """The augmented model integrated from ``z0 (S, M)`` over ``grid`` by Rodas5P, the error
     controlled on the states: ``(solution, z (S, G, M))`` (NaN where a sample failed). One sample
-    is integrated with its coefficients bound in its model (no ``vmap`` over the augmented state)."""
+    is integrated with its coefficients bound in its model (no ``vmap`` over the augmented state).
+    ``stop``: as :func:`~torchql.solvers.rodas5p_batch`'s, on the augmented state ``(L, G, M)``."""
     n, G = system.n, grid.shape[-1]
     if z0.shape[0] == 1:
+        def augmented(rows, y, reached):
+            return stop(rows, torch.cat([y, z0[rows, n:].unsqueeze(1).expand(-1, G, -1)], dim=2), reached)
         sol = rodas5p_batch(system.model_with(z0[0, n:]), z0[:, :n], grid, rtol=rtol, atol=atol, land=land,
-                            vectorize=False, keep_steps=keep_steps, **budget)
+                            vectorize=False, keep_steps=keep_steps, stop=None if stop is None else augmented,
+                            **budget)
         return sol, torch.cat([sol.y, z0[:, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
     sol = rodas5p_batch(system.f, z0, grid, rtol=rtol, atol=atol, land=land, error_components=n,
-                        keep_steps=keep_steps, **budget)
+                        keep_steps=keep_steps, stop=stop, **budget)
     return sol, sol.y
 
 
