@@ -135,3 +135,36 @@ def test_van_der_pol_from_a_third_of_mu_reaches_the_truth_from_the_data():
     assert r.success, r.message
     assert r.solver_options["solver"] == "rodas5p"
     assert abs(float(r.params["mu"]) - 1000.0) / 1000.0 < 1e-6
+
+
+@pytest.mark.slow
+def test_a_rejected_trials_model_solution_stops_once_it_cannot_beat_the_current_one(monkeypatch):
+    """Van der Pol with mu = 1000 from mu = 3000 at the defaults: the first Gauss–Newton steps land
+    near mu = 265, whose solution jumps inside the window; the second opinion on such a trial
+    stops integrating once its sum of squares over the data passed exceeds the current
+    iterate's. The fit is the same, step for step, as with every trial integrated to the end
+    (a rejected trial's value is only compared), with fewer right-hand-side evaluations
+    (measured 44,500 against 58,700); fit_many's batched solver stops its samples alike."""
+    import torchql.engine as engine
+    from torchql.models import VanDerPol
+
+    t = torch.linspace(35.0, 700.0, 20, dtype=DT)
+    x0 = torch.tensor([2.0, 0.0], dtype=DT)
+    y = torchql.simulate(VanDerPol(1000.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                         rtol=1e-11, atol=1e-13)[1:, :1]
+    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
+    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    stopping = torchql.fit(VanDerPol(3000.0), data, x0, **options)
+    assert stopping.success, stopping.message
+    assert sum(record.rejected for record in stopping.history) > 0  # the case in question
+    assert abs(float(stopping.params["mu"]) - 1000.0) / 1000.0 < 1e-6
+    guesses = {"mu": torch.tensor([3000.0, 1400.0], dtype=DT)}
+    batch = torchql.fit_many(VanDerPol(3000.0), [data, data], x0, guesses=guesses, **options)
+    assert batch.status[0] == stopping.status and batch.iterations[0] == stopping.iterations
+    assert float(batch.params["mu"][0]) == pytest.approx(float(stopping.params["mu"]), rel=1e-8, abs=0)
+    assert bool(batch.success.all())
+    monkeypatch.setattr(engine, "bound_of", lambda b: torch.full_like(b, float("inf")))  # integrate every trial
+    whole = torchql.fit(VanDerPol(3000.0), data, x0, **options)
+    assert torch.equal(whole.estimates, stopping.estimates) and whole.iterations == stopping.iterations
+    assert [(r.damping, r.rejected) for r in whole.history] == [(r.damping, r.rejected) for r in stopping.history]
+    assert stopping.nfev < 0.9 * whole.nfev

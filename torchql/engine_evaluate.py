@@ -62,7 +62,12 @@ _EXACT_PENALTY = 1e6
 def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a <= b`` up to :data:`_MERIT_SLACK` relative to ``|b|`` (an objective with a ``sigma(p)``
     function may be negative; for ``b >= 0`` this is ``a <= b (1 + _MERIT_SLACK)``)."""
-    return a <= torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
+    return a <= bound_of(b)
+
+
+def bound_of(b: torch.Tensor) -> torch.Tensor:
+    """The largest value that :func:`not_above` takes as not above ``b``."""
+    return torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
 
 
 class Evaluation:
@@ -192,7 +197,8 @@ class Evaluation:
                 self.propagation_errors[int(idx[k])] = str(exc)
         return W, failed
 
-    def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False, reference=None):
+    def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False, reference=None,
+                   stop=None):
         """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
         and error messages (None: ok).
 
@@ -216,7 +222,9 @@ class Evaluation:
         sample), by the implicit
         :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
         torchdiffeq with ``solver`` (another method, or where the batched Dormand–Prince fails),
-        whose message is kept when it fails too.
+        whose message is kept when it fails too. ``stop``: the implicit solver's test of a sample
+        (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next node) that
+        ends it early, as a failure (:meth:`_nonlinear_sse`).
         """
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
@@ -238,7 +246,7 @@ class Evaluation:
                 if bool(coarse.any()):
                     guess = torch.where(coarse.reshape(-1, 1, 1), torch.full_like(guess, float("nan")), guess)
                 self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference)
-            self._adaptive(idx, z0, rtol, atol, traj, ok, errors)
+            self._adaptive(idx, z0, rtol, atol, traj, ok, errors, stop)
         return traj, errors
 
     def _on_grid(self, idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors,
@@ -316,7 +324,7 @@ class Evaluation:
         t = grid.expand(z.shape[0], -1).reshape(-1)
         return torch.vmap(self.system.f)(t, z.reshape(-1, z.shape[-1])).reshape(z.shape)
 
-    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors) -> None:
+    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
         Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``, several samples,
         no ``max_steps``), then torchdiffeq per sample; fills ``traj``, ``ok`` and ``errors`` in place."""
@@ -334,7 +342,7 @@ class Evaluation:
         stiff = spec.solver in STIFF_SOLVERS
         batched = self._batched_dopri(S)
         if sub.numel() and stiff:  # every sample by the implicit solver; its message kept for a failure
-            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors)
+            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors, stop)
             return
         if sub.numel() and batched:
             self._take_shared_solutions(idx, sub, z0, rtol, traj, ok)
@@ -367,9 +375,12 @@ class Evaluation:
             if kept is not None and torch.equal(kept[0], z0[s]):
                 traj[s], ok[s] = kept[1], True
 
-    def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors) -> None:
-        """Samples ``sub`` by :func:`~torchql.solvers.sensitivity.rodas5p_model` on ``grid``."""
+    def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors, stop=None) -> None:
+        """Samples ``sub`` by :func:`~torchql.solvers.sensitivity.rodas5p_model` on ``grid`` (``stop``:
+        as :meth:`_nonlinear`'s)."""
         budget = {} if self.spec.max_steps is None else {"max_steps": self.spec.max_steps}
+        if stop is not None:
+            budget["stop"] = lambda rows, y, reached: stop(sub[rows], y, reached)
         sol, y = rodas5p_model(self.system, z0[sub], grid, rtol=rtol, atol=atol, land=land, **budget)
         self.nfev += sol.n_f
         good = sol.ok
@@ -438,29 +449,53 @@ class Evaluation:
         self.nfev += counter.n_evals * (grid.shape[0] - 1)  # each call: one stage of every interval
         return traj, ok, over
 
-    def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor) -> torch.Tensor:
+    def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor, above: torch.Tensor | None = None) -> torch.Tensor:
         """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable;
         with a ``sigma(p)`` function, the objective at the iterate's sigmas).
 
         As ``torchql.fit``'s second opinion: integrated at the loose tolerance, on the grid from
         the iterate's particular solution (its prediction of the trajectory) where that settles.
+        ``above (R,)``: the objectives that matter only up to these (a trial must not exceed the
+        current iterate's). The implicit solver stops a sample once its objective over the data
+        passed so far exceeds its bound (the remaining terms only add to it; a ``sigma(p)``
+        function's log term is the sample's own constant), whose objective is then inf.
         """
-        need = rows[torch.isnan(it["nl_sse"][rows])]
+        fresh = torch.isnan(it["nl_sse"][rows])
+        need = rows[fresh]
         if need.numel():
+            stop = None
+            if above is not None:
+                bound, chunk = above[fresh], idx[need]
+
+                def stop(k, traj, reached):  # k: positions in ``need``
+                    r = need[k]
+                    return self._objective(chunk[k], traj, it["w"][r], it["log"][r], reached) > bound[k]
             traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
-                                           budget_is_final=True)
+                                           budget_is_final=True, stop=stop)
             self._keep_model_sse(idx, it, need, traj, errors)
         return it["nl_sse"][rows]
+
+    def _objective(self, chunk, traj, w, log, reached: torch.Tensor | None = None) -> torch.Tensor:
+        """The objective ``(R,)`` of the chunk's samples ``chunk (R,)`` along the model's solutions
+        ``traj (R, G, M)``, with weights ``w`` and log terms ``log (R,)``; with ``reached (R,)``,
+        over the observations at the nodes before it only (the others' values need not exist)."""
+        n = self.spec.operator.width
+        x = self._at_obs(traj, chunk)[..., :n]
+        y, mask = self.y[chunk], self.mask[chunk]
+        if reached is not None:
+            nodes = self.obs.expand(chunk.numel(), -1) if self.obs.dim() == 1 else self.obs[chunk]
+            seen = nodes < reached.unsqueeze(1)  # (R, T)
+            x = torch.where(seen.unsqueeze(-1), x, torch.zeros((), dtype=x.dtype, device=x.device))
+            mask = mask & seen.reshape(seen.shape + (1,) * (mask.dim() - 2))
+        value, _ = self.spec.operator.value_and_jacobian(x.reshape(-1, n))
+        resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
+        return self._ssq(chunk, resid.reshape(chunk.numel(), -1), w, penalty=True) + log
 
     def _keep_model_sse(self, idx, it: dict, rows: torch.Tensor, traj: torch.Tensor, errors: list) -> None:
         """Keep in ``it`` the model's solutions ``traj (R, G, M)`` from the estimates of its samples
         ``rows`` (``errors``: the solver's, None where it succeeded) and their sums of squares
         (inf where not integrable), as :meth:`_nonlinear_sse` caches them."""
-        n = self.spec.operator.width
-        value, _ = self.spec.operator.value_and_jacobian(self._at_obs(traj, idx[rows])[..., :n].reshape(-1, n))
-        y, mask = self.y[idx[rows]], self.mask[idx[rows]]
-        resid = torch.where(mask, y - value.reshape(y.shape), torch.zeros((), dtype=y.dtype, device=y.device))
-        sse = self._ssq(idx[rows], resid.reshape(rows.numel(), -1), it["w"][rows], penalty=True) + it["log"][rows]
+        sse = self._objective(idx[rows], traj, it["w"][rows], it["log"][rows])
         failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
         sse = torch.where(failed | ~torch.isfinite(sse), torch.full_like(sse, math.inf), sse)
         it["nl_sse"][rows] = sse
