@@ -12,7 +12,7 @@ from torchql.models import LinearOscillator
 from torchql.propagators import ExponentialRadau, linear_propagator
 from torchql.propagators.exponential import exponential_series
 from torchql.trajectory import IntervalSystem, LinearizedReference
-from torchql.transfer import _Coefficients, compose_transfers
+from torchql.transfer import Transfers, _Coefficients, compose_transfers
 
 DT = torch.float64
 EPS = torch.finfo(DT).eps
@@ -123,6 +123,24 @@ def test_a_stiff_time_varying_problem_stays_accurate_where_the_others_give_up(L)
     assert (T[:, 0, 1] - g(grid[1:])).abs().max() < 1e-9
     w = compose_transfers(transfers, torch.tensor([[0.0]], dtype=DT))
     assert (w[1:, 0, 0] - g(grid[1:])).abs().max() < 1e-9
+
+
+@pytest.mark.parametrize("L", [1e3, 1e4])
+def test_intermediate_stiffness_is_refined_by_at_most_eightfold_steps_per_pass(L):
+    """``h |lambda|`` of 20 to 400 per interval (``L = 1e4``; van der Pol's drift at ``mu`` in the
+    hundreds is in this range): the first difference (one step against two) is far from its
+    asymptotic order, and the steps predicted from it were 512 to 1,024 per interval where 16 meet
+    the tolerance (measured). Refined at most eightfold per pass, every interval stops at 16 steps,
+    and the composed solution is the closed form's to 1e-10 (``rtol``)."""
+    grid = torch.linspace(0, 2, 101, dtype=DT)
+    ref, g = _stiff(grid, L)
+    coefficients = _Coefficients(IntervalSystem(ref))
+    out = exponential_series(coefficients, rtol=1e-10, atol=1e-12, freeze=False)
+    assert not bool(out.failed.any()) and int(out.substeps.max()) <= 16
+    w = compose_transfers(Transfers(out.Y, coefficients.order), torch.tensor([[0.0]], dtype=DT))
+    t = grid[1:]
+    exact = g(t) - g(torch.zeros(1, dtype=DT)) * torch.exp(-L * (t + t**2 / 4))  # w(0) = 0
+    assert (w[1:, 0, 0] - exact).abs().max() < 1e-10
 
 
 def test_it_is_registered_and_not_a_grid_solver():

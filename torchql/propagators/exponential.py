@@ -33,7 +33,8 @@ absolute/relative one of the other propagators, entry by entry on the active row
 entries (``e^{-10^6}``) are judged by ``atol``, never by their own vanishing size. The finer
 result is returned (no extrapolation, which would not keep L-stability). Intervals that fail
 are integrated again with the number of steps the estimate predicts (a power of two, at least
-double), only those, up to ``max_substeps``.
+double and at most eight times as many per pass: see :data:`_MAX_DOUBLINGS`), only those, up to
+``max_substeps``.
 
 **Limitation: intermediate stiffness.** The correction's initial layer leaves an error of order
 ``|q'| / (h |lambda|)^2`` per step (``q`` the quasi-steady state), from the last step of an interval
@@ -79,6 +80,13 @@ _ORDER = 3
 _SAFETY = 2.0
 #: Multiple of ``eps ||h A||`` allowed for the rounding of the matrix exponential.
 _ROUNDING = 8.0
+#: Most doublings of an interval's steps per refinement (at most 8 times the steps): a stiff
+#: interval's first difference (one step against two) is far from the asymptotic regime that the
+#: prediction assumes (``h |lambda|`` of hundreds: the stiff components' initial layer), and
+#: predicted from it the steps jumped to hundreds where a few tens meet the tolerance (measured
+#: on van der Pol's transfers, ``mu = 700``: 19,000 steps over 1,128 intervals instead of 556,000,
+#: 0.04 s instead of 0.85 s, the same accuracy).
+_MAX_DOUBLINGS = 3
 #: Most interval-steps integrated in one batch (bounds the memory of refinement).
 _CHUNK = 1 << 14
 
@@ -209,7 +217,7 @@ def exponential_series(coefficients: _Coefficients, *, rtol: float, atol: float,
         # error ~ steps^-q: predict the steps needed, a power of two, at least double
         r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** _ORDER).clamp(min=1.0)
         # at most the cap's doublings: a huge finite ratio (a stiff interval's 1e300) would overflow 2**factor
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** (1 / _ORDER))).clamp(1, max_substeps.bit_length()).to(torch.long)
+        factor = torch.ceil(torch.log2((_SAFETY * r) ** (1 / _ORDER))).clamp(1, _MAX_DOUBLINGS).to(torch.long)
         wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
         for n_fine in wanted.unique().tolist():
             group = index[wanted == n_fine]
