@@ -202,6 +202,8 @@ def test_bad_arguments_name_the_argument():
         rodas5p_batch(f, torch.ones(1, 2, dtype=DT), grid, rtol=-1.0, atol=1e-6)
     with pytest.raises(ValueError, match="`land`"):
         rodas5p_batch(f, torch.ones(1, 2, dtype=DT), grid, rtol=1e-6, atol=1e-6, land=torch.ones(3, dtype=torch.bool))
+    with pytest.raises(TypeError, match="`stop` must be a callable"):
+        rodas5p_batch(f, torch.ones(1, 2, dtype=DT), grid, rtol=1e-6, atol=1e-6, stop=1.5)
 
 
 def test_adjoint_fit_refuses_the_stiff_solver_by_name():

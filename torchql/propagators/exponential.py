@@ -216,7 +216,7 @@ def exponential_series(coefficients: _Coefficients, *, rtol: float, atol: float,
             break
         # error ~ steps^-q: predict the steps needed, a power of two, at least double
         r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** _ORDER).clamp(min=1.0)
-        # at most the cap's doublings: a huge finite ratio (a stiff interval's 1e300) would overflow 2**factor
+        # at most _MAX_DOUBLINGS per pass (a huge finite ratio, a stiff interval's 1e300, would also overflow 2**factor)
         factor = torch.ceil(torch.log2((_SAFETY * r) ** (1 / _ORDER))).clamp(1, _MAX_DOUBLINGS).to(torch.long)
         wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
         for n_fine in wanted.unique().tolist():

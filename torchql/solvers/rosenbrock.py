@@ -352,6 +352,9 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         evaluation counts. Failures are reported per sample, never raised.
     """
     y0, grid = _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize)
+    if stop is not None and not callable(stop):
+        raise TypeError(f"`stop` must be a callable (rows, y, reached) -> bool tensor, or None; received "
+                        f"{type(stop).__name__}")
     S, M = y0.shape
     n = M if error_components is None else error_components
     field = f if isinstance(f, BatchedField) else BatchedField(f, vectorize=vectorize)
