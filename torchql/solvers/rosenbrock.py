@@ -351,10 +351,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         ``y (S, G, M)`` (NaN where a sample failed), per-sample status, step counts and the
         evaluation counts. Failures are reported per sample, never raised.
     """
-    y0, grid = _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize)
-    if stop is not None and not callable(stop):
-        raise TypeError(f"`stop` must be a callable (rows, y, reached) -> bool tensor, or None; received "
-                        f"{type(stop).__name__}")
+    y0, grid = _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize, stop)
     S, M = y0.shape
     n = M if error_components is None else error_components
     field = f if isinstance(f, BatchedField) else BatchedField(f, vectorize=vectorize)
@@ -407,7 +404,7 @@ def _stopped(stop, out: OutputGrid, active, asked, code) -> torch.Tensor:
     return torch.where(ended, STOPPED, code)
 
 
-def _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize):
+def _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize, stop):
     """:func:`rodas5p_batch`'s arguments validated (``ValueError``/``TypeError`` naming the argument)."""
     if not isinstance(y0, torch.Tensor) or not y0.is_floating_point() or y0.dim() != 2 or 0 in y0.shape:
         got = f"shape {tuple(y0.shape)}, dtype {y0.dtype}" if isinstance(y0, torch.Tensor) else type(y0).__name__
@@ -435,4 +432,7 @@ def _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize)
         raise ValueError(f"`error_components` must be an integer in [1, {M}]; received {error_components!r}")
     if not vectorize and S != 1:
         raise ValueError(f"`vectorize=False` needs a single sample (S = 1); received S = {S}")
+    if stop is not None and not callable(stop):
+        raise TypeError(f"`stop` must be a callable (rows, y, reached) -> bool tensor, or None; received "
+                        f"{type(stop).__name__}")
     return y0, grid

@@ -56,13 +56,13 @@ def rodas5p_model(system, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, 
     is integrated with its coefficients bound in its model (no ``vmap`` over the augmented state).
     ``stop``: as :func:`~torchql.solvers.rodas5p_batch`'s, on the augmented state ``(L, G, M)``."""
     n, G = system.n, grid.shape[-1]
-    if z0.shape[0] == 1:
-        def augmented(rows, y, reached):
-            return stop(rows, torch.cat([y, z0[rows, n:].unsqueeze(1).expand(-1, G, -1)], dim=2), reached)
+    if z0.shape[0] == 1:  # the states alone; the coefficients appended to them
+        def augmented(rows, y):
+            return torch.cat([y, z0[rows, n:].unsqueeze(1).expand(-1, G, -1)], dim=2)
+        states_stop = None if stop is None else (lambda rows, y, reached: stop(rows, augmented(rows, y), reached))
         sol = rodas5p_batch(system.model_with(z0[0, n:]), z0[:, :n], grid, rtol=rtol, atol=atol, land=land,
-                            vectorize=False, keep_steps=keep_steps, stop=None if stop is None else augmented,
-                            **budget)
-        return sol, torch.cat([sol.y, z0[:, n:].unsqueeze(1).expand(1, G, -1)], dim=2)
+                            vectorize=False, keep_steps=keep_steps, stop=states_stop, **budget)
+        return sol, augmented(torch.zeros(1, dtype=torch.long, device=z0.device), sol.y)
     sol = rodas5p_batch(system.f, z0, grid, rtol=rtol, atol=atol, land=land, error_components=n,
                         keep_steps=keep_steps, stop=stop, **budget)
     return sol, sol.y
