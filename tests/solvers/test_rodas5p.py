@@ -15,7 +15,7 @@ import torchql
 from torchql.integrate import IntegrationError, solve
 from torchql.model import AugmentedSystem
 from torchql.models import Robertson
-from torchql.solvers import MAX_STEPS, NON_FINITE, STOPPED, SUCCESS, rodas5p_batch, rodas5p_solve
+from torchql.solvers import MAX_STEPS, NON_FINITE, STEP_UNDERFLOW, STOPPED, SUCCESS, rodas5p_batch, rodas5p_solve
 
 DT = torch.float64
 LAMBDA = -1e6
@@ -140,6 +140,52 @@ def test_a_stop_test_ends_a_sample_at_a_landed_node_and_leaves_the_others():
         assert torch.equal(sol.y[s], free.y[s]) and sol.n_accepted[s] == free.n_accepted[s]
     reached = torch.cat([r for _, r in asked])
     assert set(reached.tolist()) <= {3, 6, 9} and torch.cat([rows for rows, _ in asked]).numel() == 3 + 3 + 2
+
+
+def _solutions_equal(a, b) -> bool:
+    same = (torch.equal(a.y.nan_to_num(7.0), b.y.nan_to_num(7.0)) and torch.equal(a.status, b.status)
+            and torch.equal(a.t, b.t) and torch.equal(a.n_accepted, b.n_accepted)
+            and torch.equal(a.n_rejected, b.n_rejected) and (a.n_f, a.n_jac) == (b.n_f, b.n_jac))
+    if a.steps is not None:
+        same = same and all(torch.equal(getattr(a.steps, k), getattr(b.steps, k)) for k in ("t", "h", "end", "y", "K"))
+    return same
+
+
+def test_one_sample_takes_the_batched_loops_steps_to_the_bit(monkeypatch):
+    """One sample runs a loop whose step control is in Python numbers; every step, value, count
+    and status equals the batched loop's (made to run it here), on every path: landing on every
+    node, the dense output between landings (its error controlled too), a per-sample grid, the
+    step budget, a blow-up, a non-finite start, repeated nodes, the stop test, the steps kept."""
+    from torchql.solvers import rosenbrock
+
+    def vdp(t, y):  # van der Pol, mu = 300: stiff drifts and fast jumps
+        return torch.stack((y[1], 300.0 * (1 - y[0] ** 2) * y[1] - y[0]))
+
+    grid = torch.cat([torch.zeros(1, dtype=DT), torch.linspace(17.5, 700.0, 40, dtype=DT)])
+    every7 = torch.zeros(41, dtype=torch.bool)
+    every7[::7] = True
+    y0 = torch.tensor([[2.0, 0.0]], dtype=DT)
+    rob, r0 = Robertson(), torch.tensor([[1.0, 0.0, 0.0]], dtype=DT)
+    r_grid = torch.cat([torch.zeros(1, dtype=DT), torch.logspace(-4, 5, 28, dtype=DT)])
+    cases = [
+        (vdp, y0, grid, dict(rtol=1e-6, atol=1e-8)),
+        (vdp, y0, grid, dict(rtol=1e-6, atol=1e-8, land=every7, keep_steps=True, vectorize=False)),
+        (vdp, y0, grid.unsqueeze(0), dict(rtol=1e-6, atol=1e-8, land=every7.unsqueeze(0))),
+        (vdp, y0, grid, dict(rtol=1e-6, atol=1e-8, max_steps=30)),
+        (vdp, y0, grid, dict(rtol=1e-6, atol=1e-8, land=every7, stop=lambda rows, y, reached: reached >= 15)),
+        (vdp, y0, torch.tensor([0.0, 0.0, 1.0, 1.0, 2.0], dtype=DT), dict(rtol=1e-6, atol=1e-8)),
+        (rob.forward, r0, r_grid, dict(rtol=1e-8, atol=1e-14, land=torch.zeros(29, dtype=torch.bool), keep_steps=True)),
+        (lambda t, y: y * y, torch.ones(1, 1, dtype=DT), torch.tensor([0.0, 0.5, 2.0], dtype=DT), dict(rtol=1e-8, atol=1e-10)),
+        (lambda t, y: y, torch.full((1, 1), math.nan, dtype=DT), torch.tensor([0.0, 1.0], dtype=DT), dict(rtol=1e-8, atol=1e-10)),
+    ]
+    alone = [rodas5p_batch(f, y, g, **kw) for f, y, g, kw in cases]
+    monkeypatch.setattr(rosenbrock, "_one_sample", rosenbrock._batched)
+    batched = [rodas5p_batch(f, y, g, **kw) for f, y, g, kw in cases]
+    assert [int(s.status[0]) for s in alone] == [SUCCESS] * 3 + [MAX_STEPS, STOPPED, SUCCESS, SUCCESS, STEP_UNDERFLOW,
+                                                                  NON_FINITE]
+    assert alone[1].steps.t.shape[0] > 100 and alone[4].t.item() == grid[14].item()  # the landing on node 14
+    for a, b in zip(alone, batched):
+        assert _solutions_equal(a, b)
 
 
 def test_float32_on_the_models_dtype():

@@ -31,6 +31,8 @@ step sequence smooth where stiff components are being damped.
 
 from __future__ import annotations
 
+import bisect
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -271,7 +273,7 @@ def _round(field: BatchedField, tab: tableau.Tensors, grid: OutputGrid, samples:
             dense_ratio = _error_ratio(err[:, :n], y[i, :n], y_new[i, :n], rtol, atol, norm)
             dense_ratio = dense_ratio.nan_to_num(nan=float("inf"))
             ratio, exponent = ratio.clone(), torch.full_like(ratio, _EXPONENT)
-            exponent[i] = torch.where(dense_ratio > ratio[i], _DENSE_EXPONENT, _EXPONENT).to(ratio.dtype)
+            exponent[i[dense_ratio > ratio[i]]] = _DENSE_EXPONENT  # (in the ratio's dtype, not the default one)
             ratio[i] = torch.maximum(ratio[i], dense_ratio)
     y_new = torch.where(empty.unsqueeze(-1), y, y_new)
     ratio = torch.where(empty, torch.zeros_like(ratio), ratio)
@@ -368,10 +370,22 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     else:
         samples.h = torch.full_like(samples.t, float(first_step))
     tab = tableau.Tensors(y0.dtype, y0.device)
-    tiny = torch.finfo(y0.dtype).tiny
-    eps = torch.finfo(y0.dtype).eps
-    active = ((status == SUCCESS) & out.unfinished()).nonzero().flatten()
     steps = [] if keep_steps or out.dense else None
+    run = _one_sample if S == 1 else _batched
+    run(field, tab, out, samples, status, n, rtol, atol, norm, max_steps, stop, steps)
+    record = None if steps is None else StepRecord.join(steps, y0)
+    if out.dense:
+        out.fill_between(record, tab)
+    return RosenbrockSolution(out.result(status == SUCCESS), status, samples.t, samples.n_accepted,
+                              samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None)
+
+
+def _batched(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, atol, norm, max_steps, stop, steps
+             ) -> None:
+    """:func:`rodas5p_batch`'s loop: rounds of one trial step of every unfinished sample until
+    each has finished or failed; ``samples``, ``status`` (``(S,)``, in place), ``out`` and ``steps`` updated."""
+    tiny, eps = torch.finfo(samples.y.dtype).tiny, torch.finfo(samples.y.dtype).eps
+    active = ((status == SUCCESS) & out.unfinished()).nonzero().flatten()
     while active.numel():
         check_time()
         accept, h_next, finite, landed = _round(field, tab, out, samples, active, n, rtol, atol, norm, steps)
@@ -387,11 +401,92 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
             code = _stopped(stop, out, active, landed & (code == SUCCESS) & ~finished, code)
         status[active] = code
         active = active[(code == SUCCESS) & ~finished]
-    record = None if steps is None else StepRecord.join(steps, y0)
-    if out.dense:
-        out.fill_between(record, tab)
-    return RosenbrockSolution(out.result(status == SUCCESS), status, samples.t, samples.n_accepted,
-                              samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None)
+
+
+def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, atol, norm, max_steps, stop, steps
+                ) -> None:
+    """:func:`_batched` for one sample (``S = 1``), step for step the same (to the bit), its step
+    control in Python numbers: a batched round's bookkeeping (masks, gathers and scatters over the
+    active samples) costs more than the step's own arithmetic where the system is small."""
+    if int(status[0]) != SUCCESS:
+        return
+    tiny, eps = torch.finfo(samples.y.dtype).tiny, torch.finfo(samples.y.dtype).eps
+    times, landing, nxt = out._times.tolist(), out._landing.tolist(), out._next.tolist()
+    G, end = out.G, out.G if out.end is None else int(out.end[0])
+    node, first = int(out.node[0]), samples.t.new_zeros(1, dtype=torch.long)
+    t, h, y, (f0, J, ft) = float(samples.t[0]), float(samples.h[0]), samples.y, (samples.f0, samples.J, samples.ft)
+    h_prev, err_prev, fresh, rejected, accepted, failed, code = 0.0, 1.0, True, False, 0, 0, SUCCESS
+    while node < end:
+        check_time()
+        tt = samples.t.new_tensor([t])
+        if not fresh:
+            f0, J, ft = field.linearize(tt, y)
+        target = times[nxt[node]]
+        gap = target - t
+        clipped = h >= gap
+        empty = clipped and gap <= 0
+        he = gap if clipped and not empty else h
+        ht = samples.t.new_tensor([he])
+        y_new, K, lu = _stages(field, tab, tt, ht, y, f0, J, ft)
+        ratio = float(_error_ratio(K[-1][:, :n], y[:, :n], y_new[:, :n], rtol, atol, norm))
+        exponent = _EXPONENT
+        t_new = target if clipped else t + he
+        at = min(node, G - 1)
+        if out.dense and times[at] < t_new and not landing[at]:  # the dense output's error too
+            err = _dense_error(field, tab, tt, ht, y, y_new, K, lu)
+            dense = float(_error_ratio(err[:, :n], y[:, :n], y_new[:, :n], rtol, atol, norm))
+            dense = math.inf if math.isnan(dense) else dense
+            exponent = _DENSE_EXPONENT if dense > ratio else _EXPONENT
+            ratio = ratio if math.isnan(ratio) else max(ratio, dense)
+        if empty:
+            y_new, ratio = y, 0.0
+        finite = math.isfinite(ratio) and bool(torch.isfinite(y_new).all())
+        accept = finite and ratio <= 1.0
+        h_next, h_prev, err_prev = _scalar_controller(ratio, accept, he, h_prev, err_prev, rejected, exponent)
+        h_next = h if empty else (max(h_next, h) if accept and clipped else h_next)
+        if steps is not None and accept and not empty:
+            steps.append((first, tt, ht, samples.t.new_tensor([t_new]), y, K))
+        if accept:
+            y, t, f0, J, ft = y_new, t_new, None, None, None
+            if out.dense:  # nodes passed inside the step: filled from the steps at the end
+                node = max(node, min(bisect.bisect_left(times, t_new, hi=G), nxt[at]))
+                out.node[0] = node
+            if clipped:
+                out.land(first, y_new)
+                node += 1
+        fresh = rejected = not accept
+        h = h_next
+        accepted, failed = accepted + accept, failed + (not accept)
+        code = SUCCESS
+        if accepted + failed >= max_steps:
+            code = MAX_STEPS
+        elif h_next <= 10 * eps * abs(t) or h_next <= tiny:
+            code = STEP_UNDERFLOW if finite else NON_FINITE
+        if node >= end:
+            code = SUCCESS
+        elif stop is not None and accept and clipped and code == SUCCESS and bool(stop(first, out.out[:1], out.node)[0]):
+            code = STOPPED
+        if code != SUCCESS:
+            break
+    status[0] = code
+    samples.t[0], samples.y = t, y
+    samples.n_accepted[0], samples.n_rejected[0] = accepted, failed
+
+
+def _scalar_controller(ratio: float, accept: bool, he: float, h_prev: float, err_prev: float, rejected: bool,
+                       exponent: float) -> tuple[float, float, float]:
+    """:func:`_controller` of one sample in Python numbers: ``(next step, h_prev, err_prev)``."""
+    r = max(1e10 if math.isnan(ratio) or ratio == math.inf else ratio, 1e-10)
+    growth = min(max(_SAFETY * r ** -exponent, _MIN_FACTOR), _MAX_FACTOR)
+    predicted = _SAFETY * (he / max(h_prev, 1e-300)) * (err_prev / (r * r)) ** exponent
+    predicted = _MAX_FACTOR if math.isnan(predicted) or predicted == math.inf else predicted
+    if accept and h_prev > 0:
+        growth = min(growth, min(max(predicted, _MIN_FACTOR), _MAX_FACTOR))
+    if not accept or rejected:
+        growth = min(growth, 1.0)
+    if accept:
+        h_prev, err_prev = he, max(r, 1e-2)
+    return he * growth, h_prev, err_prev
 
 
 def _stopped(stop, out: OutputGrid, active, asked, code) -> torch.Tensor:
