@@ -1,9 +1,11 @@
 """The alpha update: weighted least squares, exact rows, rank decisions."""
 
+import math
+
 import pytest
 import torch
 
-from torchql.lstsq import ExactRowsError, solve_update
+from torchql.lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 
 torch.manual_seed(0)
 DT = torch.float64
@@ -96,3 +98,19 @@ def test_damping_equals_the_augmented_least_squares_problem():
     norms = [torch.linalg.vector_norm(solve_update(C, d, w, none, 1e-12, damping=x).alpha * scale).item()
              for x in (0.0, 0.01, 1.0, 100.0)]
     assert norms == sorted(norms, reverse=True)
+
+
+def test_relative_spectrum_is_that_of_the_damped_problem():
+    """The squared singular values relative to the largest of the weighted matrix with unit
+    columns (the units of the unknowns and a common weight do not change them); directions
+    below ``rcond`` are NaN; they are the ones ``solve_update_batch`` filters."""
+    theta = 0.3  # two unit columns at angle theta: singular values^2 = 1 +- cos(theta)
+    C = torch.tensor([[1.0, math.cos(theta)], [0.0, math.sin(theta)], [0.0, 0.0]], dtype=torch.float64)
+    C = (C * torch.tensor([5.0, 1e-4], dtype=torch.float64)).unsqueeze(0)  # other units
+    w = torch.full((1, 3), 7.0, dtype=torch.float64)
+    r = relative_spectrum(C, w, rcond=1e-12)
+    expected = (1 - math.cos(theta)) / (1 + math.cos(theta))
+    assert r[0, 0].item() == 1.0 and r[0, 1].item() == pytest.approx(expected, rel=1e-12)
+    assert torch.equal(torch.isnan(relative_spectrum(C, w, rcond=0.5)), torch.tensor([[False, True]]))
+    _, _, Sv = solve_update_batch(C, torch.ones(1, 3, dtype=torch.float64), w, 1e-12, None)
+    torch.testing.assert_close(r, (Sv / Sv[:, :1]) ** 2, rtol=1e-12, atol=0)

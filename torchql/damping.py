@@ -17,13 +17,16 @@ import torch
 from .registry import Registry
 
 __all__ = ["Damping", "LevenbergMarquardt", "Undamped", "DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX",
-           "register_damping", "damping_strategy"]
+           "RETRY_SHORTENING", "register_damping", "damping_strategy"]
 
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
 #: largest squared singular value of the scaled least-squares matrix), for every damped solve.
 DAMPING_START = 1e-3
 DAMPING_MIN = 1e-10
 DAMPING_MAX = 1e12
+#: A retry's damping must shorten the rejected trial's step at least this much along some direction
+#: (:meth:`Damping.retry`); raises that shorten it less are skipped.
+RETRY_SHORTENING = 0.05
 
 
 class Damping:
@@ -49,6 +52,28 @@ class Damping:
     def stalled(self, damping: torch.Tensor) -> torch.Tensor:
         """Bool ``(S,)``: the samples whose ``damping`` is past use (their fit has stalled)."""
         raise NotImplementedError
+
+    def retry(self, damping: torch.Tensor, last: torch.Tensor, spectrum: torch.Tensor) -> torch.Tensor:
+        """The damping ``(S,)`` of the retry after rejected trials made with ``damping (S,)``:
+        :meth:`raised`, and raised again while it would shorten the step by less than
+        :data:`RETRY_SHORTENING` along every direction. ``spectrum (S, k)``: the squared singular
+        values ``r_i`` relative to the largest (NaN: a dropped direction; all NaN: no skipping)
+        of the damped problem
+        (:func:`torchql.lstsq.relative_spectrum`), along which damping ``lambda`` scales the step
+        by ``r_i / (r_i + lambda)``. A raise that barely shortens the step (the first tenfold
+        raises of a well-conditioned problem, all of whose ``r_i`` exceed it) retries nearly the
+        same trial, for nearly the same outcome at the cost of a whole evaluation. ``last``: as
+        :meth:`raised`'s."""
+        new = self.raised(damping, last)
+        for _ in range(32):  # (a bound: each raise at least tenfold)
+            ratio = torch.where(torch.isnan(spectrum), 1.0, (spectrum + damping.unsqueeze(-1)) /
+                                (spectrum + new.unsqueeze(-1)))
+            same = (~self.stalled(new) & (new > damping) & (ratio.amin(dim=1) > 1 - RETRY_SHORTENING)
+                    & ~torch.isnan(spectrum).all(dim=1))
+            if not bool(same.any()):
+                break
+            new = torch.where(same, self.raised(new, last), new)
+        return new
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"

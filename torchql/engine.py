@@ -35,7 +35,7 @@ from .engine_final import FinalPass
 from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, put_samples
 from .grid import last_nodes
-from .lstsq import ExactRowsError, solve_update, solve_update_batch
+from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 from .problem import Problem
 from .result import IterationRecord, Status
 from .trajectory import DEFECT_TRUST
@@ -484,7 +484,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
     def _reject(self, st: LoopState, rejected, alpha) -> None:
         """Rejected trials: without a filtering damping the iteration fails; Kantorovich
         re-anchors an undamped rejection about the model's own solution once; otherwise the
-        damping strategy raises the damping (:meth:`torchql.damping.Damping.raised`), and past
+        damping strategy raises the damping (:meth:`torchql.damping.Damping.retry`), and past
         its use (:meth:`~torchql.damping.Damping.stalled`) the sample has stalled."""
         spec = self.spec
         if not spec.damping.filters:  # the thesis' iteration: the step is taken, and fails
@@ -500,7 +500,13 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         raise_rows = rejected[~torch.isin(rejected, anchored)]
         if not raise_rows.numel():
             return
-        d = spec.damping.raised(st.damping[raise_rows], st.last_damping[raise_rows])
+        C, w = _pick(st.cur["C"], raise_rows), _pick(st.cur["w"], raise_rows)
+        if spec.bounds.active:  # the problem damped is in the internal variables
+            C = C * spec.bounds.derivative(_pick(st.cur["z0"], raise_rows)[:, spec.unknown_index]).unsqueeze(1)
+        spectrum = relative_spectrum(C, w, spec.rcond)  # (exact values: another problem, no skipping)
+        if spec.has_exact:
+            spectrum[self.exact[raise_rows].any(dim=1)] = float("nan")
+        d = spec.damping.retry(st.damping[raise_rows], st.last_damping[raise_rows], spectrum)
         st.damping[raise_rows] = d
         stalled = raise_rows[spec.damping.stalled(d)]
         if stalled.numel():

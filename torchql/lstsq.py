@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["LstsqSolution", "ExactRowsError", "solve_update", "solve_update_batch"]
+__all__ = ["LstsqSolution", "ExactRowsError", "solve_update", "solve_update_batch", "relative_spectrum"]
 
 
 class ExactRowsError(ValueError):
@@ -141,15 +141,7 @@ def solve_update_batch(C, d, w, rcond: float, damping):
     ``deficient (S,)`` (a singular value below ``rcond`` times the largest, or a zero column)
     and the singular values ``(S, m)``. Samples with non-finite rows get NaN.
     """
-    Cw = C * w.unsqueeze(-1)
-    dw = d * w
-    finite = torch.isfinite(Cw).flatten(1).all(dim=1) & torch.isfinite(dw).all(dim=1)
-    Cw = torch.where(finite.reshape(-1, 1, 1), Cw, torch.zeros_like(Cw))
-    dw = torch.where(finite.reshape(-1, 1), dw, torch.zeros_like(dw))
-    scale = torch.linalg.vector_norm(Cw, dim=1)
-    zero_cols = scale == 0
-    scale = torch.where(zero_cols, torch.ones_like(scale), scale)
-    A = Cw / scale.unsqueeze(1)
+    A, dw, scale, finite, zero_cols = _scaled_problem(C, d, w)
     U, Sv, Vh = torch.linalg.svd(A, full_matrices=False)
     keep = Sv > rcond * Sv[:, :1]
     safe = torch.where(keep, Sv, torch.ones_like(Sv))
@@ -160,3 +152,28 @@ def solve_update_batch(C, d, w, rcond: float, damping):
     alpha = torch.where(finite.unsqueeze(-1), alpha, torch.full_like(alpha, float("nan")))
     deficient = (~keep).any(dim=1) | zero_cols.any(dim=1)
     return alpha, deficient, Sv
+
+
+def _scaled_problem(C, d, w):
+    """The weighted least-squares problems of :func:`solve_update_batch` with unit columns: ``A (S,
+    R, m)``, ``dw (S, R)``, the column norms ``(S, m)`` (1 for a zero column), which samples are
+    finite ``(S,)`` (the others zeroed) and the zero columns ``(S, m)``."""
+    Cw = C * w.unsqueeze(-1)
+    dw = d * w
+    finite = torch.isfinite(Cw).flatten(1).all(dim=1) & torch.isfinite(dw).all(dim=1)
+    Cw = torch.where(finite.reshape(-1, 1, 1), Cw, torch.zeros_like(Cw))
+    dw = torch.where(finite.reshape(-1, 1), dw, torch.zeros_like(dw))
+    scale = torch.linalg.vector_norm(Cw, dim=1)
+    zero_cols = scale == 0
+    scale = torch.where(zero_cols, torch.ones_like(scale), scale)
+    return Cw / scale.unsqueeze(1), dw, scale, finite, zero_cols
+
+
+def relative_spectrum(C: torch.Tensor, w: torch.Tensor, rcond: float) -> torch.Tensor:
+    """``(s_i / s_max)^2``, ``(S, m)``, of the matrices :func:`solve_update_batch` damps (``C (S, R,
+    m)`` weighted by ``w (S, R)``, unit columns): the damping ``lambda`` scales direction ``i`` of
+    the step by ``r_i / (r_i + lambda)``. NaN for the directions it drops (below ``rcond``)."""
+    A = _scaled_problem(C, torch.zeros_like(w), w)[0]
+    Sv = torch.linalg.svdvals(A)
+    r = (Sv / Sv[:, :1].clamp(min=torch.finfo(Sv.dtype).tiny)) ** 2
+    return torch.where(Sv > rcond * Sv[:, :1], r, torch.full_like(r, float("nan")))
