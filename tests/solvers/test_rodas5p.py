@@ -114,9 +114,9 @@ def test_per_sample_grids_and_failures_do_not_touch_the_others():
 
 
 def test_a_stop_test_ends_a_sample_at_a_landed_node_and_leaves_the_others():
-    """``stop`` is asked after landings only (not at the last node), sees the values landed so far
-    and NaN from the next node on, and ends the samples it names as ``STOPPED``; the other samples'
-    steps and values are those of the run without it."""
+    """``stop`` is asked after landings only (the last node's too, where its answer is moot), sees
+    the values landed so far and NaN from the next node on, and ends the samples it names as
+    ``STOPPED``; the other samples' steps and values are those of the run without it."""
     z0 = torch.tensor([[1.0, 0.5], [1.0, 1.0], [1.0, 0.25]], dtype=DT)
     grid = torch.linspace(0.0, 1.0, 11, dtype=DT)
     land = torch.zeros(11, dtype=torch.bool)
@@ -129,7 +129,8 @@ def test_a_stop_test_ends_a_sample_at_a_landed_node_and_leaves_the_others():
             landed = [g for g in (0, 2, 5, 8) if g < reached[k]]
             torch.testing.assert_close(y[k, landed, 0], torch.exp(z0[r, 1] * grid[landed]), rtol=1e-7, atol=0)
             assert torch.isnan(y[k, int(reached[k]):]).all()
-        return (rows == 1) & (y[:, :, 0].nan_to_num(0).amax(dim=1) > 1.5)  # sample 1 once e^t > 1.5
+        # sample 1 once e^t > 1.5; "all" at the last node, which must not stop any
+        return ((rows == 1) & (y[:, :, 0].nan_to_num(0).amax(dim=1) > 1.5)) | (reached == 11)
 
     sol = rodas5p_batch(barrier, z0, grid, rtol=1e-9, atol=1e-12, error_components=1, land=land, stop=stop)
     free = rodas5p_batch(barrier, z0, grid, rtol=1e-9, atol=1e-12, error_components=1, land=land)
@@ -139,7 +140,7 @@ def test_a_stop_test_ends_a_sample_at_a_landed_node_and_leaves_the_others():
     for s in (0, 2):
         assert torch.equal(sol.y[s], free.y[s]) and sol.n_accepted[s] == free.n_accepted[s]
     reached = torch.cat([r for _, r in asked])
-    assert set(reached.tolist()) <= {3, 6, 9} and torch.cat([rows for rows, _ in asked]).numel() == 3 + 3 + 2
+    assert set(reached.tolist()) == {3, 6, 9, 11} and torch.cat([rows for rows, _ in asked]).numel() == 4 + 2 + 4
 
 
 def _solutions_equal(a, b) -> bool:

@@ -342,10 +342,12 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         Return every accepted step (:class:`StepRecord`), e.g. to differentiate them.
     stop : callable, optional
         ``stop(rows (L,), y (L, G, M), reached (L,)) -> bool (L,)``, asked after the samples
-        ``rows`` landed on a node (before their last), with their values at the nodes so far
-        (NaN at nodes not yet reached or filled by the dense output, and at every node from
-        ``reached`` on): the samples it says end there, ``STOPPED`` (e.g. a trial whose sum of
-        squares over the data passed already exceeds the one it must beat).
+        ``rows`` landed on a node, with their values at the nodes so far (NaN at nodes not yet
+        reached or filled by the dense output, and at every node from ``reached`` on): the
+        samples it says end there, ``STOPPED`` (e.g. a trial whose sum of squares over the data
+        passed already exceeds the one it must beat). It is asked at each sample's last node
+        too, where its answer is moot (the sample has finished), so that it sees every solution
+        that finishes whole.
 
     Returns
     -------
@@ -398,7 +400,7 @@ def _batched(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, at
         code = torch.where((code == STEP_UNDERFLOW) & ~finite, NON_FINITE, code)
         code = torch.where(finished, SUCCESS, code)
         if stop is not None:
-            code = _stopped(stop, out, active, landed & (code == SUCCESS) & ~finished, code)
+            code = _stopped(stop, out, active, landed & (code == SUCCESS), finished, code)
         status[active] = code
         active = active[(code == SUCCESS) & ~finished]
 
@@ -464,8 +466,8 @@ def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol,
             code = STEP_UNDERFLOW if finite else NON_FINITE
         if node >= end:
             code = SUCCESS
-        elif stop is not None and accept and clipped and code == SUCCESS and bool(stop(first, out.out[:1], out.node)[0]):
-            code = STOPPED
+        if stop is not None and accept and clipped and code == SUCCESS and bool(stop(first, out.out[first], out.node)[0]):
+            code = SUCCESS if node >= end else STOPPED
         if code != SUCCESS:
             break
     status[0] = code
@@ -489,14 +491,14 @@ def _scalar_controller(ratio: float, accept: bool, he: float, h_prev: float, err
     return he * growth, h_prev, err_prev
 
 
-def _stopped(stop, out: OutputGrid, active, asked, code) -> torch.Tensor:
-    """``code`` with ``STOPPED`` where ``stop`` ends the samples ``active[asked]``."""
+def _stopped(stop, out: OutputGrid, active, asked, finished, code) -> torch.Tensor:
+    """``code`` with ``STOPPED`` where ``stop`` ends the samples ``active[asked]`` that have not ``finished``."""
     if not bool(asked.any()):
         return code
     rows = active[asked]
     ended = torch.zeros_like(asked)
     ended[asked] = stop(rows, out.out[rows], out.node[rows])
-    return torch.where(ended, STOPPED, code)
+    return torch.where(ended & ~finished, STOPPED, code)
 
 
 def _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize, stop):
