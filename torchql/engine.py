@@ -30,7 +30,7 @@ import torch
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
-from .engine_evaluate import _LOOSE_RTOL, INEXACT_FACTOR, Evaluation, _pick, bound_of, not_above
+from .engine_evaluate import _LOOSE_RTOL, INEXACT_FACTOR, Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, put_samples
@@ -448,8 +448,8 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
         solutions' sums of squares) for trials near solving the model whose step was not capped
         at a bound's largest internal move; otherwise the model's own sums of squares, integrated
-        from both estimates (the trial's, by the implicit solver, only until it exceeds the current
-        one's). A damping that does not filter (``damping=None``): every integrable trial."""
+        from both estimates (:meth:`~torchql.engine_evaluate.Evaluation._model_not_above`). A
+        damping that does not filter (``damping=None``): every integrable trial."""
         spec, cur = self.spec, st.cur
         if not spec.damping.filters:
             return ok
@@ -460,9 +460,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         check = ok & ~better
         if bool(check.any()):
             rows = check.nonzero().flatten()
-            c_sse = self._nonlinear_sse(st.all_idx, cur, act[rows])
-            t_sse = self._nonlinear_sse(act, trial, rows, above=bound_of(c_sse))
-            better[rows] = not_above(t_sse, c_sse)
+            better[rows] = self._model_not_above(st.all_idx, cur, act, trial, rows)
         return ok & better
 
     def _take(self, st: LoopState, act, trial, accept) -> None:

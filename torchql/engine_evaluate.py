@@ -65,6 +65,11 @@ def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a <= bound_of(b)
 
 
+#: Whether a second opinion stops integrating a model solution once it cannot win the comparison
+#: (:meth:`Evaluation._model_not_above`); ``False`` integrates every one whole (the same decisions).
+STOP_EARLY = True
+
+
 def bound_of(b: torch.Tensor) -> torch.Tensor:
     """The largest value that :func:`not_above` takes as not above ``b``."""
     return torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
@@ -448,6 +453,59 @@ class Evaluation:
             pass
         self.nfev += counter.n_evals * (grid.shape[0] - 1)  # each call: one stage of every interval
         return traj, ok, over
+
+    def _model_not_above(self, all_idx, cur: dict, act, trial: dict, rows: torch.Tensor) -> torch.Tensor:
+        """Whether the model's objective from the trials ``rows`` (positions in ``act``) is not above
+        that from their current iterates (``cur``'s samples ``act[rows]``), bool ``(R,)``.
+
+        The current iterate's is integrated first (cached: usually known from when it was a
+        trial), then the trial's only until it exceeds it (:meth:`_nonlinear_sse`). Where the
+        implicit solver integrates and neither is known yet (a start built from the data), both
+        are integrated together (:meth:`_race`): which of the two is dear (a jump inside the
+        window) is not known beforehand.
+        """
+        better = torch.zeros(rows.numel(), dtype=torch.bool, device=rows.device)
+        rest = torch.ones_like(better)
+        if self.spec.stiff:
+            both = (torch.isnan(cur["nl_sse"][act[rows]]) & torch.isnan(trial["nl_sse"][rows])).nonzero().flatten()
+            if both.numel():
+                better[both] = self._race(all_idx, cur, act, trial, rows[both])
+                rest[both[better[both]]] = False
+        rows = rows[rest]
+        c_sse = self._nonlinear_sse(all_idx, cur, act[rows])
+        t_sse = self._nonlinear_sse(act, trial, rows, above=bound_of(c_sse) if STOP_EARLY else None)
+        better[rest] = not_above(t_sse, c_sse)
+        return better
+
+    def _race(self, all_idx, cur: dict, act, trial: dict, rows: torch.Tensor) -> torch.Tensor:
+        """The model from the current iterates ``act[rows]`` and from their trials ``rows`` integrated
+        together, each stopped once its objective over the data passed exceeds the other's whole
+        one (known once that one passed the last observation). What finished is cached
+        (:meth:`_keep_model_sse`; a stopped trial: inf, rejected). Returns bool ``(R,)``: the
+        current iterates stopped, whose trials are then better; their own objectives stay unknown."""
+        R = rows.numel()
+        chunk = all_idx[act[rows]].repeat(2)
+        z0 = torch.cat([cur["z0"][act[rows]], trial["z0"][rows]])
+        w, log = torch.cat([cur["w"][act[rows]], trial["w"][rows]]), torch.cat([cur["log"][act[rows]], trial["log"][rows]])
+        last = (self.obs if self.obs.dim() == 1 else self.obs[chunk]).amax(dim=-1).expand(2 * R)
+        whole = torch.full((2 * R,), math.nan, dtype=z0.dtype, device=z0.device)
+        stopped = torch.zeros(2 * R, dtype=torch.bool, device=z0.device)
+
+        def stop(k, traj, reached):  # k: positions in the race, the current iterates first
+            value = self._objective(chunk[k], traj, w[k], log[k], reached)
+            complete = reached > last[k]
+            whole[k[complete]] = value[complete]
+            other = whole[(k + R) % (2 * R)]
+            ended = ~complete & torch.where(k < R, value > other, value > bound_of(other)) & STOP_EARLY
+            stopped[k[ended]] = True
+            return ended
+        guess = torch.cat([cur["W"][act[rows]][..., 0], trial["W"][rows][..., 0]])
+        traj, errors = self._nonlinear(chunk, z0, loose=True, guess=guess, budget_is_final=True, stop=stop)
+        kept = (~stopped[:R]).nonzero().flatten()
+        if kept.numel():
+            self._keep_model_sse(all_idx, cur, act[rows][kept], traj[kept], [errors[k] for k in kept.tolist()])
+        self._keep_model_sse(act, trial, rows, traj[R:], errors[R:])
+        return stopped[:R]
 
     def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor, above: torch.Tensor | None = None) -> torch.Tensor:
         """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable;
