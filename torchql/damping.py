@@ -26,7 +26,7 @@ DAMPING_MIN = 1e-10
 DAMPING_MAX = 1e12
 #: A retry's damping must shorten the rejected trial's step at least this much along some direction
 #: (:meth:`Damping.retry`); raises that shorten it less are skipped.
-RETRY_SHORTENING = 0.05
+RETRY_SHORTENING = 0.3
 
 
 class Damping:
@@ -56,7 +56,8 @@ class Damping:
     def retry(self, damping: torch.Tensor, last: torch.Tensor, spectrum: torch.Tensor) -> torch.Tensor:
         """The damping ``(S,)`` of the retry after rejected trials made with ``damping (S,)``:
         :meth:`raised`, and raised again while it would shorten the step by less than
-        :data:`RETRY_SHORTENING` along every direction. ``spectrum (S, k)``: the squared singular
+        :data:`RETRY_SHORTENING` along every direction (as a trust region shrinks by a fixed
+        factor after a failed step). ``spectrum (S, k)``: the squared singular
         values ``r_i`` relative to the largest (NaN: a dropped direction; all NaN: no skipping)
         of the damped problem
         (:func:`torchql.lstsq.relative_spectrum`), along which damping ``lambda`` scales the step
@@ -84,7 +85,8 @@ class LevenbergMarquardt(Damping):
 
     The first raise of an iterate starts from a tenth of the previous iterate's accepted damping
     (at least ``minimum``), or from ``start`` where that one was undamped; every further
-    rejection raises it tenfold; past ``maximum`` the fit has stalled.
+    rejection raises it tenfold; past ``maximum`` the fit has stalled. The engine retries with
+    the first of these that shortens the step enough (:meth:`Damping.retry`).
     """
 
     name = "lm"

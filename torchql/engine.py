@@ -13,8 +13,8 @@ samples still running. One iteration of a sample:
    shooting's model solution), accepted when it lowers the merit or, failing that test, the
    model's own sum of squares;
 4. on rejection, Kantorovich re-anchors the undamped step about the model's own solution once,
-   then Levenberg–Marquardt damping rises tenfold per rejection until a step is accepted or the
-   iteration stalls.
+   then Levenberg–Marquardt damping rises tenfold per rejection (skipping the raises that would
+   barely shorten the step) until a step is accepted or the iteration stalls.
 
 The final pass (:mod:`torchql.engine_final`) evaluates the fitted model itself.
 """
