@@ -209,3 +209,32 @@ def test_a_start_built_from_the_data_races_its_first_trial(monkeypatch):
     assert raced.nfev < 0.85 * whole.nfev
     batch_whole = torchql.fit_many(VanDerPol(1400.0), [data, data], x0, guesses=guesses, **options)
     assert batch.nfev < 0.85 * batch_whole.nfev
+
+
+def test_auto_refits_from_the_data_where_the_integrated_start_of_a_stiff_model_fails():
+    """``initial_trajectory="auto"`` takes the integrated guesses for a stiff model; where that fit
+    fails (van der Pol from mu = 400: its solution's jumps fall inside the window, and the fit
+    ends STALLED), the sample is fitted again from the data, the one start that does not depend
+    on the guess, and the better fit is kept, its message saying what the other gave. The second
+    fit is the data-started one, bit for bit; in fit_many only the sample that needs it is
+    fitted again."""
+    from torchql.models import VanDerPol
+
+    t = torch.linspace(35.0, 700.0, 20, dtype=DT)
+    x0 = torch.tensor([2.0, 0.0], dtype=DT)
+    y = torchql.simulate(VanDerPol(1000.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                         rtol=1e-11, atol=1e-13)[1:, :1]
+    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
+    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    auto = torchql.fit(VanDerPol(400.0), data, x0, **options)
+    assert auto.success and abs(float(auto.params["mu"]) - 1000.0) < 1e-6 * 1000.0, auto.message
+    assert "Integrated from the guesses the fit ended STALLED" in auto.message
+    assert auto.message.endswith("this fit's first reference was built from the data.")
+    from_data = torchql.fit(VanDerPol(400.0), data, x0, initial_trajectory="data", **options)
+    assert torch.equal(auto.estimates, from_data.estimates) and auto.iterations == from_data.iterations
+    batch = torchql.fit_many(VanDerPol(400.0), [data, data], x0, guesses={"mu": torch.tensor([400.0, 1400.0], dtype=DT)},
+                             **options)
+    assert bool(batch.success.all())
+    assert "built from the data" in batch[0].message and "built from the data" not in batch[1].message
+    torch.testing.assert_close(batch.params["mu"], torch.full((2,), float(auto.params["mu"]), dtype=DT),
+                               rtol=1e-8, atol=0)

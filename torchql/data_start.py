@@ -13,7 +13,8 @@ so ``fit`` (one sample) and ``fit_many`` (``S`` samples) compute the same start.
 
 :func:`first_reference` is ``"auto"``'s choice between this start and the model integrated from
 the guesses; :func:`fallback_rows` and :func:`keep_the_better_fit` fit a sample again from the
-integrated guesses where its fit from the data failed, and keep the better of the two.
+other start where its fit from the first failed (from the integrated guesses after the data; from
+the data after the integrated guesses of a stiff model), and keep the better of the two.
 """
 
 from __future__ import annotations
@@ -101,23 +102,32 @@ def derivation_uses_unknowns(system, measured: list[int], unknown_index: torch.T
     return bool((J.index_select(0, rows).index_select(1, coefficients) != 0).any())
 
 
-#: The ends of a data-started fit after which ``"auto"`` fits the sample again from the integrated
-#: guesses: the start led nowhere. Not ``MAX_ITER`` or ``MAX_TIME`` (the fit was still on its way:
+#: The ends of a fit after which ``"auto"`` fits the sample again from its other first reference
+#: (:attr:`torchql.problem.Problem.start_fallback`): the start led nowhere. Not ``MAX_ITER`` or ``MAX_TIME`` (the fit was still on its way:
 #: it needs iterations or time, not another start), nor a success.
 FALLBACK_STATUSES = (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.STALLED, Status.NOT_IDENTIFIABLE)
 
+#: What :func:`keep_the_better_fit` appends to a message, by the second first reference: where its
+#: fit won (before and after the first fit's end), and where it did not (before its own end).
+_WON = {"integrate": (" From the first reference built from the data the fit ended ",
+                      "this fit integrated the model from the guesses."),
+        "data": (" Integrated from the guesses the fit ended ", "this fit's first reference was built from the data.")}
+_LOST = {"integrate": " Integrated from the guesses instead of starting from the data, the fit ended ",
+         "data": " From a first reference built from the data instead, the fit ended "}
+
 
 def fallback_rows(statuses: list) -> list[int]:
-    """The rows of a chunk's ``statuses`` (fitted from the data-built start) to fit again from the
-    integrated guesses (:data:`FALLBACK_STATUSES`)."""
+    """The rows of a chunk's ``statuses`` to fit again from the other first reference
+    (:data:`FALLBACK_STATUSES`)."""
     return [k for k, code in enumerate(statuses) if code in FALLBACK_STATUSES]
 
 
-def keep_the_better_fit(chunk: dict, rows: list[int], other: dict) -> None:
-    """Rows ``rows`` of the engine's ``chunk`` (fitted from the data) against ``other`` (the same
-    samples fitted from the integrated guesses, in that order): each keeps the better fit (a
-    success over a failure, else the lower sum of squares, a finite one over NaN), its message
-    saying what the other start gave. Updates ``chunk`` in place."""
+def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start: str = "integrate") -> None:
+    """Rows ``rows`` of the engine's ``chunk`` against ``other`` (the same samples fitted from the
+    ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s from the
+    other one): each keeps the better fit (a success over a failure, else the lower sum of
+    squares, a finite one over NaN), its message saying what the other start gave. Updates
+    ``chunk`` in place."""
     S = len(chunk["status"])
     for j, k in enumerate(rows):
         first, second = chunk["status"][k], other["status"][j]
@@ -128,11 +138,10 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict) -> None:
             for key, value in chunk.items():
                 if isinstance(value, list) or (isinstance(value, torch.Tensor) and value.shape[:1] == (S,)):
                     value[k] = other[key][j]
-            chunk["message"][k] += (f" From the first reference built from the data the fit ended {first.name}"
-                                    f" (SSE {sse_first:.6g}); this fit integrated the model from the guesses.")
+            said = _WON[second_start]
+            chunk["message"][k] += said[0] + f"{first.name} (SSE {sse_first:.6g}); " + said[1]
         else:
-            chunk["message"][k] += (f" Integrated from the guesses instead of starting from the data, the fit"
-                                    f" ended {second.name} (SSE {sse_second:.6g}).")
+            chunk["message"][k] += _LOST[second_start] + f"{second.name} (SSE {sse_second:.6g})."
 
 
 def slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:

@@ -87,9 +87,10 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
                 chunk = engine.run(step)
                 nfev += engine.nfev
                 retry = fallback_rows(chunk["status"]) if spec.start_fallback else []
-                if retry:  # "auto": where the data-built start failed, the fit from the integrated guesses
-                    again = Engine(spec, index[retry], max_time, history=history, callback=callback, start="integrate")
-                    keep_the_better_fit(chunk, retry, again.run(lambda count: None))
+                if retry:  # "auto": where the first reference failed, the fit from the other one
+                    again = Engine(spec, index[retry], max_time, history=history, callback=callback,
+                                   start=spec.start_fallback)
+                    keep_the_better_fit(chunk, retry, again.run(lambda count: None), spec.start_fallback)
                     nfev += again.nfev
                 out_z0[index] = chunk["z0"]
                 for key in out:

@@ -175,7 +175,8 @@ def fit(
         measured directly at four or more times, unmeasured states that only the unknown
         coefficients would give, a stiff model, ``max_iter=0``); a fit from the data that ends
         ``DIVERGED``, ``INTEGRATION_FAILED``, ``STALLED`` or ``NOT_IDENTIFIABLE`` is run again
-        from the integrated guesses and the better of the two kept, its message saying so.
+        from the integrated guesses and the better of the two kept, its message saying so (and
+        the other way round where only the stiffness chose the integrated guesses).
         ``"integrate"``: the nonlinear model integrated from the guesses (the thesis' start;
         its first iterate is the guesses). ``"data"``: built from the data, so that no
         integration from poor guesses is needed: directly

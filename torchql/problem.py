@@ -89,12 +89,22 @@ class Problem:
         self._solver_and_grid(grid, linear_solver)
         given = self.initial_trajectory
         t0 = self.t0 if self.t0.dim() == 0 else self.t0[0]
-        self.initial_trajectory = first_reference(
-            given, self.scheme, self.operator.observed_states, self.mask, stiff=self.solver in STIFF_SOLVERS,
-            max_iter=self.max_iter, derivation_uses_unknowns=lambda measured: derivation_uses_unknowns(
-                self.system, measured, self.unknown_index, self.z0[0], t0))
-        #: ``"auto"`` chose the data: a sample whose fit fails is fitted again from the integrated guesses
-        self.start_fallback = given == "auto" and self.initial_trajectory == "data"
+
+        def choose(stiff: bool) -> str:
+            return first_reference(given, self.scheme, self.operator.observed_states, self.mask, stiff=stiff,
+                                   max_iter=self.max_iter, derivation_uses_unknowns=lambda measured:
+                                   derivation_uses_unknowns(self.system, measured, self.unknown_index, self.z0[0], t0))
+        stiff = self.solver in STIFF_SOLVERS
+        self.initial_trajectory = choose(stiff)
+        #: ``"auto"``'s other first reference (None: none): a sample whose fit from the chosen one
+        #: fails is fitted again from it. The integrated guesses after the data; the data after
+        #: the integrated guesses where only the stiffness chose these (the data's values are
+        #: the one start that does not depend on how poor the guesses are)
+        self.start_fallback = None
+        if given == "auto" and self.initial_trajectory == "data":
+            self.start_fallback = "integrate"
+        elif given == "auto" and stiff and choose(False) == "data":
+            self.start_fallback = "data"
         self.model = user_model
 
     def _options(self, model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
