@@ -57,13 +57,14 @@ class Damping:
         """The damping ``(S,)`` of the retry after rejected trials made with ``damping (S,)``:
         :meth:`raised`, and raised again while it would shorten the step by less than
         :data:`RETRY_SHORTENING` along every direction (as a trust region shrinks by a fixed
-        factor after a failed step). ``spectrum (S, k)``: the squared singular
-        values ``r_i`` relative to the largest (NaN: a dropped direction; all NaN: no skipping)
-        of the damped problem
-        (:func:`torchql.lstsq.relative_spectrum`), along which damping ``lambda`` scales the step
-        by ``r_i / (r_i + lambda)``. A raise that barely shortens the step (the first tenfold
-        raises of a well-conditioned problem, all of whose ``r_i`` exceed it) retries nearly the
-        same trial, for nearly the same outcome at the cost of a whole evaluation. ``last``: as
+        factor after a failed step).
+
+        ``spectrum (S, k)``: the squared singular values ``r_i`` of the damped problem relative
+        to the largest (:func:`torchql.lstsq.relative_spectrum`; NaN: a dropped direction; all
+        NaN: no skipping), along which damping ``lambda`` scales the step by ``r_i / (r_i +
+        lambda)``. A raise that barely shortens the step (the first tenfold raises of a
+        well-conditioned problem, all of whose ``r_i`` exceed it) retries nearly the same trial,
+        for nearly the same outcome at the cost of a whole evaluation. ``last``: as
         :meth:`raised`'s."""
         new = self.raised(damping, last)
         for _ in range(32):  # (a bound: each raise at least tenfold)

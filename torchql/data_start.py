@@ -103,8 +103,9 @@ def derivation_uses_unknowns(system, measured: list[int], unknown_index: torch.T
 
 
 #: The ends of a fit after which ``"auto"`` fits the sample again from its other first reference
-#: (:attr:`torchql.problem.Problem.start_fallback`): the start led nowhere. Not ``MAX_ITER`` or ``MAX_TIME`` (the fit was still on its way:
-#: it needs iterations or time, not another start), nor a success.
+#: (:attr:`torchql.problem.Problem.start_fallback`): the start led nowhere. Not ``MAX_ITER`` or
+#: ``MAX_TIME`` (the fit was still on its way: it needs iterations or time, not another start),
+#: nor a success.
 FALLBACK_STATUSES = (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.STALLED, Status.NOT_IDENTIFIABLE)
 
 #: What :func:`keep_the_better_fit` appends to a message, by the second first reference: where its
@@ -124,8 +125,8 @@ def fallback_rows(statuses: list) -> list[int]:
 
 def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start: str = "integrate") -> None:
     """Rows ``rows`` of the engine's ``chunk`` against ``other`` (the same samples fitted from the
-    ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s from the
-    other one): each keeps the better fit (a success over a failure, else the lower sum of
+    ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s
+    from the other one): each keeps the better fit (a success over a failure, else the lower sum of
     squares, a finite one over NaN), its message saying what the other start gave. Updates
     ``chunk`` in place."""
     S = len(chunk["status"])
