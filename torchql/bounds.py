@@ -242,6 +242,11 @@ class Bounds:
         d = torch.where(both, (s - lo) * (hi - s) / (hi - lo), d)
         return torch.where(self.log, d * u, d)
 
+    def internal_columns(self, C: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Least-squares columns ``C (S, R, m)`` of the unknowns at ``u (S, m)`` as columns of the
+        internal variables, ``C du/dq`` (``C`` itself where no bound is active)."""
+        return C * self.derivative(u).unsqueeze(1) if self.active else C
+
     def step(self, u: torch.Tensor, alpha_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The change of ``u`` when ``q`` moves by ``alpha_q``; the result stays strictly inside.
 

@@ -184,7 +184,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             alpha, infeasible = self._lstsq(idx, C, d, w, damping)
             return alpha, torch.zeros_like(infeasible), infeasible
         u = _pick(cur["z0"], idx)[:, spec.unknown_index]
-        Cq = C * bounds.derivative(u).unsqueeze(1)
+        Cq = bounds.internal_columns(C, u)
         alpha_q, infeasible = self._lstsq(idx, Cq, d, w, damping)
         capped = bounds._capped(alpha_q, u).any(dim=1)
         alpha, blocked = bounds.step(u, alpha_q)
@@ -499,10 +499,9 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         raise_rows = rejected[~torch.isin(rejected, anchored)]
         if not raise_rows.numel():
             return
-        C, w = _pick(st.cur["C"], raise_rows), _pick(st.cur["w"], raise_rows)
-        if spec.bounds.active:  # the problem damped is in the internal variables
-            C = C * spec.bounds.derivative(_pick(st.cur["z0"], raise_rows)[:, spec.unknown_index]).unsqueeze(1)
-        spectrum = relative_spectrum(C, w, spec.rcond)  # (exact values: another problem, no skipping)
+        u = _pick(st.cur["z0"], raise_rows)[:, spec.unknown_index]  # the problem damped: in the internal variables
+        C = spec.bounds.internal_columns(_pick(st.cur["C"], raise_rows), u)
+        spectrum = relative_spectrum(C, _pick(st.cur["w"], raise_rows), spec.rcond)  # (exact values: no skipping)
         if spec.has_exact:
             spectrum[self.exact[raise_rows].any(dim=1)] = float("nan")
         d = spec.damping.retry(st.damping[raise_rows], st.last_damping[raise_rows], spectrum)
