@@ -139,6 +139,21 @@ def test_van_der_pol_from_a_third_of_mu_reaches_the_truth_from_the_data():
     assert abs(float(r.params["mu"]) - 1000.0) / 1000.0 < 1e-6
 
 
+def _van_der_pol(t: torch.Tensor, noise_seed: int | None = None) -> tuple:
+    """Van der Pol with mu = 1000 from (2, 0): y at times ``t`` (noise 0.01 from ``noise_seed``, or
+    exact), its start and the options that fit mu alone (positive) at rtol 1e-8: ``(data, x0, options)``."""
+    from torchql.models import VanDerPol
+
+    x0 = torch.tensor([2.0, 0.0], dtype=DT)
+    y = torchql.simulate(VanDerPol(1000.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                         rtol=1e-11, atol=1e-13)[1:, :1]
+    if noise_seed is not None:
+        y = y + 0.01 * torch.randn(y.shape, generator=torch.Generator().manual_seed(noise_seed), dtype=DT)
+    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
+    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    return data, x0, options
+
+
 @pytest.mark.slow
 def test_a_rejected_trials_model_solution_stops_once_it_cannot_beat_the_current_one(monkeypatch):
     """Van der Pol with mu = 1000 from mu = 3000 at the defaults: the first Gauss–Newton steps land
@@ -150,12 +165,7 @@ def test_a_rejected_trials_model_solution_stops_once_it_cannot_beat_the_current_
     import torchql.engine_evaluate as engine_evaluate
     from torchql.models import VanDerPol
 
-    t = torch.linspace(35.0, 700.0, 20, dtype=DT)
-    x0 = torch.tensor([2.0, 0.0], dtype=DT)
-    y = torchql.simulate(VanDerPol(1000.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
-                         rtol=1e-11, atol=1e-13)[1:, :1]
-    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
-    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    data, x0, options = _van_der_pol(torch.linspace(35.0, 700.0, 20, dtype=DT))
     stopping = torchql.fit(VanDerPol(3000.0), data, x0, **options)
     assert stopping.success, stopping.message
     # the case in question: the undamped step rejected, its retry at damping 1 accepted (the raises
@@ -185,14 +195,8 @@ def test_a_start_built_from_the_data_races_its_first_trial(monkeypatch):
     import torchql.engine_evaluate as engine_evaluate
     from torchql.models import VanDerPol
 
-    t = torch.linspace(17.5, 700.0, 40, dtype=DT)
-    x0 = torch.tensor([2.0, 0.0], dtype=DT)
-    y = torchql.simulate(VanDerPol(1000.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
-                         rtol=1e-11, atol=1e-13)[1:, :1]
-    y = y + 0.01 * torch.randn(40, 1, generator=torch.Generator().manual_seed(1), dtype=DT)
-    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
-    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10,
-                   initial_trajectory="data")
+    data, x0, options = _van_der_pol(torch.linspace(17.5, 700.0, 40, dtype=DT), noise_seed=1)
+    options["initial_trajectory"] = "data"
     raced = torchql.fit(VanDerPol(1400.0), data, x0, **options)
     assert raced.success, raced.message
     start, first = raced.history[0], raced.history[1]
@@ -220,12 +224,7 @@ def test_auto_refits_from_the_data_where_the_integrated_start_of_a_stiff_model_f
     fitted again."""
     from torchql.models import VanDerPol
 
-    t = torch.linspace(35.0, 700.0, 20, dtype=DT)
-    x0 = torch.tensor([2.0, 0.0], dtype=DT)
-    y = torchql.simulate(VanDerPol(1000.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
-                         rtol=1e-11, atol=1e-13)[1:, :1]
-    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
-    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    data, x0, options = _van_der_pol(torch.linspace(35.0, 700.0, 20, dtype=DT))
     auto = torchql.fit(VanDerPol(400.0), data, x0, **options)
     assert auto.success and abs(float(auto.params["mu"]) - 1000.0) < 1e-6 * 1000.0, auto.message
     assert "Integrated from the guesses the fit ended STALLED" in auto.message
