@@ -70,10 +70,6 @@ class LinearizedReference:
         self.f_dot = lin.f_dot
         self.jac_dot = lin.jac_dot
 
-    def slopes_of(self, z_new: torch.Tensor) -> torch.Tensor:
-        """Slopes at the nodes of a solution ``z_new (G, M)`` of this linear system."""
-        return self.f + torch.einsum("gij,gj->gi", self.jac, z_new - self.z)
-
 
 class IntervalSystem:
     """All grid intervals' transfer problems as one system in the local time ``s`` in ``[0, 1]``.
