@@ -1,8 +1,9 @@
 """Every grid interval's transfer at once, from the Taylor series of its solution.
 
-Between two grid nodes the reference ``z``, ``h f`` and ``h A`` are cubic Hermite interpolants,
-polynomials in the local time ``s`` in ``[0, 1]``; so is the forcing ``h B = h f - h A z`` (of
-degree 6). The interval's transfer ``T(s) = [[Phi(s), c(s)], [0, 1]]`` solves ``T' = X(s) T``,
+Between two grid nodes the reference ``z``, ``h f`` and ``h A`` are Hermite interpolants,
+polynomials in the local time ``s`` in ``[0, 1]``: cubic (the default propagator), or, for ``z``
+and ``h f``, quintic (:mod:`torchql.propagators.quintic`); so is the forcing ``h B = h f - h A z``
+(of degree 6, or 8). The interval's transfer ``T(s) = [[Phi(s), c(s)], [0, 1]]`` solves ``T' = X(s) T``,
 ``T(0) = I``, with ``X = [[h A, h B], [0, 0]]`` a polynomial, so its Taylor coefficients follow
 exactly from the recurrence
 
@@ -13,8 +14,8 @@ solution is entire). Only the rows of the components that change (the "active" o
 stored; ``T_k`` for ``k >= 1`` is zero elsewhere, so a product ``X_i T_j`` needs only the
 active-by-active block ``A_aa`` of ``h A``.
 
-**Truncation, bounded rather than estimated.** ``X_k`` is zero past degree 6, so once
-``T_1 .. T_K`` (``K >= 7``) are summed, the remainder ``R(s) = sum_{k>K} T_k s^k`` solves
+**Truncation, bounded rather than estimated.** ``X_k`` is zero past the forcing's degree ``d``
+(6 or 8), and ``h A`` is cubic, so once ``T_1 .. T_K`` (``K > d``) are summed, the remainder ``R(s) = sum_{k>K} T_k s^k`` solves
 ``R' = A_aa R + g`` with ``R(0) = 0``, where ``g`` is the part of degree ``K .. K+3`` of ``A_aa``
 times the terms summed, known from the last four of them. With ``rho = sum_i ||A_aa,i||_inf``
 (a bound on ``||h A_aa(s)||`` over the interval), Gronwall's inequality bounds ``||R(1)||`` column
@@ -27,7 +28,7 @@ rounding.
 two, ``rho / n <= RHO_MAX``): the series' terms then decrease from the start, so rounding does
 not grow by cancellation (at most by ``e^RHO_MAX``), and the substeps' transfers are composed by
 products. Each substep gets ``1 / n`` of the interval's tolerance. The polynomial coefficients of
-a substep are those of the interval shifted and scaled exactly (one 4x4 matrix per substep
+a substep are those of the interval shifted and scaled exactly (one square matrix per substep
 acting on the interval's power-basis coefficients).
 
 Compared with the RK4 step doubling of :mod:`torchql.transfer` (which evaluates the
@@ -58,12 +59,7 @@ _MAX_TERMS = 48
 #: Most interval-substeps integrated in one batch (larger batches cost fewer Python dispatches,
 #: smaller ones stay in cache; 2^14 was the fastest of 2^11 .. 2^17 on 10^5 intervals).
 _CHUNK = 1 << 14
-#: Terms summed before the truncation bound is first tested (then after every term): the bound
-#: holds from ``T_7`` on, the last term with forcing; testing costs about as much as a term.
-_FIRST_TEST = 8
-#: Degree of the forcing ``h B`` in local time (``h f`` cubic, ``h A z`` of degree 3 + 3).
-_FORCING_DEGREE = 6
-#: Degree of the Hermite interpolants (``z``, ``h f``, ``h A``).
+#: Degree of the interpolant of ``h A`` (cubic Hermite) in local time.
 _HERMITE_DEGREE = 3
 
 
@@ -92,49 +88,59 @@ class SeriesTransfers(NamedTuple):
     points: int
 
 
-def _substep_matrices(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``W (n, 4, 4)``: ``W[m, k, j]`` is the coefficient of ``sigma^j`` of ``s^k`` at ``s = (m + sigma) / n``.
+def _forcing_degree(degree: int) -> int:
+    """Degree of the forcing ``h B = h f - h A z`` when ``z`` and ``h f`` have ``degree`` and ``h A``
+    is cubic; the terms up to it are summed before the truncation bound is first tested (it holds
+    from the first term without forcing on; testing costs about as much as a term)."""
+    return degree + _HERMITE_DEGREE
 
-    So a cubic ``sum_k c_k s^k`` is ``sum_j (sum_k c_k W[m, k, j]) sigma^j`` on substep ``m``.
+
+def _substep_matrices(n: int, dtype: torch.dtype, device: torch.device, degree: int = 3) -> torch.Tensor:
+    """``W (n, D, D)``, ``D = degree + 1``: ``W[m, k, j]`` is the coefficient of ``sigma^j`` of ``s^k``
+    at ``s = (m + sigma) / n``.
+
+    So a polynomial ``sum_k c_k s^k`` is ``sum_j (sum_k c_k W[m, k, j]) sigma^j`` on substep ``m``.
     """
-    shift = torch.zeros(n, 4, 4, dtype=torch.float64)
+    shift = torch.zeros(n, degree + 1, degree + 1, dtype=torch.float64)
     for m in range(n):
-        for k in range(4):
+        for k in range(degree + 1):
             for j in range(k + 1):
                 shift[m, k, j] = math.comb(k, j) * (m / n) ** (k - j) * (1.0 / n) ** j
     return shift.to(dtype=dtype, device=device)
 
 
 def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
-    """Power-basis coefficients ``(4, Q, n I)`` of the ``n`` substeps of every interval, substep-major.
+    """Power-basis coefficients ``(D, Q, n I)`` of the ``n`` substeps of every interval, substep-major.
 
-    ``data (4, Q, I)``: the intervals' power-basis coefficients (:class:`torchql.transfer._Coefficients`),
+    ``data (D, Q, I)``: the intervals' power-basis coefficients (:class:`torchql.transfer._Coefficients`),
     returned as they are for one substep. For more, each substep's are those of the interval
     shifted and scaled exactly, and the rows of ``h f`` and ``h A`` (all but the first ``M``) are
     divided by ``n``, the substep's length.
     """
     if n == 1:
         return data
-    Q, I = data.shape[1:]
-    W = _substep_matrices(n, data.dtype, data.device)  # (n, 4, 4)
-    mono = (W.permute(0, 2, 1).reshape(4 * n, 4) @ data.reshape(4, Q * I)).reshape(n, 4, Q, I)
-    out = mono.permute(1, 2, 0, 3).reshape(4, Q, n * I)
+    D, Q, I = data.shape
+    W = _substep_matrices(n, data.dtype, data.device, D - 1)  # (n, D, D)
+    mono = (W.permute(0, 2, 1).reshape(D * n, D) @ data.reshape(D, Q * I)).reshape(n, D, Q, I)
+    out = mono.permute(1, 2, 0, 3).reshape(D, Q, n * I)
     out[:, M:] /= n
     return out
 
 
 def _norms(mono: torch.Tensor, a: int, M: int) -> torch.Tensor:
-    """``||A_aa,k||_inf (4, J)`` per interval-substep, from power-basis coefficients ``(4, Q, J)``.
+    """``||A_aa,k||_inf (4, J)`` per interval-substep, from power-basis coefficients ``(D, Q, J)``
+    (``h A``'s degrees above 3 are zero).
 
     Their sum ``rho`` bounds ``||h A_aa(s)||_inf`` on the substep.
     """
-    A_aa = mono[:, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (4, a, a, J)
+    A_aa = mono[:_HERMITE_DEGREE + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (4, a, a, J)
     return A_aa[:, 0, 0] if a == 1 else A_aa.sum(dim=2).amax(dim=1)
 
 
 def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float, r: torch.Tensor | None = None
             ) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """Transfers ``(a, M+1, J)`` of substeps from their power-basis coefficients ``(4, Q, J)``.
+    """Transfers ``(a, M+1, J)`` of substeps from their power-basis coefficients ``(D, Q, J)``
+    (``z`` and ``h f`` of degree ``D - 1``, ``h A`` cubic).
 
     ``r (4, J)``: the norms ``||A_aa,i||_inf`` of the coefficients, if already at hand (:func:`_norms`).
 
@@ -142,15 +148,17 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
     substep's share ``1 / n`` of it) and the number of terms summed.
     """
     P = M + 1
-    z = mono[:, :M]  # (4, M, J)
-    fA = mono[:, M:].unflatten(1, (a, P))  # (4, a, P, J): column 0 = h f, then h A
+    degree = mono.shape[0] - 1
+    forcing_degree = _forcing_degree(degree)
+    z = mono[:, :M]  # (D, M, J)
+    fA = mono[:, M:].unflatten(1, (a, P))  # (D, a, P, J): column 0 = h f, then h A
     F, A = fA[:, :, 0], fA[:, :, 1:]
     A_aa = A[:, :, :a]
-    # the forcing h B = h f - h A z, a polynomial of degree 6
-    B = F.new_zeros(_FORCING_DEGREE + 1, a, F.shape[-1])
-    B[:_HERMITE_DEGREE + 1] = F
+    # the forcing h B = h f - h A z, a polynomial of degree forcing_degree
+    B = F.new_zeros(forcing_degree + 1, a, F.shape[-1])
+    B[:degree + 1] = F
     for i in range(_HERMITE_DEGREE + 1):
-        B[i:i + _HERMITE_DEGREE + 1] -= (A[i].unsqueeze(0) * z.unsqueeze(1)).sum(dim=2)
+        B[i:i + degree + 1] -= (A[i].unsqueeze(0) * z.unsqueeze(1)).sum(dim=2)
     if r is None:
         r = _norms(mono, a, M)
     growth = r.sum(dim=0).exp()  # e^rho, rho = sum_i ||A_aa,i|| >= ||A_aa(s)|| on the substep
@@ -168,13 +176,13 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
                 new.addcmul_(A_aa[i, :, c].unsqueeze(1), previous[c].unsqueeze(0))
         if k <= _HERMITE_DEGREE:
             new[:, :M] += A[k]
-        if k <= _FORCING_DEGREE:
+        if k <= forcing_degree:
             new[:, M] += B[k]
         new /= k + 1
         recent = recent[-3:] + [new]
         T += new
         k += 1
-        if k >= _FIRST_TEST:  # (< _MAX_TERMS: the cap below always follows a test)
+        if k > forcing_degree + 1:  # (< _MAX_TERMS: the cap below always follows a test)
             norms = torch.stack(recent).abs()  # (4, a, P, J) -> (4, P, J): ||T_{k-3}||, .., ||T_k|| by column
             norms = norms[:, 0] if a == 1 else norms.amax(dim=1)
             weights = _tail_weights(k, r)  # (4, J) in the same order
@@ -199,8 +207,8 @@ def _tail_weights(K: int, r: torch.Tensor) -> torch.Tensor:
 
     The remainder ``R = sum_{k>K} T_k s^k`` solves ``R' = A_aa R + g`` with ``R(0) = 0``, where
     ``g`` collects the degrees ``K .. K+3`` of ``A_aa (sum_{k<=K} T_k s^k)``:
-    ``g_{K+j} = sum_{i>=j} A_i T_{K+j-i}`` (``K >= 7``: the forcing and the constant columns,
-    of degree at most 6, are matched by the terms summed). Gronwall's inequality with
+    ``g_{K+j} = sum_{i>=j} A_i T_{K+j-i}`` (``K`` above the forcing's degree: the forcing and
+    the constant columns are matched by the terms summed). Gronwall's inequality with
     ``||A_aa(s)|| <= rho`` gives ``||R(1)|| <= e^rho sum_j ||g_{K+j}|| / (K+j+1)``, column by column,
     so ``T_{K-d}`` weighs ``sum_{j<=3-d} ||A_{j+d}|| / (K+j+1)``.
     """
@@ -290,15 +298,16 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
     return SeriesTransfers(Y, failed, substeps, counts[0], counts[1])
 
 
-def taylor_transfers(system: IntervalSystem, *, rtol: float, atol: float,
-                     max_substeps: int = 1024) -> tuple[Transfers, int]:
+def taylor_transfers(system: IntervalSystem, *, rtol: float, atol: float, max_substeps: int = 1024,
+                     coefficients: _Coefficients | None = None) -> tuple[Transfers, int]:
     """Transfers ``T_j`` of all grid intervals of ``system``, each within the tolerance, by their Taylor series.
 
+    ``coefficients``: the intervals' interpolants (default the cubic Hermite ones of ``system``).
     Returns the transfers and the series terms computed (one term of all the intervals of a
     batch counts one). Raises :class:`~torchql.integrate.IntegrationError` when an interval
     needs more than ``max_substeps`` substeps or its transfer is not finite.
     """
-    coefficients = _Coefficients(system)
+    coefficients = _Coefficients(system) if coefficients is None else coefficients
     out = series_transfers(coefficients, rtol=rtol, atol=atol, max_substeps=max_substeps)
     if bool(out.failed.any()):
         bad = out.failed.nonzero().flatten()
