@@ -40,13 +40,16 @@ from .model import AugmentedSystem
 from .taylor import series_transfers
 from .transfer import _Coefficients, hermite_to_power, prefix_products
 
-__all__ = ["propagate_linear_batch", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
+__all__ = ["propagate_linear_batch", "interval_coefficients", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
 
 
-def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) -> _Coefficients:
+def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, degree: int = 3
+                          ) -> _Coefficients:
     """The interval coefficients of ``S`` samples, as :class:`torchql.transfer._Coefficients` holds them.
 
-    ``t``: the shared grid ``(G,)`` or per-sample grids ``(S, G)``.
+    ``t``: the shared grid ``(G,)`` or per-sample grids ``(S, G)``. ``degree``: that of the
+    interpolants of ``z`` and ``h f``, 3 (cubic Hermite) or 5 (quintic, see
+    :func:`_quintic_rows`); ``h A`` is cubic either way.
 
     Built from the node values directly (the intervals' arrays of
     :class:`torchql.trajectory.IntervalSystem` are never formed): interval ``s (G-1) + j`` is
@@ -99,7 +102,59 @@ def _coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin) ->
               (slopes, end, slope_scale))
     for b, (source, side, scale) in enumerate(blocks):
         torch.mul(source[..., side], scale, out=data[b])
-    return _Coefficients.of(hermite_to_power(data.reshape(4, Q, S * (G - 1))), order, a, M)
+    power = hermite_to_power(data.reshape(4, Q, S * (G - 1)))
+    if degree == 5:
+        power = _quintic_rows(power, values, slopes, h, z_dot, lin, perm, a)
+    elif degree != 3:
+        raise ValueError(f"`degree` must be 3 or 5; received {degree}")
+    return _Coefficients.of(power, order, a, M)
+
+
+def _quintic_rows(power: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, h: torch.Tensor,
+                  z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> torch.Tensor:
+    """The cubic coefficients ``power (4, Q, S N)`` with the rows of ``z`` and ``h f`` made quintic
+    Hermite interpolants: ``(6, Q, S N)`` (``h A``'s rows keep degree 3, zero above).
+
+    The second derivatives along the reference are ``z'' = f'`` (the reference's own second
+    derivative wherever it solves the model: at a converged iterate) and ``f'' = A' z' + A f'``,
+    exact where ``f`` has no explicit time dependence; a sample's component whose ``f'`` is not
+    ``A z'`` to rounding at some node keeps its cubic ``h f`` row. ``values``, ``slopes``
+    ``(Q, S, G)``: node values and slopes, component-major and in stored order (``perm``, the
+    ``a`` active components first); ``h (1, 1 or S, N)``.
+    """
+    M = perm.numel()
+    S, G = values.shape[1:]
+    act = perm[:a]
+    f_dot, jac = lin.f_dot, lin.jac
+    f_ddot = torch.einsum("sgij,sgj->sgi", lin.jac_dot, z_dot) + torch.einsum("sgij,sgj->sgi", jac, f_dot)
+    f_t = f_dot - torch.einsum("sgij,sgj->sgi", jac, z_dot)  # zero without explicit time dependence
+    size = torch.einsum("sgij,sgj->sgi", jac.abs(), z_dot.abs()) + f_dot.abs()
+    autonomous = (f_t.abs() <= 64 * torch.finfo(f_t.dtype).eps * size).all(dim=1)  # (S, M)
+    rows = torch.cat([torch.arange(M, device=perm.device), M + torch.arange(a, device=perm.device) * (M + 1)])
+    second = torch.cat([f_dot[..., perm], f_ddot[..., act]], dim=-1).permute(2, 0, 1)  # (M + a, S, G)
+    # z's rows: value, h z', h^2 z''; h f's rows: h f, h^2 f', h^3 f''
+    power_of_h = torch.cat([torch.zeros(M), torch.ones(a)]).to(h).reshape(-1, 1, 1)
+    scale = h ** power_of_h  # (M + a, 1 or S, N)
+    start, end = slice(0, G - 1), slice(1, G)
+    v, d = values[rows], slopes[rows]
+    quintic = _hermite5(v[..., start] * scale, d[..., start] * scale * h, second[..., start] * scale * h * h,
+                        v[..., end] * scale, d[..., end] * scale * h, second[..., end] * scale * h * h)
+    out = power.new_zeros(6, *power.shape[1:])
+    out[:4] = power
+    cubic = out[:, rows].unflatten(-1, (S, G - 1))  # (6, M + a, S, N)
+    quintic_row = torch.cat([torch.ones(S, M, dtype=torch.bool, device=perm.device), autonomous[:, act]], dim=1)
+    chosen = torch.where(quintic_row.T.unsqueeze(-1), quintic, cubic)
+    out[:, rows] = chosen.flatten(-2)
+    return out
+
+
+def _hermite5(v0, d0, s0, v1, d1, s1) -> torch.Tensor:
+    """Power-basis coefficients ``(6, ...)`` on ``s`` in ``[0, 1]`` of the quintic with values ``v``,
+    scaled slopes ``d`` and scaled second derivatives ``s`` at both ends."""
+    r0 = v1 - v0 - d0 - s0 / 2
+    r1 = d1 - d0 - s0
+    r2 = s1 - s0
+    return torch.stack([v0, d0, s0 / 2, 10 * r0 - 4 * r1 + r2 / 2, -15 * r0 + 7 * r1 - r2, 6 * r0 - 3 * r1 + r2 / 2])
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
@@ -142,7 +197,7 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
     if G == 1:
         return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), 0
     N = G - 1
-    coefficients = _coefficients(t, z, z_dot, lin)
+    coefficients = interval_coefficients(t, z, z_dot, lin, 3 if propagator is None else propagator.hermite_degree)
     series = _taylor_series if propagator is None else propagator.series
     if t.dim() == 1:
         rtol_j, atol_j = interval_tolerances(rtol, atol, N, z.dtype)

@@ -80,6 +80,7 @@ class IntervalSystem:
     """
 
     def __init__(self, ref: LinearizedReference) -> None:
+        self.reference = ref
         self.t_start = ref.t[:-1]
         self.h = ref.t[1:] - ref.t[:-1]
         hv = self.h.unsqueeze(-1)

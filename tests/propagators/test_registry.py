@@ -20,8 +20,8 @@ def data():
 
 
 def test_the_built_in_names_are_registered_and_resolve_to_their_objects():
-    assert tuple(PROPAGATORS)[:6] == torchql.LINEAR_SOLVERS == ("taylor", "rk4_doubling", "torchdiffeq", "exponential",
-                                                               "radau", "rodas5p")
+    assert tuple(PROPAGATORS)[:7] == torchql.LINEAR_SOLVERS == ("taylor", "rk4_doubling", "torchdiffeq", "exponential",
+                                                               "radau", "rodas5p", "taylor_quintic")
     assert isinstance(linear_propagator("taylor"), TaylorSeries)
     assert isinstance(linear_propagator("rk4_doubling"), RK4Doubling)
     assert isinstance(linear_propagator("torchdiffeq"), Torchdiffeq)

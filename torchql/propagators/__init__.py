@@ -11,9 +11,10 @@ Registered: ``"taylor"`` (default, :mod:`.taylor`), ``"rk4_doubling"`` (:mod:`.r
 ``"torchdiffeq"`` (:mod:`.torchdiffeq`), ``"exponential"`` (:mod:`.exponential`: the matrix
 exponential of frozen coefficients corrected by Radau IIA collocation, exact for constant
 coefficients and stable for stiff ``A``), ``"radau"`` (the same module: Radau IIA collocation of
-the whole transfer, for every stiffness; what ``solver="auto"`` takes for a stiff model) and
+the whole transfer, for every stiffness; what ``solver="auto"`` takes for a stiff model),
 ``"rodas5p"`` (the same module: ``"radau"``, but where the reference is the model's own solution
-its sensitivities are integrated with it by Rodas5P, on its adaptive steps).
+its sensitivities are integrated with it by Rodas5P, on its adaptive steps) and ``"taylor_quintic"``
+(:mod:`.quintic`: ``"taylor"``'s series over quintic interpolants of the reference and ``h f``).
 """
 
 from __future__ import annotations
@@ -21,11 +22,12 @@ from __future__ import annotations
 from ..registry import Registry
 from ._base import LinearPropagator
 from .exponential import ExponentialRadau, RadauCollocation, SensitivityRodas
+from .quintic import TaylorQuintic
 from .rk4 import RK4Doubling
 from .taylor import TaylorSeries
 from .torchdiffeq import Torchdiffeq
 
-__all__ = ["LinearPropagator", "TaylorSeries", "RK4Doubling", "Torchdiffeq", "ExponentialRadau", "RadauCollocation",
+__all__ = ["LinearPropagator", "TaylorSeries", "TaylorQuintic", "RK4Doubling", "Torchdiffeq", "ExponentialRadau", "RadauCollocation",
            "SensitivityRodas",
            "PROPAGATORS", "DEFAULT_PROPAGATOR",
            "register_propagator", "linear_propagator"]
@@ -61,5 +63,5 @@ def linear_propagator(value: "str | LinearPropagator", arg: str = "linear_solver
 
 
 for _propagator in (TaylorSeries(), RK4Doubling(), Torchdiffeq(), ExponentialRadau(), RadauCollocation(),
-                    SensitivityRodas()):
+                    SensitivityRodas(), TaylorQuintic()):
     register_propagator(_propagator)

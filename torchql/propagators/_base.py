@@ -24,11 +24,15 @@ class LinearPropagator:
         Whether, where the reference is the model's own solution (shooting's iterates, every
         fit's final pass), the homogeneous solutions are integrated together with that solution
         by Rodas5P (:mod:`torchql.solvers.sensitivity`) instead of by this propagator's transfers.
+    hermite_degree : int
+        Degree of the interpolants of the reference ``z`` and of ``h f`` between grid nodes in
+        the coefficients :meth:`series` receives: 3 (cubic Hermite) or 5 (quintic).
     """
 
     name: str = ""
     grid_solver: bool = True
     with_solution: bool = False
+    hermite_degree: int = 3
 
     def transfers(self, system: "IntervalSystem", *, rtol: float, atol: float, solver: str,
                   max_steps: int | None) -> "tuple[Transfers, int]":
