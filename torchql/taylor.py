@@ -3,9 +3,9 @@
 Between two grid nodes the reference ``z``, ``h f`` and ``h A`` are Hermite interpolants,
 polynomials in the local time ``s`` in ``[0, 1]``: cubic (the default propagator), or, for ``z``
 and ``h f``, quintic (:mod:`torchql.propagators.quintic`); so is the forcing ``h B = h f - h A z``
-(of degree 6, or 8). The interval's transfer ``T(s) = [[Phi(s), c(s)], [0, 1]]`` solves ``T' = X(s) T``,
-``T(0) = I``, with ``X = [[h A, h B], [0, 0]]`` a polynomial, so its Taylor coefficients follow
-exactly from the recurrence
+(of degree 6, or 8). The interval's transfer ``T(s) = [[Phi(s), c(s)], [0, 1]]`` solves
+``T' = X(s) T``, ``T(0) = I``, with ``X = [[h A, h B], [0, 0]]`` a polynomial, so its Taylor coefficients
+follow exactly from the recurrence
 
     ``(k + 1) T_{k+1} = sum_i X_i T_{k-i}``,
 
@@ -14,15 +14,15 @@ solution is entire). Only the rows of the components that change (the "active" o
 stored; ``T_k`` for ``k >= 1`` is zero elsewhere, so a product ``X_i T_j`` needs only the
 active-by-active block ``A_aa`` of ``h A``.
 
-**Truncation, bounded rather than estimated.** ``X_k`` is zero past the forcing's degree ``d``
-(6 or 8), and ``h A`` is cubic, so once ``T_1 .. T_K`` (``K > d``) are summed, the remainder ``R(s) = sum_{k>K} T_k s^k`` solves
-``R' = A_aa R + g`` with ``R(0) = 0``, where ``g`` is the part of degree ``K .. K+3`` of ``A_aa``
-times the terms summed, known from the last four of them. With ``rho = sum_i ||A_aa,i||_inf``
-(a bound on ``||h A_aa(s)||`` over the interval), Gronwall's inequality bounds ``||R(1)||`` column
-by column (:func:`_tail_weights`). The series is summed until that bound is within the tolerance
-of every entry, interval by interval: each interval keeps the sum at its own first passing test,
-so the result does not depend on which intervals are summed together. The one error left is
-rounding.
+**Truncation, bounded rather than estimated.** ``X_k`` is zero past the forcing's degree ``d`` (6
+or 8), and ``h A`` is cubic, so once ``T_1 .. T_K`` (``K > d``) are summed, the remainder
+``R(s) = sum_{k>K} T_k s^k`` solves ``R' = A_aa R + g`` with ``R(0) = 0``, where ``g`` is the part of
+degree ``K .. K+3`` of ``A_aa`` times the terms summed, known from the last four of them. With
+``rho = sum_i ||A_aa,i||_inf`` (a bound on ``||h A_aa(s)||`` over the interval), Gronwall's
+inequality bounds ``||R(1)||`` column by column (:func:`_tail_weights`). The series is summed
+until that bound is within the tolerance of every entry, interval by interval: each interval keeps
+the sum at its own first passing test, so the result does not depend on which intervals are summed
+together. The one error left is rounding.
 
 **Substeps.** An interval with ``rho > RHO_MAX`` is split into ``n`` equal substeps (a power of
 two, ``rho / n <= RHO_MAX``): the series' terms then decrease from the start, so rounding does
