@@ -17,7 +17,7 @@ homogeneous solutions still read the cubic ``h A``, whose error moves the fixed 
 proportion to the residuals, so on noisy data the order stays ``h^4``, with a smaller constant.
 
 Its cost: the forcing's higher degree means at least ten terms per interval instead of eight.
-Whole fits with the automatic grid take 0.87 to 1.03 of the default's time on noisy nonlinear
+Whole fits with the automatic grid take 0.87 to 1.04 of the default's time on noisy nonlinear
 problems (a Gauss–Newton step of the final pass fewer) and 1.05 to 1.07 on linear ones; 1,000
 linear oscillators in ``fit_many`` 1.25. The automatic grid does not yet count on the finer
 storage (it chooses the cubic storage's intervals), so this propagator buys accuracy, not speed.
