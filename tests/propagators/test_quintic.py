@@ -11,6 +11,7 @@ from torchql.model import AugmentedSystem, ODEModel
 from torchql.models import NonlinearOscillator
 from torchql.propagators import TaylorQuintic, linear_propagator
 from torchql.superposition import initial_columns
+from torchql.trajectory import IntervalSystem, LinearizedReference
 
 DT = torch.float64
 
@@ -169,7 +170,6 @@ def test_the_single_path_gives_the_batched_transfers():
     z = torch.stack([_logistic(t), torch.full_like(t, 1.5), torch.full_like(t, 10.0)], dim=-1)
     z = z + 1e-3 * torch.sin(3 * t).unsqueeze(-1) * torch.tensor([1.0, 0.0, 0.0], dtype=DT)
     lin = linearize(system, t, z)
-    from torchql.trajectory import IntervalSystem, LinearizedReference
     reference = LinearizedReference(t, z, lin.f, lin)
     transfers, _ = TaylorQuintic().transfers(IntervalSystem(reference), rtol=1e-12, atol=1e-14, solver="dopri5",
                                              max_steps=None)
