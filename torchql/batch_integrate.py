@@ -96,24 +96,26 @@ def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor,
     h = (t[..., 1:] - t[..., :-1]).reshape(1, -1, G - 1)  # (1, 1 or S, G - 1)
     value_scale = torch.cat([torch.ones_like(h).expand(M, -1, -1), h.expand(Q - M, -1, -1)])
     slope_scale = torch.cat([h.expand(M, -1, -1), (h * h).expand(Q - M, -1, -1)])
-    data = z.new_empty(4, Q, S, G - 1)
+    if degree not in (3, 5):
+        raise ValueError(f"`degree` must be 3 or 5; received {degree}")
+    data = z.new_empty(degree + 1, Q, S, G - 1)  # one allocation: the quintic's rows are filled in place
     start, end = slice(0, G - 1), slice(1, G)
     blocks = ((values, start, value_scale), (slopes, start, slope_scale), (values, end, value_scale),
               (slopes, end, slope_scale))
     for b, (source, side, scale) in enumerate(blocks):
         torch.mul(source[..., side], scale, out=data[b])
-    power = hermite_to_power(data.reshape(4, Q, S * (G - 1)))
+    data = data.reshape(degree + 1, Q, S * (G - 1))
+    hermite_to_power(data[:4])
     if degree == 5:
-        power = _quintic_rows(power, values, slopes, h, z_dot, lin, perm, a)
-    elif degree != 3:
-        raise ValueError(f"`degree` must be 3 or 5; received {degree}")
-    return _Coefficients.of(power, order, a, M)
+        _quintic_rows(data, values, slopes, h, z_dot, lin, perm, a)
+    return _Coefficients.of(data, order, a, M)
 
 
-def _quintic_rows(power: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, h: torch.Tensor,
-                  z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> torch.Tensor:
-    """The cubic coefficients ``power (4, Q, S N)`` with the rows of ``z`` and ``h f`` made quintic
-    Hermite interpolants: ``(6, Q, S N)`` (``h A``'s rows keep degree 3, zero above).
+def _quintic_rows(out: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, h: torch.Tensor,
+                  z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> None:
+    """The coefficients ``out (6, Q, S N)``, cubic in ``out[:4]``, completed in place: the rows of
+    the active components' ``z`` and ``h f`` become quintic Hermite interpolants; the other rows
+    (``h A``'s, and ``z``'s constant components) keep degree 3, zero above.
 
     The second derivatives along the reference are ``z'' = f'`` (the reference's own second
     derivative wherever it solves the model: at a converged iterate) and ``f'' = A' z' + A f'``,
@@ -124,28 +126,27 @@ def _quintic_rows(power: torch.Tensor, values: torch.Tensor, slopes: torch.Tenso
     """
     M = perm.numel()
     S, G = values.shape[1:]
+    out[4:].zero_()
+    if a == 0:
+        return
     act = perm[:a]
-    f_dot, jac = lin.f_dot, lin.jac
-    f_ddot = torch.einsum("sgij,sgj->sgi", lin.jac_dot, z_dot) + torch.einsum("sgij,sgj->sgi", jac, f_dot)
-    f_t = f_dot - torch.einsum("sgij,sgj->sgi", jac, z_dot)  # zero without explicit time dependence
-    size = torch.einsum("sgij,sgj->sgi", jac.abs(), z_dot.abs()) + f_dot.abs()
-    autonomous = (f_t.abs() <= 64 * torch.finfo(f_t.dtype).eps * size).all(dim=1)  # (S, M)
-    rows = torch.cat([torch.arange(M, device=perm.device), M + torch.arange(a, device=perm.device) * (M + 1)])
-    second = torch.cat([f_dot[..., perm], f_ddot[..., act]], dim=-1).permute(2, 0, 1)  # (M + a, S, G)
-    # z's rows: value, h z', h^2 z''; h f's rows: h f, h^2 f', h^3 f''
-    power_of_h = torch.cat([torch.zeros(M), torch.ones(a)]).to(h).reshape(-1, 1, 1)
-    scale = h ** power_of_h  # (M + a, 1 or S, N)
+    ordered = bool((act == torch.arange(a, device=act.device)).all())
+    rows_of = (lambda x: x[..., :a, :]) if ordered else (lambda x: x[..., act, :])
+    jac, f_dot = rows_of(lin.jac), lin.f_dot  # (S, G, a, M), (S, G, M)
+    f_t = f_dot[..., act] - torch.einsum("sgij,sgj->sgi", jac, z_dot)  # zero without explicit time dependence
+    size = torch.einsum("sgij,sgj->sgi", jac.abs(), z_dot.abs()) + f_dot[..., act].abs()
+    autonomous = (f_t.abs() <= 64 * torch.finfo(f_t.dtype).eps * size).all(dim=1)  # (S, a)
+    f_ddot = torch.einsum("sgij,sgj->sgi", rows_of(lin.jac_dot), z_dot) + torch.einsum("sgij,sgj->sgi", jac, f_dot)
     start, end = slice(0, G - 1), slice(1, G)
-    v, d = values[rows], slopes[rows]
-    quintic = _hermite5(v[..., start] * scale, d[..., start] * scale * h, second[..., start] * scale * h * h,
-                        v[..., end] * scale, d[..., end] * scale * h, second[..., end] * scale * h * h)
-    out = power.new_zeros(6, *power.shape[1:])
-    out[:4] = power
-    cubic = out[:, rows].unflatten(-1, (S, G - 1))  # (6, M + a, S, N)
-    quintic_row = torch.cat([torch.ones(S, M, dtype=torch.bool, device=perm.device), autonomous[:, act]], dim=1)
-    chosen = torch.where(quintic_row.T.unsqueeze(-1), quintic, cubic)
-    out[:, rows] = chosen.flatten(-2)
-    return out
+    f_rows = slice(M, M + a * (M + 1), M + 1)
+    for rows, second, scale in ((slice(0, a), f_dot[..., act], torch.ones_like(h)), (f_rows, f_ddot, h)):
+        v, d, dd = values[rows], slopes[rows], second.permute(2, 0, 1)  # (a, S, G)
+        quintic = _hermite5(v[..., start] * scale, d[..., start] * scale * h, dd[..., start] * scale * h * h,
+                            v[..., end] * scale, d[..., end] * scale * h, dd[..., end] * scale * h * h)
+        target = out[:, rows].unflatten(-1, (S, G - 1))  # (6, a, S, N), a view
+        if rows is f_rows and not bool(autonomous.all()):
+            quintic = torch.where(autonomous.T.unsqueeze(-1), quintic, target)
+        target.copy_(quintic)
 
 
 def _hermite5(v0, d0, s0, v1, d1, s1) -> torch.Tensor:
