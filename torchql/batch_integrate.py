@@ -38,7 +38,7 @@ from .dopri import dopri_batch
 from .grid import interval_counts, last_nodes
 from .model import AugmentedSystem
 from .taylor import series_transfers
-from .transfer import _Coefficients, hermite_to_power, prefix_products
+from .transfer import _Coefficients, hermite_to_power, prefix_products, raise_to_quintic
 
 __all__ = ["propagate_linear_batch", "interval_coefficients", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
 
@@ -107,25 +107,24 @@ def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor,
     data = data.reshape(degree + 1, Q, S * (G - 1))
     hermite_to_power(data[:4])
     if degree == 5:
-        _quintic_rows(data, values, slopes, h, z_dot, lin, perm, a)
+        _quintic_rows(data, h, z_dot, lin, perm, a)
     return _Coefficients.of(data, order, a, M)
 
 
-def _quintic_rows(out: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, h: torch.Tensor,
-                  z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> None:
+def _quintic_rows(out: torch.Tensor, h: torch.Tensor, z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> None:
     """The coefficients ``out (6, Q, S N)``, cubic in ``out[:4]``, completed in place: the rows of
-    the active components' ``z`` and ``h f`` become quintic Hermite interpolants; the other rows
-    (``h A``'s, and ``z``'s constant components) keep degree 3, zero above.
+    the active components' ``z`` and ``h f`` become quintic Hermite interpolants
+    (:func:`~torchql.transfer.raise_to_quintic`); the other rows (``h A``'s, and ``z``'s constant
+    components) keep degree 3, zero above.
 
     The second derivatives along the reference are ``z'' = f'`` (the reference's own second
     derivative wherever it solves the model: at a converged iterate) and ``f'' = A' z' + A f'``,
     exact where ``f`` has no explicit time dependence; a sample's component whose ``f'`` is not
-    ``A z'`` to rounding at some node keeps its cubic ``h f`` row. ``values``, ``slopes``
-    ``(Q, S, G)``: node values and slopes, component-major and in stored order (``perm``, the
-    ``a`` active components first); ``h (1, 1 or S, N)``.
+    ``A z'`` to rounding at some node keeps its cubic ``h f`` row. ``perm``: the components in
+    stored order, the ``a`` active ones first; ``h (1, 1 or S, N)``.
     """
     M = perm.numel()
-    S, G = values.shape[1:]
+    S, G = z_dot.shape[:2]
     out[4:].zero_()
     if a == 0:
         return
@@ -137,25 +136,15 @@ def _quintic_rows(out: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor,
     size = torch.einsum("sgij,sgj->sgi", jac.abs(), z_dot.abs()) + f_dot[..., act].abs()
     autonomous = (f_t.abs() <= 64 * torch.finfo(f_t.dtype).eps * size).all(dim=1)  # (S, a)
     f_ddot = torch.einsum("sgij,sgj->sgi", rows_of(lin.jac_dot), z_dot) + torch.einsum("sgij,sgj->sgi", jac, f_dot)
-    start, end = slice(0, G - 1), slice(1, G)
     f_rows = slice(M, M + a * (M + 1), M + 1)
-    for rows, second, scale in ((slice(0, a), f_dot[..., act], torch.ones_like(h)), (f_rows, f_ddot, h)):
-        v, d, dd = values[rows], slopes[rows], second.permute(2, 0, 1)  # (a, S, G)
-        quintic = _hermite5(v[..., start] * scale, d[..., start] * scale * h, dd[..., start] * scale * h * h,
-                            v[..., end] * scale, d[..., end] * scale * h, dd[..., end] * scale * h * h)
+    # scaled to the local time: z's second derivatives by h^2, h f's by h^3
+    for rows, second, scale in ((slice(0, a), f_dot[..., act], h * h), (f_rows, f_ddot, h ** 3)):
+        second = second.permute(2, 0, 1)  # (a, S, G)
         target = out[:, rows].unflatten(-1, (S, G - 1))  # (6, a, S, N), a view
+        quintic = raise_to_quintic(target.clone(), second[..., :-1] * scale, second[..., 1:] * scale)
         if rows is f_rows and not bool(autonomous.all()):
             quintic = torch.where(autonomous.T.unsqueeze(-1), quintic, target)
         target.copy_(quintic)
-
-
-def _hermite5(v0, d0, s0, v1, d1, s1) -> torch.Tensor:
-    """Power-basis coefficients ``(6, ...)`` on ``s`` in ``[0, 1]`` of the quintic with values ``v``,
-    scaled slopes ``d`` and scaled second derivatives ``s`` at both ends."""
-    r0 = v1 - v0 - d0 - s0 / 2
-    r1 = d1 - d0 - s0
-    r2 = s1 - s0
-    return torch.stack([v0, d0, s0 / 2, 10 * r0 - 4 * r1 + r2 / 2, -15 * r0 + 7 * r1 - r2, 6 * r0 - 3 * r1 + r2 / 2])
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,

@@ -172,6 +172,24 @@ def hermite_to_power(data: torch.Tensor) -> torch.Tensor:
     return data
 
 
+def raise_to_quintic(power: torch.Tensor, second_start: torch.Tensor, second_end: torch.Tensor) -> torch.Tensor:
+    """Cubic Hermite power-basis coefficients made the quintic Hermite ones, in place: ``power (6, ...)``
+    holds ``c_0 .. c_3`` of :func:`hermite_to_power` (``c_4``, ``c_5`` ignored) and is returned.
+
+    The quintic also takes the scaled second derivatives ``second_start``, ``second_end`` at
+    ``s = 0`` and ``1``. It is the cubic plus ``s^2 (1 - s)^2 (alpha + beta s)``, which leaves the
+    values and slopes at both ends as they are and adds ``2 alpha`` and ``2 (alpha + beta)`` to the
+    second derivatives ``2 c_2`` and ``2 c_2 + 6 c_3``.
+    """
+    alpha = second_start / 2 - power[2]
+    beta = second_end / 2 - power[2] - 3 * power[3] - alpha
+    power[2] += alpha
+    power[3] += beta - 2 * alpha
+    power[4] = alpha - 2 * beta
+    power[5] = beta
+    return power
+
+
 class _Coefficients:
     """The local-time coefficients ``X_j(s)`` of every interval, active rows only, in stored order.
 

@@ -5,13 +5,14 @@ import torch
 
 import torchql
 import torchql.engine_final as engine_final
-from torchql.batch_integrate import _hermite5, interval_coefficients, propagate_linear_batch
+from torchql.batch_integrate import interval_coefficients, propagate_linear_batch
 from torchql.linearize import linearize
 from torchql.model import AugmentedSystem, ODEModel
 from torchql.models import NonlinearOscillator
 from torchql.propagators import TaylorQuintic, linear_propagator
 from torchql.superposition import initial_columns
 from torchql.trajectory import IntervalSystem, LinearizedReference
+from torchql.transfer import hermite_to_power, raise_to_quintic
 
 DT = torch.float64
 
@@ -37,7 +38,9 @@ def _logistic(t, r=1.5, K=10.0, x0=0.5):
 def test_the_quintic_matches_values_slopes_and_second_derivatives_at_both_ends():
     g = torch.Generator().manual_seed(0)
     v0, d0, s0, v1, d1, s1 = torch.randn(6, 5, generator=g, dtype=DT)
-    c = _hermite5(v0, d0, s0, v1, d1, s1)
+    c = torch.zeros(6, 5, dtype=DT)
+    c[:4] = hermite_to_power(torch.stack([v0, d0, v1, d1]))
+    c = raise_to_quintic(c, s0, s1)
     k = torch.arange(6, dtype=DT).unsqueeze(1)
     assert torch.allclose(c[0], v0) and torch.allclose(c[1], d0) and torch.allclose(2 * c[2], s0)
     assert torch.allclose(c.sum(dim=0), v1, atol=1e-14)
