@@ -1,8 +1,9 @@
 """The smoother behind the data-driven first trajectory."""
 
+import pytest
 import torch
 
-from torchql.smoothing import MAX_SMOOTHED_POINTS, interpolate, smooth
+from torchql.smoothing import MAX_SMOOTHED_POINTS, SUMMED_POINTS, SUMMED_SERIES, interpolate, smooth
 
 DT = torch.float64
 
@@ -96,3 +97,28 @@ def test_series_at_the_same_times_are_smoothed_and_interpolated_together_as_each
     joined = interpolate(t, together, tq)
     assert joined.shape == (50, 3)
     assert torch.equal(joined, torch.stack([interpolate(t, together[:, j], tq) for j in range(3)], dim=1))
+
+
+@pytest.mark.parametrize("T", [25, 80])  # summed point by point (at most SUMMED_POINTS), and series by series
+def test_a_large_batch_of_series_is_smoothed_as_each_alone_and_as_the_dense_formula(T):
+    assert (T <= SUMMED_POINTS) == (T == 25)
+    g = torch.Generator().manual_seed(5)
+    N = SUMMED_SERIES + 52  # two blocks
+    t = torch.linspace(0, 6, T, dtype=torch.float64)
+    Y = torch.sin(t).unsqueeze(1) + 10.0 ** torch.linspace(-6, 0, N, dtype=torch.float64) * torch.randn(
+        T, N, generator=g, dtype=torch.float64)
+    together = smooth(t, Y)
+    for j in (0, 1, SUMMED_SERIES - 1, SUMMED_SERIES, N - 1):
+        assert torch.equal(together[:, j], smooth(t, Y[:, j]))
+    # the GCV choice of each series, recomputed with matrix products for every lam
+    D = torch.zeros(T - 2, T, dtype=torch.float64)
+    h = t[1] - t[0]
+    for i in range(T - 2):
+        D[i, i:i + 3] = torch.tensor([1.0, -2.0, 1.0], dtype=torch.float64) / h**2 * h.sqrt()
+    lams = torch.logspace(-12, 2, 29, dtype=torch.float64) * 6.0**3 / T
+    hats = torch.linalg.inv(torch.eye(T, dtype=torch.float64) + lams.reshape(-1, 1, 1) * (D.T @ D))  # (L, T, T)
+    for j in (0, N // 2, N - 1):
+        Z = hats @ Y[:, j]  # (L, T)
+        score = T * ((Y[:, j] - Z) ** 2).sum(dim=1) / (T - hats.diagonal(dim1=1, dim2=2).sum(dim=1)) ** 2
+        # the eigenvalues of D^T D near its null space (straight lines) are rounding: 1e-8 of values of order 1
+        torch.testing.assert_close(together[:, j], Z[int(torch.argmin(score))], rtol=0, atol=1e-8)

@@ -27,6 +27,11 @@ __all__ = ["smooth", "interpolate", "MAX_SMOOTHED_POINTS"]
 
 #: Longer series are not smoothed (the dense GCV would cost too much); they are used as given.
 MAX_SMOOTHED_POINTS = 2000
+#: Series of at most this many points are smoothed together, their sums accumulated point by point
+#: (longer ones series by series, with matrix products).
+SUMMED_POINTS = 64
+#: Series smoothed together in one block (its arrays hold points x lams x series values).
+SUMMED_SERIES = 2048
 
 
 def _second_differences(t: torch.Tensor) -> torch.Tensor:
@@ -86,16 +91,50 @@ def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None
     dof = T - shrink.sum(dim=0)  # (L,)
     usable = dof > 1e-9
     out = Y.clone()
-    # series by series (every lam at once): the products are then those of the series alone, so a
-    # series gives the same values bit for bit whatever others are smoothed with it
+    # a series gives the same values bit for bit whatever others are smoothed with it (fit_many's
+    # data start is fit's): short series all at once, their sums over the points accumulated one
+    # point at a time (elementwise, so each series' arithmetic is its own); long ones series by
+    # series, every lam at once
+    if T <= SUMMED_POINTS:
+        for start in range(0, Y.shape[1], SUMMED_SERIES):
+            block = slice(start, start + SUMMED_SERIES)
+            _smooth_block(Y[:, block], out[:, block], w, r, Q, shrink, usable, dof)
+        return out.reshape(y.shape)
     for j in range(Y.shape[1]):
         Z = (Q @ (shrink * (Q.T @ (r * Y[:, j])).unsqueeze(1))) / r.unsqueeze(1)  # (T, L)
         rss = (w.unsqueeze(1) * (Y[:, j:j + 1] - Z) ** 2).sum(dim=0)  # (L,)
-        score = torch.where(usable, T * rss / dof.clamp_min(1e-9) ** 2, torch.full_like(rss, float("inf")))
-        best = int(torch.argmin(score))  # the first minimizer
-        if torch.isfinite(score[best]):  # else no usable lam: as given
-            out[:, j] = Z[:, best]
+        _take_best(Z.unsqueeze(-1), rss.unsqueeze(-1), usable, dof, T, out[:, j:j + 1])
     return out.reshape(y.shape)
+
+
+def _smooth_block(Y, out, w, r, Q, shrink, usable, dof) -> None:
+    """GCV smoothing of the series ``Y (T, N)`` into ``out (T, N)``, every sum over the points
+    accumulated point by point: ``Z = Q diag(shrink) Q^T (r Y) / r`` for every lam, ``(T, L, N)``."""
+    T = Y.shape[0]
+    rY = r.unsqueeze(1) * Y
+    U = Q[0].unsqueeze(1) * rY[0]  # (T, N): Q^T (r Y), summed over the points k
+    for k in range(1, T):
+        U = U + Q[k].unsqueeze(1) * rY[k]
+    V = shrink.unsqueeze(-1) * U.unsqueeze(1)  # (T, L, N)
+    Z = Q[:, 0].reshape(T, 1, 1) * V[0]
+    for i in range(1, T):
+        Z = Z + Q[:, i].reshape(T, 1, 1) * V[i]
+    Z = Z / r.reshape(T, 1, 1)
+    rss = w[0] * (Y[0] - Z[0]) ** 2  # (L, N)
+    for k in range(1, T):
+        rss = rss + w[k] * (Y[k] - Z[k]) ** 2
+    _take_best(Z, rss, usable, dof, T, out)
+
+
+def _take_best(Z, rss, usable, dof, T: int, out) -> None:
+    """Each series' values ``Z (T, L, N)`` at its GCV minimizer over the lams (the first, in a tie;
+    none where no lam is usable: the series stays as given), into ``out (T, N)``."""
+    score = torch.where(usable.unsqueeze(1), T * rss / dof.clamp_min(1e-9).unsqueeze(1) ** 2,
+                        torch.full_like(rss, float("inf")))  # (L, N)
+    best = torch.argmin(score, dim=0)  # (N,)
+    found = torch.isfinite(score.gather(0, best.unsqueeze(0)))[0]
+    chosen = Z.gather(1, best.reshape(1, 1, -1).expand(Z.shape[0], 1, -1))[:, 0]
+    out.copy_(torch.where(found.unsqueeze(0), chosen, out))
 
 
 def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:
