@@ -99,7 +99,7 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
         The minimal-norm Gauss–Newton step at the final estimates (``None``: taken as stationary).
     """
     examined = status.success or status in (Status.MAX_ITER, Status.STALLED)
-    if not examined:
+    if not examined or status.success and not rank_deficient:  # a runaway only matters to the others
         return status, ""
     factor = WEAK_RUNAWAY_FACTOR if rank_deficient else RUNAWAY_FACTOR
     runaway = ran_away(estimates, scale, unknown_names, factor)

@@ -275,25 +275,26 @@ class FinalPass:
         step, deficient, sv = solve_update_batch(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond,
                                                  None)
         deficient |= L < m
-        for k, r in enumerate(rows.tolist()):
+        estimates = z0[rows][:, spec.unknown_index]
+        scales = typical_magnitudes(self.z0_guess[rows][:, spec.unknown_index],
+                                    None if self.scale is None else self.scale[rows])
+        sse_list = sse.tolist()
+        first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
+        for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
             code = codes[r]
             if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
                 continue
             null_text = ""
-            if bool(deficient[k]):
+            if short:
                 n_used = int(used[k].sum())
                 sol = solve_update(J[k][used[k]], torch.zeros(n_used, dtype=dtype, device=dev),
                                    torch.ones(n_used, dtype=dtype, device=dev),
                                    torch.zeros(n_used, dtype=torch.bool, device=dev), spec.rcond)
                 null_text = null_detail(sol.null_vectors, spec.unknown_names)
             codes[r], more = final_status(
-                code, rank_deficient=bool(deficient[k]), null_text=null_text,
-                estimates=z0[r, spec.unknown_index],
-                scale=typical_magnitudes(self.z0_guess[r, spec.unknown_index],
-                                         None if self.scale is None else self.scale[r]),
-                unknown_names=spec.unknown_names,
-                sse=float(sse[k]), sse_start=None if self.start == "data" else float(self.first_sse[r]),
-                step=step[k])
+                code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
+                unknown_names=spec.unknown_names, sse=sse_list[k],
+                sse_start=first_sse[k], step=step[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
 
