@@ -9,10 +9,15 @@ alternate ``--repeats`` times after two untimed warm-ups of each, so that the ma
 hits them alike; the table gives the median times, their ratio (``< 1``: the working tree is
 faster), the iterations and the largest difference of the estimates.
 
+With ``--batches B ...`` it compares ``fit_many`` instead, at its default options, on
+``benchmarks/batch.py``'s families (``B`` coasting cars and ``B`` linear oscillators, its data of
+seed 0, each batch given as one batched ``Observations`` with per-sample starts), interleaved alike.
+
 Run (from the repository root)::
 
     python benchmarks/compare_commits.py --base HEAD~3                 # Kantorovich, 9 repeats
     python benchmarks/compare_commits.py --base v0 --methods kantorovich shooting --repeats 3
+    python benchmarks/compare_commits.py --base HEAD~3 --batches 1000 --repeats 5
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import torch
 import torchql
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import batch as bb  # noqa: E402  (the batch families' data)
 import fit_speed as fs  # noqa: E402  (the problems' data)
 
 DTYPE = torch.float64
@@ -70,6 +76,38 @@ def problems(pkg) -> list[tuple]:
     return out
 
 
+def batch_problems(pkg, B: int) -> list[tuple]:
+    """``(name, run)`` of ``fit_many`` on ``B`` datasets of each of batch.py's families, in package ``pkg``."""
+    models = importlib.import_module(f"{pkg.__name__}.models")
+    out = []
+    for family, make in ((bb.CARS, lambda: models.CoastingCar(bb.AREA, bb.MASS)),
+                         (bb.OSCILLATORS, lambda: models.LinearOscillator())):
+        data = bb.make_data(family, B, seed=0)
+        n = family.n_states
+        obs = pkg.Observations(torch.tensor(data.t, dtype=DTYPE), torch.tensor(data.y, dtype=DTYPE).unsqueeze(-1),
+                               observe=[family.state_names[0]])
+        x0 = torch.tensor(data.starts[:, :n], dtype=DTYPE)
+        guesses = {name: torch.tensor(data.starts[:, n + k], dtype=DTYPE) for k, name in enumerate(family.coefficients)}
+        out.append((f"{family.key}, B = {B}", lambda make=make, obs=obs, x0=x0, g=guesses: pkg.fit_many(
+            make(), obs, x0, guesses=g)))
+    return out
+
+
+def compare_batches(base, sizes: list[int], repeats: int) -> list[str]:
+    lines = ["| problem | base: median | base: mean iterations | working tree: median | working tree: mean "
+             "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|"]
+    for B in sizes:
+        for (name, run_a), (_, run_b) in zip(batch_problems(base, B), batch_problems(torchql, B)):
+            timed = fs.time_interleaved({"base": run_a, "working": run_b}, repeats)
+            (times_a, a), (times_b, b) = timed["base"], timed["working"]
+            ma, mb = statistics.median(times_a), statistics.median(times_b)
+            diff = float((a.estimates - b.estimates).abs().max())
+            lines.append(f"| {name} | {ma:.3f} s | {float(a.iterations.double().mean()):.2f} | {mb:.3f} s | "
+                         f"{float(b.iterations.double().mean()):.2f} | **{mb / ma:.2f}** | {diff:.1e} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
 def compare(base, methods: list[str], repeats: int) -> list[str]:
     lines = ["| problem | method | base: median | base: iterations | working tree: median | working tree: "
              "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|---|"]
@@ -94,6 +132,8 @@ def main(argv=None) -> None:
     parser.add_argument("--base", required=True, help="the git revision to compare with (a commit, tag or branch)")
     parser.add_argument("--methods", nargs="+", default=["kantorovich"], choices=["kantorovich", "shooting"])
     parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--batches", type=int, nargs="+", default=None, metavar="B",
+                        help="compare fit_many on B cars and B oscillators (batch.py's data) instead of single fits")
     parser.add_argument("--out", type=Path, default=None, help="also write the table to OUT/compare_commits.md")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -104,7 +144,8 @@ def main(argv=None) -> None:
         header = (f"Working tree against {args.base} ({revision}), interleaved in one process, median of "
                   f"{args.repeats} repeats, torch {torch.__version__}, 1 thread.")
         print(header)
-        lines = compare(base, args.methods, args.repeats)
+        lines = (compare(base, args.methods, args.repeats) if args.batches is None
+                 else compare_batches(base, args.batches, args.repeats))
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "compare_commits.md").write_text("# compare_commits\n\n" + header + "\n\n" + "\n".join(lines) + "\n")

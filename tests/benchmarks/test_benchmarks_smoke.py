@@ -131,3 +131,20 @@ def test_batch_families_writes_a_row_per_family_and_size(tmp_path):
     for r in rows:
         assert r[7] == "3/3" and r[9] == "yes"  # every batched fit converged, as its single fit
         assert float(r[8]) <= 1e-8  # batched estimates equal the single fits'
+
+
+@pytest.mark.slow
+def test_compare_commits_times_fit_many_of_two_revisions(tmp_path):
+    """``--batches``: fit_many on batch.py's two families, the working tree against a revision (here
+    HEAD, from git), one row per family with both medians and their ratio."""
+    script = SCRIPT.parent / "compare_commits.py"
+    run = subprocess.run([sys.executable, str(script), "--base", "HEAD", "--batches", "4", "--repeats", "1", "--out",
+                          str(tmp_path)], capture_output=True, text=True, timeout=300, cwd=SCRIPT.parents[1])
+    assert run.returncode == 0, run.stderr[-2000:]
+    rows = [_cells(line) for line in (tmp_path / "compare_commits.md").read_text().splitlines()
+            if line.startswith("| cars") or line.startswith("| oscillators")]
+    assert [row[0] for row in rows] == ["cars, B = 4", "oscillators, B = 4"]
+    for row in rows:
+        base, work, ratio = float(row[1].split()[0]), float(row[3].split()[0]), float(row[5].strip("*"))
+        assert base > 0 and work > 0 and ratio == pytest.approx(work / base, rel=0.1)  # medians shown to 1 ms
+        assert float(row[6]) < 1e-6  # the same fits, up to the working tree's changes
