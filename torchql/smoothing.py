@@ -23,7 +23,7 @@ import torch
 
 from .splines import hermite, knot_slopes
 
-__all__ = ["smooth", "interpolate", "MAX_SMOOTHED_POINTS"]
+__all__ = ["smooth", "interpolate", "MAX_SMOOTHED_POINTS", "SUMMED_POINTS", "SUMMED_SERIES"]
 
 #: Longer series are not smoothed (the dense GCV would cost too much); they are used as given.
 MAX_SMOOTHED_POINTS = 2000
@@ -107,9 +107,13 @@ def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None
     return out.reshape(y.shape)
 
 
-def _smooth_block(Y, out, w, r, Q, shrink, usable, dof) -> None:
+def _smooth_block(Y: torch.Tensor, out: torch.Tensor, w: torch.Tensor, r: torch.Tensor, Q: torch.Tensor,
+                  shrink: torch.Tensor, usable: torch.Tensor, dof: torch.Tensor) -> None:
     """GCV smoothing of the series ``Y (T, N)`` into ``out (T, N)``, every sum over the points
-    accumulated point by point: ``Z = Q diag(shrink) Q^T (r Y) / r`` for every lam, ``(T, L, N)``."""
+    accumulated point by point: ``Z = Q diag(shrink) Q^T (r Y) / r`` for every lam, ``(T, L, N)``.
+    ``w, r (T,)``: the weights and their square roots; ``Q (T, T)``: the eigenvectors of the
+    weighted roughness matrix; ``shrink (T, L)``; ``usable, dof (L,)``: the lams with some degrees
+    of freedom left, and those degrees."""
     T = Y.shape[0]
     rY = r.unsqueeze(1) * Y
     U = Q[0].unsqueeze(1) * rY[0]  # (T, N): Q^T (r Y), summed over the points k
@@ -126,9 +130,11 @@ def _smooth_block(Y, out, w, r, Q, shrink, usable, dof) -> None:
     _take_best(Z, rss, usable, dof, T, out)
 
 
-def _take_best(Z, rss, usable, dof, T: int, out) -> None:
+def _take_best(Z: torch.Tensor, rss: torch.Tensor, usable: torch.Tensor, dof: torch.Tensor, T: int,
+               out: torch.Tensor) -> None:
     """Each series' values ``Z (T, L, N)`` at its GCV minimizer over the lams (the first, in a tie;
-    none where no lam is usable: the series stays as given), into ``out (T, N)``."""
+    none where no lam is usable: the series stays as given), into ``out (T, N)``; ``rss (L, N)``:
+    the weighted sums of squared residuals of every lam and series."""
     score = torch.where(usable.unsqueeze(1), T * rss / dof.clamp_min(1e-9).unsqueeze(1) ** 2,
                         torch.full_like(rss, float("inf")))  # (L, N)
     best = torch.argmin(score, dim=0)  # (N,)
