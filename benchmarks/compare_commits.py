@@ -29,6 +29,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+from collections.abc import Callable
 from io import BytesIO
 from pathlib import Path
 
@@ -93,18 +94,28 @@ def batch_problems(pkg, B: int) -> list[tuple]:
     return out
 
 
+def timed_row(label: str, run_a: Callable, run_b: Callable, repeats: int, seconds: Callable[[float], str],
+              iterations: Callable) -> str:
+    """One table row: ``run_a`` (the base) and ``run_b`` (the working tree) timed interleaved, their
+    medians (formatted by ``seconds``), iterations (``iterations`` of a result), ratio and the
+    largest difference of their estimates."""
+    timed = fs.time_interleaved({"base": run_a, "working": run_b}, repeats)
+    (times_a, a), (times_b, b) = timed["base"], timed["working"]
+    ma, mb = statistics.median(times_a), statistics.median(times_b)
+    diff = float((a.estimates - b.estimates).abs().max())
+    row = (f"| {label} | {seconds(ma)} | {iterations(a)} | {seconds(mb)} | {iterations(b)} | **{mb / ma:.2f}** | "
+           f"{diff:.1e} |")
+    print(row, flush=True)
+    return row
+
+
 def compare_batches(base, sizes: list[int], repeats: int) -> list[str]:
     lines = ["| problem | base: median | base: mean iterations | working tree: median | working tree: mean "
              "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|"]
     for B in sizes:
         for (name, run_a), (_, run_b) in zip(batch_problems(base, B), batch_problems(torchql, B)):
-            timed = fs.time_interleaved({"base": run_a, "working": run_b}, repeats)
-            (times_a, a), (times_b, b) = timed["base"], timed["working"]
-            ma, mb = statistics.median(times_a), statistics.median(times_b)
-            diff = float((a.estimates - b.estimates).abs().max())
-            lines.append(f"| {name} | {ma:.3f} s | {float(a.iterations.double().mean()):.2f} | {mb:.3f} s | "
-                         f"{float(b.iterations.double().mean()):.2f} | **{mb / ma:.2f}** | {diff:.1e} |")
-            print(lines[-1], flush=True)
+            lines.append(timed_row(name, run_a, run_b, repeats, lambda s: f"{s:.3f} s",
+                                   lambda r: f"{float(r.iterations.double().mean()):.2f}"))
     return lines
 
 
@@ -113,17 +124,11 @@ def compare(base, methods: list[str], repeats: int) -> list[str]:
              "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|---|"]
     for method in methods:
         for (name, make_a, data_a, x_a), (_, make_b, data_b, x_b) in zip(problems(base), problems(torchql)):
-            runners = {"base": lambda: base.fit(make_a(), data_a, x_a, method=method),
-                       "working": lambda: torchql.fit(make_b(), data_b, x_b, method=method)}
-            for run in runners.values():  # the first untimed warm-up; time_interleaved's is the second
-                run()
-            timed = fs.time_interleaved(runners, repeats)
-            (times_a, a), (times_b, b) = timed["base"], timed["working"]
-            ma, mb = statistics.median(times_a), statistics.median(times_b)
-            diff = float((a.estimates - b.estimates).abs().max())
-            lines.append(f"| {name} | {method} | {1000 * ma:.1f} ms | {a.iterations} | {1000 * mb:.1f} ms | "
-                         f"{b.iterations} | **{mb / ma:.2f}** | {diff:.1e} |")
-            print(lines[-1], flush=True)
+            run_a = lambda: base.fit(make_a(), data_a, x_a, method=method)  # noqa: E731
+            run_b = lambda: torchql.fit(make_b(), data_b, x_b, method=method)  # noqa: E731
+            run_a(), run_b()  # the first untimed warm-up; time_interleaved's is the second
+            lines.append(timed_row(f"{name} | {method}", run_a, run_b, repeats, lambda s: f"{1000 * s:.1f} ms",
+                                   lambda r: r.iterations))
     return lines
 
 
