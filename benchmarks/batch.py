@@ -57,7 +57,9 @@ best of all rows on the same dataset (every SSE recomputed from the closed-form 
 ``max diff``, the largest relative difference of a row's estimates from the default
 ``fit_many``'s on the same datasets (relative to the torchql estimate, or to 1% of that
 unknown's largest magnitude in the batch where the estimate is smaller: the oscillators'
-``y(t0)`` scatters around 0). The torchql loop's ``max diff`` is batched against single fits.
+``y(t0)`` scatters around 0). The torchql loop's ``max diff`` is batched against single fits. A
+note under each table gives how far the defaults' and the tuned rows' standard errors are from
+those on the former fixed grid of 1,000 intervals (the largest relative difference).
 
 Memory (``peak RSS``, fit_many and JAX rows): the process' peak resident set size during the
 row's runs, libraries loaded included (Linux: the high-water mark is reset before each row
@@ -395,6 +397,11 @@ def loop_rows(family: Family, data: Data, subset: int, repeat: int) -> list[Row]
     return rows
 
 
+def standard_errors(row: Row) -> np.ndarray:
+    """The standard errors ``(B, m)`` of a torchql ``fit_many`` row, from its results' covariances."""
+    return np.sqrt(np.diagonal(row.extra["result"].covariance.numpy(), axis1=1, axis2=2))
+
+
 def relative_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``|a - b|`` relative to ``|b|``, or to ``REL_FLOOR`` times each column's largest ``|b|`` where larger."""
     floor = REL_FLOOR * np.max(np.abs(b), axis=0, keepdims=True)
@@ -500,6 +507,16 @@ def notes(res: dict) -> list[str]:
         best = max(tuned, key=lambda r: r.rate)
         out.append(f"Defaults against the fastest tuned row at B = {largest.B} ({best.label.split(', ', 1)[1]}): "
                    f"{largest.rate / best.rate:.2g}x its fits/s.")
+    former = next((r for r in rows if r.kind == "former" and r.B == largest.B), None)
+    if former is not None:
+        errors = standard_errors(former)
+        others = [largest] + [r for r in rows if r.kind == "tuned" and r.B == largest.B]
+        out.append(f"Standard errors (the reported covariance's) against those on the fixed 1,000-interval grid, "
+                   f"largest relative difference at B = {largest.B}: " + ", ".join(
+                       f"{'defaults' if r is largest else r.label.split(', ', 1)[1]} "
+                       f"{np.nanmax(np.abs(standard_errors(r) - errors) / errors):.1e}" for r in others)
+                   + " (a storage grid's interpolation error reaches the sensitivities the final pass integrates "
+                   "on it).")
     jax = [r for r in rows if r.kind == "jax"]
     if jax:
         out.append("JAX: compile time per batch size (tracing and XLA compilation of `jit(vmap(fit_one))` for "

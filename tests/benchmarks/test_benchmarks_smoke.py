@@ -82,6 +82,11 @@ def test_batch_quick_writes_table_and_plot(tmp_path):
         for row in jax_rows:  # JAX solved the same problem
             assert float(_cells(row)[10]) <= 1e-5, row
     assert table.count("statuses identical: yes") == 2
+    # the defaults' standard errors are those of the fine fixed grid to its interpolation accuracy
+    notes = [line for line in table.splitlines() if line.startswith("* Standard errors")]
+    assert len(notes) == 2
+    for line in notes:
+        assert float(line.split("defaults ")[1].split(",")[0]) < 1e-5, line
     assert (tmp_path / "batch.png").stat().st_size > 0
 
 
