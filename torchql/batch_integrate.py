@@ -141,10 +141,10 @@ def _quintic_rows(out: torch.Tensor, h: torch.Tensor, z_dot: torch.Tensor, lin, 
     for rows, second, scale in ((slice(0, a), f_dot[..., act], h * h), (f_rows, f_ddot, h ** 3)):
         second = second.permute(2, 0, 1)  # (a, S, G)
         target = out[:, rows].unflatten(-1, (S, G - 1))  # (6, a, S, N), a view
-        quintic = raise_to_quintic(target.clone(), second[..., :-1] * scale, second[..., 1:] * scale)
-        if rows is f_rows and not bool(autonomous.all()):
-            quintic = torch.where(autonomous.T.unsqueeze(-1), quintic, target)
-        target.copy_(quintic)
+        cubic = target.clone() if rows is f_rows and not bool(autonomous.all()) else None
+        raise_to_quintic(target, second[..., :-1] * scale, second[..., 1:] * scale)  # in place
+        if cubic is not None:
+            target.copy_(torch.where(autonomous.T.unsqueeze(-1), target, cubic))
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
