@@ -159,12 +159,12 @@ def fit(
         Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``, or
         extra times to include (with 1000 uniform intervals). Observation times and ``t0`` are
         always nodes. ``"auto"`` (default, also ``None``): each dataset's own count, 20 to 1000,
-        chosen from its first reference (built on 200 intervals): the fewest whose cubic Hermite
+        chosen from its first reference (built on 100 intervals): the fewest whose cubic Hermite
         interpolation of the model's solutions through it stays within ``sqrt(rtol) / 16`` of the
         states (:mod:`torchql.engine_grid`); a stiff model's grid has geometric early nodes besides,
-        and its count (20 to 200, more only where half the probe's is far off) is the fewest that
+        and its count (20 to 100, more only where half the probe's is far off) is the fewest that
         interpolates the first reference's values at the probe's nodes within that bound (a
-        reference built from the data keeps the probe's 200). On any grid the final pass takes the Gauss–Newton steps on the model itself
+        reference built from the data keeps the probe's 100). On any grid the final pass takes the Gauss–Newton steps on the model itself
         that the grid's interpolation error leaves (:mod:`torchql.engine_final`).
         ``"smooth"``: as few intervals as the guesses' integrated trajectories need for their
         interpolation to stay within a sixteenth of the tolerance (:func:`torchql.grid.smooth_intervals`;
