@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torchql.smoothing import MAX_SMOOTHED_POINTS, SUMMED_POINTS, SUMMED_SERIES, interpolate, smooth
+from torchql.smoothing import MAX_SMOOTHED_POINTS, SUMMED_POINTS, SUMMED_SERIES, interpolate, smooth, smooth_each
 
 DT = torch.float64
 
@@ -122,3 +122,20 @@ def test_a_large_batch_of_series_is_smoothed_as_each_alone_and_as_the_dense_form
         score = T * ((Y[:, j] - Z) ** 2).sum(dim=1) / (T - hats.diagonal(dim1=1, dim2=2).sum(dim=1)) ** 2
         # the eigenvalues of D^T D near its null space (straight lines) are rounding: 1e-8 of values of order 1
         torch.testing.assert_close(together[:, j], Z[int(torch.argmin(score))], rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("T", [31, 80])  # one pass over the points for the batch, and series by series
+def test_series_each_on_its_own_times_are_smoothed_as_each_alone(T):
+    """``smooth_each``: every series on its own uneven times, with its own weights, exactly what
+    ``smooth`` gives it alone (so a batch whose datasets each have their own times starts as its
+    single fits do), in more than one block for the short series."""
+    g = torch.Generator().manual_seed(7)
+    N = SUMMED_SERIES + 3 if T <= SUMMED_POINTS else 5
+    t = torch.sort(torch.rand(N, T, generator=g, dtype=DT), dim=1).values * torch.linspace(2, 9, N, dtype=DT).unsqueeze(1)
+    y = torch.cos(t) + 10.0 ** torch.linspace(-6, -1, N, dtype=DT).unsqueeze(1) * torch.randn(N, T, generator=g, dtype=DT)
+    w = torch.rand(N, T, generator=g, dtype=DT) + 0.5
+    each = smooth_each(t, y, w)
+    assert each.shape == (N, T)
+    for n in sorted({0, 1, N // 2, N - 2, N - 1}):
+        assert torch.equal(each[n], smooth(t[n], y[n], w[n]))
+    assert (each - y).abs().amax(dim=1).unique().numel() == N  # each its own smoothing

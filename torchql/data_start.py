@@ -28,7 +28,7 @@ from .linearize import node_jacobian
 from .lstsq import solve_update_batch
 from .schemes import scheme_strategy
 from .damping import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
-from .smoothing import interpolate, smooth
+from .smoothing import interpolate, smooth, smooth_each
 from .status import Status
 
 __all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "keep_the_better_fit",
@@ -228,7 +228,8 @@ def _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_
     """Sets the states that outputs read directly in ``z_ref (S, G, M)`` to their smoothed data,
     interpolated on each sample's grid nodes (its padding repeating its last node); returns, per
     sample, the states so set. Samples on the shared grid and times, with every value of an
-    output used and the same weights, are smoothed and interpolated together."""
+    output used and the same weights, are smoothed and interpolated together; the others, each on
+    its own times, are smoothed together by their number of values (:func:`smooth_each`)."""
     S = z_ref.shape[0]
     seen: list[list[int]] = [[] for _ in range(S)]
     for k, i in enumerate(observed_states):
@@ -245,11 +246,14 @@ def _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_
             values = smooth(t_obs, y[rows, :, k].T, w[rows[0]])  # (T, R)
             z_ref[rows, :, i] = interpolate(t_obs, values, grid).T
         some = ok.any(dim=1).tolist()
-        for s in (~together).nonzero().flatten().tolist():
-            if some[s]:
-                times = (t_obs[s] if t_obs.dim() == 2 else t_obs)[ok[s]]
-                values = smooth(times, y[s, ok[s], k], w[s, ok[s]])
-                z_ref[s, : ends[s], i] = interpolate(times, values, (grid[s] if grid.dim() == 2 else grid)[: ends[s]])
+        alone = (~together & ok.any(dim=1)).nonzero().flatten()
+        counts = ok[alone].sum(dim=1)
+        for count in counts.unique().tolist():  # each on its own times, smoothed together by length
+            rows = alone[counts == count]
+            times = t_obs.expand(ok.shape)[rows][ok[rows]].reshape(-1, count)
+            values = smooth_each(times, y[rows, :, k][ok[rows]].reshape(-1, count), w[rows][ok[rows]].reshape(-1, count))
+            for j, s in enumerate(rows.tolist()):
+                z_ref[s, : ends[s], i] = interpolate(times[j], values[j], (grid[s] if grid.dim() == 2 else grid)[: ends[s]])
         for s in range(S):
             if some[s]:
                 seen[s].append(i)

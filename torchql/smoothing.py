@@ -23,7 +23,7 @@ import torch
 
 from .splines import hermite, knot_slopes
 
-__all__ = ["smooth", "interpolate", "MAX_SMOOTHED_POINTS", "SUMMED_POINTS", "SUMMED_SERIES"]
+__all__ = ["smooth", "smooth_each", "interpolate", "MAX_SMOOTHED_POINTS", "SUMMED_POINTS", "SUMMED_SERIES"]
 
 #: Longer series are not smoothed (the dense GCV would cost too much); they are used as given.
 MAX_SMOOTHED_POINTS = 2000
@@ -34,18 +34,47 @@ SUMMED_POINTS = 64
 SUMMED_SERIES = 2048
 
 
-def _second_differences(t: torch.Tensor) -> torch.Tensor:
-    """``D (T-2, T)``: second divided differences on the (possibly uneven) times ``t``, scaled by sqrt(h)."""
-    T = t.shape[0]
-    h = t[1:] - t[:-1]
-    D = torch.zeros(T - 2, T, dtype=t.dtype, device=t.device)
-    rows = torch.arange(T - 2, device=t.device)
-    a, b = h[:-1], h[1:]
+def _roughness(t: torch.Tensor) -> torch.Tensor:
+    """``P = D^T D (N, T, T)``: the roughness penalty of series on the times ``t (N, T)``, ``D (T-2, T)``
+    their second divided differences on the (possibly uneven) times, each row scaled by the
+    square root of its local spacing.
+
+    ``P`` is pentadiagonal; its diagonals are summed from each row's three coefficients elementwise,
+    so that a series' penalty has the same bits whichever series share its batch."""
+    h = t[:, 1:] - t[:, :-1]
+    a, b = h[:, :-1], h[:, 1:]
     width = (a + b) / 2
-    D[rows, rows] = 1 / (a * width)
-    D[rows, rows + 1] = -(1 / a + 1 / b) / width
-    D[rows, rows + 2] = 1 / (b * width)
-    return D * width.sqrt().unsqueeze(-1)
+    scale = width.sqrt()
+    c0, c1, c2 = scale / (a * width), -scale * (1 / a + 1 / b) / width, scale / (b * width)  # (N, T-2)
+    zero = torch.zeros_like(t[:, :2])
+    pad = lambda x, before: torch.cat([zero[:, :before], x, zero[:, :2 - before]], dim=1)  # noqa: E731  (N, T)
+    diag = pad(c0 * c0, 0) + pad(c1 * c1, 1) + pad(c2 * c2, 2)
+    upper1 = pad(c0 * c1, 0)[:, :-1] + pad(c1 * c2, 1)[:, :-1]  # (i, i + 1): rows i and i - 1
+    upper2 = (c0 * c2)  # (i, i + 2): row i
+    return (torch.diag_embed(diag) + torch.diag_embed(upper1, 1) + torch.diag_embed(upper1, -1)
+            + torch.diag_embed(upper2, 2) + torch.diag_embed(upper2, -2))
+
+
+def _operators(t: torch.Tensor, w: torch.Tensor, lams: torch.Tensor | None):
+    """The GCV smoother of series on the times ``t (N, T)`` with weights ``w (N, T)``: ``(r (N, T),
+    Q (N, T, T), shrink (N, T, L), dof (N, L), usable (N, L))``, the square roots of the weights,
+    the eigenvectors of the weighted roughness matrix, the factor of each eigen-direction for each
+    candidate ``lam``, the degrees of freedom left, and whether they are some.
+
+    With ``u = sqrt(w) z`` the hat matrix is ``(I + lam Pw)^-1``, ``Pw = W^-1/2 P W^-1/2``, diagonal
+    in ``Pw``'s eigenvectors: one eigendecomposition serves every lam. ``lams`` (default a
+    logarithmic range scaled to each series' span, ``(N, L)``) are the candidates."""
+    T = t.shape[1]
+    if lams is None:
+        # lam * span^-3-ish balances the roughness term against one squared residual per point
+        span = (t[:, -1] - t[:, 0]).unsqueeze(1)
+        lams = torch.logspace(-12, 2, 29, dtype=t.dtype, device=t.device).unsqueeze(0) * span ** 3 / T
+    r = w.sqrt()
+    evals, Q = torch.linalg.eigh(_roughness(t) / r.unsqueeze(1) / r.unsqueeze(2))
+    evals = evals.clamp_min(0)
+    shrink = 1 / (1 + lams.to(evals).reshape(-1, 1, lams.shape[-1]) * evals.unsqueeze(2))  # (N, T, L)
+    dof = T - shrink.sum(dim=1)
+    return r, Q, shrink, dof, dof > 1e-9
 
 
 def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None,
@@ -61,7 +90,7 @@ def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None
         Values (finite).
     weights : Tensor ``(T,)``, optional
         ``1 / sigma^2`` per value (default ones), shared by the series.
-    lams : Tensor, optional
+    lams : Tensor ``(L,)``, optional
         Candidate smoothing parameters (default a logarithmic range scaled to the data's time
         span); each series takes its GCV minimizer (the first, in a tie).
 
@@ -74,73 +103,84 @@ def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None
     T = t.shape[0]
     if T < 4 or T > MAX_SMOOTHED_POINTS:
         return y.clone()
-    Y = y.reshape(T, -1)
+    Y = y.reshape(T, -1).T  # (N, T)
     w = torch.ones_like(t) if weights is None else weights
-    D = _second_differences(t)
-    P = D.T @ D
-    span = float(t[-1] - t[0])
-    if lams is None:
-        # lam * span^-3-ish balances the roughness term against one squared residual per point
-        lams = torch.logspace(-12, 2, 29, dtype=t.dtype) * span ** 3 / T
-    # one eigendecomposition serves every lam and series: with u = sqrt(w) z the hat matrix is
-    # (I + lam Pw)^-1, Pw = W^-1/2 P W^-1/2, diagonal in Pw's eigenvectors
-    r = w.sqrt()
-    evals, Q = torch.linalg.eigh(P / r.unsqueeze(0) / r.unsqueeze(1))
-    evals = evals.clamp_min(0)
-    shrink = (1 / (1 + lams.to(evals).unsqueeze(0) * evals.unsqueeze(1)))  # (T, L)
-    dof = T - shrink.sum(dim=0)  # (L,)
-    usable = dof > 1e-9
+    operators = _operators(t.unsqueeze(0), w.unsqueeze(0), None if lams is None else lams.unsqueeze(0))
+    return _smooth_series(Y, w.expand_as(Y), operators).T.reshape(y.shape)
+
+
+def smooth_each(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Smoothed values ``(N, T)`` of ``N`` series ``y (N, T)``, each on its own times ``t (N, T)``
+    with its own weights ``weights (N, T)``: row ``n`` is ``smooth(t[n], y[n], weights[n])``, bit for
+    bit, at the cost of one batched eigendecomposition and (short series) one pass over the points."""
+    N, T = y.shape
+    if T < 4 or T > MAX_SMOOTHED_POINTS:
+        return y.clone()
+    if T > SUMMED_POINTS:
+        return torch.stack([smooth(t[n], y[n], weights[n]) for n in range(N)])
+    out = torch.empty_like(y)
+    for start in range(0, N, SUMMED_SERIES):
+        block = slice(start, start + SUMMED_SERIES)
+        out[block] = _smooth_series(y[block], weights[block], _operators(t[block], weights[block], None))
+    return out
+
+
+def _smooth_series(Y: torch.Tensor, w: torch.Tensor, operators: tuple) -> torch.Tensor:
+    """GCV-smoothed series ``Y (N, T)`` with weights ``w (N, T)``, by the smoothers ``operators``
+    (:func:`_operators`, of ``N`` series or one shared by all).
+
+    A series gives the same values bit for bit whatever others are smoothed with it (fit_many's
+    data start is fit's): short series in blocks whose sums over the points are accumulated one
+    point at a time (elementwise, so each series' arithmetic is its own); long ones series by
+    series, every lam at once."""
+    N, T = Y.shape
+    r, Q, shrink, dof, usable = (x.expand(N, *x.shape[1:]) for x in operators)
     out = Y.clone()
-    # a series gives the same values bit for bit whatever others are smoothed with it (fit_many's
-    # data start is fit's): short series all at once, their sums over the points accumulated one
-    # point at a time (elementwise, so each series' arithmetic is its own); long ones series by
-    # series, every lam at once
     if T <= SUMMED_POINTS:
-        for start in range(0, Y.shape[1], SUMMED_SERIES):
-            block = slice(start, start + SUMMED_SERIES)
-            _smooth_block(Y[:, block], out[:, block], w, r, Q, shrink, usable, dof)
-        return out.reshape(y.shape)
-    for j in range(Y.shape[1]):
-        Z = (Q @ (shrink * (Q.T @ (r * Y[:, j])).unsqueeze(1))) / r.unsqueeze(1)  # (T, L)
-        rss = (w.unsqueeze(1) * (Y[:, j:j + 1] - Z) ** 2).sum(dim=0)  # (L,)
-        _take_best(Z.unsqueeze(-1), rss.unsqueeze(-1), usable, dof, T, out[:, j:j + 1])
-    return out.reshape(y.shape)
+        for start in range(0, N, SUMMED_SERIES):
+            b = slice(start, start + SUMMED_SERIES)
+            _smooth_block(Y[b], out[b], w[b], r[b], Q[b], shrink[b], usable[b], dof[b])
+        return out
+    for j in range(N):
+        Z = (Q[j] @ (shrink[j] * (Q[j].T @ (r[j] * Y[j])).unsqueeze(1))) / r[j].unsqueeze(1)  # (T, L)
+        rss = (w[j].unsqueeze(1) * (Y[j].unsqueeze(1) - Z) ** 2).sum(dim=0)  # (L,)
+        _take_best(Z.unsqueeze(0), rss.unsqueeze(0), usable[j:j + 1], dof[j:j + 1], T, out[j:j + 1])
+    return out
 
 
 def _smooth_block(Y: torch.Tensor, out: torch.Tensor, w: torch.Tensor, r: torch.Tensor, Q: torch.Tensor,
                   shrink: torch.Tensor, usable: torch.Tensor, dof: torch.Tensor) -> None:
-    """GCV smoothing of the series ``Y (T, N)`` into ``out (T, N)``, every sum over the points
-    accumulated point by point: ``Z = Q diag(shrink) Q^T (r Y) / r`` for every lam, ``(T, L, N)``.
-    ``w, r (T,)``: the weights and their square roots; ``Q (T, T)``: the eigenvectors of the
-    weighted roughness matrix; ``shrink (T, L)``; ``usable, dof (L,)``: the lams with some degrees
-    of freedom left, and those degrees."""
-    T = Y.shape[0]
-    rY = r.unsqueeze(1) * Y
-    U = Q[0].unsqueeze(1) * rY[0]  # (T, N): Q^T (r Y), summed over the points k
+    """GCV smoothing of the series ``Y (N, T)`` into ``out (N, T)``, every sum over the points
+    accumulated point by point: ``Z = Q diag(shrink) Q^T (r Y) / r`` for every lam, ``(N, T, L)``.
+    ``w, r (N, T)``: the weights and their square roots; ``Q (N, T, T)``: the eigenvectors of the
+    weighted roughness matrices; ``shrink (N, T, L)``; ``usable, dof (N, L)``: the lams with some
+    degrees of freedom left, and those degrees."""
+    T = Y.shape[1]
+    rY = r * Y
+    U = Q[:, 0] * rY[:, :1]  # (N, T): Q^T (r Y), summed over the points k
     for k in range(1, T):
-        U = U + Q[k].unsqueeze(1) * rY[k]
-    V = shrink.unsqueeze(-1) * U.unsqueeze(1)  # (T, L, N)
-    Z = Q[:, 0].reshape(T, 1, 1) * V[0]
+        U = U + Q[:, k] * rY[:, k:k + 1]
+    V = shrink * U.unsqueeze(2)  # (N, T, L)
+    Z = Q[:, :, :1] * V[:, :1]
     for i in range(1, T):
-        Z = Z + Q[:, i].reshape(T, 1, 1) * V[i]
-    Z = Z / r.reshape(T, 1, 1)
-    rss = w[0] * (Y[0] - Z[0]) ** 2  # (L, N)
+        Z = Z + Q[:, :, i:i + 1] * V[:, i:i + 1]
+    Z = Z / r.unsqueeze(2)
+    rss = w[:, :1] * (Y[:, :1] - Z[:, 0]) ** 2  # (N, L)
     for k in range(1, T):
-        rss = rss + w[k] * (Y[k] - Z[k]) ** 2
+        rss = rss + w[:, k:k + 1] * (Y[:, k:k + 1] - Z[:, k]) ** 2
     _take_best(Z, rss, usable, dof, T, out)
 
 
 def _take_best(Z: torch.Tensor, rss: torch.Tensor, usable: torch.Tensor, dof: torch.Tensor, T: int,
                out: torch.Tensor) -> None:
-    """Each series' values ``Z (T, L, N)`` at its GCV minimizer over the lams (the first, in a tie;
-    none where no lam is usable: the series stays as given), into ``out (T, N)``; ``rss (L, N)``:
-    the weighted sums of squared residuals of every lam and series."""
-    score = torch.where(usable.unsqueeze(1), T * rss / dof.clamp_min(1e-9).unsqueeze(1) ** 2,
-                        torch.full_like(rss, float("inf")))  # (L, N)
-    best = torch.argmin(score, dim=0)  # (N,)
-    found = torch.isfinite(score.gather(0, best.unsqueeze(0)))[0]
-    chosen = Z.gather(1, best.reshape(1, 1, -1).expand(Z.shape[0], 1, -1))[:, 0]
-    out.copy_(torch.where(found.unsqueeze(0), chosen, out))
+    """Each series' values ``Z (N, T, L)`` at its GCV minimizer over the lams (the first, in a tie;
+    none where no lam is usable: the series stays as given), into ``out (N, T)``; ``rss (N, L)``:
+    the weighted sums of squared residuals of every series and lam."""
+    score = torch.where(usable, T * rss / dof.clamp_min(1e-9) ** 2, torch.full_like(rss, float("inf")))  # (N, L)
+    best = torch.argmin(score, dim=1)  # (N,)
+    found = torch.isfinite(score.gather(1, best.unsqueeze(1)))[:, 0]
+    chosen = Z.gather(2, best.reshape(-1, 1, 1).expand(-1, Z.shape[1], 1))[:, :, 0]
+    out.copy_(torch.where(found.unsqueeze(1), chosen, out))
 
 
 def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:
