@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torchql.smoothing import MAX_SMOOTHED_POINTS, SUMMED_POINTS, SUMMED_SERIES, interpolate, smooth, smooth_each
+from torchql.smoothing import MAX_SMOOTHED_POINTS, SUMMED_POINTS, SUMMED_SERIES, interpolate, interpolate_each, smooth, smooth_each
 
 DT = torch.float64
 
@@ -139,3 +139,17 @@ def test_series_each_on_its_own_times_are_smoothed_as_each_alone(T):
     for n in sorted({0, 1, N // 2, N - 2, N - 1}):
         assert torch.equal(each[n], smooth(t[n], y[n], w[n]))
     assert (each - y).abs().amax(dim=1).unique().numel() == N  # each its own smoothing
+
+
+def test_series_each_on_its_own_knots_are_interpolated_as_each_alone():
+    """``interpolate_each``: each row is ``interpolate`` of that series alone, bit for bit, queries
+    outside its knots included (held at the end values)."""
+    g = torch.Generator().manual_seed(8)
+    N, T = 6, 12
+    t = torch.sort(torch.rand(N, T, generator=g, dtype=DT), dim=1).values * torch.linspace(1, 5, N, dtype=DT).unsqueeze(1)
+    y = torch.sin(3 * t) + torch.randn(N, T, generator=g, dtype=DT)
+    tq = torch.linspace(-0.5, 5.5, 90, dtype=DT).expand(N, -1) * torch.linspace(0.9, 1.1, N, dtype=DT).unsqueeze(1)
+    each = interpolate_each(t, y, tq)
+    assert each.shape == (N, 90)
+    for n in range(N):
+        assert torch.equal(each[n], interpolate(t[n], y[n], tq[n]))

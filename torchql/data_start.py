@@ -28,7 +28,7 @@ from .linearize import node_jacobian
 from .lstsq import solve_update_batch
 from .schemes import scheme_strategy
 from .damping import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_START
-from .smoothing import interpolate, smooth, smooth_each
+from .smoothing import interpolate, interpolate_each, smooth, smooth_each
 from .status import Status
 
 __all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "keep_the_better_fit",
@@ -252,8 +252,9 @@ def _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_
             rows = alone[counts == count]
             times = t_obs.expand(ok.shape)[rows][ok[rows]].reshape(-1, count)
             values = smooth_each(times, y[rows, :, k][ok[rows]].reshape(-1, count), w[rows][ok[rows]].reshape(-1, count))
-            for j, s in enumerate(rows.tolist()):
-                z_ref[s, : ends[s], i] = interpolate(times[j], values[j], (grid[s] if grid.dim() == 2 else grid)[: ends[s]])
+            nodes = grid.expand(S, grid.shape[-1])[rows]  # a padded grid's last nodes repeat its end
+            z_ref[rows, :, i] = (interpolate_each(times, values, nodes) if count > 1
+                                 else values.expand(-1, nodes.shape[1]))
         for s in range(S):
             if some[s]:
                 seen[s].append(i)

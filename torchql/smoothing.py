@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import torch
 
-from .splines import hermite, knot_slopes
+from .splines import hermite, hermite_per_sample, knot_slopes
 
-__all__ = ["smooth", "smooth_each", "interpolate", "MAX_SMOOTHED_POINTS", "SUMMED_POINTS", "SUMMED_SERIES"]
+__all__ = ["smooth", "smooth_each", "interpolate", "interpolate_each", "MAX_SMOOTHED_POINTS", "SUMMED_POINTS", "SUMMED_SERIES"]
 
 #: Longer series are not smoothed (the dense GCV would cost too much); they are used as given.
 MAX_SMOOTHED_POINTS = 2000
@@ -210,3 +210,14 @@ def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Ten
     j = (torch.searchsorted(t, inside, right=True) - 1).clamp(0, t.shape[0] - 2)
     out = hermite(t, Y, slopes, j, inside)
     return out.reshape(tq.shape[0], *y.shape[1:])
+
+
+def interpolate_each(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:
+    """:func:`interpolate` of ``N`` series, each on its own knots: ``y (N, T)`` at ``t (N, T)``
+    (strictly increasing rows, ``T >= 2``), evaluated at ``tq (N, Q)``: ``(N, Q)``, row ``n`` the
+    same bits as ``interpolate(t[n], y[n], tq[n])``."""
+    slopes = torch.as_tensor(knot_slopes(t.detach().cpu().double().numpy().T, y.detach().cpu().double().numpy().T).T,
+                             dtype=y.dtype, device=y.device)
+    inside = torch.minimum(torch.maximum(tq, t[:, :1]), t[:, -1:])
+    values, _ = hermite_per_sample(t, y.unsqueeze(-1), slopes.unsqueeze(-1), inside)
+    return values[..., 0]

@@ -18,32 +18,34 @@ def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Te
 
 def knot_slopes(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Slopes ``(T,)`` (or ``(T, N)``) at the knots of the not-a-knot cubic spline through ``(t, y)``,
-    ``T >= 2``, for one series ``y (T,)`` or ``N`` series ``y (T, N)`` at the same knots.
+    ``T >= 2``, for one series ``y (T,)`` or ``N`` series ``y (T, N)``, at the same knots ``t (T,)``
+    or each at its own, ``t (T, N)``.
 
     Two points: the chord; three: the interpolating parabola (not-a-knot with one interior
     knot); more: the tridiagonal system of slope continuity with not-a-knot ends (the third
-    derivative continuous at the second and the second-to-last knot), by the Thomas algorithm
-    (the columns share its matrix).
+    derivative continuous at the second and the second-to-last knot), by the Thomas algorithm,
+    elementwise across the columns (a column's slopes are the same bits alone or with others).
     """
     T = t.shape[0]
-    h = np.diff(t).reshape(-1, *([1] * (y.ndim - 1)))  # (T-1, 1...) against the columns
+    h = np.diff(t, axis=0)
+    if t.ndim < y.ndim:
+        h = h.reshape(-1, *([1] * (y.ndim - 1)))  # (T-1, 1...) against the columns
     delta = np.diff(y, axis=0) / h
     if T == 2:
         return np.stack([delta[0], delta[0]])
     if T == 3:
         curvature = (delta[1] - delta[0]) / (t[2] - t[0])  # half the parabola's second derivative
         return np.stack([delta[0] - curvature * h[0], delta[0] + curvature * h[0], delta[1] + curvature * h[1]])
-    lower, diag, upper = np.zeros(T), np.zeros(T), np.zeros(T)
+    lower, diag, upper = (np.zeros((T, *h.shape[1:])) for _ in range(3))
     rhs = np.zeros(y.shape)
-    hf = h.reshape(-1)
-    lower[1:-1], diag[1:-1], upper[1:-1] = hf[1:], 2 * (hf[:-1] + hf[1:]), hf[:-1]
+    lower[1:-1], diag[1:-1], upper[1:-1] = h[1:], 2 * (h[:-1] + h[1:]), h[:-1]
     rhs[1:-1] = 3 * (h[1:] * delta[:-1] + h[:-1] * delta[1:])
     span = t[2] - t[0]
-    diag[0], upper[0] = hf[1], span
-    rhs[0] = ((hf[0] + 2 * span) * hf[1] * delta[0] + hf[0] ** 2 * delta[1]) / span
+    diag[0], upper[0] = h[1], span
+    rhs[0] = ((h[0] + 2 * span) * h[1] * delta[0] + h[0] ** 2 * delta[1]) / span
     span = t[-1] - t[-3]
-    diag[-1], lower[-1] = hf[-2], span
-    rhs[-1] = (hf[-1] ** 2 * delta[-2] + (2 * span + hf[-1]) * hf[-2] * delta[-1]) / span
+    diag[-1], lower[-1] = h[-2], span
+    rhs[-1] = (h[-1] ** 2 * delta[-2] + (2 * span + h[-1]) * h[-2] * delta[-1]) / span
     for i in range(1, T):  # forward elimination
         factor = lower[i] / diag[i - 1]
         diag[i] -= factor * upper[i - 1]
