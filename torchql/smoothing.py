@@ -51,8 +51,10 @@ def _roughness(t: torch.Tensor) -> torch.Tensor:
     diag = pad(c0 * c0, 0) + pad(c1 * c1, 1) + pad(c2 * c2, 2)
     upper1 = pad(c0 * c1, 0)[:, :-1] + pad(c1 * c2, 1)[:, :-1]  # (i, i + 1): rows i and i - 1
     upper2 = (c0 * c2)  # (i, i + 2): row i
-    return (torch.diag_embed(diag) + torch.diag_embed(upper1, 1) + torch.diag_embed(upper1, -1)
-            + torch.diag_embed(upper2, 2) + torch.diag_embed(upper2, -2))
+    P = t.new_zeros(t.shape[0], t.shape[1], t.shape[1])
+    for offset, band in ((0, diag), (1, upper1), (-1, upper1), (2, upper2), (-2, upper2)):
+        P.diagonal(offset, dim1=1, dim2=2).copy_(band)
+    return P
 
 
 def _operators(t: torch.Tensor, w: torch.Tensor, lams: torch.Tensor | None):
