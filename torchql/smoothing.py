@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import torch
 
-from .splines import hermite, hermite_per_sample, knot_slopes
+from .splines import hermite_per_sample, knot_slopes
 
 __all__ = ["smooth", "smooth_each", "interpolate", "interpolate_each", "MAX_SMOOTHED_POINTS", "SUMMED_POINTS", "SUMMED_SERIES"]
 
@@ -205,13 +205,10 @@ def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Ten
     """
     if t.shape[0] == 1:
         return y[:1].expand(tq.shape[0], *y.shape[1:]).clone()
-    Y = y.reshape(t.shape[0], -1)
-    slopes = torch.as_tensor(knot_slopes(t.detach().cpu().double().numpy(), Y.detach().cpu().double().numpy()),
-                             dtype=y.dtype, device=y.device)
-    inside = tq.clamp(t[0], t[-1])
-    j = (torch.searchsorted(t, inside, right=True) - 1).clamp(0, t.shape[0] - 2)
-    out = hermite(t, Y, slopes, j, inside)
-    return out.reshape(tq.shape[0], *y.shape[1:])
+    Y = y.reshape(t.shape[0], -1).T  # (N, T)
+    N = Y.shape[0]
+    out = interpolate_each(t.expand(N, -1), Y, tq.expand(N, -1))  # (N, Q)
+    return out.T.reshape(tq.shape[0], *y.shape[1:])
 
 
 def interpolate_each(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:

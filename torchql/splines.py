@@ -1,12 +1,12 @@
-"""Cubic splines shared by the data smoother and the inputs' interpolation: the not-a-knot knot
-slopes, and cubic Hermite evaluation written with ``index_select`` (differentiable, vmap-safe)."""
+"""Cubic splines shared by the data smoother, the inputs' interpolation and the automatic grid: the
+not-a-knot knot slopes, the cubic Hermite basis, and its evaluation for samples each on its own knots."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-__all__ = ["knot_slopes", "hermite", "hermite_basis", "hermite_per_sample"]
+__all__ = ["knot_slopes", "hermite_basis", "hermite_per_sample"]
 
 
 def hermite_basis(s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -55,32 +55,6 @@ def knot_slopes(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     for i in range(T - 2, -1, -1):
         slopes[i] = (rhs[i] - upper[i] * slopes[i + 1]) / diag[i]
     return slopes
-
-
-def hermite(knots: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, index: torch.Tensor,
-            tq: torch.Tensor) -> torch.Tensor:
-    """Cubic Hermite interpolation on interval ``index`` of ``knots``, at times ``tq``.
-
-    Parameters
-    ----------
-    knots : Tensor ``(N,)``
-        Increasing knots, ``N >= 2``.
-    values, slopes : Tensor ``(N, m)``
-        Values and first derivatives at the knots.
-    index : long Tensor ``(Q,)``
-        The interval ``[knots[i], knots[i+1]]`` of each query, ``0 <= i <= N - 2``.
-    tq : Tensor ``(Q,)``
-        Query times (any; outside the interval the cubic is extrapolated).
-
-    Returns
-    -------
-    Tensor ``(Q, m)``
-    """
-    k0, k1 = knots.index_select(0, index), knots.index_select(0, index + 1)
-    h = (k1 - k0).unsqueeze(-1)
-    b00, b10, b01, b11 = hermite_basis(((tq - k0) / (k1 - k0)).unsqueeze(-1))
-    return (b00 * values.index_select(0, index) + b10 * h * slopes.index_select(0, index)
-            + b01 * values.index_select(0, index + 1) + b11 * h * slopes.index_select(0, index + 1))
 
 
 def hermite_per_sample(knots: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor, tq: torch.Tensor,
