@@ -253,8 +253,7 @@ def _measured_states(grid, ends, t_obs, y, sigma, rows_mask, observed_states, z_
             times = t_obs.expand(ok.shape)[rows][ok[rows]].reshape(-1, count)
             values = smooth_each(times, y[rows, :, k][ok[rows]].reshape(-1, count), w[rows][ok[rows]].reshape(-1, count))
             nodes = grid.expand(S, grid.shape[-1])[rows]  # a padded grid's last nodes repeat its end
-            z_ref[rows, :, i] = (interpolate_each(times, values, nodes) if count > 1
-                                 else values.expand(-1, nodes.shape[1]))
+            z_ref[rows, :, i] = interpolate_each(times, values, nodes)
         for s in range(S):
             if some[s]:
                 seen[s].append(i)

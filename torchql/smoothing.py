@@ -203,8 +203,6 @@ def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Ten
         The spline's values (the chord for two knots, the parabola for three); constant at
         the end values outside ``[t[0], t[-1]]``, and ``y[0]`` everywhere for one knot.
     """
-    if t.shape[0] == 1:
-        return y[:1].expand(tq.shape[0], *y.shape[1:]).clone()
     Y = y.reshape(t.shape[0], -1).T  # (N, T)
     N = Y.shape[0]
     out = interpolate_each(t.expand(N, -1), Y, tq.expand(N, -1))  # (N, Q)
@@ -213,8 +211,10 @@ def interpolate(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Ten
 
 def interpolate_each(t: torch.Tensor, y: torch.Tensor, tq: torch.Tensor) -> torch.Tensor:
     """:func:`interpolate` of ``N`` series, each on its own knots: ``y (N, T)`` at ``t (N, T)``
-    (strictly increasing rows, ``T >= 2``), evaluated at ``tq (N, Q)``: ``(N, Q)``, row ``n`` the
-    same bits as ``interpolate(t[n], y[n], tq[n])``."""
+    (strictly increasing rows), evaluated at ``tq (N, Q)``: ``(N, Q)``, row ``n`` the same bits as
+    ``interpolate(t[n], y[n], tq[n])`` (``y[n, 0]`` everywhere for one knot)."""
+    if t.shape[1] == 1:
+        return y.expand(-1, tq.shape[1]).clone()
     slopes = torch.as_tensor(knot_slopes(t.detach().cpu().double().numpy().T, y.detach().cpu().double().numpy().T).T,
                              dtype=y.dtype, device=y.device)
     inside = torch.minimum(torch.maximum(tq, t[:, :1]), t[:, -1:])
