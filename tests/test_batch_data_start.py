@@ -47,9 +47,14 @@ def test_oscillators_on_their_own_clocks_with_a_hidden_state():
     assert_same_as_single(batch, singles)
 
 
-def test_the_data_start_is_for_kantorovich_only():
-    data, x0 = car_data(1)
-    with pytest.raises(ValueError, match='`initial_trajectory="data"` applies to method="kantorovich" only'):
-        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, method="shooting", initial_trajectory="data")
+def test_the_data_start_serves_shooting_as_fit_does():
+    """Shooting from the data: each car's fit equals its single fit (the same matched start)."""
+    data, x0 = car_data(3, seed=3)
+    batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, method="shooting", initial_trajectory="data")
+    singles = [torchql.fit(CoastingCar(AREA, MASS), data[b], x0[b], method="shooting", initial_trajectory="data")
+               for b in range(3)]
+    assert batch.success.all(), batch.summary()
+    assert_same_as_single(batch, singles)
+    assert all(float(single.history[0].params["C_D"]) != 0.4 for single in singles)  # matched, not the guess
     with pytest.raises(ValueError, match="`initial_trajectory` must be one of"):
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, initial_trajectory="spline")

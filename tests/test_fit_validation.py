@@ -238,9 +238,9 @@ def test_initial_trajectory_invalid():
         torchql.fit(Decay(), decay_data(), initial_trajectory="zeros")
 
 
-def test_initial_trajectory_data_with_shooting():
-    with pytest.raises(ValueError, match='`initial_trajectory="data"` applies to method="kantorovich" only'):
-        torchql.fit(Decay(), decay_data(), method="shooting", initial_trajectory="data")
+def test_initial_trajectory_data_with_shooting_is_accepted():
+    result = torchql.fit(Decay(), decay_data(), method="shooting", initial_trajectory="data")
+    assert result.fit_kwargs["initial_trajectory"] == "data" and result.fit_kwargs["method"] == "shooting"
 
 
 @pytest.mark.parametrize("max_steps", [0, -5, 1.5])

@@ -98,7 +98,7 @@ def test_a_keyword_at_its_default_takes_the_field_and_a_conflict_is_named():
     (dict(linear_solver="magnus"), ValueError, "`linear_solver` must be one of"),
     (dict(max_iter=-1), ValueError, "`max_iter`"),
     (dict(damping="trust"), ValueError, "`damping` must be one of"),
-    (dict(method="shooting", initial_trajectory="data"), ValueError, "applies to method=\"kantorovich\" only"),
+    (dict(method="shooting", initial_trajectory="start"), ValueError, "`initial_trajectory` must be one of"),
 ])
 def test_bad_fit_options_are_named_where_they_are_written(kwargs, error, match):
     with pytest.raises(error, match=match):

@@ -45,7 +45,7 @@ def test_a_scheme_object_is_its_name(oscillator_data, name, scheme):
 
 def test_a_new_scheme_drives_fit_and_fit_many(oscillator_data, monkeypatch):
     """A subclass (Kantorovich that counts its trials) registered by name: fit and fit_many use its
-    trials, and the data-built start is refused for a scheme whose iterates solve the model."""
+    trials; a scheme whose iterates solve the model takes the data-built start as shooting does."""
     monkeypatch.setattr(schemes_module._REGISTRY, "entries", dict(schemes_module._REGISTRY.entries))  # leave the registry as found
 
     class Counting(Kantorovich):
@@ -73,7 +73,10 @@ def test_a_new_scheme_drives_fit_and_fit_many(oscillator_data, monkeypatch):
     class Integrating(Shooting):
         name = "integrating"
 
-    with pytest.raises(ValueError, match='`initial_trajectory="data"` applies to method="kantorovich" only'):
-        torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method=Integrating(),
-                    initial_trajectory="data")
+    # a scheme whose iterates solve the model starts from the model integrated from the data's start
+    own = torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method=Integrating(),
+                      initial_trajectory="data")
+    shooting = torchql.fit(LinearOscillator(A=0.5, B=1.0), oscillator_data, X0_GUESS, method="shooting",
+                           initial_trajectory="data")
+    assert own.success and torch.equal(own.estimates, shooting.estimates) and own.iterations == shooting.iterations
     assert isinstance(scheme_strategy(Integrating()), Scheme)

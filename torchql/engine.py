@@ -290,6 +290,9 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             z0, traj, z_dot, W, errors = self._choose_grid(z0, traj, z_dot, W, errors, counts)
         if self.start == "data":
             check_time()  # out of time already: the samples keep their guesses, as an integrated start's do
+            if spec.scheme.integrates_model:  # shooting: the model's solution from the matched estimates
+                z0, traj, W, errors = self._model_from_data(all_idx, z0, traj)
+                z_dot = None
         st.z0 = z0
         bad = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=spec.device)
         for r in bad.nonzero().flatten().tolist():

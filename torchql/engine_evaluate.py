@@ -423,6 +423,28 @@ class Evaluation:
         errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
         return z, W, errors
 
+    def _model_from_data(self, idx, z0, reference):
+        """Shooting's first iterate from the data: the model integrated from the coefficients that
+        the data start matched, ``z0 (S, M)``, and the data's own initial states (the reference
+        ``(S, G, M)`` at ``t0``, moved inside their bounds; expressions of the coefficients where
+        given), the reference the grid solver's guess; the solution with its sensitivities where
+        the propagator integrates them together. Returns ``(z0, traj, W or None, errors)``."""
+        spec, n = self.spec, self.system.n
+        states = spec.unknown_index[spec.unknown_index < n]
+        if states.numel():
+            z0 = z0.clone()
+            start = reference[:, 0, states]
+            z0[:, states] = torch.where(torch.isfinite(start), start, z0[:, states])
+            if spec.bounds.active:
+                z0[:, spec.unknown_index] = spec.bounds.move_inside(z0[:, spec.unknown_index])[0]
+            if spec.initial:
+                z0 = spec.initial.complete(z0)
+        if self._joint_sensitivities:
+            traj, W, errors = self._solve_with_sensitivities(idx, z0)
+            return z0, traj, W, errors
+        traj, errors = self._nonlinear(idx, z0, loose=False, guess=reference)
+        return z0, traj, None, errors
+
     def _landing(self, rows: torch.Tensor) -> torch.Tensor:
         """The nodes that an adaptive solver's steps land on for the samples of chunk indices
         ``rows``: their observation times, ``(G,)`` on a shared grid or ``(S, G)`` (the other

@@ -144,8 +144,8 @@ class AutoGrid:
         traj[fine] = values
         if z_dot is not None:
             z_dot[fine] = derivatives
-        if not self.spec.scheme.integrates_model and not (self.spec.stiff and self.start != "data"):
-            return errors
+        if self.start == "data" or not self.spec.scheme.integrates_model and not self.spec.stiff:
+            return errors  # an interpolant (shooting's from the data is solved on the whole grid after)
         if not self.spec.scheme.integrates_model:  # a stiff model's reference is no interpolant: solved again
             traj[fine], again = self._nonlinear(fine, z0[fine], loose=True, guess=values)
         elif W is not None:  # the solution with its sensitivities, on the new grid

@@ -170,7 +170,7 @@ def fit(
         interpolation to stay within a sixteenth of the tolerance (:func:`torchql.grid.smooth_intervals`;
         the largest any sample needs in ``fit_many``).
     initial_trajectory : {"auto", "integrate", "data"}
-        Kantorovich's first reference. ``"auto"`` (default): ``"data"`` where the data can give
+        The first reference. ``"auto"`` (default): ``"data"`` where the data can give
         it, else ``"integrate"`` (:func:`torchql.data_start.first_reference`: shooting, no state
         measured directly at four or more times, unmeasured states that only the unknown
         coefficients would give, a stiff model, ``max_iter=0``); a fit from the data that ends
@@ -187,7 +187,9 @@ def fit(
         slopes), otherwise held at ``x0``; and the first coefficients fitted to that
         trajectory's slopes (gradient matching: a least-squares problem without integration,
         solved from the guesses), so that the iteration starts near the optimum whatever
-        the guesses were.
+        the guesses were. Shooting, whose iterates solve the model, starts from the model
+        integrated from those coefficients and the data's own initial states (that
+        trajectory at ``t0``).
     max_steps : int, optional
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
         grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.

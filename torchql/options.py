@@ -100,16 +100,13 @@ def check_scheme(method, initial_trajectory) -> tuple[Scheme, str]:
     """``(method, initial_trajectory)`` validated: ``method`` a registered scheme's name or a
     :class:`torchql.schemes.Scheme` (:func:`torchql.schemes.scheme_strategy`), returned as the
     scheme; ``initial_trajectory`` a string among :data:`INITIAL_TRAJECTORIES` (``TypeError``/
-    ``ValueError`` naming the valid ones); the data-built start only for a scheme whose iterates
-    need not solve the model (Kantorovich)."""
+    ``ValueError`` naming the valid ones)."""
     scheme = scheme_strategy(method)
     if not isinstance(initial_trajectory, str):
         raise TypeError(f"`initial_trajectory` must be a string, one of {INITIAL_TRAJECTORIES}; received "
                         f"{type(initial_trajectory).__name__}")
     if initial_trajectory not in INITIAL_TRAJECTORIES:
         raise ValueError(f"`initial_trajectory` must be one of {INITIAL_TRAJECTORIES}; received {initial_trajectory!r}")
-    if initial_trajectory == "data" and scheme.integrates_model:
-        raise ValueError('`initial_trajectory="data"` applies to method="kantorovich" only')
     return scheme, initial_trajectory
 
 
