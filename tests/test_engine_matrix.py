@@ -4,6 +4,7 @@ SSE to 1e-8, the same status and the same number of iterations.
 
 The problems: the thesis' linear and nonlinear oscillators, a coasting car, FitzHugh–Nagumo, a
 bounded rate problem (log scale), two experiments per sample, and a dataset with values met exactly.
+Shooting from the data-built start is checked alike on the four with special options.
 """
 
 from __future__ import annotations
@@ -93,3 +94,25 @@ def test_each_fit_many_sample_equals_its_own_fit(name, method):
         assert got.iterations == result.iterations, b
         torch.testing.assert_close(got.estimates, result.estimates, rtol=1e-8, atol=1e-12)
         assert got.sse == pytest.approx(result.sse, rel=1e-8, abs=1e-20)
+
+
+@pytest.mark.parametrize("name", ["nonlinear_oscillator", "bounded_rate", "two_experiments", "exact_values"])
+def test_shooting_from_the_data_equals_its_own_fit_and_the_integrated_start_s_optimum(name):
+    """``method="shooting", initial_trajectory="data"`` with known initial states, bounds on a log
+    scale, two experiments per sample and values met exactly: each ``fit_many`` sample equals its
+    own ``fit``, which reaches the optimum of shooting from the integrated guesses (SSE to 1e-9)
+    in no more iterations."""
+    samples = [_problem(name, seed) for seed in range(2)]
+    model, _, x0, options = samples[0]
+    alone = [torchql.fit(model, data, x0=x0, method="shooting", initial_trajectory="data", **options)
+             for _, data, _, _ in samples]
+    batch = torchql.fit_many(model, [data for _, data, _, _ in samples], x0=x0, method="shooting",
+                             initial_trajectory="data", **options)
+    for b, result in enumerate(alone):
+        assert result.success, result.message
+        got = batch[b]
+        assert got.status is result.status and got.iterations == result.iterations, (b, got.message)
+        torch.testing.assert_close(got.estimates, result.estimates, rtol=1e-8, atol=1e-12)
+        integrated = torchql.fit(model, samples[b][1], x0=x0, method="shooting", **options)
+        assert integrated.success and result.iterations <= integrated.iterations
+        assert result.sse == pytest.approx(integrated.sse, rel=1e-9)
