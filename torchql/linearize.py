@@ -188,7 +188,7 @@ def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: in
 
 
 def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bool = True,
-                  replicate: bool = False) -> tuple[torch.Tensor, tuple]:
+                  replicate: bool = False, batched=None) -> tuple[torch.Tensor, tuple]:
     """A per-node function over many nodes, with the Jacobians of its first ``rows`` outputs.
 
     Up to :data:`AUTOGRAD_STATES` rows by torch.autograd through ``vmap(f)``: one backward pass
@@ -215,6 +215,9 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bo
         seeded with output ``i``) instead of ``rows`` passes. The forward work is ``rows`` times
         larger, the operations fewer: the better choice where the nodes are few and each call's
         overhead dominates (the implicit solver's Jacobian at the current point of ``S`` samples).
+    batched : callable, optional
+        ``f`` over all the nodes at once, in place of ``vmap(f)`` (a model that takes a batch of
+        states itself), for the backward passes.
 
     Returns
     -------
@@ -222,7 +225,8 @@ def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bo
     jacobians : tuple of Tensor, one per ``wrt``: ``(N, rows, *arg.shape[1:])``.
     """
     if rows <= AUTOGRAD_STATES:
-        batched_f = vmap(f) if vectorize else (lambda *one: f(*(a[0] for a in one)).unsqueeze(0))
+        batched_f = ((batched or vmap(f)) if vectorize
+                     else (lambda *one: f(*(a[0] for a in one)).unsqueeze(0)))
         try:
             if replicate and vectorize:
                 return _node_jacobian_by_copies(batched_f, args, wrt, rows)
