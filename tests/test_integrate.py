@@ -241,6 +241,59 @@ def test_grid_solve_agrees_with_dopri5_on_a_nonlinear_model():
     assert err < max(10 * err5, 1e-9), (err, err5)
 
 
+class _DuffingOneState(torchql.ODEModel):
+    """:class:`_Duffing` written for one state: its values stacked without an axis, so that a
+    batch of states does not broadcast with the batch of times and the call fails."""
+
+    state_names = ("y", "v")
+
+    def forward(self, t, x):
+        y, v = x[0], x[1]
+        return torch.stack((v, -0.1 * v - 3.0 * y - 4.0 * y**3 + 0.5 * torch.cos(2 * t)))
+
+
+class _Coupled(torchql.ODEModel):
+    """``y' = v``, ``v' = -3 y - 0.1 (y + v)``, the total of the states written ``x.sum(-1)``."""
+
+    state_names = ("y", "v")
+
+    def forward(self, t, x):
+        y, v = x.unbind(-1)
+        return torch.stack((v, -3.0 * y - 0.1 * x.sum(-1)), dim=-1)
+
+
+class _CoupledOneState(_Coupled):
+    """:class:`_Coupled` with the total written ``x.sum()``: right for one state, and on a batch a
+    sum over all of them, values of the right shape but wrong, which the grid solver must notice."""
+
+    def forward(self, t, x):
+        y, v = x.unbind(-1)
+        return torch.stack((v, -3.0 * y - 0.1 * x.sum()), dim=-1)
+
+
+def test_grid_solve_calls_a_batch_taking_model_once_and_vmaps_one_that_is_not():
+    """A model written for a batch of states (``x.unbind(-1)``) is called once per RK4 stage on every
+    interval; one written for a single state is vmapped, whether the batch makes it fail or only
+    gives wrong values; each solves its problem to the values of its batch-taking twin."""
+    from torchql.grid_solve import _Field, solve_on_grid
+
+    grid = torch.linspace(0, 5, 101, dtype=torch.float64)
+    z0 = torch.tensor([0.5, 0.0], dtype=torch.float64)
+    t = grid[:-1]
+    x = torch.stack([torch.linspace(0.1, 0.5, 100), torch.linspace(-0.3, 0.2, 100)], dim=-1).double()
+    pairs = ((_Duffing(), _DuffingOneState()), (_Coupled(), _CoupledOneState()))
+    for batch_taking, one_state in pairs:
+        for model, direct in ((batch_taking, True), (one_state, False)):
+            field = _Field(model)
+            values = field.values(t, x)
+            assert field._direct is direct, type(model).__name__
+            torch.testing.assert_close(values, torch.vmap(batch_taking)(t, x), rtol=1e-14, atol=0.0)
+            torch.testing.assert_close(field.values(t, x), values, rtol=1e-14, atol=0.0)
+        X, _ = solve_on_grid(batch_taking, z0, grid, rtol=1e-10, atol=1e-12)
+        X_one, _ = solve_on_grid(one_state, z0, grid, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(X_one, X, rtol=1e-12, atol=1e-14)
+
+
 def test_grid_solve_failures():
     from torchql.grid_solve import solve_on_grid
     from torchql.integrate import IntegrationError
