@@ -179,3 +179,42 @@ def test_model_with_vector_and_matrix_buffers():
     fitted = system.model_with(p)
     assert torch.equal(fitted.W, p[:2]) and torch.equal(fitted.K, p[2:].reshape(2, 3))
     assert torch.equal(model.W, torch.tensor([1.0, -2.0], dtype=F64))
+
+
+class _Decay(torchql.ODEModel):
+    """``y' = -k y`` written ``-k * x``: a batch of coefficients ``(S,)`` does not broadcast with states ``(S, 1)``."""
+
+    state_names = ("y",)
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("k", torch.tensor(0.7, dtype=F64))
+
+    def forward(self, t, x):
+        return -self.k * x
+
+
+@pytest.mark.parametrize("model, params, direct", [
+    (NonlinearOscillator(), ["A", "B", "C", "D"], True),  # unbind(-1): takes a batch with its coefficients
+    (_Decay(), ["k"], False),  # (S,) * (S, 1): the wrong shape
+    (Mixed(), ["W", "K", "s", "sub.c"], False),  # matrix and vector coefficients: wrong values or shapes
+], ids=["oscillator", "decay", "mixed"])
+def test_the_batched_augmented_field_is_used_only_where_it_gives_the_vmapped_values(model, params, direct):
+    """``AugmentedSystem.f_batch`` (one model call, each sample's coefficients as buffers ``(S, ...)``) is
+    taken by :class:`torchql.model.BatchedCall` where it equals ``vmap(f)``; the values are vmap's
+    either way, and the model's own buffers are left as they were."""
+    from torchql.model import BatchedCall
+
+    system = AugmentedSystem(model, params, F64, CPU)
+    before = {k: v.clone() for k, v in system.model.named_buffers()}
+    g = torch.Generator().manual_seed(1)
+    z = torch.randn(5, system.M, generator=g, dtype=F64)
+    t = torch.linspace(0.0, 1.0, 5, dtype=F64)
+    expected = torch.vmap(system.f)(t, z)
+    call = BatchedCall(system.f, system.f_batch)
+    torch.testing.assert_close(call(t, z), expected, rtol=0, atol=0)
+    assert call.direct is direct
+    torch.testing.assert_close(call(t, z), expected, rtol=1e-13, atol=1e-15)
+    if direct:
+        torch.testing.assert_close(system.f_batch(t, z), expected, rtol=1e-13, atol=1e-15)
+    assert all(torch.equal(v, before[k]) for k, v in system.model.named_buffers())

@@ -27,11 +27,11 @@ import math
 from typing import Callable, NamedTuple
 
 import torch
-from torch.func import vmap
 
 from .budget import check_time
 from .integrate import IntegrationError, interval_tolerances
 from .linearize import node_jacobian
+from .model import BatchedCall
 from .transfer import Transfers, compose_transfers
 
 __all__ = ["GridSolveInfo", "IntervalBudgetError", "solve_on_grid"]
@@ -162,45 +162,17 @@ class _Field:
     interval, so Newton's correction never moves them, and only the states' block is needed.
     """
 
-    def __init__(self, func, n: int | None = None, batches: bool = True) -> None:
+    def __init__(self, func, n: int | None = None, batch=None) -> None:
         self.func = func
         self.n = n
-        self._vmapped = vmap(func)
-        #: whether ``func`` takes the whole batch itself (decided at the first call, see :meth:`values`;
-        #: never for ``batches=False``: a function of one state by construction)
-        self._direct: bool | None = None if batches else False
-
-    def values(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """``f`` at the times ``t (I,)`` and states ``x (I, M)``. A model written for a batch of
-        states (``x (..., n)``, as :class:`torchql.ODEModel` asks) is called once on all of them,
-        without :func:`torch.vmap`'s per-call cost, which on a small model is most of an RK4
-        stage's; the first call checks that it gives what the vmapped function gives (to
-        rounding), there and at a random nearby batch, and a model that does not (a scalar time
-        read as one, a state indexed as ``x[0]``) is vmapped from then on."""
-        if self._direct is None:
-            mapped = self._vmapped(t, x)
-            generator = torch.Generator(device=x.device).manual_seed(0)
-            nearby = x + (0.1 * x.abs() + 0.1) * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
-            self._direct = (_takes_batches(self.func, t, x, mapped)
-                            and _takes_batches(self.func, t, nearby, self._vmapped(t, nearby)))
-            return mapped
-        return self.func(t, x) if self._direct else self._vmapped(t, x)
+        #: ``f`` over a batch of times and states: by one call where ``batch`` (default ``func``) takes
+        #: the batch, else vmapped (:class:`torchql.model.BatchedCall`)
+        self.values = BatchedCall(func, batch)
 
     def __call__(self, t: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         rows = x.shape[1] if self.n is None else self.n
         value, (jac,) = node_jacobian(self.func, (t, x), (1,), rows, batched=self.values)
         return value, jac[:, :, :rows]
-
-
-def _takes_batches(func, t: torch.Tensor, x: torch.Tensor, mapped: torch.Tensor) -> bool:
-    """Whether ``func(t, x)`` on the batch ``t (I,)``, ``x (I, M)`` gives ``mapped``, its vmapped
-    values (relative ``1e-12``; any error: no)."""
-    try:
-        direct = func(t, x)
-    except Exception:  # noqa: BLE001 - a model that cannot take the batch is vmapped
-        return False
-    return (isinstance(direct, torch.Tensor) and direct.shape == mapped.shape
-            and bool(torch.allclose(direct, mapped, rtol=1e-12, atol=0.0, equal_nan=True)))
 
 
 def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, grid):

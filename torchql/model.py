@@ -292,6 +292,24 @@ class AugmentedSystem:
         dx = self.rhs(t, x, p)
         return torch.cat([dx, torch.zeros_like(p)])
 
+    def f_batch(self, t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """:meth:`f` of a batch ``z (S, M)`` at times ``t (S,)`` by one call of the model, each unknown
+        coefficient held as a buffer ``(S, *shape)`` for the call: right for a model whose forward
+        broadcasts over a leading axis (as :class:`ODEModel` asks of the states), which
+        :class:`BatchedCall` checks before it relies on it."""
+        x, p = z[:, :self.n], z[:, self.n:]
+        S, start, saved = z.shape[0], 0, []
+        try:
+            for (owner, leaf), shape, size in zip(self._owners, self.param_shapes, self.param_sizes):
+                saved.append(owner._buffers[leaf])
+                owner._buffers[leaf] = p[:, start:start + size].reshape(S, *shape)
+                start += size
+            dx = self.model(t, x)
+        finally:
+            for (owner, leaf), old in zip(self._owners, saved):
+                owner._buffers[leaf] = old
+        return torch.cat([dx, torch.zeros_like(p)], dim=-1)
+
     def model_with(self, p: torch.Tensor) -> ODEModel:
         """A copy of the user's model whose unknown coefficients hold ``p`` (shape ``(P,)``)."""
         return self.user_model({name: value.clone() for name, value in self.unpack_params(p.detach()).items()})
@@ -306,6 +324,41 @@ class AugmentedSystem:
             owner, leaf = _owner(fitted, name)
             owner._parameters[leaf] = nn.Parameter(owner._buffers.pop(leaf), requires_grad=requires_grad)
         return fitted
+
+
+class BatchedCall:
+    """A function ``one(t, x)`` of one time ``()`` and state ``(M,)``, evaluated over a batch ``t (I,)``,
+    ``x (I, M)``: by ``batch(t, x)`` in one call (default ``one`` itself: a model written for a
+    batch of states, as :class:`ODEModel` asks) where that gives what :func:`torch.vmap` of ``one``
+    gives, else by the vmapped ``one``. On a small model vmap's cost per call is most of an
+    evaluation's. The first call decides, comparing the two (relative ``1e-12``) at its batch and
+    at a random batch near it (a model that reads ``x[0]`` as a state, or a sum over all the
+    states as one state's total, gives wrong values or fails on a batch); it returns the vmapped
+    values. :attr:`direct` says what was decided (None: not yet)."""
+
+    def __init__(self, one, batch=None) -> None:
+        self.one, self.batch = one, one if batch is None else batch
+        self.vmapped = torch.vmap(one)
+        self.direct: bool | None = None
+
+    def __call__(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        if self.direct is None:
+            mapped = self.vmapped(t, x)
+            generator = torch.Generator(device=x.device).manual_seed(0)
+            near = x + (0.1 * x.abs() + 0.1) * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+            self.direct = _gives(self.batch, t, x, mapped) and _gives(self.batch, t, near, self.vmapped(t, near))
+            return mapped
+        return self.batch(t, x) if self.direct else self.vmapped(t, x)
+
+
+def _gives(batch, t: torch.Tensor, x: torch.Tensor, expected: torch.Tensor) -> bool:
+    """Whether ``batch(t, x)`` gives ``expected`` (relative ``1e-12``; any error: no)."""
+    try:
+        value = batch(t, x)
+    except Exception:  # noqa: BLE001 - a function that cannot take the batch is vmapped
+        return False
+    return (isinstance(value, torch.Tensor) and value.shape == expected.shape
+            and bool(torch.allclose(value, expected, rtol=1e-12, atol=0.0, equal_nan=True)))
 
 
 def _owner(module: nn.Module, dotted: str) -> tuple[nn.Module, str]:
