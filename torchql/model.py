@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from .budget import TimeBudgetExceeded
+
 if TYPE_CHECKING:
     from .inputs import Inputs
 
@@ -355,6 +357,8 @@ def _gives(batch, t: torch.Tensor, x: torch.Tensor, expected: torch.Tensor) -> b
     """Whether ``batch(t, x)`` gives ``expected`` (relative ``1e-12``; any error: no)."""
     try:
         value = batch(t, x)
+    except TimeBudgetExceeded:  # the fit's time is up: not the model's answer
+        raise
     except Exception:  # noqa: BLE001 - a function that cannot take the batch is vmapped
         return False
     return (isinstance(value, torch.Tensor) and value.shape == expected.shape
