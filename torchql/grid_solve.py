@@ -79,7 +79,8 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
     Parameters
     ----------
     func : callable ``(t, x) -> dx/dt``
-        For one time (0-dim tensor) and one state ``(M,)``; it is vmapped over the intervals and
+        For one time (0-dim tensor) and one state ``(M,)``; called on all the intervals at once
+        where it takes a batch of them, else vmapped (:class:`torchql.model.BatchedCall`), and
         differentiated with :func:`torchql.linearize.node_jacobian`.
     z0 : Tensor ``(M,)``
         Initial state.
