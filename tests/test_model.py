@@ -218,3 +218,26 @@ def test_the_batched_augmented_field_is_used_only_where_it_gives_the_vmapped_val
     if direct:
         torch.testing.assert_close(system.f_batch(t, z), expected, rtol=1e-13, atol=1e-15)
     assert all(torch.equal(v, before[k]) for k, v in system.model.named_buffers())
+
+
+def test_the_batched_call_is_checked_on_a_few_rows_whatever_the_batch():
+    """The check of :class:`torchql.model.BatchedCall` calls the batched function on
+    ``PROBE_ROWS`` rows only: a model broadcasting coefficients ``(I,)`` against states ``(I, 1)``
+    would otherwise build an ``(I, I)`` array on a large batch (1,000 cars: 0.9 s per fit_many)."""
+    from torchql.model import PROBE_ROWS, BatchedCall
+
+    system = AugmentedSystem(_Decay(), ["k"], F64, CPU)
+    seen = []
+
+    def batch(t, z):
+        seen.append(z.shape[0])
+        return system.f_batch(t, z)
+
+    z = torch.rand(1000, system.M, dtype=F64)
+    t = torch.zeros(1000, dtype=F64)
+    call = BatchedCall(system.f, batch)
+    torch.testing.assert_close(call(t, z), torch.vmap(system.f)(t, z), rtol=0, atol=0)
+    assert call.direct is False and seen and max(seen) == PROBE_ROWS
+    seen.clear()
+    call(t, z)
+    assert not seen  # vmapped from then on

@@ -328,6 +328,10 @@ class AugmentedSystem:
         return fitted
 
 
+#: Rows of the batch on which :class:`BatchedCall` compares a batched call with the vmapped one.
+PROBE_ROWS = 7
+
+
 class BatchedCall:
     """A function ``one(t, x)`` of one time ``()`` and state ``(M,)``, evaluated over a batch ``t (I,)``,
     ``x (I, M)``: by ``batch(t, x)`` in one call (default ``one`` itself: a model written for a
@@ -336,7 +340,12 @@ class BatchedCall:
     evaluation's. The first call decides, comparing the two (relative ``1e-12``) at its batch and
     at a random batch near it (a model that reads ``x[0]`` as a state, or a sum over all the
     states as one state's total, gives wrong values or fails on a batch); it returns the vmapped
-    values. :attr:`direct` says what was decided (None: not yet)."""
+    values. :attr:`direct` says what was decided (None: not yet).
+
+    The check runs on :data:`PROBE_ROWS` rows made from the first call's (repeated as needed):
+    cheap whatever the batch, and a batch size that no state or coefficient shape is likely to
+    match, so that a model broadcasting a batch of coefficients ``(I,)`` against states ``(I, n)``
+    fails it by shape instead of building an ``(I, I)`` array."""
 
     def __init__(self, one, batch=None) -> None:
         self.one, self.batch = one, one if batch is None else batch
@@ -345,11 +354,14 @@ class BatchedCall:
 
     def __call__(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         if self.direct is None:
-            mapped = self.vmapped(t, x)
+            rows = torch.arange(PROBE_ROWS, device=x.device) % x.shape[0]
+            tp, xp = t[rows], x[rows]
             generator = torch.Generator(device=x.device).manual_seed(0)
-            near = x + (0.1 * x.abs() + 0.1) * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
-            self.direct = _gives(self.batch, t, x, mapped) and _gives(self.batch, t, near, self.vmapped(t, near))
-            return mapped
+            near = xp + (0.1 * xp.abs() + 0.1) * torch.randn(xp.shape, generator=generator, dtype=x.dtype,
+                                                              device=x.device)
+            self.direct = (_gives(self.batch, tp, xp, self.vmapped(tp, xp))
+                           and _gives(self.batch, tp, near, self.vmapped(tp, near)))
+            return self.vmapped(t, x)
         return self.batch(t, x) if self.direct else self.vmapped(t, x)
 
 
