@@ -200,8 +200,8 @@ class _Decay(torchql.ODEModel):
     (Mixed(), ["W", "K", "s", "sub.c"], False),  # matrix and vector coefficients: wrong values or shapes
 ], ids=["oscillator", "decay", "mixed"])
 def test_the_batched_augmented_field_is_used_only_where_it_gives_the_vmapped_values(model, params, direct):
-    """``AugmentedSystem.f_batch`` (one model call, each sample's coefficients as buffers ``(S, ...)``) is
-    taken by :class:`torchql.model.BatchedCall` where it equals ``vmap(f)``; the values are vmap's
+    """``AugmentedSystem.f`` of a batch (one model call, each sample's coefficients as buffers ``(S, ...)``)
+    is taken by :class:`torchql.model.BatchedCall` where it equals ``vmap(f)``; the values are vmap's
     either way, and the model's own buffers are left as they were."""
     from torchql.model import BatchedCall
 
@@ -211,12 +211,12 @@ def test_the_batched_augmented_field_is_used_only_where_it_gives_the_vmapped_val
     z = torch.randn(5, system.M, generator=g, dtype=F64)
     t = torch.linspace(0.0, 1.0, 5, dtype=F64)
     expected = torch.vmap(system.f)(t, z)
-    call = BatchedCall(system.f, system.f_batch)
+    call = BatchedCall(system.f)
     torch.testing.assert_close(call(t, z), expected, rtol=0, atol=0)
     assert call.direct is direct
     torch.testing.assert_close(call(t, z), expected, rtol=1e-13, atol=1e-15)
     if direct:
-        torch.testing.assert_close(system.f_batch(t, z), expected, rtol=1e-13, atol=1e-15)
+        torch.testing.assert_close(system.f(t, z), expected, rtol=1e-13, atol=1e-15)
     assert all(torch.equal(v, before[k]) for k, v in system.model.named_buffers())
 
 
@@ -229,13 +229,14 @@ def test_the_batched_call_is_checked_on_a_few_rows_whatever_the_batch():
     system = AugmentedSystem(_Decay(), ["k"], F64, CPU)
     seen = []
 
-    def batch(t, z):
-        seen.append(z.shape[0])
-        return system.f_batch(t, z)
+    def one(t, z):  # under vmap a single state (M,); called on a batch, (I, M)
+        if z.dim() == 2:
+            seen.append(z.shape[0])
+        return system.f(t, z)
 
     z = torch.rand(1000, system.M, dtype=F64)
     t = torch.zeros(1000, dtype=F64)
-    call = BatchedCall(system.f, batch)
+    call = BatchedCall(one)
     torch.testing.assert_close(call(t, z), torch.vmap(system.f)(t, z), rtol=0, atol=0)
     assert call.direct is False and seen and max(seen) == PROBE_ROWS
     seen.clear()

@@ -336,7 +336,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         rtol_j, atol_j = interval_tolerances(rtol, atol, N, z0.dtype)
     n = system.n  # the coefficients are constant on every interval: Newton moves the states only
     X[:, 1:, n:] = z0[:, n:].unsqueeze(1)  # and they are the samples' own at every node, whatever the guess
-    field = _Field(system.f, n, batch=system.f_batch)
+    field = _Field(system.f, n)
     active = torch.arange(S, device=z0.device)
     steps = torch.ones(S, N, dtype=torch.long, device=z0.device)
     t0, h = grid[..., :-1], grid[..., 1:] - grid[..., :-1]

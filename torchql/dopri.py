@@ -87,7 +87,7 @@ class _DopriRun:
         self.S, self.G, self.n, self.grid, self.out, self.ok = S, grid.shape[-1], n, grid, out, ok
         self.rtol, self.atol, self.max_steps = rtol, atol, max_steps
         self.per_sample = grid.dim() == 2
-        self.fv = BatchedCall(system.f, system.f_batch)  # one model call per stage where the model takes it
+        self.fv = BatchedCall(system.f)  # one model call per stage where the model takes it
         self.x = x = z0.clone()
         self.t = grid[:, 0].clone() if self.per_sample else grid[0].expand(S).clone()
         self.node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach

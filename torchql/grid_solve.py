@@ -163,12 +163,12 @@ class _Field:
     interval, so Newton's correction never moves them, and only the states' block is needed.
     """
 
-    def __init__(self, func, n: int | None = None, batch=None) -> None:
+    def __init__(self, func, n: int | None = None) -> None:
         self.func = func
         self.n = n
-        #: ``f`` over a batch of times and states: by one call where ``batch`` (default ``func``) takes
-        #: the batch, else vmapped (:class:`torchql.model.BatchedCall`)
-        self.values = BatchedCall(func, batch)
+        #: ``f`` over a batch of times and states: by one call where ``func`` takes the batch, else
+        #: vmapped (:class:`torchql.model.BatchedCall`)
+        self.values = BatchedCall(func)
 
     def __call__(self, t: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         rows = x.shape[1] if self.n is None else self.n

@@ -251,10 +251,11 @@ class AugmentedSystem:
         return torch.cat([buffers[name].reshape(-1) for name in self.param_names])
 
     def unpack_params(self, p: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Split a flat parameter vector ``(P,)`` into buffers of their registered shapes."""
+        """Split a flat parameter vector ``(P,)`` into buffers of their registered shapes (a batch of
+        them ``(..., P)`` into ``(..., *shape)``)."""
         out, start = {}, 0
         for name, shape, size in zip(self.param_names, self.param_shapes, self.param_sizes):
-            out[name] = p[start : start + size].reshape(shape)
+            out[name] = p[..., start : start + size].reshape(p.shape[:-1] + tuple(shape))
             start += size
         return out
 
@@ -269,7 +270,8 @@ class AugmentedSystem:
         return values
 
     def rhs(self, t: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """Model right-hand side ``f(t, x; p)`` for a single state ``x`` of shape ``(n,)``.
+        """Model right-hand side ``f(t, x; p)`` for a single state ``x`` of shape ``(n,)`` (or a batch
+        ``x (S, n)``, ``p (S, P)``, each coefficient held as ``(S, *shape)``: see :meth:`f`).
 
         The unknown buffers of :attr:`model` (this system's own copy of the user's model) hold
         ``p``'s values during the call and their own after it, as
@@ -289,27 +291,14 @@ class AugmentedSystem:
                 owner._buffers[leaf] = old
 
     def f(self, t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Augmented right-hand side for ``z`` of shape ``(M,)``: ``(f(t, x; p), 0)``."""
-        x, p = z[: self.n], z[self.n :]
-        dx = self.rhs(t, x, p)
-        return torch.cat([dx, torch.zeros_like(p)])
+        """Augmented right-hand side for ``z`` of shape ``(M,)``: ``(f(t, x; p), 0)``.
 
-    def f_batch(self, t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """:meth:`f` of a batch ``z (S, M)`` at times ``t (S,)`` by one call of the model, each unknown
-        coefficient held as a buffer ``(S, *shape)`` for the call: right for a model whose forward
-        broadcasts over a leading axis (as :class:`ODEModel` asks of the states), which
-        :class:`BatchedCall` checks before it relies on it."""
-        x, p = z[:, :self.n], z[:, self.n:]
-        S, start, saved = z.shape[0], 0, []
-        try:
-            for (owner, leaf), shape, size in zip(self._owners, self.param_shapes, self.param_sizes):
-                saved.append(owner._buffers[leaf])
-                owner._buffers[leaf] = p[:, start:start + size].reshape(S, *shape)
-                start += size
-            dx = self.model(t, x)
-        finally:
-            for (owner, leaf), old in zip(self._owners, saved):
-                owner._buffers[leaf] = old
+        Given a batch ``z (S, M)`` at times ``t (S,)``, one call of the model with each unknown
+        coefficient held as ``(S, *shape)``: right for a model whose forward broadcasts over a
+        leading axis (as :class:`ODEModel` asks of the states), which :class:`BatchedCall` checks
+        before it relies on it."""
+        x, p = z[..., : self.n], z[..., self.n :]
+        dx = self.rhs(t, x, p)
         return torch.cat([dx, torch.zeros_like(p)], dim=-1)
 
     def model_with(self, p: torch.Tensor) -> ODEModel:
@@ -334,21 +323,21 @@ PROBE_ROWS = 7
 
 class BatchedCall:
     """A function ``one(t, x)`` of one time ``()`` and state ``(M,)``, evaluated over a batch ``t (I,)``,
-    ``x (I, M)``: by ``batch(t, x)`` in one call (default ``one`` itself: a model written for a
-    batch of states, as :class:`ODEModel` asks) where that gives what :func:`torch.vmap` of ``one``
-    gives, else by the vmapped ``one``. On a small model vmap's cost per call is most of an
-    evaluation's. The first call decides, comparing the two (relative ``1e-12``) at its batch and
-    at a random batch near it (a model that reads ``x[0]`` as a state, or a sum over all the
-    states as one state's total, gives wrong values or fails on a batch); it returns the vmapped
-    values. :attr:`direct` says what was decided (None: not yet).
+    ``x (I, M)``: by ``one(t, x)`` itself in one call (a model written for a batch of states, as
+    :class:`ODEModel` asks, or :meth:`AugmentedSystem.f`) where that gives what :func:`torch.vmap`
+    of ``one`` gives, else by the vmapped ``one``. On a small model vmap's cost per call is most
+    of an evaluation's. The first call decides, comparing the two (relative ``1e-12``) at rows of
+    its batch and at a random batch near them (a model that reads ``x[0]`` as a state, or a sum
+    over all the states as one state's total, gives wrong values or fails on a batch); it returns
+    the vmapped values. :attr:`direct` says what was decided (None: not yet).
 
     The check runs on :data:`PROBE_ROWS` rows made from the first call's (repeated as needed):
     cheap whatever the batch, and a batch size that no state or coefficient shape is likely to
     match, so that a model broadcasting a batch of coefficients ``(I,)`` against states ``(I, n)``
     fails it by shape instead of building an ``(I, I)`` array."""
 
-    def __init__(self, one, batch=None) -> None:
-        self.one, self.batch = one, one if batch is None else batch
+    def __init__(self, one) -> None:
+        self.one = one
         self.vmapped = torch.vmap(one)
         self.direct: bool | None = None
 
@@ -359,10 +348,10 @@ class BatchedCall:
             generator = torch.Generator(device=x.device).manual_seed(0)
             near = xp + (0.1 * xp.abs() + 0.1) * torch.randn(xp.shape, generator=generator, dtype=x.dtype,
                                                               device=x.device)
-            self.direct = (_gives(self.batch, tp, xp, self.vmapped(tp, xp))
-                           and _gives(self.batch, tp, near, self.vmapped(tp, near)))
+            self.direct = (_gives(self.one, tp, xp, self.vmapped(tp, xp))
+                           and _gives(self.one, tp, near, self.vmapped(tp, near)))
             return self.vmapped(t, x)
-        return self.batch(t, x) if self.direct else self.vmapped(t, x)
+        return self.one(t, x) if self.direct else self.vmapped(t, x)
 
 
 def _gives(batch, t: torch.Tensor, x: torch.Tensor, expected: torch.Tensor) -> bool:
