@@ -65,6 +65,24 @@ def test_a_sample_that_blows_up_fails_alone():
     assert torch.isnan(traj[1]).all() and torch.isfinite(traj[[0, 2]]).all()
 
 
+def test_each_failed_sample_is_said_in_words():
+    """``messages`` says why each sample failed, where: a blow-up (``v' = 0.0128 v^2 - c`` from
+    ``v = 110`` ends near ``t = 1 / (0.0128 * 110) = 0.71``), a non-finite initial state, a step
+    budget; None for the samples that did not fail."""
+    system, z0 = _cars(3)
+    z0[1, 1] = -50.0
+    z0[2, 0] = float("nan")
+    grid = torch.linspace(0, 40, 21, dtype=DT)
+    messages = []
+    _, ok, _ = dopri_batch(system, z0, grid, rtol=1e-8, atol=1e-10, messages=messages)
+    assert ok.tolist() == [True, False, False] and messages[0] is None
+    assert messages[1].startswith("the step size underflowed")
+    assert 0.70 < float(messages[1].split("t = ")[1]) < 0.72, messages[1]
+    assert messages[2] == "the initial state is not finite"
+    _, ok, _ = dopri_batch(system, z0[:1], grid, rtol=1e-8, atol=1e-10, max_steps=3, messages=messages)
+    assert not bool(ok[0]) and messages[0].startswith("the budget of 3 steps ran out at t = "), messages
+
+
 def test_a_blow_up_ends_in_a_step_size_underflow_not_the_step_budget():
     """Past an overflow every trial step is non-finite (NaN error estimates, from inf - inf): each
     one shrinks the step (by the controller's smallest factor, 0.2), so the sample fails after a

@@ -116,3 +116,22 @@ def test_shooting_from_the_data_equals_its_own_fit_and_the_integrated_start_s_op
         integrated = torchql.fit(model, samples[b][1], x0=x0, method="shooting", **options)
         assert integrated.success and result.iterations <= integrated.iterations
         assert result.sse == pytest.approx(integrated.sse, rel=1e-9)
+
+
+@pytest.mark.parametrize("method", ["kantorovich", "shooting"])
+def test_a_fit_integrates_as_each_fit_many_sample_does(method):
+    """Where the engine integrates the model by its adaptive solver (here every trial, with
+    ``linear_solver="torchdiffeq"``), one sample is integrated as a batch's are, by the batched
+    Dormand–Prince: a ``fit`` and its ``fit_many`` sample agree to rounding, not only within the
+    integration's tolerance (two solvers differed by 1e-9 in the SSE, and at a fit's last steps
+    that flipped a status from CONVERGED to STALLED)."""
+    samples = [_problem("car", seed) for seed in range(2)]
+    model, _, x0, options = samples[0]
+    alone = [torchql.fit(model, data, x0=x0, method=method, linear_solver="torchdiffeq", **options)
+             for _, data, _, _ in samples]
+    batch = torchql.fit_many(model, [data for _, data, _, _ in samples], x0=x0, method=method,
+                             linear_solver="torchdiffeq", **options)
+    for b, result in enumerate(alone):
+        assert result.success and batch[b].status is result.status and batch[b].iterations == result.iterations
+        torch.testing.assert_close(batch[b].estimates, result.estimates, rtol=1e-12, atol=0.0)
+        assert batch[b].sse == pytest.approx(result.sse, rel=1e-12)

@@ -397,7 +397,7 @@ def test_shooting_rejects_stiff_trials_instead_of_crawling_through_them(monkeypa
                          method="shooting", bounds={"A": (0.0, None), "B": (0.0, None)})
     assert result.success, result.message
     assert sum(rec.rejected for rec in result.history) > 0
-    assert adaptive == ["integrate_each"]  # the first solution only (one sample: by torchdiffeq)
+    assert adaptive == ["dopri_batch"]  # the first solution only (one sample as fit_many's: batched Dormand–Prince)
     assert abs(result.params["A"].item() - 0.102) < 1e-3 and abs(result.params["B"].item() - 3.0009) < 1e-3
 
 

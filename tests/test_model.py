@@ -217,6 +217,7 @@ def test_the_batched_augmented_field_is_used_only_where_it_gives_the_vmapped_val
     torch.testing.assert_close(call(t, z), expected, rtol=1e-13, atol=1e-15)
     if direct:
         torch.testing.assert_close(system.f(t, z), expected, rtol=1e-13, atol=1e-15)
+    torch.testing.assert_close(call(t[3:4], z[3:4]), expected[3:4], rtol=1e-13, atol=1e-15)  # one row, either way
     assert all(torch.equal(v, before[k]) for k, v in system.model.named_buffers())
 
 

@@ -32,12 +32,17 @@ _DP_A = (
 #: Weights of the dense output at the step's midpoint (Shampine's), over the seven slopes.
 _DP_MID = (6025192743 / 30085553152 / 2, 0.0, 51252292925 / 65400821598 / 2, -2691868925 / 45128329728 / 2,
            187940372067 / 1594534317056 / 2, -1776094331 / 19743644256 / 2, 11237099 / 235043384 / 2)
+#: The words of a failed sample's last step (:meth:`_DopriRun.messages`), by code.
+_FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
+             "the solution became non-finite (NaN or inf) after t = {t:.6g}; the step size underflowed to {h:.3g}",
+             "the budget of {n} steps ran out at t = {t:.6g}")
 #: Fifth-order weights minus the embedded fourth-order ones: the local error estimate.
 _DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
 
 
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
-                max_steps: int = 100_000, land: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+                max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` by Dormand–Prince 5(4), each sample its own steps.
 
     Every sample has its own time, step size and accept/reject decision (error in the RMS norm
@@ -54,7 +59,8 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
 
     Returns ``traj (S, G, M)`` (NaN where it failed), ``ok (S,)`` (false when a sample's
     solution became non-finite, its step size underflowed or it took more than ``max_steps``
-    steps) and the right-hand-side evaluations (points).
+    steps) and the right-hand-side evaluations (points). ``messages``, a list if given, gets one
+    entry per sample: why it failed (where, and the step size then), or None.
     """
     S, M = z0.shape
     out = z0.new_full((S, grid.shape[-1], M), float("nan"))
@@ -73,6 +79,8 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         last = torch.minimum(run.node_index, (end - 1).unsqueeze(1))  # (S, G)
         out = out.gather(1, last.unsqueeze(-1).expand(S, G, M))
     out[~ok] = float("nan")
+    if messages is not None:
+        messages[:] = run.messages()
     return out, ok, run.evals
 
 
@@ -101,6 +109,7 @@ class _DopriRun:
         h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
         self.h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
         self.steps = torch.zeros(S, dtype=torch.long, device=device)
+        self.failure = torch.zeros(S, dtype=torch.long, device=device)  # _FAILURES' index, 0: none
         # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
         self.rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
         self.row_e, self.row_mid = (torch.tensor(row, dtype=dtype, device=device) for row in (_DP_E, _DP_MID))
@@ -177,9 +186,25 @@ class _DopriRun:
             node[rows] += 1
         finished = node[active] >= (G if self.end is None else self.end[active])
         underflow = h_next <= 10 * torch.finfo(xa.dtype).eps * ta.abs().clamp(min=1.0)
-        bad = (underflow | (self.steps[active] >= self.max_steps)) & ~finished
-        self.ok[active[bad]] = False
+        over = (self.steps[active] >= self.max_steps) & ~finished
+        bad = (underflow & ~finished) | over
+        if bool(bad.any()):
+            reason = torch.where(over, 3, torch.where(torch.isfinite(x_new).all(dim=1), 1, 2))
+            self.failure[active[bad]] = reason[bad]
+            self.ok[active[bad]] = False
         return active[self.ok[active] & ~finished]
+
+    def messages(self) -> list:
+        """Each sample's failure in words (None where it did not fail in a step)."""
+        out = []
+        for s, (code, good) in enumerate(zip(self.failure.tolist(), self.ok.tolist())):
+            if good:
+                out.append(None)
+            elif code == 0:
+                out.append("the initial state is not finite")
+            else:
+                out.append(_FAILURES[code].format(t=float(self.t[s]), h=float(self.h[s]), n=self.max_steps))
+        return out
 
     def _stages(self, xa: torch.Tensor, ta: torch.Tensor, ka: torch.Tensor,
                 he: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

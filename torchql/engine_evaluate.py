@@ -223,11 +223,10 @@ class Evaluation:
         the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
         the trial divergent, and the sample's trials are integrated by the adaptive solvers from
         then on. The other samples, or all without a guess, are integrated by
-        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``, more than one
-        sample), by the implicit
+        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``, one
+        sample as several, whose message says where a sample failed), by the implicit
         :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
-        torchdiffeq with ``solver`` (another method, or where the batched Dormand–Prince fails),
-        whose message is kept when it fails too. ``stop``: the implicit solver's test of a sample
+        torchdiffeq with ``solver`` (another method, or a ``max_steps``). ``stop``: the implicit solver's test of a sample
         (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next node) that
         ends it early, as a failure (:meth:`_nonlinear_sse`).
         """
@@ -311,10 +310,11 @@ class Evaluation:
         return (count * (self.G - 1) * self._split <= _SHOOTING_POINTS and spec.linear_solver.grid_solver
                 and spec.solver not in STIFF_SOLVERS)
 
-    def _batched_dopri(self, count: int) -> bool:
-        """Whether :meth:`_adaptive` integrates ``count`` samples by the batched Dormand–Prince
-        (``solver="dopri5"`` without a ``max_steps``, several samples; one sample: torchdiffeq's)."""
-        return self.spec.solver == "dopri5" and self.spec.max_steps is None and count > 1
+    def _batched_dopri(self) -> bool:
+        """Whether :meth:`_adaptive` integrates by the batched Dormand–Prince (``solver="dopri5"``
+        without a ``max_steps``), one sample as several: ``fit``'s solutions are those of each
+        ``fit_many`` sample."""
+        return self.spec.solver == "dopri5" and self.spec.max_steps is None
 
     @property
     def _split(self) -> int:
@@ -331,10 +331,9 @@ class Evaluation:
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
-        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``, several samples,
-        no ``max_steps``), then torchdiffeq per sample; fills ``traj``, ``ok`` and ``errors`` in place."""
+        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``, no ``max_steps``),
+        or torchdiffeq per sample; fills ``traj``, ``ok`` and ``errors`` in place."""
         spec = self.spec
-        S = z0.shape[0]
         grid = self._grid_of(idx)
         shared = grid.dim() == 1
 
@@ -345,7 +344,7 @@ class Evaluation:
             return (~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=ok.device)).nonzero().flatten()
         sub = pending()
         stiff = spec.solver in STIFF_SOLVERS
-        batched = self._batched_dopri(S)
+        batched = self._batched_dopri()
         if sub.numel() and stiff:  # every sample by the implicit solver; its message kept for a failure
             self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors, stop)
             return
@@ -353,10 +352,13 @@ class Evaluation:
             self._take_shared_solutions(idx, sub, z0, rtol, traj, ok)
             sub = pending()
         if sub.numel() and batched:
+            messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
-                                          land=self._landing(idx[sub]))
+                                          land=self._landing(idx[sub]), messages=messages)
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
+            for k, s in enumerate(sub.tolist()):
+                errors[s] = messages[k]
             sub = pending()
         if sub.numel():
             hit = self.t_obs if shared else self.t_obs[idx[sub]]

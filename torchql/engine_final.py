@@ -151,7 +151,7 @@ class FinalPass:
     def _final_by_dopri(self, count: int) -> bool:
         """Whether this chunk's final pass integrates ``count`` samples by the batched Dormand–Prince
         (:meth:`~torchql.engine_evaluate.Evaluation._nonlinear`'s choice, without joint sensitivities)."""
-        return self._batched_dopri(count) and not self._grid_solves(count) and not self._joint_sensitivities
+        return self._batched_dopri() and not self._grid_solves(count) and not self._joint_sensitivities
 
     def _final_solutions(self, rows, z0, final_guess, codes, detail):
         """The model integrated at the estimates ``z0`` of samples ``rows`` (from ``final_guess``,

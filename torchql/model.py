@@ -334,7 +334,8 @@ class BatchedCall:
     The check runs on :data:`PROBE_ROWS` rows made from the first call's (repeated as needed):
     cheap whatever the batch, and a batch size that no state or coefficient shape is likely to
     match, so that a model broadcasting a batch of coefficients ``(I,)`` against states ``(I, n)``
-    fails it by shape instead of building an ``(I, I)`` array."""
+    fails it by shape instead of building an ``(I, I)`` array. A vmapped function called on one
+    row (a single fit, the last sample of a batch still stepping) is called on that row."""
 
     def __init__(self, one) -> None:
         self.one = one
@@ -351,7 +352,11 @@ class BatchedCall:
             self.direct = (_gives(self.one, tp, xp, self.vmapped(tp, xp))
                            and _gives(self.one, tp, near, self.vmapped(tp, near)))
             return self.vmapped(t, x)
-        return self.one(t, x) if self.direct else self.vmapped(t, x)
+        if self.direct:
+            return self.one(t, x)
+        if x.shape[0] == 1:  # vmap over one row is the call on that row, without vmap's cost
+            return self.one(t[0], x[0]).unsqueeze(0)
+        return self.vmapped(t, x)
 
 
 def _gives(batch, t: torch.Tensor, x: torch.Tensor, expected: torch.Tensor) -> bool:
