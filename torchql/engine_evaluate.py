@@ -449,14 +449,20 @@ class Evaluation:
 
     def _landing(self, rows: torch.Tensor) -> torch.Tensor:
         """The nodes that an adaptive solver's steps land on for the samples of chunk indices
-        ``rows``: their observation times, ``(G,)`` on a shared grid or ``(S, G)`` (the other
-        nodes come from the dense output)."""
-        if self.grid.dim() == 1:
-            land = torch.zeros(self.G, dtype=torch.bool, device=self.grid.device)
-            land[self.obs] = True
-            return land
-        land = torch.zeros(rows.numel(), self.G, dtype=torch.bool, device=self.grid.device)
-        return land.scatter_(1, self.obs[rows], True)
+        ``rows``: their observation times and the nodes at an input's breakpoints (where its
+        steps restart, as torchdiffeq's ``jump_t``), ``(G,)`` on a shared grid or ``(S, G)`` (the
+        other nodes come from the dense output)."""
+        shared = self.grid.dim() == 1
+        grid = self.grid if shared else self.grid[rows]
+        land = torch.zeros(grid.shape, dtype=torch.bool, device=grid.device)
+        land.scatter_(-1, self.obs if shared else self.obs[rows], True)
+        breakpoints = self.spec.breakpoints
+        if breakpoints is not None:
+            inner = breakpoints.to(grid).expand(*grid.shape[:-1], -1).contiguous()
+            at = torch.searchsorted(grid, inner).clamp(max=grid.shape[-1] - 1)
+            on = (grid.gather(-1, at) == inner).to(torch.uint8)  # a user's grid may not hold them all
+            land |= torch.zeros_like(land, dtype=torch.uint8).scatter_reduce_(-1, at, on, "amax").bool()
+        return land
 
     def _grid_solve_one(self, z0, grid, guess, rtol, atol, substeps):
         """:func:`~torchql.grid_solve.solve_on_grid` for one sample ``z0 (M,)`` on ``grid (G,)``
