@@ -213,7 +213,7 @@ class _DopriRun:
         K = xa.new_empty(7, *xa.shape)
         K[0] = ka
         for i in range(1, 7):
-            xi = torch.addcmul(xa, hc, torch.tensordot(self.rows_a[i], K[:i], dims=1))
+            xi = torch.addcmul(xa, hc, _combine(self.rows_a[i], K[:i]))
             K[i] = self.fv(ta + _DP_C[i] * he, xi)
         return K, xi, hc  # the last stage is evaluated at the fifth-order solution (first same as last)
 
@@ -221,7 +221,7 @@ class _DopriRun:
                  ha: torch.Tensor, clipped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Whether each trial step ``he (A,)`` from ``xa (A, M)`` is accepted, bool ``(A,)``, and the next step size."""
         n = self.n
-        err = hc * torch.tensordot(self.row_e, K, dims=1)
+        err = hc * _combine(self.row_e, K)
         sc = self.atol + self.rtol * torch.maximum(xa[:, :n].abs(), x_new[:, :n].abs())
         ratio = (err[:, :n] / sc).square().mean(dim=1).sqrt()
         finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
@@ -258,13 +258,19 @@ class _DopriRun:
         step_rows = rows[which]
         t_node = self.grid[nodes] if base_a is None else self.grid_flat[base_a[step_rows] + nodes]
         theta = ((t_node - ta[step_rows]) / he[step_rows]).unsqueeze(-1)
-        y_mid = torch.addcmul(xa[rows], hc[rows], torch.tensordot(self.row_mid, K[:, rows], dims=1))
+        y_mid = torch.addcmul(xa[rows], hc[rows], _combine(self.row_mid, K[:, rows]))
         quartic = _quartic(xa[rows], x_new[rows], y_mid, K[0, rows], K[6, rows], hc[rows])
         value = quartic[4][which]
         for coefficient in quartic[3::-1]:
             value = value * theta + coefficient[which]
         self.out[active[step_rows], nodes] = value
         self.node[active[rows]] += counts
+
+
+def _combine(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """``sum_i weights[i] K[i]``: ``(A, M)`` from ``weights (i,)`` and slopes ``K (i, A, M)``, one
+    matrix-vector product (``torch.tensordot``'s Python wrapper cost a fifth of a step on one sample)."""
+    return (weights @ K.reshape(K.shape[0], -1)).reshape(K.shape[1:])
 
 
 def _quartic(y0, y1, y_mid, f0, f1, h):
