@@ -405,7 +405,7 @@ class Evaluation:
     def _solve_with_sensitivities(self, idx, z0) -> tuple[torch.Tensor, torch.Tensor, list]:
         """The model integrated from ``z0 (S, M)`` by Rodas5P together with its sensitivities to the
         unknowns, its steps differentiated (:mod:`torchql.solvers.sensitivity`), on the grid of
-        the chunk's samples ``idx`` (the steps landing on the observation times): ``traj (S, G,
+        the chunk's samples ``idx`` (landing as :meth:`_landing` says): ``traj (S, G,
         M)``, ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
         :meth:`~torchql.problem.Problem.columns`) and error messages (None: ok). A sample that
         failed keeps its initial state and columns at every node: a finite stand-in, as a failed
