@@ -153,3 +153,23 @@ def test_compare_commits_times_fit_many_of_two_revisions(tmp_path):
         base, work, ratio = float(row[1].split()[0]), float(row[3].split()[0]), float(row[5].strip("*"))
         assert base > 0 and work > 0 and ratio == pytest.approx(work / base, rel=0.1)  # medians shown to 1 ms
         assert float(row[6]) < 1e-6  # the same fits, up to the working tree's changes
+
+
+TRADEOFF_SCRIPT = SCRIPT.parent / "grid_tradeoff.py"
+
+
+@pytest.mark.slow
+def test_grid_tradeoff_quick_writes_one_table_per_family(tmp_path):
+    run = subprocess.run([sys.executable, str(TRADEOFF_SCRIPT), "--quick", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    table = (tmp_path / "grid_tradeoff.md").read_text()
+    assert table.count("| setting | time | fits/s | speed-up over defaults |") == 2
+    for family in ("Linear oscillators", "Coasting cars"):
+        section = table.split(f"## {family}")[1].split("##")[0]
+        rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+                for line in section.splitlines() if line.startswith("| ") and "---" not in line and "setting" not in line}
+        assert list(rows) == ["defaults", "grid=20", "grid=50", "grid=100", "rtol=1e-8", "grid=1000 (reference)"]
+        assert rows["defaults"][2] == "1.00" and rows["grid=1000 (reference)"][3:5] == ["0.0e+00", "0.0e+00"]
+        assert all(cells[5] == "8/8" for cells in rows.values())
+        assert float(rows["defaults"][3]) < 1e-8 and float(rows["defaults"][4]) < 1e-5  # the defaults are accurate
