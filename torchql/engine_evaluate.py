@@ -223,12 +223,12 @@ class Evaluation:
         the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
         the trial divergent, and the sample's trials are integrated by the adaptive solvers from
         then on. The other samples, or all without a guess, are integrated by
-        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``, one
-        sample as several, whose message says where a sample failed), by the implicit
-        :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by
-        torchdiffeq with ``solver`` (another method, or a ``max_steps``). ``stop``: the implicit solver's test of a sample
-        (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next node) that
-        ends it early, as a failure (:meth:`_nonlinear_sse`).
+        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``,
+        one sample as several; its message says where a sample failed), by the implicit
+        :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by torchdiffeq
+        with ``solver`` (another method, or a ``max_steps``). ``stop``: the implicit solver's test of
+        a sample (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next
+        node) that ends it early, as a failure (:meth:`_nonlinear_sse`).
         """
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
