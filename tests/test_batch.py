@@ -277,6 +277,21 @@ def test_progress_bar_with_tqdm(capsys):
     assert "fit_many" in capsys.readouterr().err
 
 
+def test_progress_bar_names_each_phase(capsys):
+    """The bar moves in every phase, not only as samples stop: it names the phase begun (the first
+    trajectories, the iterations, the final pass), for one grid group as for several, while a
+    callable keeps receiving counts only."""
+    pytest.importorskip("tqdm")
+    data, x0 = car_data(3, seed=9)
+    torchql.fit_many(CoastingCar(AREA, MASS), data, x0, progress=True)
+    err = capsys.readouterr().err
+    positions = [err.find(phase) for phase in ("first trajectories", "iterating", "final pass")]
+    assert -1 not in positions and positions == sorted(positions), err[-500:]
+    seen = []
+    torchql.fit_many(CoastingCar(AREA, MASS), data, x0, progress=lambda done, total: seen.append((done, total)))
+    assert seen and all(isinstance(done, int) and total == 3 for done, total in seen) and seen[-1][0] == 3
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_follows_the_model_and_matches_cpu():
     data, x0 = car_data(4, seed=10)

@@ -182,7 +182,8 @@ def fit_many(
         The results do not depend on it.
     progress : bool or callable
         ``True``: a progress bar (``tqdm``, from the extra ``torchql[progress]``) counting the
-        samples finished; a callable receives ``(finished, total)`` as samples finish.
+        samples finished and naming the phase under way (first trajectories, iterating, final
+        pass); a callable receives ``(finished, total)`` as samples finish.
     conditions : list of dict, optional
         With several experiments per sample: each experiment's coefficient values, as in
         :func:`torchql.fit` (shared by the samples).
@@ -293,15 +294,16 @@ def _fit_runs(runs, model, data, x0, *, guesses, max_time, progress, callback, *
     return result
 
 
-def _progress(progress, total: int) -> Callable[[int | None], None]:
-    """A function of the number of samples finished (``None``: close)."""
+def _progress(progress, total: int) -> Callable[[int | str | None], None]:
+    """A function of the number of samples finished (``None``: close; a string: the phase begun,
+    shown beside a bar)."""
     if progress is False or progress is None:
         return lambda done: None
     if callable(progress) and not isinstance(progress, bool):
         last = [-1]
 
         def call(done):
-            if done is not None and done != last[0]:
+            if isinstance(done, int) and done != last[0]:
                 last[0] = done
                 progress(done, total)
         return call
@@ -318,6 +320,8 @@ def _progress(progress, total: int) -> Callable[[int | None], None]:
     def update(done):
         if done is None:
             bar.close()
+        elif isinstance(done, str):
+            bar.set_postfix_str(done)
         elif done > bar.n:
             bar.update(done - bar.n)
     return update

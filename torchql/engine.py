@@ -49,14 +49,14 @@ _STATUSES = list(Status)
 FLAT_DAMPING = 1e-3
 
 
-def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | None], None],
+def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | str | None], None],
                history: bool = False, callback: Callable[[int, IterationRecord], None] | None = None
                ) -> BatchFitResult:
     """Fit the validated problem ``spec``, chunk after chunk of samples: the iteration of
     :func:`torchql.fit` (one sample) and :func:`fit_many` alike.
 
-    ``report`` receives the number of samples finished (``None``: done); ``history`` keeps every
-    iterate's record; ``callback(sample, record)`` receives each record as it is completed.
+    ``report`` receives the number of samples finished (``None``: done; a string: the phase begun);
+    ``history`` keeps every iterate's record; ``callback(sample, record)`` receives each record.
     """
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
@@ -81,8 +81,8 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
                 index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
                 engine = Engine(spec, index, max_time, history=history, callback=callback)
 
-                def step(count, offset=finished):
-                    report(offset + count)
+                def step(count, offset=finished):  # a count of samples stopped, or a phase's name
+                    report(count if isinstance(count, str) else offset + count)
 
                 chunk = engine.run(step)
                 nfev += engine.nfev
@@ -243,8 +243,8 @@ class Engine(Evaluation, FinalPass, AutoGrid):
 
     def run(self, report, first: tuple | None = None) -> dict:
         """Iterate every sample of the chunk to its status; then the final pass. ``report``
-        receives the number of samples stopped; ``first``: the chunk's first references and grid
-        counts, already made (:meth:`~torchql.engine_grid.AutoGrid._run_groups`)."""
+        receives the number of samples stopped, or the name of a phase begun; ``first``: the chunk's
+        first references and grid counts, made (:meth:`~torchql.engine_grid.AutoGrid._run_groups`)."""
         st = self._iterate(report, first)
         return st if isinstance(st, dict) else self._conclude(st)
 
@@ -253,9 +253,11 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         different grids) the groups' results."""
         st = LoopState(self, report)
         try:
+            report("first trajectories")
             groups = self._start(st, first)
             if groups:  # samples that chose different grids: each group on its own
                 return self._run_groups(groups, report)
+            report("iterating")
             while self._iteration(st):
                 pass
         except TimeBudgetExceeded:  # inside a phase: the samples still running stop where they are
@@ -269,6 +271,7 @@ class Engine(Evaluation, FinalPass, AutoGrid):
 
     def _conclude(self, st: LoopState) -> dict:
         """:meth:`run`'s final pass of the iteration state ``st``."""
+        st.report("final pass")
         with no_time_budget():  # the samples that finished in time get their final evaluation
             return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess, st.polish)
 

@@ -71,8 +71,10 @@ class AutoGrid:
         for rows, first in groups:
             child = type(self)(self.spec, self.index[rows], self.max_time, history=self.history is not None,
                                callback=self.callback, start=self.start)
-            children.append((rows, child, child._iterate(lambda count, offset=done: report(offset + count), first)))
+            children.append((rows, child, child._iterate(
+                lambda count, offset=done: report(count if isinstance(count, str) else offset + count), first)))
             done += rows.numel()
+        report("final pass")  # the groups' final solutions, together
         self._share_final_solutions([(child, st) for _, child, st in children])
         for rows, child, st in children:
             part = child._conclude(st)
