@@ -7,6 +7,7 @@ import torch
 from torch import nn
 
 import torchql
+from testmodels import Decay
 from torchql.linearize import linearize
 from torchql.model import AugmentedSystem, coefficient_names
 from torchql.models import NonlinearOscillator
@@ -181,22 +182,9 @@ def test_model_with_vector_and_matrix_buffers():
     assert torch.equal(model.W, torch.tensor([1.0, -2.0], dtype=F64))
 
 
-class _Decay(torchql.ODEModel):
-    """``y' = -k y`` written ``-k * x``: a batch of coefficients ``(S,)`` does not broadcast with states ``(S, 1)``."""
-
-    state_names = ("y",)
-
-    def __init__(self):
-        super().__init__()
-        self.register_buffer("k", torch.tensor(0.7, dtype=F64))
-
-    def forward(self, t, x):
-        return -self.k * x
-
-
 @pytest.mark.parametrize("model, params, direct", [
     (NonlinearOscillator(), ["A", "B", "C", "D"], True),  # unbind(-1): takes a batch with its coefficients
-    (_Decay(), ["k"], False),  # (S,) * (S, 1): the wrong shape
+    (Decay(0.7), ["k"], False),  # -k * x, (S,) * (S, 1): the wrong shape
     (Mixed(), ["W", "K", "s", "sub.c"], False),  # matrix and vector coefficients: wrong values or shapes
 ], ids=["oscillator", "decay", "mixed"])
 def test_the_batched_augmented_field_is_used_only_where_it_gives_the_vmapped_values(model, params, direct):
@@ -227,7 +215,7 @@ def test_the_batched_call_is_checked_on_a_few_rows_whatever_the_batch():
     would otherwise build an ``(I, I)`` array on a large batch (1,000 cars: 0.9 s per fit_many)."""
     from torchql.model import PROBE_ROWS, BatchedCall
 
-    system = AugmentedSystem(_Decay(), ["k"], F64, CPU)
+    system = AugmentedSystem(Decay(0.7), ["k"], F64, CPU)
     seen = []
 
     def one(t, z):  # under vmap a single state (M,); called on a batch, (I, M)

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import torchql
+from testmodels import Decay
 from torchql.integrate import IntegrationError, solve
 from torchql.model import AugmentedSystem
 from torchql.models import Robertson
@@ -198,17 +199,8 @@ def test_float32_on_the_models_dtype():
 
 
 def test_backward_in_time_through_simulate():
-    class Decay(torchql.ODEModel):
-        state_names = ("y",)
-
-        def __init__(self):
-            super().__init__()
-            self.register_buffer("k", torch.tensor(0.7, dtype=DT))
-
-        def forward(self, t, x):
-            return -self.k * x
     t = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0], dtype=DT)
-    y = torchql.simulate(Decay(), [2.0], t, t0=0.0, solver="rodas5p", rtol=1e-11, atol=1e-13)
+    y = torchql.simulate(Decay(0.7, dtype=DT), [2.0], t, t0=0.0, solver="rodas5p", rtol=1e-11, atol=1e-13)
     torch.testing.assert_close(y[:, 0], 2.0 * torch.exp(-0.7 * t), rtol=1e-9, atol=0)
 
 
