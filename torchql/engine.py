@@ -33,7 +33,7 @@ from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import _LOOSE_RTOL, INEXACT_FACTOR, Evaluation, _pick, not_above
 from .engine_final import FinalPass
 from .engine_grid import AutoGrid
-from .engine_state import RUNNING, LoopState, put_samples
+from .engine_state import RUNNING, LoopState, put_samples, shifted_report
 from .grid import last_nodes
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 from .problem import Problem
@@ -80,11 +80,7 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
             for start in range(0, B, chunk_size):
                 index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
                 engine = Engine(spec, index, max_time, history=history, callback=callback)
-
-                def step(count, offset=finished):  # a count of samples stopped, or a phase's name
-                    report(count if isinstance(count, str) else offset + count)
-
-                chunk = engine.run(step)
+                chunk = engine.run(shifted_report(report, finished))
                 nfev += engine.nfev
                 retry = fallback_rows(chunk["status"]) if spec.start_fallback else []
                 if retry:  # "auto": where the first reference failed, the fit from the other one

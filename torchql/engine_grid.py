@@ -25,6 +25,7 @@ import math
 import torch
 from torch.func import jvp, vmap
 
+from .engine_state import shifted_report
 from .grid import (AUTO_COUNTS, AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, geometric_nodes, last_nodes, make_grids,
                    nearest_nodes, needed_intervals, uniform_nodes)
 from .splines import hermite_per_sample
@@ -71,8 +72,7 @@ class AutoGrid:
         for rows, first in groups:
             child = type(self)(self.spec, self.index[rows], self.max_time, history=self.history is not None,
                                callback=self.callback, start=self.start)
-            children.append((rows, child, child._iterate(
-                lambda count, offset=done: report(count if isinstance(count, str) else offset + count), first)))
+            children.append((rows, child, child._iterate(shifted_report(report, done), first)))
             done += rows.numel()
         report("final pass")  # the groups' final solutions, together
         self._share_final_solutions([(child, st) for _, child, st in children])

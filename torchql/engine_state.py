@@ -11,7 +11,7 @@ from .result import Status
 if TYPE_CHECKING:
     from .engine import Engine
 
-__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples"]
+__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "shifted_report"]
 
 _STATUSES = list(Status)
 #: The status code of a sample still iterating.
@@ -19,6 +19,12 @@ RUNNING = -1
 
 #: Entries of a trial iterate that only decide its acceptance and are not kept.
 TRIAL_ONLY = ("failed", "defect")
+
+
+def shifted_report(report, offset: int):
+    """``report`` for a part of the samples, the first ``offset`` before it: a count of the part's
+    samples stopped is reported as ``offset`` more; a phase's name passes as it is."""
+    return lambda count: report(count if isinstance(count, str) else offset + count)
 
 
 def put_samples(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) -> None:
