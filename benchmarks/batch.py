@@ -397,9 +397,9 @@ def loop_rows(family: Family, data: Data, subset: int, repeat: int) -> list[Row]
     return rows
 
 
-def standard_errors(row: Row) -> np.ndarray:
-    """The standard errors ``(B, m)`` of a torchql ``fit_many`` row, from its results' covariances."""
-    return np.sqrt(np.diagonal(row.extra["result"].covariance.numpy(), axis1=1, axis2=2))
+def standard_errors(result: torchql.BatchFitResult) -> np.ndarray:
+    """The standard errors ``(B, m)`` of a ``fit_many`` result, from its covariances."""
+    return np.sqrt(np.diagonal(result.covariance.numpy(), axis1=1, axis2=2))
 
 
 def relative_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -509,12 +509,12 @@ def notes(res: dict) -> list[str]:
                    f"{largest.rate / best.rate:.2g}x its fits/s.")
     former = next((r for r in rows if r.kind == "former" and r.B == largest.B), None)
     if former is not None:
-        errors = standard_errors(former)
+        errors = standard_errors(former.extra["result"])
         others = [largest] + [r for r in rows if r.kind == "tuned" and r.B == largest.B]
         out.append(f"Standard errors (the reported covariance's) against those on the fixed 1,000-interval grid, "
                    f"largest relative difference at B = {largest.B}: " + ", ".join(
                        f"{'defaults' if r is largest else r.label.split(', ', 1)[1]} "
-                       f"{np.nanmax(np.abs(standard_errors(r) - errors) / errors):.1e}" for r in others)
+                       f"{np.nanmax(np.abs(standard_errors(r.extra['result']) - errors) / errors):.1e}" for r in others)
                    + " (a storage grid's interpolation error reaches the sensitivities the final pass integrates "
                    "on it).")
     jax = [r for r in rows if r.kind == "jax"]

@@ -43,11 +43,6 @@ SETTINGS = (("defaults", {}), ("grid=20", {"grid": 20}), ("grid=50", {"grid": 50
 REFERENCE = ("grid=1000 (reference)", {"grid": 1000})
 
 
-def standard_errors(result) -> np.ndarray:
-    """The standard errors ``(B, m)`` of a ``fit_many`` result."""
-    return np.sqrt(np.diagonal(result.covariance.numpy(), axis1=1, axis2=2))
-
-
 def measure(family: batch.Family, data: batch.Data, repeat: int) -> list[tuple]:
     """``(label, seconds, result)`` of every setting and of the reference, fastest of ``repeat`` runs."""
     batch.run_fit_many(family, data.head(min(8, len(data.y))))  # warm-up
@@ -63,14 +58,14 @@ def measure(family: batch.Family, data: batch.Data, repeat: int) -> list[tuple]:
 def table(family: batch.Family, size: int, rows: list[tuple]) -> str:
     """The markdown table of one family's rows (the last one the reference)."""
     reference = rows[-1][2]
-    estimates, errors = reference.estimates.numpy(), standard_errors(reference)
+    estimates, errors = reference.estimates.numpy(), batch.standard_errors(reference)
     defaults = rows[0][1]
     lines = [f"## {family.title}, B = {size}", "",
              "| setting | time | fits/s | speed-up over defaults | estimates: max rel. diff | "
              "standard errors: max rel. diff | converged |", "|---|---|---|---|---|---|---|"]
     for label, seconds, result in rows:
         d_est = float(np.max(batch.relative_difference(result.estimates.numpy(), estimates)))
-        d_se = float(np.max(batch.relative_difference(standard_errors(result), errors)))
+        d_se = float(np.max(batch.relative_difference(batch.standard_errors(result), errors)))
         lines.append(f"| {label} | {seconds:.3f} s | {size / seconds:,.0f} | {defaults / seconds:.2f} | {d_est:.1e} | "
                      f"{d_se:.1e} | {int(result.success.sum())}/{size} |")
     return "\n".join(lines) + "\n"
