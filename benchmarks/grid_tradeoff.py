@@ -48,8 +48,7 @@ def measure(family: batch.Family, data: batch.Data, repeat: int) -> list[tuple]:
     batch.run_fit_many(family, data.head(min(8, len(data.y))))  # warm-up
     rows = []
     for label, options in (*SETTINGS, REFERENCE):
-        runs = [batch.run_fit_many(family, data, **options) for _ in range(repeat)]
-        result, seconds = min(runs, key=lambda run: run[1])
+        result, seconds = batch.best_of(repeat, lambda: batch.run_fit_many(family, data, **options))
         rows.append((label, seconds, result))
         print(f"... {family.key}: {label} {seconds:.3f} s", file=sys.stderr, flush=True)
     return rows
