@@ -83,6 +83,26 @@ def test_each_failed_sample_is_said_in_words():
     assert not bool(ok[0]) and messages[0].startswith("the budget of 3 steps ran out at t = "), messages
 
 
+def test_a_step_budget_per_grid_interval_fails_only_the_sample_that_needs_more():
+    """``interval_steps`` (the user's ``max_steps``, which torchdiffeq counts per output time)
+    caps the trial steps between two grid nodes: on a grid of 4 intervals, the fast oscillator
+    (``y'' = -400 y``, about 265 steps an interval at ``rtol = 1e-8``) runs out of 50, the slow one
+    (``y'' = -y``, about 14) does not. A budget that binds no sample leaves every step as it was."""
+    system = AugmentedSystem(LinearOscillator(0.0, 1.0), ["B"], DT, torch.device("cpu"))
+    z0 = torch.tensor([[1.0, 0.0, 1.0], [1.0, 0.0, 400.0]], dtype=DT)
+    grid = torch.linspace(0, 4, 5, dtype=DT)
+    free, ok, evals = dopri_batch(system, z0, grid, rtol=1e-8, atol=1e-10)
+    assert ok.all()
+    messages = []
+    capped, ok, _ = dopri_batch(system, z0, grid, rtol=1e-8, atol=1e-10, interval_steps=50, messages=messages)
+    assert ok.tolist() == [True, False] and messages[0] is None
+    assert messages[1].startswith("max_steps = 50 steps between two grid nodes ran out at t = "), messages
+    assert float(messages[1].split("t = ")[1].split(" ")[0]) < 1.0  # in the first interval
+    assert torch.equal(capped[0], free[0]) and torch.isnan(capped[1]).all()
+    roomy, ok, roomy_evals = dopri_batch(system, z0, grid, rtol=1e-8, atol=1e-10, interval_steps=1000)
+    assert ok.all() and torch.equal(roomy, free) and roomy_evals == evals
+
+
 def test_a_blow_up_ends_in_a_step_size_underflow_not_the_step_budget():
     """Past an overflow every trial step is non-finite (NaN error estimates, from inf - inf): each
     one shrinks the step (by the controller's smallest factor, 0.2), so the sample fails after a

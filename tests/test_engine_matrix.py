@@ -135,3 +135,30 @@ def test_a_fit_integrates_as_each_fit_many_sample_does(method):
         assert result.success and batch[b].status is result.status and batch[b].iterations == result.iterations
         torch.testing.assert_close(batch[b].estimates, result.estimates, rtol=1e-12, atol=0.0)
         assert batch[b].sse == pytest.approx(result.sse, rel=1e-12)
+
+
+@pytest.mark.parametrize("method", ["kantorovich", "shooting"])
+def test_a_step_budget_keeps_every_sample_on_the_batched_solver(method, monkeypatch):
+    """``max_steps`` is the batched Dormand–Prince's budget per grid interval (torchdiffeq's
+    ``max_num_steps`` per output time), so a batch with one is integrated at once, not sample by
+    sample (200 oscillators took 39 s so, against 0.8 s without it), and a ``fit`` equals its
+    ``fit_many`` sample. A budget too small for the model fails each sample, in words."""
+    import torchql.engine_evaluate as engine_evaluate
+
+    def one_at_a_time(*args, **kwargs):
+        raise AssertionError("a sample was integrated on its own")
+
+    monkeypatch.setattr(engine_evaluate, "integrate_each", one_at_a_time)
+    samples = [_problem("nonlinear_oscillator", seed) for seed in range(2)]
+    model, _, x0, options = samples[0]
+    alone = [torchql.fit(model, data, x0=x0, method=method, max_steps=1000, **options) for _, data, _, _ in samples]
+    batch = torchql.fit_many(model, [data for _, data, _, _ in samples], x0=x0, method=method, max_steps=1000,
+                             **options)
+    for b, result in enumerate(alone):
+        assert result.success and batch[b].status is result.status and batch[b].iterations == result.iterations
+        torch.testing.assert_close(batch[b].estimates, result.estimates, rtol=1e-12, atol=0.0)
+    starved = torchql.fit_many(model, [data for _, data, _, _ in samples], x0=x0, method=method, max_steps=1,
+                               initial_trajectory="integrate", **options)
+    for b in range(2):
+        assert starved[b].status is torchql.Status.INTEGRATION_FAILED
+        assert "max_steps = 1 steps between two grid nodes ran out" in starved[b].message, starved[b].message

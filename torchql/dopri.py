@@ -35,14 +35,15 @@ _DP_MID = (6025192743 / 30085553152 / 2, 0.0, 51252292925 / 65400821598 / 2, -26
 #: The words of a failed sample's last step (:meth:`_DopriRun.messages`), by code.
 _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
              "the solution became non-finite (NaN or inf) after t = {t:.6g}; the step size underflowed to {h:.3g}",
-             "the budget of {n} steps ran out at t = {t:.6g}")
+             "the budget of {n} steps ran out at t = {t:.6g}",
+             "max_steps = {k} steps between two grid nodes ran out at t = {t:.6g} (step size {h:.3g})")
 #: Fifth-order weights minus the embedded fourth-order ones: the local error estimate.
 _DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
 
 
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
-                max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, int]:
+                max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None,
+                interval_steps: int | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` by Dormand–Prince 5(4), each sample its own steps.
 
     Every sample has its own time, step size and accept/reject decision (error in the RMS norm
@@ -58,8 +59,10 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     value is its start value).
 
     Returns ``traj (S, G, M)`` (NaN where it failed), ``ok (S,)`` (false when a sample's
-    solution became non-finite, its step size underflowed or it took more than ``max_steps``
-    steps) and the right-hand-side evaluations (points). ``messages``, a list if given, gets one
+    solution became non-finite, its step size underflowed, it took more than ``max_steps``
+    steps, or more than ``interval_steps`` trial steps to pass from one grid node to the next:
+    the user's ``max_steps``, which torchdiffeq counts per output time) and the right-hand-side
+    evaluations (points). ``messages``, a list if given, gets one
     entry per sample: why it failed (where, and the step size then), or None.
     """
     S, M = z0.shape
@@ -68,7 +71,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     ok = torch.isfinite(z0).all(dim=1)
     if grid.shape[-1] == 1:
         return out, ok, 0
-    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps)
+    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps)
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
@@ -86,14 +89,16 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
 
 class _DopriRun:
     """The loop state of :func:`dopri_batch`: per sample ``x (S, M)``, ``t``, slope ``k1 (S, M)``, step ``h``, next
-    ``node``, ``steps``; the landing tables; ``out (S, G, M)`` and ``ok (S,)`` (written in place), ``evals``."""
+    ``node``, ``steps`` (and ``since``, those since its last node); the landing tables; ``out (S, G, M)``
+    and ``ok (S,)`` (written in place), ``evals``."""
 
     def __init__(self, system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, land: torch.Tensor | None,
-                 out: torch.Tensor, ok: torch.Tensor, rtol: float, atol: float, max_steps: int) -> None:
+                 out: torch.Tensor, ok: torch.Tensor, rtol: float, atol: float, max_steps: int,
+                 interval_steps: int | None = None) -> None:
         S, n = z0.shape[0], system.n
         dtype, device = z0.dtype, z0.device
         self.S, self.G, self.n, self.grid, self.out, self.ok = S, grid.shape[-1], n, grid, out, ok
-        self.rtol, self.atol, self.max_steps = rtol, atol, max_steps
+        self.rtol, self.atol, self.max_steps, self.interval_steps = rtol, atol, max_steps, interval_steps
         self.per_sample = grid.dim() == 2
         self.fv = BatchedCall(system.f)  # one model call per stage where the model takes it
         self.x = x = z0.clone()
@@ -109,6 +114,7 @@ class _DopriRun:
         h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
         self.h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
         self.steps = torch.zeros(S, dtype=torch.long, device=device)
+        self.since = torch.zeros(S, dtype=torch.long, device=device)
         self.failure = torch.zeros(S, dtype=torch.long, device=device)  # _FAILURES' index, 0: none
         # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
         self.rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
@@ -152,6 +158,7 @@ class _DopriRun:
         xa, ta, ka, ha = ((self.x, self.t, self.k1, self.h) if everyone
                           else (self.x[active], self.t[active], self.k1[active], self.h[active]))
         node_a = node if everyone else node[active]
+        before = node_a.clone() if self.interval_steps is not None else None
         if self.per_sample:
             base_a = self.base if everyone else self.base[active]
             target = self.grid_flat[base_a + self.next_flat[base_a + node_a]]
@@ -187,9 +194,14 @@ class _DopriRun:
         finished = node[active] >= (G if self.end is None else self.end[active])
         underflow = h_next <= 10 * torch.finfo(xa.dtype).eps * ta.abs().clamp(min=1.0)
         over = (self.steps[active] >= self.max_steps) & ~finished
-        bad = (underflow & ~finished) | over
+        stuck = torch.zeros_like(over)
+        if before is not None:  # trial steps since the last node passed, against the user's budget
+            since = torch.where(node[active] > before, 0, self.since[active] + 1)
+            self.since[active] = since
+            stuck = (since >= self.interval_steps) & ~finished
+        bad = (underflow & ~finished) | over | stuck
         if bool(bad.any()):
-            reason = torch.where(over, 3, torch.where(torch.isfinite(x_new).all(dim=1), 1, 2))
+            reason = torch.where(stuck, 4, torch.where(over, 3, torch.where(torch.isfinite(x_new).all(dim=1), 1, 2)))
             self.failure[active[bad]] = reason[bad]
             self.ok[active[bad]] = False
         return active[self.ok[active] & ~finished]
@@ -203,7 +215,8 @@ class _DopriRun:
             elif code == 0:
                 out.append("the initial state is not finite")
             else:
-                out.append(_FAILURES[code].format(t=float(self.t[s]), h=float(self.h[s]), n=self.max_steps))
+                out.append(_FAILURES[code].format(t=float(self.t[s]), h=float(self.h[s]), n=self.max_steps,
+                                                  k=self.interval_steps))
         return out
 
     def _stages(self, xa: torch.Tensor, ta: torch.Tensor, ka: torch.Tensor,

@@ -223,10 +223,9 @@ class Evaluation:
         the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
         the trial divergent, and the sample's trials are integrated by the adaptive solvers from
         then on. The other samples, or all without a guess, are integrated by
-        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"`` without a ``max_steps``,
-        one sample as several; its message says where a sample failed), by the implicit
-        :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each on its own by torchdiffeq
-        with ``solver`` (another method, or a ``max_steps``). ``stop``: the implicit solver's test of
+        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"``, one sample as several; its
+        message says where one failed), by the implicit :func:`~torchql.solvers.rodas5p_batch` (a
+        stiff ``solver``), or each alone by torchdiffeq (another ``solver``). ``stop``: the implicit solver's test of
         a sample (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next
         node) that ends it early, as a failure (:meth:`_nonlinear_sse`).
         """
@@ -311,10 +310,10 @@ class Evaluation:
                 and spec.solver not in STIFF_SOLVERS)
 
     def _batched_dopri(self) -> bool:
-        """Whether :meth:`_adaptive` integrates by the batched Dormand–Prince (``solver="dopri5"``
-        without a ``max_steps``), one sample as several: ``fit``'s solutions are those of each
-        ``fit_many`` sample."""
-        return self.spec.solver == "dopri5" and self.spec.max_steps is None
+        """Whether :meth:`_adaptive` integrates by the batched Dormand–Prince (``solver="dopri5"``;
+        a ``max_steps`` is its step budget per grid interval), one sample as several: ``fit``'s
+        solutions are those of each ``fit_many`` sample."""
+        return self.spec.solver == "dopri5"
 
     @property
     def _split(self) -> int:
@@ -331,8 +330,8 @@ class Evaluation:
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
-        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``, no ``max_steps``),
-        or torchdiffeq per sample; fills ``traj``, ``ok`` and ``errors`` in place."""
+        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``), or torchdiffeq per
+        sample; fills ``traj``, ``ok`` and ``errors`` in place."""
         spec = self.spec
         grid = self._grid_of(idx)
         shared = grid.dim() == 1
@@ -354,7 +353,8 @@ class Evaluation:
         if sub.numel() and batched:
             messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
-                                          land=self._landing(idx[sub]), messages=messages)
+                                          land=self._landing(idx[sub]), messages=messages,
+                                          interval_steps=spec.max_steps)
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):
