@@ -431,3 +431,21 @@ def test_a_propagator_without_a_batched_form_fits_each_sample_as_fit_does():
                for b, d in enumerate(data)]
     assert_same_as_single(batch, singles)
     assert batch.success.all()
+
+
+def test_a_batch_integrated_one_sample_at_a_time_says_so():
+    """A ``solver`` or ``linear_solver`` without a batched form makes ``fit_many`` go through the
+    samples in turn: it warns, naming the option and the batched choices, at the caller's line;
+    the defaults (and ``max_steps``, the batched Dormand–Prince's budget) warn nothing."""
+    import warnings
+
+    data, x0 = car_data(2, seed=5)
+    with pytest.warns(UserWarning, match=r"solver='dopri8' has no batched form, so each of the 2 samples") as caught:
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, solver="dopri8")
+    assert caught[0].filename == __file__
+    with pytest.warns(UserWarning, match=r"linear_solver='rk4_doubling' has no batched form"):
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, linear_solver="rk4_doubling")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, max_steps=500)
+        torchql.fit(CoastingCar(AREA, MASS), data[0], x0[0], solver="dopri8")

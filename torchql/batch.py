@@ -54,6 +54,7 @@ from .datasets import check_data, inputs_all_or_none
 from .problem import Problem
 from .propagators import LinearPropagator
 from .result import IterationRecord
+from .solvers import STIFF_SOLVERS
 
 __all__ = ["fit_many", "check_data"]
 
@@ -171,12 +172,13 @@ def fit_many(
         when some sample's model is stiff along its data (:mod:`torchql.stiffness`), else
         ``"dopri5"``. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched
         implicit :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as
-        in ``fit``; otherwise ``solver`` integrates a sample on its own only when the batched
-        Dormand–Prince cannot (as ``fit`` falls back to it).
+        in ``fit``; ``"dopri5"`` is the batched Dormand–Prince (``max_steps`` its trial steps per
+        grid interval, as torchdiffeq counts them per output time). Another ``solver`` (``"dopri8"``,
+        ``"rk4"``, ...) integrates each sample in turn by torchdiffeq, and ``fit_many`` warns so.
     linear_solver : str or LinearPropagator, optional
         As in :func:`torchql.fit` (default ``"radau"`` with a stiff solver, else ``"taylor"``).
         Propagators with a batched form (``LinearPropagator.batched``: ``"taylor"``, ``"radau"``,
-        ``"exponential"``) take every sample at once; the others each sample in turn.
+        ``"exponential"``) take every sample at once; the others each sample in turn (with a warning).
     chunk_size : int
         Samples fitted together (default 4096); larger batches are fitted chunk after chunk.
         The results do not depend on it.
@@ -234,6 +236,7 @@ def fit_many(
                    x0_expr=x0_expr)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
+    _say_one_at_a_time(spec)
     if callback is not None and not callable(callback):
         raise TypeError("`callback` must be callable (it receives each sample's index and IterationRecord); "
                         f"received {callback!r}")
@@ -246,6 +249,22 @@ def fit_many(
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
         bounds=bounds, scale=scale, x0_expr=x0_expr)
     return result
+
+
+def _say_one_at_a_time(spec: Problem) -> None:
+    """Warn where a batch's samples are integrated one after another: a ``solver`` or a
+    ``linear_solver`` without a batched form (the results are the same; only the time differs)."""
+    if spec.B < 2:
+        return
+    if spec.solver not in ("dopri5", *STIFF_SOLVERS):
+        warnings.warn(f"fit_many: solver={spec.solver!r} has no batched form, so each of the {spec.B} samples "
+                      "is integrated in turn by torchdiffeq; 'dopri5' (the default) and 'rodas5p' integrate "
+                      "them all at once", UserWarning, stacklevel=4)
+    if not spec.linear_solver.batched:
+        warnings.warn(f"fit_many: linear_solver={spec.linear_solver.name!r} has no batched form "
+                      "(LinearPropagator.series), so each of the {} samples' linear problems is propagated in turn; "
+                      "'taylor' (the default), 'radau' and 'exponential' take them all at once".format(spec.B),
+                      UserWarning, stacklevel=4)
 
 
 def _input_runs(data) -> list[tuple[int, int]] | None:
