@@ -67,7 +67,7 @@ class Linear(torchql.ODEModel):
         self.register_buffer("K", K.clone())
 
     def forward(self, t, x):
-        return x @ self.K.T
+        return x @ self.K.mT  # (K batched under vmap: .T of a 3-d tensor is deprecated)
 
 
 def stable_matrix(rng: np.random.Generator, n: int) -> torch.Tensor:
