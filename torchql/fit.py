@@ -192,7 +192,9 @@ def fit(
         trajectory at ``t0``).
     max_steps : int, optional
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
-        grid nodes (torchdiffeq counts steps per output time); exceeding it is INTEGRATION_FAILED.
+        grid nodes: trial steps, accepted or not, as torchdiffeq counts them per output time (the
+        default ``"dopri5"``, torchql's batched Dormand–Prince, counts alike); exceeding it is
+        INTEGRATION_FAILED.
         It caps the grid solver's RK4 steps per interval too (see ``linear_solver``).
     damping : {"lm", None} or torchql.damping.Damping
         ``"lm"`` (default): globalized by Levenberg–Marquardt damping. The undamped
