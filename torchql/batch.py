@@ -262,8 +262,8 @@ def _say_one_at_a_time(spec: Problem) -> None:
                       "them all at once", UserWarning, stacklevel=4)
     if not spec.linear_solver.batched:
         warnings.warn(f"fit_many: linear_solver={spec.linear_solver.name!r} has no batched form "
-                      "(LinearPropagator.series), so each of the {} samples' linear problems is propagated in turn; "
-                      "'taylor' (the default), 'radau' and 'exponential' take them all at once".format(spec.B),
+                      f"(LinearPropagator.series), so each of the {spec.B} samples' linear problems is propagated "
+                      "in turn; 'taylor' (the default), 'radau' and 'exponential' take them all at once",
                       UserWarning, stacklevel=4)
 
 
