@@ -237,3 +237,23 @@ def test_auto_refits_from_the_data_where_the_integrated_start_of_a_stiff_model_f
     assert "built from the data" in batch[0].message and "built from the data" not in batch[1].message
     torch.testing.assert_close(batch.params["mu"], torch.full((2,), float(auto.params["mu"]), dtype=DT),
                                rtol=1e-8, atol=0)
+
+
+@pytest.mark.parametrize("linear_solver", ["radau", "rodas5p"])
+def test_max_steps_counts_the_stiff_solvers_steps_per_grid_interval(linear_solver):
+    """``max_steps`` is a budget per grid interval on the stiff path too, as ``fit`` documents it
+    and torchdiffeq counts it: the relaxation fit below takes more than 20 Rodas5P steps over its
+    whole span but at most 3 between two nodes, so ``max_steps=10`` changes nothing (it failed at
+    the guesses while Rodas5P counted the whole span), and ``max_steps=1`` fails in words."""
+    t = torch.logspace(-2, 0, 8, dtype=DT)
+    data = torchql.Observations(t, relaxation_solution(t, torch.tensor(2.0, dtype=DT), torch.tensor(50.0, dtype=DT))
+                                .unsqueeze(-1), observe=["x"])
+    options = dict(t0=0.0, method="shooting", solver="rodas5p", rtol=1e-6, atol=1e-10, linear_solver=linear_solver)
+    guess = torch.tensor([1.5], dtype=DT)
+    free = torchql.fit(Relaxation(k=80.0), data, guess, **options)
+    budgeted = torchql.fit(Relaxation(k=80.0), data, guess, max_steps=10, **options)
+    assert free.success and budgeted.status is free.status and budgeted.iterations == free.iterations
+    assert torch.equal(budgeted.estimates, free.estimates)
+    starved = torchql.fit(Relaxation(k=80.0), data, guess, max_steps=1, **options)
+    assert starved.status is torchql.Status.INTEGRATION_FAILED
+    assert "max_steps = 1 steps between two grid nodes ran out" in starved.message, starved.message

@@ -385,7 +385,7 @@ class Evaluation:
     def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors, stop=None) -> None:
         """Samples ``sub`` by :func:`~torchql.solvers.sensitivity.rodas5p_model` on ``grid`` (``stop``:
         as :meth:`_nonlinear`'s)."""
-        budget = {} if self.spec.max_steps is None else {"max_steps": self.spec.max_steps}
+        budget = {} if self.spec.max_steps is None else {"interval_steps": self.spec.max_steps}
         if stop is not None:
             budget["stop"] = lambda rows, y, reached: stop(sub[rows], y, reached)
         sol, y = rodas5p_model(self.system, z0[sub], grid, rtol=rtol, atol=atol, land=land, **budget)
@@ -413,7 +413,7 @@ class Evaluation:
         """
         spec = self.spec
         first = spec.columns(z0)
-        budget = {} if spec.max_steps is None else {"max_steps": spec.max_steps}
+        budget = {} if spec.max_steps is None else {"interval_steps": spec.max_steps}
         with torch.no_grad():
             sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
                                               atol=spec.atol, land=self._landing(idx), **budget)

@@ -266,3 +266,35 @@ def test_nodes_passed_on_per_sample_padded_grids_equal_the_single_solves():
         alone, _ = rodas5p_solve(system.model_with(z0[s, 3:]), z0[s, :3], grid[s], rtol=1e-7, atol=1e-14)
         torch.testing.assert_close(sol.y[s, :, :3], alone, rtol=1e-12, atol=1e-18)
     torch.testing.assert_close(sol.y[1, 3:], sol.y[1, 3:4].expand(3, -1), rtol=0, atol=0)
+
+
+def test_a_budget_between_two_nodes_fails_only_where_an_interval_spends_it(monkeypatch):
+    """``interval_steps`` (a fit's ``max_steps``, which torchdiffeq counts per output time) caps the
+    trial steps between two nodes, not the whole run's: van der Pol (mu = 300) on 40 intervals
+    takes 558 trial steps, at most 222 of them (measured) in one interval. So a budget of 222
+    changes no step, 221 fails in that interval, and a whole-run budget of 300 fails as such; the
+    one-sample loop and the batched loop agree to the bit."""
+    from torchql.solvers import rosenbrock
+
+    def vdp(t, y):
+        return torch.stack((y[1], 300.0 * (1 - y[0] ** 2) * y[1] - y[0]))
+
+    grid = torch.cat([torch.zeros(1, dtype=DT), torch.linspace(17.5, 700.0, 40, dtype=DT)])
+    y0 = torch.tensor([[2.0, 0.0]], dtype=DT)
+
+    def runs():
+        free = rodas5p_batch(vdp, y0, grid, rtol=1e-6, atol=1e-8)
+        roomy = rodas5p_batch(vdp, y0, grid, rtol=1e-6, atol=1e-8, interval_steps=222)
+        short = rodas5p_batch(vdp, y0, grid, rtol=1e-6, atol=1e-8, interval_steps=221)
+        whole = rodas5p_batch(vdp, y0, grid, rtol=1e-6, atol=1e-8, max_steps=300)
+        return free, roomy, short, whole
+
+    free, roomy, short, whole = alone = runs()
+    assert int(free.n_accepted + free.n_rejected) == 558
+    assert _solutions_equal(free, roomy)
+    assert int(short.status) == MAX_STEPS and short.message(0).startswith("max_steps = 221 steps between two grid nodes")
+    assert int(whole.status) == MAX_STEPS and "step budget (max_steps=300)" in whole.message(0)
+    monkeypatch.setattr(rosenbrock, "_one_sample", rosenbrock._batched)
+    assert all(_solutions_equal(a, b) for a, b in zip(alone, runs()))
+    with pytest.raises(ValueError, match="`interval_steps` must be a positive integer or None; received 0"):
+        rodas5p_batch(vdp, y0, grid, rtol=1e-6, atol=1e-8, interval_steps=0)

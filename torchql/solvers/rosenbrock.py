@@ -80,6 +80,8 @@ class RosenbrockSolution:
         The step budget the solution ran under (for the messages).
     steps : StepRecord or None
         Every accepted step, where asked for (``keep_steps``).
+    interval_steps : int or None
+        The budget of trial steps between two nodes it ran under (for the messages).
     """
 
     y: torch.Tensor
@@ -91,6 +93,7 @@ class RosenbrockSolution:
     n_jac: int
     max_steps: int
     steps: "StepRecord | None" = None
+    interval_steps: int | None = None
 
     @property
     def ok(self) -> torch.Tensor:
@@ -106,6 +109,9 @@ class RosenbrockSolution:
         if code == STEP_UNDERFLOW:
             return (f"step size underflow at t = {t:.6g}: the error test could not be met with any "
                     "representable step (a singularity, a discontinuity, or tolerances below roundoff)")
+        if code == MAX_STEPS and int(self.n_accepted[sample] + self.n_rejected[sample]) < self.max_steps:
+            return (f"max_steps = {self.interval_steps} steps between two grid nodes ran out at t = {t:.6g}: raise "
+                    "`max_steps`, loosen `rtol`/`atol`, or check that the model is not far stiffer than expected")
         if code == MAX_STEPS:
             return (f"the step budget (max_steps={self.max_steps}) was spent at t = {t:.6g}: raise "
                     "`max_steps`, loosen `rtol`/`atol`, or check that the model is not far stiffer than expected")
@@ -303,8 +309,8 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
                   rtol: float, atol: float, max_steps: int = 100_000, land: torch.Tensor | None = None,
                   error_components: int | None = None, norm: Callable | None = None,
                   first_step: float | None = None, vectorize: bool = True, keep_steps: bool = False,
-                  stop: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
-                  ) -> RosenbrockSolution:
+                  stop: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                  interval_steps: int | None = None) -> RosenbrockSolution:
     """``y' = f(t, y)`` from ``y0 (S, M)`` over ``grid`` by Rodas5P, each sample on its own steps.
 
     Parameters
@@ -325,6 +331,9 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         measured in the RMS norm of each sample's first ``error_components`` components.
     max_steps : int
         Budget of trial steps (accepted and rejected) of each sample.
+    interval_steps : int, optional
+        Budget of trial steps of a sample between two nodes (a fit's ``max_steps``, which
+        torchdiffeq counts per output time); a sample that spends it ends ``MAX_STEPS``.
     land : bool Tensor ``(G,)`` or ``(S, G)``, optional
         Nodes the steps land on exactly (default: every node; each sample's last node always).
         The others are filled by the order-4 dense output of the step that passes them, whose
@@ -356,6 +365,8 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
         evaluation counts. Failures are reported per sample, never raised.
     """
     y0, grid = _checked(y0, grid, rtol, atol, max_steps, land, error_components, vectorize, stop)
+    if interval_steps is not None and (not isinstance(interval_steps, int) or interval_steps < 1):
+        raise ValueError(f"`interval_steps` must be a positive integer or None; received {interval_steps!r}")
     S, M = y0.shape
     n = M if error_components is None else error_components
     field = f if isinstance(f, BatchedField) else BatchedField(f, vectorize=vectorize)
@@ -364,7 +375,7 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     t0 = grid[:, 0] if grid.dim() == 2 else grid[0].expand(S)
     if grid.shape[-1] == 1:
         return RosenbrockSolution(out.result(status == SUCCESS), status, t0.clone(), *[torch.zeros_like(status)] * 2,
-                                  0, 0, max_steps, StepRecord.join([], y0) if keep_steps else None)
+                                  0, 0, max_steps, StepRecord.join([], y0) if keep_steps else None, interval_steps)
     samples = _Samples(field, y0, t0)
     span = grid[..., -1] - grid[..., 0]
     if first_step is None:
@@ -374,27 +385,35 @@ def rodas5p_batch(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], y0: t
     tab = tableau.Tensors(y0.dtype, y0.device)
     steps = [] if keep_steps or out.dense else None
     run = _one_sample if S == 1 else _batched
-    run(field, tab, out, samples, status, n, rtol, atol, norm, max_steps, stop, steps)
+    run(field, tab, out, samples, status, n, rtol, atol, norm, (max_steps, interval_steps), stop, steps)
     record = None if steps is None else StepRecord.join(steps, y0)
     if out.dense:
         out.fill_between(record, tab)
     return RosenbrockSolution(out.result(status == SUCCESS), status, samples.t, samples.n_accepted,
-                              samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None)
+                              samples.n_rejected, field.n_f, field.n_jac, max_steps, record if keep_steps else None,
+                              interval_steps)
 
 
-def _batched(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, atol, norm, max_steps, stop, steps
+def _batched(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, atol, norm, budgets, stop, steps
              ) -> None:
     """:func:`rodas5p_batch`'s loop: rounds of one trial step of every unfinished sample until
-    each has finished or failed; ``samples``, ``status`` (``(S,)``, in place), ``out`` and ``steps`` updated."""
+    each has finished or failed; ``samples``, ``status`` (``(S,)``, in place), ``out`` and ``steps`` updated.
+    ``budgets``: ``(max_steps, interval_steps)``."""
+    max_steps, interval_steps = budgets
     tiny, eps = torch.finfo(samples.y.dtype).tiny, torch.finfo(samples.y.dtype).eps
     active = ((status == SUCCESS) & out.unfinished()).nonzero().flatten()
+    since = torch.zeros_like(out.node)  # trial steps since each sample's last node
     while active.numel():
         check_time()
+        before = out.node[active].clone()
         accept, h_next, finite, landed = _round(field, tab, out, samples, active, n, rtol, atol, norm, steps)
         finished = ~out.unfinished()[active]
         ta = samples.t[active]
         underflow = (h_next <= 10 * eps * ta.abs()) | (h_next <= tiny)
         spent = samples.n_accepted[active] + samples.n_rejected[active] >= max_steps
+        if interval_steps is not None:
+            since[active] = torch.where(out.node[active] > before, 0, since[active] + 1)
+            spent |= since[active] >= interval_steps
         code = torch.where(spent, MAX_STEPS, torch.where(underflow, STEP_UNDERFLOW, SUCCESS))
         # a sample that keeps failing on non-finite values ends as such, not as an underflow
         code = torch.where((code == STEP_UNDERFLOW) & ~finite, NON_FINITE, code)
@@ -405,13 +424,15 @@ def _batched(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, at
         active = active[(code == SUCCESS) & ~finished]
 
 
-def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, atol, norm, max_steps, stop, steps
+def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol, atol, norm, budgets, stop, steps
                 ) -> None:
     """:func:`_batched` for one sample (``S = 1``), step for step the same (to the bit), its step
     control in Python numbers: a batched round's bookkeeping (masks, gathers and scatters over the
     active samples) costs more than the step's own arithmetic where the system is small."""
     if int(status[0]) != SUCCESS:
         return
+    max_steps, interval_steps = budgets
+    since = 0  # trial steps since the last node
     tiny, eps = torch.finfo(samples.y.dtype).tiny, torch.finfo(samples.y.dtype).eps
     times, landing, nxt = out._times.tolist(), out._landing.tolist(), out._next.tolist()
     G, end = out.G, out.G if out.end is None else int(out.end[0])
@@ -420,6 +441,7 @@ def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol,
     h_prev, err_prev, fresh, rejected, accepted, failed, code = 0.0, 1.0, True, False, 0, 0, SUCCESS
     while node < end:
         check_time()
+        node_before = node
         tt = samples.t.new_tensor([t])
         if not fresh:
             f0, J, ft = field.linearize(tt, y)
@@ -459,8 +481,9 @@ def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol,
         fresh = rejected = not accept
         h = h_next
         accepted, failed = accepted + accept, failed + (not accept)
+        since = 0 if node > node_before else since + 1
         code = SUCCESS
-        if accepted + failed >= max_steps:
+        if accepted + failed >= max_steps or interval_steps is not None and since >= interval_steps:
             code = MAX_STEPS
         elif h_next <= 10 * eps * abs(t) or h_next <= tiny:
             code = STEP_UNDERFLOW if finite else NON_FINITE
