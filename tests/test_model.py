@@ -81,6 +81,19 @@ def test_pack_unpack_round_trip():
     assert torch.equal(torch.cat([v.reshape(-1) for v in system.unpack_params(q).values()]), q)
 
 
+def test_unpack_splits_a_batch_of_vectors_into_a_batch_of_each_shape():
+    for names in (["s", "sub.c"], ["W", "K", "s"]):  # scalars only (one view each), and mixed shapes
+        system = AugmentedSystem(Mixed(), names, F64, CPU)
+        q = torch.randn(3, 5, system.P, dtype=F64, generator=torch.Generator().manual_seed(1))
+        parts = system.unpack_params(q)
+        assert list(parts) == names
+        start = 0
+        for name, shape, size in zip(names, system.param_shapes, system.param_sizes):
+            assert parts[name].shape == (3, 5, *shape)
+            assert torch.equal(parts[name].reshape(3, 5, size), q[..., start:start + size])
+            start += size
+
+
 def test_no_params():
     system = AugmentedSystem(Mixed(), [], F64, CPU)
     assert system.P == 0 and system.M == 2

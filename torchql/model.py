@@ -227,6 +227,7 @@ class AugmentedSystem:
         self.param_names = list(param_names)
         self.param_shapes = [buffers[name].shape for name in self.param_names]
         self.param_sizes = [math.prod(shape) for shape in self.param_shapes]
+        self._scalar_params = all(len(shape) == 0 for shape in self.param_shapes)
         #: the submodule and buffer name of each unknown coefficient in :attr:`model` (for :meth:`rhs`)
         self._owners = [_owner(self.model, name) for name in self.param_names]
         #: the ways of differentiating of :func:`torchql.linearize.linearize` that torch can take
@@ -253,11 +254,11 @@ class AugmentedSystem:
     def unpack_params(self, p: torch.Tensor) -> dict[str, torch.Tensor]:
         """Split a flat parameter vector ``(P,)`` into buffers of their registered shapes (a batch of
         them ``(..., P)`` into ``(..., *shape)``)."""
-        out, start = {}, 0
-        for name, shape, size in zip(self.param_names, self.param_shapes, self.param_sizes):
-            out[name] = p[..., start : start + size].reshape(p.shape[:-1] + tuple(shape))
-            start += size
-        return out
+        if self._scalar_params:  # one view per coefficient in one call: the model's call chain is
+            return dict(zip(self.param_names, p.unbind(-1)))  # most of a small model's evaluation
+        lead = p.shape[:-1]
+        return {name: part.reshape(lead + tuple(shape))
+                for name, shape, part in zip(self.param_names, self.param_shapes, p.split(self.param_sizes, dim=-1))}
 
     def coefficient_values(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
         """Every float coefficient by name for one augmented state ``z (M,)``: those in ``z`` from
