@@ -72,7 +72,11 @@ def _operators(t: torch.Tensor, w: torch.Tensor, lams: torch.Tensor | None):
         span = (t[:, -1] - t[:, 0]).unsqueeze(1)
         lams = torch.logspace(-12, 2, 29, dtype=t.dtype, device=t.device).unsqueeze(0) * span ** 3 / T
     r = w.sqrt()
-    evals, Q = torch.linalg.eigh(_roughness(t) / r.unsqueeze(1) / r.unsqueeze(2))
+    # one eigendecomposition per series, each copied to a buffer of its own by eigh: in one batched
+    # call a series' matrix sits at an offset that LAPACK's kernels may take another path for (MKL
+    # on some CPUs, where T is odd), and its bits would then depend on the series batched with it
+    pairs = [torch.linalg.eigh(matrix) for matrix in _roughness(t) / r.unsqueeze(1) / r.unsqueeze(2)]
+    evals, Q = torch.stack([e for e, _ in pairs]), torch.stack([q for _, q in pairs])
     evals = evals.clamp_min(0)
     shrink = 1 / (1 + lams.to(evals).reshape(-1, 1, lams.shape[-1]) * evals.unsqueeze(2))  # (N, T, L)
     dof = T - shrink.sum(dim=1)
@@ -114,7 +118,7 @@ def smooth(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None
 def smooth_each(t: torch.Tensor, y: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Smoothed values ``(N, T)`` of ``N`` series ``y (N, T)``, each on its own times ``t (N, T)``
     with its own weights ``weights (N, T)``: row ``n`` is ``smooth(t[n], y[n], weights[n])``, bit for
-    bit, at the cost of one batched eigendecomposition and (short series) one pass over the points."""
+    bit, at the cost of one eigendecomposition per series and (short series) one pass over the points."""
     N, T = y.shape
     if T < 4 or T > MAX_SMOOTHED_POINTS:
         return y.clone()
