@@ -103,6 +103,30 @@ def test_a_step_budget_per_grid_interval_fails_only_the_sample_that_needs_more()
     assert ok.all() and torch.equal(roomy, free) and roomy_evals == evals
 
 
+def test_a_stop_test_ends_only_the_samples_it_answers_true_at_a_node():
+    """``stop`` is asked for the samples that landed on a node before their last (with the next
+    node to reach, the values before it filled): the one it ends fails there, in words, with the
+    values it had; the others' steps and values are those of a run without the test."""
+    system, z0 = _cars(3)
+    grid = torch.linspace(0, 40, 21, dtype=DT)
+    free, ok, evals = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12)
+    assert ok.all()
+    asked = []
+
+    def stop(rows, out, reached):
+        asked.append((rows.clone(), reached.clone()))
+        assert bool((reached < 21).all()) and bool(torch.isfinite(out[0, :int(reached[0])]).all())
+        return (rows == 1) & (reached == 8)  # sample 1, once it has landed on node 7
+
+    messages = []
+    stopped, ok, stopped_evals = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12, messages=messages, stop=stop)
+    assert ok.tolist() == [True, False, True] and messages[0] is None and messages[2] is None
+    assert messages[1] == f"stopped at t = {float(grid[7]):.6g} by the caller's test on the values so far"
+    assert torch.equal(stopped[[0, 2]], free[[0, 2]]) and stopped_evals < evals
+    assert torch.isnan(stopped[1]).all()  # a failed sample's values are NaN, as any failure's
+    assert max(int(r.max()) for _, r in asked) <= 20 and all(set(rows.tolist()) <= {0, 1, 2} for rows, _ in asked)
+
+
 def test_a_blow_up_ends_in_a_step_size_underflow_not_the_step_budget():
     """Past an overflow every trial step is non-finite (NaN error estimates, from inf - inf): each
     one shrinks the step (by the controller's smallest factor, 0.2), so the sample fails after a

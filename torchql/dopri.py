@@ -9,6 +9,8 @@ batch's other integrators.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from .budget import check_time
@@ -36,14 +38,18 @@ _DP_MID = (6025192743 / 30085553152 / 2, 0.0, 51252292925 / 65400821598 / 2, -26
 _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
              "the solution became non-finite (NaN or inf) after t = {t:.6g}; the step size underflowed to {h:.3g}",
              "the budget of {n} steps ran out at t = {t:.6g}",
-             "max_steps = {k} steps between two grid nodes ran out at t = {t:.6g} (step size {h:.3g})")
+             "max_steps = {k} steps between two grid nodes ran out at t = {t:.6g} (step size {h:.3g})",
+             "stopped at t = {t:.6g} by the caller's test on the values so far")
+#: A caller's test that ends samples at a node: ``(rows (L,), out (L, G, M), reached (L,)) -> bool (L,)``.
+StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 #: Fifth-order weights minus the embedded fourth-order ones: the local error estimate.
 _DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
 
 
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
                 max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None,
-                interval_steps: int | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+                interval_steps: int | None = None, stop: StopTest | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` by Dormand–Prince 5(4), each sample its own steps.
 
     Every sample has its own time, step size and accept/reject decision (error in the RMS norm
@@ -64,6 +70,12 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     the user's ``max_steps``, which torchdiffeq counts per output time) and the right-hand-side
     evaluations (points). ``messages``, a list if given, gets one
     entry per sample: why it failed (where, and the step size then), or None.
+
+    ``stop``: ``stop(rows (L,), out (L, G, M), reached (L,)) -> bool (L,)``, asked for the
+    samples ``rows`` that landed on a node before their last in a step (``reached``: the next
+    node each is to reach; the values before it are filled): those it answers true end there,
+    failed ("stopped"). A caller that needs a solution only while some measure of the values so
+    far stays below a bound (a trial's sum of squares, below the current iterate's) saves the rest.
     """
     S, M = z0.shape
     out = z0.new_full((S, grid.shape[-1], M), float("nan"))
@@ -71,7 +83,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     ok = torch.isfinite(z0).all(dim=1)
     if grid.shape[-1] == 1:
         return out, ok, 0
-    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps)
+    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop)
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
@@ -94,11 +106,12 @@ class _DopriRun:
 
     def __init__(self, system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, land: torch.Tensor | None,
                  out: torch.Tensor, ok: torch.Tensor, rtol: float, atol: float, max_steps: int,
-                 interval_steps: int | None = None) -> None:
+                 interval_steps: int | None = None, stop: StopTest | None = None) -> None:
         S, n = z0.shape[0], system.n
         dtype, device = z0.dtype, z0.device
         self.S, self.G, self.n, self.grid, self.out, self.ok = S, grid.shape[-1], n, grid, out, ok
         self.rtol, self.atol, self.max_steps, self.interval_steps = rtol, atol, max_steps, interval_steps
+        self.stop = stop
         self.per_sample = grid.dim() == 2
         self.fv = BatchedCall(system.f)  # one model call per stage where the model takes it
         self.x = x = z0.clone()
@@ -199,12 +212,26 @@ class _DopriRun:
             since = torch.where(node[active] > before, 0, self.since[active] + 1)
             self.since[active] = since
             stuck = (since >= self.interval_steps) & ~finished
+        if self.stop is not None:  # the caller's test, at the nodes landed on
+            stuck = stuck | self._stopped(active, landed & ~finished)
         bad = (underflow & ~finished) | over | stuck
         if bool(bad.any()):
             reason = torch.where(stuck, 4, torch.where(over, 3, torch.where(torch.isfinite(x_new).all(dim=1), 1, 2)))
+            if self.stop is not None:
+                reason = torch.where(self.failure[active] == 5, 5, reason)
             self.failure[active[bad]] = reason[bad]
             self.ok[active[bad]] = False
         return active[self.ok[active] & ~finished]
+
+    def _stopped(self, active: torch.Tensor, ask: torch.Tensor) -> torch.Tensor:
+        """``(A,)`` bool: the samples ``active[ask]`` (landed on a node before their last) that the
+        caller's ``stop`` test ends (their failure code set to 5)."""
+        ended = torch.zeros_like(ask)
+        if bool(ask.any()):
+            rows = active[ask]
+            ended[ask] = self.stop(rows, self.out[rows], self.node[rows])
+            self.failure[rows[ended[ask]]] = 5
+        return ended
 
     def messages(self) -> list:
         """Each sample's failure in words (None where it did not fail in a step)."""

@@ -65,8 +65,8 @@ def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a <= bound_of(b)
 
 
-#: Whether a second opinion stops integrating a model solution once it cannot win the comparison
-#: (:meth:`Evaluation._model_not_above`); ``False`` integrates every one whole (the same decisions).
+#: Whether a second opinion (:meth:`Evaluation._model_not_above`) or a shooting trial stops integrating a
+#: model solution once it cannot win the comparison; ``False`` integrates every one whole (the same decisions).
 STOP_EARLY = True
 
 
@@ -225,9 +225,9 @@ class Evaluation:
         then on. The other samples, or all without a guess, are integrated by
         :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"``, one sample as several; its
         message says where one failed), by the implicit :func:`~torchql.solvers.rodas5p_batch` (a
-        stiff ``solver``), or each alone by torchdiffeq (another ``solver``). ``stop``: the implicit solver's test of
+        stiff ``solver``), or each alone by torchdiffeq (another ``solver``). ``stop``: the adaptive solvers' test of
         a sample (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next
-        node) that ends it early, as a failure (:meth:`_nonlinear_sse`).
+        node) that ends it early, as a failure (:meth:`_nonlinear_sse`, a shooting trial).
         """
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
@@ -342,10 +342,10 @@ class Evaluation:
         def pending():
             return (~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=ok.device)).nonzero().flatten()
         sub = pending()
-        stiff = spec.solver in STIFF_SOLVERS
-        batched = self._batched_dopri()
+        stiff, batched = spec.solver in STIFF_SOLVERS, self._batched_dopri()
+        ask = None if stop is None else (lambda rows, y, reached: stop(sub[rows], y, reached))  # the current sub
         if sub.numel() and stiff:  # every sample by the implicit solver; its message kept for a failure
-            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors, stop)
+            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors, ask)
             return
         if sub.numel() and batched:
             self._take_shared_solutions(idx, sub, z0, rtol, traj, ok)
@@ -354,7 +354,7 @@ class Evaluation:
             messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
                                           land=self._landing(idx[sub]), messages=messages,
-                                          interval_steps=spec.max_steps)
+                                          interval_steps=spec.max_steps, stop=ask)
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):
@@ -384,10 +384,10 @@ class Evaluation:
 
     def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors, stop=None) -> None:
         """Samples ``sub`` by :func:`~torchql.solvers.sensitivity.rodas5p_model` on ``grid`` (``stop``:
-        as :meth:`_nonlinear`'s)."""
+        as :func:`~torchql.dopri.dopri_batch`'s, over the samples ``sub``)."""
         budget = {} if self.spec.max_steps is None else {"interval_steps": self.spec.max_steps}
         if stop is not None:
-            budget["stop"] = lambda rows, y, reached: stop(sub[rows], y, reached)
+            budget["stop"] = stop
         sol, y = rodas5p_model(self.system, z0[sub], grid, rtol=rtol, atol=atol, land=land, **budget)
         self.nfev += sol.n_f
         good = sol.ok

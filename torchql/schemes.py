@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import torch
 
-from .engine_evaluate import _pick
+from . import engine_evaluate
+from .engine_evaluate import _pick, bound_of
 from .registry import Registry
 from .trajectory import model_defect
 
@@ -100,13 +101,31 @@ class Shooting(Scheme):
             traj, W, errors = engine._solve_with_sensitivities(act, z0_new)
         else:
             traj, errors = engine._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True,
-                                             reference=(_pick(cur["z0"], act), _pick(cur["rz"], act)))
+                                             reference=(_pick(cur["z0"], act), _pick(cur["rz"], act)),
+                                             stop=_above_current(engine, act, cur))
         integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
         traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
         lin = engine._linearize(act, traj)
         trial = engine._evaluate(act, z0_new, traj, lin.f, lin, solution=True, W=W)
         trial["defect"] = torch.zeros_like(trial["merit"])
         return trial, _usable(trial, integrated)
+
+
+def _above_current(engine, act, cur):
+    """The test that ends the integration of a shooting trial of the samples ``act`` once its
+    objective over the data passed exceeds the current iterate's merit: the trial is then rejected
+    whatever the rest of it (its merit is the model's own objective, and the terms left only add
+    to it), so the adaptive solver need not integrate the rest (a long step into fast dynamics).
+    None where every trial is taken (a damping that does not filter), the trial's weights are not
+    the iterate's (a ``sigma(p)`` function), or :data:`~torchql.engine_evaluate.STOP_EARLY` is off."""
+    spec = engine.spec
+    if not spec.damping.filters or spec.sigma_function is not None or not engine_evaluate.STOP_EARLY:
+        return None
+    bound, w, log = bound_of(_pick(cur["merit"], act)), _pick(cur["w"], act), _pick(cur["log"], act)
+
+    def stop(k, traj, reached):  # k: positions in ``act``
+        return engine._objective(act[k], traj, w[k], log[k], reached) > bound[k]
+    return stop
 
 
 _REGISTRY = Registry(Scheme, "torchql.schemes.Scheme", "an iteration scheme")
