@@ -212,25 +212,25 @@ class _DopriRun:
             since = torch.where(node[active] > before, 0, self.since[active] + 1)
             self.since[active] = since
             stuck = (since >= self.interval_steps) & ~finished
-        if self.stop is not None:  # the caller's test, at the nodes landed on
-            stuck = stuck | self._stopped(active, landed & ~finished)
+        ended = None if self.stop is None else self._stopped(active, landed & ~finished)  # the caller's test
         bad = (underflow & ~finished) | over | stuck
+        if ended is not None:
+            bad = bad | ended
         if bool(bad.any()):
             reason = torch.where(stuck, 4, torch.where(over, 3, torch.where(torch.isfinite(x_new).all(dim=1), 1, 2)))
-            if self.stop is not None:
-                reason = torch.where(self.failure[active] == 5, 5, reason)
+            if ended is not None:
+                reason = torch.where(ended, 5, reason)
             self.failure[active[bad]] = reason[bad]
             self.ok[active[bad]] = False
         return active[self.ok[active] & ~finished]
 
     def _stopped(self, active: torch.Tensor, ask: torch.Tensor) -> torch.Tensor:
         """``(A,)`` bool: the samples ``active[ask]`` (landed on a node before their last) that the
-        caller's ``stop`` test ends (their failure code set to 5)."""
+        caller's ``stop`` test ends."""
         ended = torch.zeros_like(ask)
         if bool(ask.any()):
             rows = active[ask]
             ended[ask] = self.stop(rows, self.out[rows], self.node[rows])
-            self.failure[rows[ended[ask]]] = 5
         return ended
 
     def messages(self) -> list:

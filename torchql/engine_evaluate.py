@@ -343,9 +343,11 @@ class Evaluation:
             return (~ok & torch.tensor([e is None for e in errors], dtype=torch.bool, device=ok.device)).nonzero().flatten()
         sub = pending()
         stiff, batched = spec.solver in STIFF_SOLVERS, self._batched_dopri()
-        ask = None if stop is None else (lambda rows, y, reached: stop(sub[rows], y, reached))  # the current sub
+
+        def asked(sub):  # ``stop`` on the positions ``sub`` in ``idx`` that a solver integrates
+            return None if stop is None else (lambda rows, y, reached: stop(sub[rows], y, reached))
         if sub.numel() and stiff:  # every sample by the implicit solver; its message kept for a failure
-            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors, ask)
+            self._rodas(sub, z0, grid_of(sub), rtol, atol, self._landing(idx[sub]), traj, ok, errors, asked(sub))
             return
         if sub.numel() and batched:
             self._take_shared_solutions(idx, sub, z0, rtol, traj, ok)
@@ -354,7 +356,7 @@ class Evaluation:
             messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
                                           land=self._landing(idx[sub]), messages=messages,
-                                          interval_steps=spec.max_steps, stop=ask)
+                                          interval_steps=spec.max_steps, stop=asked(sub))
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):
@@ -385,10 +387,8 @@ class Evaluation:
     def _rodas(self, sub, z0, grid, rtol, atol, land, traj, ok, errors, stop=None) -> None:
         """Samples ``sub`` by :func:`~torchql.solvers.sensitivity.rodas5p_model` on ``grid`` (``stop``:
         as :func:`~torchql.dopri.dopri_batch`'s, over the samples ``sub``)."""
-        budget = {} if self.spec.max_steps is None else {"interval_steps": self.spec.max_steps}
-        if stop is not None:
-            budget["stop"] = stop
-        sol, y = rodas5p_model(self.system, z0[sub], grid, rtol=rtol, atol=atol, land=land, **budget)
+        sol, y = rodas5p_model(self.system, z0[sub], grid, rtol=rtol, atol=atol, land=land,
+                               interval_steps=self.spec.max_steps, stop=stop)
         self.nfev += sol.n_f
         good = sol.ok
         traj[sub[good]], ok[sub[good]] = y[good], True
@@ -413,10 +413,9 @@ class Evaluation:
         """
         spec = self.spec
         first = spec.columns(z0)
-        budget = {} if spec.max_steps is None else {"interval_steps": spec.max_steps}
         with torch.no_grad():
             sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
-                                              atol=spec.atol, land=self._landing(idx), **budget)
+                                              atol=spec.atol, land=self._landing(idx), interval_steps=spec.max_steps)
         self.nfev += sol.n_f
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
         failed = ~sol.ok
