@@ -119,3 +119,41 @@ def test_a_shooting_trial_stops_integrating_once_it_cannot_be_accepted(monkeypat
     for k in range(2):
         assert batch[k].iterations == stopping.iterations and batch[k].status == stopping.status
         assert torch.allclose(batch[k].estimates, stopping.estimates, rtol=0, atol=1e-10)
+
+
+def test_a_kantorovich_second_opinion_stops_integrating_once_the_trial_cannot_be_accepted(monkeypatch):
+    """The thesis' nonlinear oscillator (31 exact positions) by Kantorovich from far guesses and
+    its integrated start: a trial iterate that the particular solutions cannot decide gets the
+    model's own sum of squares as a second opinion, by Dormand–Prince (a non-stiff model), which
+    stops it once its sum over the data passed exceeds the current iterate's. The fit is the one
+    that integrates every second opinion whole, to the bit, with fewer evaluations."""
+    from torchql import engine_evaluate
+    from torchql.models import NonlinearOscillator
+    t = torch.linspace(0.0, 6.0, 31, dtype=DT)
+    x0 = torch.tensor([0.0, 1.0], dtype=DT)
+    x = torchql.simulate(NonlinearOscillator(0.1, 3.0, 0.2, 4.0), x0, t, rtol=1e-13, atol=1e-15)
+    data = torchql.Observations(t, x[:, :1], observe=["y"])
+    solver = engine_evaluate.dopri_batch
+
+    def fit():  # and the Dormand–Prince evaluations it took, and how many samples a stop test ended
+        evaluations, stopped = [], []
+
+        def counting(*args, **kwargs):
+            out = solver(*args, **kwargs)
+            evaluations.append(out[2])
+            if kwargs.get("stop") is not None:
+                stopped.append(int((~out[1]).sum()))
+            return out
+        monkeypatch.setattr(engine_evaluate, "dopri_batch", counting)
+        result = torchql.fit(NonlinearOscillator(1.0, 1.0, 1.0, 1.0), data, x0, method="kantorovich",
+                             initial_trajectory="integrate")
+        return result, sum(evaluations), sum(stopped)
+    stopping, stopping_evals, ended = fit()
+    monkeypatch.setattr(engine_evaluate, "STOP_EARLY", False)
+    whole, whole_evals, _ = fit()
+    assert ended >= 1  # a second opinion was cut short
+    assert stopping.success and stopping.status == whole.status and stopping.iterations == whole.iterations
+    assert torch.equal(stopping.estimates, whole.estimates) and stopping.sse == whole.sse
+    assert stopping_evals < 0.7 * whole_evals, (stopping_evals, whole_evals)
+    truth = torch.tensor([0.0, 1.0, 0.1, 3.0, 0.2, 4.0], dtype=DT)
+    assert float((stopping.estimates - truth).abs().max()) < 1e-8
