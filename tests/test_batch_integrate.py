@@ -2,7 +2,8 @@
 
 import torch
 
-from torchql.batch_integrate import dopri_batch, integrate_each, propagate_linear_batch, solve_on_grid_batch
+from torchql.batch_integrate import dopri_batch, integrate_each, propagate_linear_batch
+from torchql.grid_solve import solve_on_grid_batch
 from torchql.linearize import linearize
 from torchql.model import AugmentedSystem
 from torchql.models import CoastingCar, LinearOscillator
@@ -238,7 +239,7 @@ def test_linear_propagation_and_shooting_on_per_sample_grids_equal_each_grid_alo
     lin = type(lin)(*(v.reshape(S, G, *v.shape[1:]) for v in lin))
     w0 = torch.stack([initial_columns(z0[s] + 0.5, torch.arange(M)) for s in range(S)])
     W, failed, _ = propagate_linear_batch(grid, traj, lin.f, lin, w0, rtol=1e-8, atol=1e-10)
-    shot, good, _ = solve_on_grid_batch(system, z0, grid, rtol=1e-8, atol=1e-10, guess=traj * 1.001)
+    shot, good, *_ = solve_on_grid_batch(system, z0, grid, rtol=1e-8, atol=1e-10, guess=traj * 1.001)
     assert not failed.any() and good.all()
     for s, count in enumerate(lengths):
         sub = type(lin)(*(v[s:s + 1, :count] for v in lin))
@@ -247,7 +248,7 @@ def test_linear_propagation_and_shooting_on_per_sample_grids_equal_each_grid_alo
         torch.testing.assert_close(W[s, :count], W_alone[0], rtol=1e-13, atol=1e-13)
         # the identity transfers of the padding (composed by the scan: equal up to rounding)
         torch.testing.assert_close(W[s, count:], W[s, count - 1].expand(G - count, -1, -1), rtol=1e-13, atol=1e-13)
-        alone, _, _ = solve_on_grid_batch(system, z0[s:s + 1], grid[s, :count], rtol=1e-8, atol=1e-10,
+        alone, *_ = solve_on_grid_batch(system, z0[s:s + 1], grid[s, :count], rtol=1e-8, atol=1e-10,
                                           guess=traj[s:s + 1, :count] * 1.001)
         torch.testing.assert_close(shot[s, :count], alone[0], rtol=1e-13, atol=0)
         torch.testing.assert_close(shot[s, count:], shot[s, count - 1].expand(G - count, -1), rtol=1e-13, atol=0)

@@ -16,8 +16,8 @@ step decisions per sample (or per sample and grid interval), and reports failure
   truncation bound), composed per sample by the prefix scan.
 * :func:`~torchql.dopri.dopri_batch` (re-exported here): the nonlinear (augmented) model by
   Dormand–Prince 5(4), every sample with its own time, step size and accept/reject decision.
-* :func:`solve_on_grid_batch`: the nonlinear model by multiple shooting from a guess, as
-  :func:`torchql.grid_solve.solve_on_grid`, Newton converging per sample.
+* :func:`~torchql.grid_solve.solve_on_grid_batch` (re-exported here): the nonlinear model by
+  multiple shooting from a guess, Newton converging per sample.
 * :func:`integrate_each`: one sample at a time by torchdiffeq, the last resort (as
   :func:`torchql.fit` uses it).
 
@@ -27,15 +27,12 @@ so one vmapped right-hand side serves every sample.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
-from .grid_solve import _Field, more_steps, newton_matrices, rk4_pair
-from .budget import check_time
-from .integrate import CountedField, IntegrationError, interval_tolerances, solve
 from .dopri import dopri_batch
+from .integrate import CountedField, IntegrationError, interval_tolerances, solve
 from .grid import interval_counts, last_nodes
+from .grid_solve import solve_on_grid_batch
 from .model import AugmentedSystem
 from .taylor import series_transfers
 from .transfer import _Coefficients, hermite_to_power, prefix_products, raise_to_quintic
@@ -244,145 +241,6 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
         Y[..., columns], failed[columns] = Y_part, failed_part
         points += work
     return Y, failed, points
-
-
-def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=None):
-    """``phi (N, M)`` of every interval within tolerance, ``failed (N,)`` and the evaluations of
-    ``f`` (points); ``steps`` updated in place.
-
-    ``rtol``, ``atol``: floats, or Tensors ``(N, 1)`` (each interval its own). ``owner (N,)``: each
-    interval's sample; when one interval of a sample exceeds ``max_substeps``, the sample's other
-    intervals stop too (all failed: the sample has failed).
-    """
-    N, M = x0.shape
-    phi = x0.new_empty(N, M)
-    ratio = x0.new_empty(N)
-    failed = torch.zeros(N, dtype=torch.bool, device=x0.device)
-    n_evals = 0
-    todo = torch.arange(N, device=x0.device)
-    while todo.numel():
-        check_time()
-        for n in steps[todo].unique().tolist():
-            group = todo[steps[todo] == n]
-            rt = rtol[group] if isinstance(rtol, torch.Tensor) else rtol
-            at = atol[group] if isinstance(atol, torch.Tensor) else atol
-            phi[group], ratio[group], evals = rk4_pair(field, t0[group], h[group], x0[group], n, rt, at)
-            n_evals += evals * group.numel()
-        todo = todo[~(ratio[todo] <= 1.0)]
-        if not todo.numel():
-            break
-        current = steps[todo]
-        capped = 2 * current >= max_substeps
-        failed[todo[capped]] = True
-        if owner is not None and bool(capped.any()):
-            dead = torch.isin(owner[todo], owner[todo[capped]])
-            failed[todo[dead]] = True
-            capped = capped | dead
-        todo, current = todo[~capped], current[~capped]
-        steps[todo] = more_steps(current, ratio[todo], max_substeps)
-    return phi, failed, n_evals
-
-
-def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
-                        guess: torch.Tensor | None = None, max_newton: int = 25, max_substeps: int = 1024,
-                        report_budget: bool = False):
-    """The augmented model ``z' = f(t, z)`` from ``z0 (S, M)`` at the nodes of ``grid``, by multiple shooting.
-
-    Each sample's coefficients are its trailing components of ``z``, so one vmapped right-hand
-    side serves every sample. Intervals of all samples are integrated at once, each with its
-    own step count and error test; Newton's correction is composed per sample by the prefix
-    scan, and a sample leaves the work when its correction falls below the tolerance.
-
-    Parameters
-    ----------
-    system : AugmentedSystem
-    z0 : Tensor ``(S, M)``
-    grid : Tensor ``(G,)`` or ``(S, G)``
-        The shared grid, or each sample's own (padded at the end by repeating its last node).
-    rtol, atol : float
-        Tolerances of one sample's whole solution (per interval divided by the square root of
-        its number of intervals: ``G - 1``, or those of positive length of its own grid).
-    guess : Tensor ``(S, G, M)``, optional
-        Node values to start Newton from (default ``z0`` at every node).
-    max_newton, max_substeps : int
-        As in :func:`torchql.grid_solve.solve_on_grid`.
-    report_budget : bool
-        Also return ``over_budget (S,)``: samples with an interval that needed more than
-        ``max_substeps`` steps (a blow-up, or a stretch too stiff for RK4).
-
-    Returns
-    -------
-    traj : Tensor ``(S, G, M)``
-        The solutions (NaN where ``ok`` is false).
-    ok : bool Tensor ``(S,)``
-        Samples whose Newton iteration converged with every interval within tolerance.
-    n_evals : int
-        Evaluations of ``f`` (points of the batched calls).
-    """
-    S, M = z0.shape
-    G = grid.shape[-1]
-    X = z0.unsqueeze(1).expand(S, G, M).clone() if guess is None else guess.detach().clone()
-    X[:, 0] = z0
-    ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
-    over_budget = torch.zeros(S, dtype=torch.bool, device=z0.device)
-    if G == 1:
-        return (X, ~ok, 0, over_budget) if report_budget else (X, ~ok, 0)
-    N = G - 1
-    per_sample = grid.dim() == 2
-    if per_sample:  # each sample's tolerances over its own intervals: (S, 1) per interval below
-        tolerances = [interval_tolerances(rtol, atol, c, z0.dtype) for c in interval_counts(grid).tolist()]
-        rtol_j, atol_j = (torch.tensor(v, dtype=z0.dtype, device=z0.device).unsqueeze(-1) for v in zip(*tolerances))
-    else:
-        rtol_j, atol_j = interval_tolerances(rtol, atol, N, z0.dtype)
-    n = system.n  # the coefficients are constant on every interval: Newton moves the states only
-    X[:, 1:, n:] = z0[:, n:].unsqueeze(1)  # and they are the samples' own at every node, whatever the guess
-    field = _Field(system.f, n)
-    active = torch.arange(S, device=z0.device)
-    steps = torch.ones(S, N, dtype=torch.long, device=z0.device)
-    t0, h = grid[..., :-1], grid[..., 1:] - grid[..., :-1]
-    n_evals = 0
-    matrices = z0.new_empty(S, N, n, n)  # Newton's, per sample; kept for chord steps once its corrections are small
-    stale = torch.ones(S, dtype=torch.bool, device=z0.device)
-    for _ in range(max_newton):
-        if not active.numel():
-            break
-        check_time()
-        A = active.numel()
-        Xa = X[active]
-        st = steps[active].reshape(-1)
-        if per_sample:
-            ta, hs = t0[active].reshape(-1), h[active].reshape(-1)
-            rt, at = rtol_j[active].repeat_interleave(N, dim=0), atol_j[active].repeat_interleave(N, dim=0)
-        else:
-            ta, hs, rt, at = t0.repeat(A), h.repeat(A), rtol_j, atol_j
-        owner = torch.arange(A, device=z0.device).repeat_interleave(N) if report_budget else None
-        x0 = Xa[:, :-1].reshape(-1, M)
-        phi, failed, evals = _integrate_each(field, ta, hs, x0, st, rt, at, max_substeps, owner)
-        steps[active] = st.reshape(A, N)
-        n_evals += evals
-        renew = stale[active].repeat_interleave(N)
-        if bool(renew.any()):
-            fresh, _ = newton_matrices(field, ta[renew], hs[renew], x0[renew], st[renew])
-            matrices[active[stale[active]]] = fresh.reshape(-1, N, n, n)
-            n_evals += 4 * int(st[renew].sum())  # each interval's n steps: 4 n points with the Jacobian
-        failed = failed.reshape(A, N).any(dim=1)
-        over_budget[active[failed]] = True
-        defect = phi.reshape(A, N, M)[..., :n] - Xa[:, 1:, :n]
-        # delta_{j+1} = S_j delta_j + d_j, delta_0 = 0: the affine recurrence, by the prefix scan
-        Y = torch.cat([matrices[active], defect.unsqueeze(-1)], dim=-1).permute(0, 2, 3, 1)  # (A, n, n+1, N)
-        delta = prefix_products(Y)[:, :, n, :].transpose(1, 2)  # (A, N, n)
-        finite = torch.isfinite(delta).flatten(1).all(dim=1)
-        Xa = Xa.clone()
-        Xa[:, 1:, :n] = Xa[:, 1:, :n] + delta
-        scale = Xa[:, 1:, :n].abs()
-        small = (delta.abs() <= 0.1 * (atol + rtol * scale)).flatten(1).all(dim=1)
-        stale[active] = ~(delta.abs() <= math.sqrt(rtol) * (atol / rtol + scale)).flatten(1).all(dim=1)
-        X[active] = Xa
-        done = small & finite & ~failed
-        ok[active[done]] = True
-        active = active[~done & finite & ~failed]
-    X[~ok] = float("nan")
-    return (X, ok, n_evals, over_budget) if report_budget else (X, ok, n_evals)
 
 
 def integrate_each(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, solver: str, rtol: float,

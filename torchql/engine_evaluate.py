@@ -12,11 +12,11 @@ import math
 
 import torch
 
-from .batch_integrate import integrate_each, propagate_linear_batch, solve_on_grid_batch
+from .batch_integrate import integrate_each, propagate_linear_batch
 from .dopri import dopri_batch
 from .grid import DEFAULT_INTERVALS, refine
-from .grid_solve import IntervalBudgetError, solve_on_grid
-from .integrate import CountedField, IntegrationError
+from .grid_solve import solve_on_grid_batch
+from .integrate import IntegrationError
 from .linearize import Linearization, linearize
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS
@@ -290,16 +290,11 @@ class Evaluation:
             return over
         k = self._split
         grid, guess = refine(grid if grid.dim() == 1 else grid[sub], guess[sub], self._slopes(grid, guess[sub]), k)
-        if sub.numel() == 1 and grid.dim() == 1:  # one sample: its model with the coefficients bound
-            s = int(sub[0])
-            tr, ok[s], over[s] = self._grid_solve_one(z0[s], grid, guess[0], rtol, atol, substeps)
-            traj[s] = tr[::k]
-        else:
-            tr, good, evals, over[sub] = solve_on_grid_batch(
-                self.system, z0[sub], grid, rtol=rtol, atol=atol, guess=guess,
-                max_newton=_GRID_NEWTON, max_substeps=substeps, report_budget=True)
-            self.nfev += evals
-            traj[sub[good]], ok[sub[good]] = tr[good][:, ::k], True
+        solved = solve_on_grid_batch(self.system, z0[sub], grid, rtol=rtol, atol=atol, guess=guess,
+                                     max_newton=_GRID_NEWTON, max_substeps=substeps)
+        self.nfev += solved.n_evals
+        good = solved.ok
+        traj[sub[good]], ok[sub[good]], over[sub] = solved.traj[good][:, ::k], True, solved.over_budget
         return over
 
     def _grid_solves(self, count: int) -> bool:
@@ -462,26 +457,6 @@ class Evaluation:
             on = (grid.gather(-1, at) == inner).to(torch.uint8)  # a user's grid may not hold them all
             land |= torch.zeros_like(land, dtype=torch.uint8).scatter_reduce_(-1, at, on, "amax").bool()
         return land
-
-    def _grid_solve_one(self, z0, grid, guess, rtol, atol, substeps):
-        """:func:`~torchql.grid_solve.solve_on_grid` for one sample ``z0 (M,)`` on ``grid (G,)``
-        from ``guess (G, M)``, its coefficients bound in its model (no augmented state):
-        ``(traj (G, M), ok, over_budget)``."""
-        n = self.system.n
-        counter = CountedField(self.system.model_with(z0[n:]))
-        traj = torch.full_like(guess, float("nan"))
-        ok = over = False
-        try:
-            x, _ = solve_on_grid(counter, z0[:n], grid, rtol=rtol, atol=atol, guess=guess[:, :n],
-                                 max_newton=_GRID_NEWTON, max_substeps=substeps)
-            traj = torch.cat([x, z0[n:].expand(x.shape[0], -1)], dim=1)
-            ok = True
-        except IntervalBudgetError:
-            over = True
-        except IntegrationError:
-            pass
-        self.nfev += counter.n_evals * (grid.shape[0] - 1)  # each call: one stage of every interval
-        return traj, ok, over
 
     def _model_not_above(self, all_idx, cur: dict, act, trial: dict, rows: torch.Tensor) -> torch.Tensor:
         """Whether the model's objective from the trials ``rows`` (positions in ``act``) is not above

@@ -1,96 +1,98 @@
-"""The nonlinear model integrated over a grid by multiple shooting: all intervals at once.
+"""The nonlinear model integrated over a grid by multiple shooting: all intervals of all samples at once.
 
 ``x' = f(t, x)`` from ``x(t_0) = x0`` is solved on the nodes ``t_0 < ... < t_{G-1}`` as the
 root of the node defects: given node values ``X_j``, every interval is integrated at once from
-its own start ``X_j`` (fixed RK4 steps, vectorized over the intervals, with the variational
-equations for ``S_j = d phi_j / d X_j``), and the defects ``d_j = phi_j(X_j) - X_{j+1}`` are
-removed by Newton's method. Newton's correction obeys ``delta_{j+1} = S_j delta_j + d_j``,
-``delta_0 = 0``: an affine recurrence, composed by the prefix scan of :mod:`torchql.transfer`.
-Convergence is quadratic from a good guess (for instance the linear prediction of a
-quasilinearization iterate); for a linear model one Newton step lands within the integration
-error whatever the guess.
-Once a correction is within ``sqrt(rtol)`` of the solution, the next steps are chord steps:
-the new nodes' defects propagated by the last sensitivities, which are not evaluated again.
+its own start ``X_j`` (fixed RK4 steps, vectorized over the intervals of every sample, with the
+variational equations for ``S_j = d phi_j / d X_j``), and the defects ``d_j = phi_j(X_j) - X_{j+1}``
+are removed by Newton's method. Newton's correction obeys ``delta_{j+1} = S_j delta_j + d_j``,
+``delta_0 = 0``: an affine recurrence, composed per sample by the prefix scan of
+:mod:`torchql.transfer`. Convergence is quadratic from a good guess (for instance the linear
+prediction of a quasilinearization iterate); for a linear model one Newton step lands within the
+integration error whatever the guess. Once a sample's correction is within ``sqrt(rtol)`` of its
+solution, its next steps are chord steps: the new nodes' defects propagated by the last
+sensitivities, which are not evaluated again.
 
 Each interval's integration is controlled like the interval transfers': ``n`` and ``2n`` RK4
 steps, the difference over 15 as the error estimate (max-norm, tolerances divided by the square
-root of the number of intervals), the Richardson extrapolation as the result, and more steps
-for the intervals that fail. Only the defects need that accuracy: the sensitivities ``S_j`` are
-Newton's matrices, which set how fast the corrections shrink and not where they end, and are
+root of the sample's number of intervals), the Richardson extrapolation as the result, and more
+steps for the intervals that fail. Only the defects need that accuracy: the sensitivities ``S_j``
+are Newton's matrices, which set how fast the corrections shrink and not where they end, and are
 integrated once, by the ``n`` RK4 steps of the variational equations that met the tolerance
 (the Jacobian of ``f``, from :func:`torchql.linearize.node_jacobian`, costs a few evaluations of ``f``).
+
+Every decision is the sample's own (its steps, its convergence, its failure), so a sample's
+solution is the one it gets alone: :func:`torchql.fit` and each sample of :func:`torchql.fit_many`
+solve alike.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import torch
 
 from .budget import check_time
-from .integrate import IntegrationError, interval_tolerances
+from .grid import interval_counts
+from .integrate import interval_tolerances
 from .linearize import node_jacobian
-from .model import BatchedCall
-from .transfer import Transfers, compose_transfers
+from .model import AugmentedSystem, BatchedCall
+from .transfer import prefix_products
 
-__all__ = ["GridSolveInfo", "IntervalBudgetError", "solve_on_grid"]
+__all__ = ["GridSolution", "solve_on_grid_batch"]
 
 #: Safety factor on the predicted number of steps.
 _SAFETY = 2.0
 
 
-class IntervalBudgetError(IntegrationError):
-    """An interval of the grid cannot be integrated to the tolerance within ``max_substeps`` steps.
-
-    From node values that Newton has already matched, this usually means the solution grows
-    without bound (or is too stiff for the grid); a caller that must tell a blow-up from a
-    poor guess catches it apart from the other :class:`IntegrationError`.
-    """
-
-
-class GridSolveInfo(NamedTuple):
-    """Statistics of :func:`solve_on_grid`.
+class GridSolution(NamedTuple):
+    """What :func:`solve_on_grid_batch` returns for ``S`` samples on ``G`` nodes of ``M`` components.
 
     Attributes
     ----------
-    newton_iterations : int
-        Newton updates of the node values.
+    traj : Tensor ``(S, G, M)``
+        The solutions at the nodes (NaN where ``ok`` is false).
+    ok : bool Tensor ``(S,)``
+        Samples whose Newton iteration converged with every interval within tolerance.
     n_evals : int
-        Batched evaluations of ``f``, or of ``f`` with its Jacobian (each one at one stage of
-        the intervals being integrated).
-    max_defect : float
-        Largest node defect ``|phi_j(X_j) - X_{j+1}|`` at the end (max-norm).
-    max_substeps : int
-        Most RK4 steps (of the finer of each pair) used on one interval.
+        Evaluations of ``f`` (points of the batched calls).
+    over_budget : bool Tensor ``(S,)``
+        Samples with an interval that needed more than ``max_substeps`` RK4 steps (a blow-up,
+        or a stretch too stiff for RK4), as against a Newton iteration that did not converge.
+    newton_iterations : long Tensor ``(S,)``
+        Newton updates of each sample's node values.
     """
 
-    newton_iterations: int
+    traj: torch.Tensor
+    ok: torch.Tensor
     n_evals: int
-    max_defect: float
-    max_substeps: int
+    over_budget: torch.Tensor
+    newton_iterations: torch.Tensor
 
 
-def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0: torch.Tensor,
-                  grid: torch.Tensor, *, rtol: float, atol: float, guess: torch.Tensor | None = None,
-                  max_newton: int = 25, max_substeps: int = 1024) -> tuple[torch.Tensor, GridSolveInfo]:
-    """Solve ``x' = func(t, x)``, ``x(grid[0]) = z0``, at the nodes of ``grid``.
+def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
+                        guess: torch.Tensor | None = None, max_newton: int = 25, max_substeps: int = 1024
+                        ) -> GridSolution:
+    """The augmented model ``z' = f(t, z)`` from ``z0 (S, M)`` at the nodes of ``grid``, by multiple shooting.
+
+    Each sample's coefficients are its trailing components of ``z``, so one right-hand side
+    serves every sample (one sample's model takes its coefficients bound, and the states alone).
+    Intervals of all samples are integrated at once, each with its own step count and error
+    test; Newton's correction is composed per sample by the prefix scan, and a sample leaves the
+    work when its correction falls below the tolerance, or when it fails.
 
     Parameters
     ----------
-    func : callable ``(t, x) -> dx/dt``
-        For one time (0-dim tensor) and one state ``(M,)``; called on all the intervals at once
-        where it takes a batch of them, else vmapped (:class:`torchql.model.BatchedCall`), and
-        differentiated with :func:`torchql.linearize.node_jacobian`.
-    z0 : Tensor ``(M,)``
-        Initial state.
-    grid : Tensor ``(G,)``
-        Strictly increasing node times.
+    system : AugmentedSystem
+    z0 : Tensor ``(S, M)``
+    grid : Tensor ``(G,)`` or ``(S, G)``
+        The shared grid, or each sample's own (padded at the end by repeating its last node).
     rtol, atol : float
-        Tolerances of the whole solution (each interval gets them divided by ``sqrt(G - 1)``);
-        Newton stops when its correction is below them.
-    guess : Tensor ``(G, M)``, optional
-        Node values to start Newton from (default: ``z0`` at every node, adequate for linear or
+        Tolerances of one sample's whole solution (per interval divided by the square root of
+        its number of intervals: ``G - 1``, or those of positive length of its own grid); Newton
+        stops when its correction is below them.
+    guess : Tensor ``(S, G, M)``, optional
+        Node values to start Newton from (default ``z0`` at every node, adequate for linear or
         mildly nonlinear models over short spans; pass a prediction otherwise).
     max_newton : int
         Most Newton iterations.
@@ -99,60 +101,126 @@ def solve_on_grid(func: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z0
 
     Returns
     -------
-    traj : Tensor ``(G, M)``
-        The solution at the nodes, ``traj[0] = z0``.
-    info : GridSolveInfo
-
-    Raises
-    ------
-    IntegrationError
-        When Newton does not converge in ``max_newton`` iterations (or its correction grows
-        again from the third iteration on: the guess is outside its basin), an interval cannot meet the
-        tolerance with ``max_substeps`` steps, or the solution becomes non-finite.
+    GridSolution
+        A sample fails (``ok`` false) when an interval cannot meet the tolerance with
+        ``max_substeps`` steps (``over_budget``), its solution becomes non-finite, its Newton
+        correction grows again from the third iteration on (the guess is outside Newton's
+        basin), or Newton does not converge in ``max_newton`` iterations.
     """
     if max_substeps < 2 or max_substeps & (max_substeps - 1):
         raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
-    G, M = grid.shape[0], z0.shape[0]
-    X = z0.expand(G, M).clone() if guess is None else guess.detach().clone()
-    X[0] = z0
+    S, M = z0.shape
+    G = grid.shape[-1]
+    X = z0.unsqueeze(1).expand(S, G, M).clone() if guess is None else guess.detach().clone()
+    X[:, 0] = z0
+    ok = torch.zeros(S, dtype=torch.bool, device=z0.device)
+    over_budget = torch.zeros(S, dtype=torch.bool, device=z0.device)
+    iterations = torch.zeros(S, dtype=torch.long, device=z0.device)
     if G == 1:
-        return X, GridSolveInfo(0, 0, 0.0, 0)
-    intervals = G - 1
-    rtol_j, atol_j = interval_tolerances(rtol, atol, intervals, z0.dtype)
-    field = _Field(func)
-    t0, h = grid[:-1], grid[1:] - grid[:-1]
-    steps = torch.full((intervals,), 1, dtype=torch.long, device=grid.device)  # coarse steps per interval
+        return GridSolution(X, ~ok, 0, over_budget, iterations)
+    N = G - 1
+    per_sample = grid.dim() == 2
+    if per_sample:  # each sample's tolerances over its own intervals: (S, 1) per interval below
+        tolerances = [interval_tolerances(rtol, atol, c, z0.dtype) for c in interval_counts(grid).tolist()]
+        rtol_j, atol_j = (torch.tensor(v, dtype=z0.dtype, device=z0.device).unsqueeze(-1) for v in zip(*tolerances))
+    else:
+        rtol_j, atol_j = interval_tolerances(rtol, atol, N, z0.dtype)
+    n = system.n  # the coefficients are constant on every interval: Newton moves the states only
+    X[:, 1:, n:] = z0[:, n:].unsqueeze(1)  # and they are the samples' own at every node, whatever the guess
+    # the states are integrated; the coefficients, constant, ride along only where they differ
+    # between the samples (one sample's are bound in a copy of its model: a model written for a
+    # batch of states then takes every interval in one call, and vmap's cost per call, most of a
+    # small model's evaluation, goes)
+    field, width = (_Field(system.model_with(z0[0, n:]), n), n) if S == 1 else (_Field(system.f, n), M)
+    active = torch.arange(S, device=z0.device)
+    steps = torch.ones(S, N, dtype=torch.long, device=z0.device)
+    t0, h = grid[..., :-1], grid[..., 1:] - grid[..., :-1]
     n_evals = 0
-    previous = float("inf")  # the last correction's size
-    S = None  # Newton's matrices, kept for chord steps once the corrections are small
+    matrices = z0.new_empty(S, N, n, n)  # Newton's, per sample; kept for chord steps once its corrections are small
+    stale = torch.ones(S, dtype=torch.bool, device=z0.device)
+    previous = z0.new_full((S,), math.inf)  # each sample's last correction (max-norm)
     for iteration in range(1, max_newton + 1):
+        if not active.numel():
+            break
         check_time()
-        phi, evals = _integrate_controlled(field, t0, h, X[:-1], steps, rtol_j, atol_j, max_substeps, grid)
+        A = active.numel()
+        Xa = X[active]
+        st = steps[active].reshape(-1)
+        if per_sample:
+            ta, hs = t0[active].reshape(-1), h[active].reshape(-1)
+            rt, at = rtol_j[active].repeat_interleave(N, dim=0), atol_j[active].repeat_interleave(N, dim=0)
+        else:
+            ta, hs, rt, at = t0.repeat(A), h.repeat(A), rtol_j, atol_j
+        owner = torch.arange(A, device=z0.device).repeat_interleave(N)
+        x0 = Xa[:, :-1, :width].reshape(-1, width)
+        phi, failed, evals = _integrate_each(field, ta, hs, x0, st, rt, at, max_substeps, owner)
+        steps[active] = st.reshape(A, N)
         n_evals += evals
-        if S is None:
-            S, evals = newton_matrices(field, t0, h, X[:-1], steps)
-            n_evals += evals
-        defect = phi - X[1:]
-        # Newton: delta_{j+1} = S_j delta_j + d_j from delta_0 = 0, by the prefix scan
-        T = torch.zeros(intervals, M + 1, M + 1, dtype=z0.dtype, device=z0.device)
-        T[:, :M, :M] = S
-        T[:, :M, M] = defect
-        T[:, M, M] = 1.0
-        delta = compose_transfers(Transfers.from_full(T), torch.zeros(M, 1, dtype=z0.dtype, device=z0.device))[:, :, 0]
-        if not torch.isfinite(delta).all():
-            raise IntegrationError("the solution on the grid became non-finite (NaN or inf)")
-        X = X + delta
-        size = float(delta.abs().max())
-        if iteration >= 3 and size > previous:
-            raise IntegrationError(f"Newton on the node defects is not converging (correction {size:.3g} after "
-                                   f"{previous:.3g}); pass a closer `guess`")
-        previous = size
-        if bool((delta.abs() <= 0.1 * (atol + rtol * X.abs())).all()):
-            return X, GridSolveInfo(iteration, n_evals, float(defect.abs().max()), int(2 * steps.max()))
-        if not bool((delta.abs() <= math.sqrt(rtol) * (atol / rtol + X.abs())).all()):
-            S = None  # still far: Newton's matrices again at the new nodes
-    raise IntegrationError(f"Newton on the node defects did not converge in `max_newton` = {max_newton} iterations "
-                           f"(last correction {float(delta.abs().max()):.3g}); pass a closer `guess`")
+        failed = failed.reshape(A, N).any(dim=1)
+        over_budget[active[failed]] = True
+        renewed = stale[active] & ~failed  # a failed sample leaves the work: no matrices for it
+        renew = renewed.repeat_interleave(N)
+        if bool(renew.any()):
+            fresh, _ = newton_matrices(field, ta[renew], hs[renew], x0[renew], st[renew])
+            matrices[active[renewed]] = fresh.reshape(-1, N, n, n)
+            n_evals += 4 * int(st[renew].sum())  # each interval's n steps: 4 n points with the Jacobian
+        defect = phi.reshape(A, N, width)[..., :n] - Xa[:, 1:, :n]
+        # delta_{j+1} = S_j delta_j + d_j, delta_0 = 0: the affine recurrence, by the prefix scan
+        Y = torch.cat([matrices[active], defect.unsqueeze(-1)], dim=-1).permute(0, 2, 3, 1)  # (A, n, n+1, N)
+        delta = prefix_products(Y)[:, :, n, :].transpose(1, 2)  # (A, N, n)
+        finite = torch.isfinite(delta).flatten(1).all(dim=1)
+        size = delta.abs().flatten(1).amax(dim=1)
+        diverging = size > previous[active] if iteration >= 3 else torch.zeros_like(finite)
+        previous[active] = size
+        iterations[active] = iteration
+        Xa = Xa.clone()
+        Xa[:, 1:, :n] = Xa[:, 1:, :n] + delta
+        scale = Xa[:, 1:, :n].abs()
+        small = (delta.abs() <= 0.1 * (atol + rtol * scale)).flatten(1).all(dim=1)
+        stale[active] = ~(delta.abs() <= math.sqrt(rtol) * (atol / rtol + scale)).flatten(1).all(dim=1)
+        X[active] = Xa
+        going = finite & ~failed & ~diverging
+        ok[active[small & going]] = True
+        active = active[~small & going]
+    X[~ok] = float("nan")
+    return GridSolution(X, ok, n_evals, over_budget, iterations)
+
+
+def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=None):
+    """``phi (N, M)`` of every interval within tolerance, ``failed (N,)`` and the evaluations of
+    ``f`` (points); ``steps`` updated in place.
+
+    ``rtol``, ``atol``: floats, or Tensors ``(N, 1)`` (each interval its own). ``owner (N,)``: each
+    interval's sample; when one interval of a sample exceeds ``max_substeps``, the sample's other
+    intervals stop too (all failed: the sample has failed).
+    """
+    N, M = x0.shape
+    phi = x0.new_empty(N, M)
+    ratio = x0.new_empty(N)
+    failed = torch.zeros(N, dtype=torch.bool, device=x0.device)
+    n_evals = 0
+    todo = torch.arange(N, device=x0.device)
+    while todo.numel():
+        check_time()
+        for n in steps[todo].unique().tolist():
+            group = todo[steps[todo] == n]
+            rt = rtol[group] if isinstance(rtol, torch.Tensor) else rtol
+            at = atol[group] if isinstance(atol, torch.Tensor) else atol
+            phi[group], ratio[group], evals = rk4_pair(field, t0[group], h[group], x0[group], n, rt, at)
+            n_evals += evals * group.numel()
+        todo = todo[~(ratio[todo] <= 1.0)]
+        if not todo.numel():
+            break
+        current = steps[todo]
+        capped = 2 * current >= max_substeps
+        failed[todo[capped]] = True
+        if owner is not None and bool(capped.any()):
+            dead = torch.isin(owner[todo], owner[todo[capped]])
+            failed[todo[dead]] = True
+            capped = capped | dead
+        todo, current = todo[~capped], current[~capped]
+        steps[todo] = more_steps(current, ratio[todo], max_substeps)
+    return phi, failed, n_evals
 
 
 class _Field:
@@ -174,33 +242,6 @@ class _Field:
         rows = x.shape[1] if self.n is None else self.n
         value, (jac,) = node_jacobian(self.func, (t, x), (1,), rows, batched=self.values)
         return value, jac[:, :, :rows]
-
-
-def _integrate_controlled(field, t0, h, x0, steps, rtol, atol, max_substeps, grid):
-    """``phi_j(x0_j) (N, M)`` within tolerance and the batched evaluations of ``f`` it took;
-    ``steps`` (coarse) is updated in place."""
-    N, M = x0.shape
-    phi = x0.new_empty(N, M)
-    ratio = x0.new_empty(N)
-    n_evals = 0
-    todo = torch.arange(N, device=x0.device)
-    while todo.numel():
-        for n in steps[todo].unique().tolist():
-            group = todo[steps[todo] == n]
-            phi[group], ratio[group], evals = rk4_pair(field, t0[group], h[group], x0[group], n, rtol, atol)
-            n_evals += evals
-        bad = ~(ratio[todo] <= 1.0)
-        todo = todo[bad]
-        if not todo.numel():
-            break
-        current = steps[todo]
-        if bool((2 * current >= max_substeps).any()):
-            worst = todo[ratio[todo].nan_to_num(nan=float("inf")).argmax()]
-            raise IntervalBudgetError(
-                f"the nonlinear model could not be integrated to the tolerance over the grid interval starting "
-                f"at t = {float(grid[worst]):.6g} with {max_substeps} RK4 steps; refine the grid or loosen `rtol`/`atol`")
-        steps[todo] = more_steps(current, ratio[todo], max_substeps)
-    return phi, n_evals
 
 
 def more_steps(current: torch.Tensor, ratio: torch.Tensor, max_substeps: int) -> torch.Tensor:
