@@ -18,6 +18,7 @@ Run (from the repository root)::
     python benchmarks/compare_commits.py --base HEAD~3                 # Kantorovich, 9 repeats
     python benchmarks/compare_commits.py --base v0 --methods kantorovich shooting --repeats 3
     python benchmarks/compare_commits.py --base HEAD~3 --batches 1000 --repeats 5
+    python benchmarks/compare_commits.py --base HEAD~3 --batches 100 --linear-solver rk4_doubling
 """
 
 from __future__ import annotations
@@ -77,8 +78,9 @@ def problems(pkg) -> list[tuple]:
     return out
 
 
-def batch_problems(pkg, B: int) -> list[tuple]:
-    """``(name, run)`` of ``fit_many`` on ``B`` datasets of each of batch.py's families, in package ``pkg``."""
+def batch_problems(pkg, B: int, options: dict) -> list[tuple]:
+    """``(name, run)`` of ``fit_many`` on ``B`` datasets of each of batch.py's families, in package ``pkg``,
+    with ``options`` (keywords of ``fit_many``)."""
     models = importlib.import_module(f"{pkg.__name__}.models")
     out = []
     for family, make in ((bb.CARS, lambda: models.CoastingCar(bb.AREA, bb.MASS)),
@@ -90,7 +92,7 @@ def batch_problems(pkg, B: int) -> list[tuple]:
         x0 = torch.tensor(data.starts[:, :n], dtype=DTYPE)
         guesses = {name: torch.tensor(data.starts[:, n + k], dtype=DTYPE) for k, name in enumerate(family.coefficients)}
         out.append((f"{family.key}, B = {B}", lambda make=make, obs=obs, x0=x0, g=guesses: pkg.fit_many(
-            make(), obs, x0, guesses=g)))
+            make(), obs, x0, guesses=g, **options)))
     return out
 
 
@@ -109,23 +111,23 @@ def timed_row(label: str, run_a: Callable, run_b: Callable, repeats: int, second
     return row
 
 
-def compare_batches(base, sizes: list[int], repeats: int) -> list[str]:
+def compare_batches(base, sizes: list[int], repeats: int, options: dict) -> list[str]:
     lines = ["| problem | base: median | base: mean iterations | working tree: median | working tree: mean "
              "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|"]
     for B in sizes:
-        for (name, run_a), (_, run_b) in zip(batch_problems(base, B), batch_problems(torchql, B)):
+        for (name, run_a), (_, run_b) in zip(batch_problems(base, B, options), batch_problems(torchql, B, options)):
             lines.append(timed_row(name, run_a, run_b, repeats, lambda s: f"{s:.3f} s",
                                    lambda r: f"{float(r.iterations.double().mean()):.2f}"))
     return lines
 
 
-def compare(base, methods: list[str], repeats: int) -> list[str]:
+def compare(base, methods: list[str], repeats: int, options: dict) -> list[str]:
     lines = ["| problem | method | base: median | base: iterations | working tree: median | working tree: "
              "iterations | working / base | estimates differ by |", "|---|---|---|---|---|---|---|---|"]
     for method in methods:
         for (name, make_a, data_a, x_a), (_, make_b, data_b, x_b) in zip(problems(base), problems(torchql)):
-            run_a = lambda: base.fit(make_a(), data_a, x_a, method=method)  # noqa: E731
-            run_b = lambda: torchql.fit(make_b(), data_b, x_b, method=method)  # noqa: E731
+            run_a = lambda: base.fit(make_a(), data_a, x_a, method=method, **options)  # noqa: E731
+            run_b = lambda: torchql.fit(make_b(), data_b, x_b, method=method, **options)  # noqa: E731
             run_a(), run_b()  # the first untimed warm-up; time_interleaved's is the second
             lines.append(timed_row(f"{name} | {method}", run_a, run_b, repeats, lambda s: f"{1000 * s:.1f} ms",
                                    lambda r: r.iterations))
@@ -139,18 +141,22 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--batches", type=int, nargs="+", default=None, metavar="B",
                         help="compare fit_many on B cars and B oscillators (batch.py's data) instead of single fits")
+    parser.add_argument("--linear-solver", default=None,
+                        help="the linear_solver of every fit (default: the default of each version)")
     parser.add_argument("--out", type=Path, default=None, help="also write the table to OUT/compare_commits.md")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    options = {} if args.linear_solver is None else {"linear_solver": args.linear_solver}
     revision = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", args.base], check=True,
                               capture_output=True, text=True).stdout.strip()
     with tempfile.TemporaryDirectory() as folder:
         base = export(args.base, Path(folder))
         header = (f"Working tree against {args.base} ({revision}), interleaved in one process, median of "
-                  f"{args.repeats} repeats, torch {torch.__version__}, 1 thread.")
+                  f"{args.repeats} repeats, torch {torch.__version__}, 1 thread"
+                  + (f", linear_solver={args.linear_solver!r}." if args.linear_solver else "."))
         print(header)
-        lines = (compare(base, args.methods, args.repeats) if args.batches is None
-                 else compare_batches(base, args.batches, args.repeats))
+        lines = (compare(base, args.methods, args.repeats, options) if args.batches is None
+                 else compare_batches(base, args.batches, args.repeats, options))
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "compare_commits.md").write_text("# compare_commits\n\n" + header + "\n\n" + "\n".join(lines) + "\n")

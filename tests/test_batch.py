@@ -422,12 +422,18 @@ def test_values_marked_exact_are_met_in_each_sample_as_fit_meets_them():
     assert batch[0].exact_residual < 1e-10 * 117 and batch[0].exact_mask[0] and not batch[2].exact_mask.any()
 
 
-def test_a_propagator_without_a_batched_form_fits_each_sample_as_fit_does():
-    """``linear_solver="rk4_doubling"`` (no batched form): each sample propagated in turn, equal to
-    its single fit."""
+@pytest.mark.parametrize("linear_solver", ["rk4_doubling", "torchdiffeq"])
+def test_a_propagator_fits_each_sample_as_fit_does(linear_solver):
+    """``linear_solver="rk4_doubling"`` (batched: every interval of every sample at once) and
+    ``"torchdiffeq"`` (no batched form: each sample propagated in turn): each sample equals its
+    single fit."""
+    import warnings
+
     data, x0 = car_data(2, seed=5)
-    batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20, linear_solver="rk4_doubling")
-    singles = [torchql.fit(CoastingCar(AREA, MASS), d, x0[b], grid=20, linear_solver="rk4_doubling")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torchdiffeq's, one sample at a time
+        batch = torchql.fit_many(CoastingCar(AREA, MASS), data, x0, grid=20, linear_solver=linear_solver)
+    singles = [torchql.fit(CoastingCar(AREA, MASS), d, x0[b], grid=20, linear_solver=linear_solver)
                for b, d in enumerate(data)]
     assert_same_as_single(batch, singles)
     assert batch.success.all()
@@ -443,9 +449,11 @@ def test_a_batch_integrated_one_sample_at_a_time_says_so():
     with pytest.warns(UserWarning, match=r"solver='dopri8' has no batched form, so each of the 2 samples") as caught:
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, solver="dopri8")
     assert [w.filename for w in caught if "no batched form" in str(w.message)] == [__file__]
-    with pytest.warns(UserWarning, match=r"linear_solver='rk4_doubling' has no batched form"):
-        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, linear_solver="rk4_doubling")
+    with pytest.warns(UserWarning, match=r"linear_solver='torchdiffeq' has no batched form .* 'taylor', "
+                      r"'rk4_doubling', .* take them all at once"):
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, linear_solver="torchdiffeq")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, linear_solver="rk4_doubling")
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, max_steps=500)
         torchql.fit(CoastingCar(AREA, MASS), data[0], x0[0], solver="dopri8")

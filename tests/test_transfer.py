@@ -235,3 +235,26 @@ def test_single_node_grid():
     W, n_evals = propagate_linear(ref, w0, rtol=1e-10, atol=1e-12)
     assert W.shape == (1, 1, 2) and n_evals == 0
     assert math.isclose(W[0, 0, 0].item(), 1.0)
+
+
+def test_rk4_series_of_several_samples_side_by_side_is_each_alone():
+    """``linear_solver="rk4_doubling"`` in ``fit_many``: the intervals of three references (one
+    with a fast interval that needs refining, one whose interval cannot meet the tolerance within
+    the cap) integrated side by side; each interval's transfer and failure are those of its own
+    reference alone (an interval's refinement never depends on the others integrated with it)."""
+    from torchql.transfer import _Coefficients, rk4_series
+
+    parts = [_Coefficients(IntervalSystem(_fast_interval(rate))) for rate in (1.0, 40.0, 5000.0)]
+    joined = _Coefficients.of(torch.cat([c.data for c in parts], dim=-1), parts[0].order, parts[0].a, parts[0].M)
+    together = rk4_series(joined, rtol=1e-10, atol=1e-12, max_substeps=512)
+    N = parts[0].intervals
+    for k, coefficients in enumerate(parts):
+        alone = rk4_series(coefficients, rtol=1e-10, atol=1e-12, max_substeps=512)
+        columns = slice(k * N, (k + 1) * N)
+        assert torch.equal(together.failed[columns], alone.failed)
+        assert torch.equal(together.steps[columns], alone.steps)
+        passed = ~alone.failed
+        torch.testing.assert_close(together.Y[..., columns][..., passed], alone.Y[..., passed], rtol=1e-14, atol=1e-15)
+    failed = together.failed.reshape(3, N).any(dim=1)
+    assert failed.tolist() == [False, False, True]  # only the 5000 rate's fast interval fails
+    assert int(together.steps[N:2 * N].max()) > 2  # the 40 rate's fast interval was refined

@@ -52,7 +52,7 @@ from .options import FitOptions, Limits, accepts_options, recorded_options
 from .parameters import apply_parameters
 from .datasets import check_data, inputs_all_or_none
 from .problem import Problem
-from .propagators import LinearPropagator
+from .propagators import PROPAGATORS, LinearPropagator
 from .result import IterationRecord
 from .solvers import STIFF_SOLVERS
 
@@ -263,7 +263,8 @@ def _say_one_at_a_time(spec: Problem) -> None:
     if not spec.linear_solver.batched:
         warnings.warn(f"fit_many: linear_solver={spec.linear_solver.name!r} has no batched form "
                       f"(LinearPropagator.series), so each of the {spec.B} samples' linear problems is propagated "
-                      "in turn; 'taylor' (the default), 'radau' and 'exponential' take them all at once",
+                      f"in turn; {', '.join(repr(name) for name, p in PROPAGATORS.items() if p.batched)} take "
+                      "them all at once",
                       UserWarning, stacklevel=4)
 
 

@@ -37,10 +37,10 @@ from .budget import check_time
 from .integrate import IntegrationError
 from .trajectory import IntervalSystem
 
-__all__ = ["Transfers", "interval_transfers", "prefix_products", "compose_transfers"]
+__all__ = ["Transfers", "RK4Transfers", "interval_transfers", "rk4_series", "prefix_products", "compose_transfers"]
 
 #: Largest number of interval-steps integrated in one batch (bounds the memory of refinement).
-_CHUNK = 1 << 16
+_CHUNK = 1 << 13
 #: Safety factor on the predicted number of steps.
 _SAFETY = 2.0
 
@@ -128,20 +128,65 @@ def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
         When an interval still fails the tolerance with ``max_substeps`` steps, or a transfer is
         not finite.
     """
+    coefficients = _Coefficients(system)
+    out = rk4_series(coefficients, rtol=rtol, atol=atol, max_substeps=max_substeps)
+    capped = out.failed & (out.steps >= max_substeps)
+    if bool(capped.any()):
+        index = capped.nonzero().flatten()
+        _fail(system, index, out.steps[index], out.ratio, rtol, atol, max_substeps)
+    if bool(out.failed.any()):
+        raise IntegrationError("the transfer of a grid interval became non-finite (NaN or inf)")
+    return Transfers(out.Y, coefficients.order), out.n_evals
+
+
+class RK4Transfers(NamedTuple):
+    """What :func:`rk4_series` returns for ``N`` intervals of ``a`` active components.
+
+    Attributes
+    ----------
+    Y : Tensor ``(a, M+1, N)``
+        The transfers' active rows (see :class:`Transfers`).
+    failed : bool Tensor ``(N,)``
+        Intervals past the tolerance with ``max_substeps`` steps, or not finite.
+    steps : long Tensor ``(N,)``
+        Fine RK4 steps spent on each interval.
+    ratio : Tensor ``(N,)``
+        Each interval's error estimate over its tolerance (``<= 1`` where it passed).
+    n_evals : int
+        Batched coefficient evaluations (see :func:`interval_transfers`).
+    """
+
+    Y: torch.Tensor
+    failed: torch.Tensor
+    steps: torch.Tensor
+    ratio: torch.Tensor
+    n_evals: int
+
+
+def rk4_series(coefficients: "_Coefficients", *, rtol: float, atol: float, max_substeps: int = 1024) -> RK4Transfers:
+    """Transfers of all intervals of ``coefficients`` by RK4 with step doubling, failures marked
+    per interval (never raised): the integrator of :func:`interval_transfers`, for one reference
+    or the intervals of many samples side by side (``linear_solver="rk4_doubling"`` in ``fit_many``).
+
+    Each interval starts with 1 and 2 steps; one whose estimate exceeds the tolerance is
+    integrated again with the steps its estimate predicts (a power of two, at least double),
+    until it passes or would need more than ``max_substeps``.
+    """
     if max_substeps < 2 or max_substeps & (max_substeps - 1):
         raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
-    coefficients = _Coefficients(system)
     Y, ratio, n_evals = _rk4_pair(coefficients, None, 1, rtol, atol)
     steps = torch.full_like(ratio, 2, dtype=torch.long)  # fine steps used per interval
+    failed = torch.zeros_like(ratio, dtype=torch.bool)
     while True:
         check_time()
-        bad = ~(ratio <= 1.0)  # NaN fails too
+        bad = ~(ratio <= 1.0) & ~failed  # NaN fails too
+        capped = bad & (steps >= max_substeps)
+        failed |= capped
+        bad &= ~capped
         if not bool(bad.any()):
             break
         index = bad.nonzero().squeeze(-1)
         current = steps[index]
-        if bool((current >= max_substeps).any()):
-            _fail(system, index, current, ratio, rtol, atol, max_substeps)
         # fine error ~ steps^-4: predict the steps needed, a power of two, at least double
         r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
         # at most the cap's doublings: a huge finite ratio would overflow 2**factor
@@ -152,9 +197,8 @@ def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
             Y_g, ratio_g, evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
             Y[..., group], ratio[group], steps[group] = Y_g, ratio_g, n_fine
             n_evals += evals
-    if not torch.isfinite(Y).all():
-        raise IntegrationError("the transfer of a grid interval became non-finite (NaN or inf)")
-    return Transfers(Y, coefficients.order), n_evals
+    failed |= ~torch.isfinite(Y).flatten(0, 1).all(dim=0)
+    return RK4Transfers(Y, failed, steps, ratio, n_evals)
 
 
 def hermite_to_power(data: torch.Tensor) -> torch.Tensor:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..transfer import interval_transfers
+from ..transfer import interval_transfers, rk4_series
 from ._base import LinearPropagator
 
 
@@ -14,3 +14,7 @@ class RK4Doubling(LinearPropagator):
 
     def transfers(self, system, *, rtol, atol, solver, max_steps):
         return interval_transfers(system, rtol=rtol, atol=atol)
+
+    def series(self, coefficients, *, rtol, atol, max_substeps):
+        out = rk4_series(coefficients, rtol=rtol, atol=atol, max_substeps=max(2, max_substeps))
+        return out.Y, out.failed, out.n_evals
