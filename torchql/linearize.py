@@ -89,9 +89,10 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
         ``"autograd"``, ``"reverse"`` (reverse over forward) or ``"forward"`` (forward over
         forward); default by :data:`AUTOGRAD_STATES` and :data:`REVERSE_WORK_LIMIT`, among
         ``system.linearization_orders``, the ways torch can take on the model as far as known:
-        reverse mode (which :class:`~torchql.problem.Problem` checks) stands in where autograd
-        (a backward without a derivative) or forward mode (an operation without a forward-mode
-        derivative) fails, and the failed way is not tried again. All give the same values to rounding.
+        reverse mode stands in where autograd (a backward without a derivative) or forward mode
+        (an operation without a forward-mode derivative) fails, and the failed way is not tried
+        again (:class:`~torchql.problem.Problem` linearizes one node so before a fit, to name a
+        model that no way takes). All give the same values to rounding.
 
     Returns
     -------

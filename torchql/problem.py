@@ -264,10 +264,13 @@ class Problem:
         """The solver (``"auto"``: stiff if some sample's model is stiff along its data), the linear
         solver, and the grid: ``(G,)`` shared, or ``(B, G)`` per sample (padded by its last node)."""
         n = self.system.n
-        self.solver = choose_solver(self.solver, self.system, self.t_obs,
-                                    torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
-                                    self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
-                                    (self.t_obs[..., -1] - self.t0).expand(self.B))
+        try:  # "auto": the Jacobians along the data by jacrev under vmap
+            self.solver = choose_solver(self.solver, self.system, self.t_obs,
+                                        torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
+                                        self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
+                                        (self.t_obs[..., -1] - self.t0).expand(self.B))
+        except Exception as exc:  # noqa: BLE001
+            raise _not_differentiable(exc) from exc
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
         #: whether the fit takes the stiff path (its grids then have geometric early nodes)
         self.stiff = stiff = self.solver in STIFF_SOLVERS
@@ -469,14 +472,13 @@ class Problem:
                                   sample)
 
         check(0)
-        try:  # reverse mode: the linearization of small grids, the grid solver's and the data start's Jacobians
-            linearize(system, t0[:1], self.z0[:1], order="reverse")
+        try:  # every sample's guesses under vmap (which .item(), float() and branching on values fail),
+            # then one node's linearization as the engine takes it for this model
+            with torch.no_grad():
+                finite = torch.isfinite(vmap(system.f)(t0, self.z0)).all(dim=1)
+            linearize(system, t0[:1], self.z0[:1])
         except Exception as exc:  # noqa: BLE001
-            raise ValueError("`model` forward could not be differentiated with torch.func (jacrev and jvp under "
-                             f"vmap): {exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
-                             "values.") from exc
-        with torch.no_grad():
-            finite = torch.isfinite(vmap(system.f)(t0, self.z0)).all(dim=1)
+            raise _not_differentiable(exc) from exc
         bad = (~finite).nonzero().flatten().tolist()
         if bad:
             check(bad[0], f" of `data[{bad[0]}]`" + (f" (samples {bad[:10]} alike)" if len(bad) > 1 else ""))
@@ -537,6 +539,13 @@ class Problem:
             if value.is_floating_point():
                 params[name] = (per_sample[name] if name in per_sample else value.expand(B, *value.shape)).clone()
         return params
+
+
+def _not_differentiable(exc: Exception) -> ValueError:
+    """The error of a model whose forward torch.func cannot vectorize or differentiate."""
+    return ValueError("`model` forward could not be differentiated with torch.func (jacrev and jvp under "
+                      f"vmap): {exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
+                      "values.")
 
 
 def _coarser(data_dtype: torch.dtype, dtype: torch.dtype) -> bool:
