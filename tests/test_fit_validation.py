@@ -190,10 +190,18 @@ def test_forward_raises():
     assert isinstance(info.value.__cause__, RuntimeError)
 
 
-def test_forward_not_differentiable():
-    model = Custom(lambda self, t, x: -float(self.k) * x)  # .item()-style code breaks torch.func transforms
+@pytest.mark.parametrize("forward", [
+    lambda self, t, x: -float(self.k) * x,  # .item()-style code breaks torch.func transforms
+    lambda self, t, x: -self.k * x if bool(x.sum() > 0) else self.k * x,  # branching on a value
+    lambda self, t, x: -self.k * torch.as_tensor(x.detach().numpy()),  # leaving torch
+], ids=["float", "branch", "numpy"])
+def test_forward_not_differentiable(forward):
+    """Each would give autograd a silently wrong (zero) derivative or fail inside the fit; the
+    check names it at the entry point, for fit and fit_many alike."""
     with pytest.raises(ValueError, match=r"`model` forward could not be differentiated with torch.func \(jacrev and jvp under vmap\)"):
-        torchql.fit(model, decay_data())
+        torchql.fit(Custom(forward), decay_data())
+    with pytest.raises(ValueError, match=r"`model` forward could not be differentiated with torch.func"):
+        torchql.fit_many(Custom(forward), [decay_data(), decay_data()])
 
 
 def test_fewer_usable_observations_than_unknowns():
