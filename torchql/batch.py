@@ -54,7 +54,7 @@ from .datasets import check_data, inputs_all_or_none
 from .problem import Problem
 from .propagators import PROPAGATORS, LinearPropagator
 from .result import IterationRecord
-from .solvers import STIFF_SOLVERS
+from .engine_evaluate import BATCHED_SOLVERS
 
 __all__ = ["fit_many", "check_data"]
 
@@ -256,9 +256,9 @@ def _say_one_at_a_time(spec: Problem) -> None:
     ``linear_solver`` without a batched form (the results are the same; only the time differs)."""
     if spec.B < 2:
         return
-    if spec.solver not in ("dopri5", *STIFF_SOLVERS):
+    if spec.solver not in BATCHED_SOLVERS:
         warnings.warn(f"fit_many: solver={spec.solver!r} has no batched form, so each of the {spec.B} samples "
-                      "is integrated in turn by torchdiffeq; 'dopri5' (the default) and 'rodas5p' integrate "
+                      f"is integrated in turn by torchdiffeq; {', '.join(map(repr, BATCHED_SOLVERS))} integrate "
                       "them all at once", UserWarning, stacklevel=4)
     if not spec.linear_solver.batched:
         warnings.warn(f"fit_many: linear_solver={spec.linear_solver.name!r} has no batched form "

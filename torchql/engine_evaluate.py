@@ -24,7 +24,12 @@ from .solvers.sensitivity import rodas5p_model, rodas5p_sensitivities
 from .superposition import propagate_linear
 from .trajectory import LinearizedReference
 
-__all__ = ["Evaluation"]
+__all__ = ["Evaluation", "BATCHED_DOPRI", "BATCHED_SOLVERS"]
+
+#: The ``solver`` that :meth:`Evaluation._adaptive` integrates by the batched Dormand–Prince.
+BATCHED_DOPRI = "dopri5"
+#: The solvers that integrate every sample of a batch at once (any other: torchdiffeq, each in turn).
+BATCHED_SOLVERS = (BATCHED_DOPRI, *STIFF_SOLVERS)
 
 #: Largest ``samples x intervals`` for which the final nonlinear solution is found by multiple
 #: shooting from the last linear prediction (all intervals at once, Newton on the node defects,
@@ -308,7 +313,7 @@ class Evaluation:
         """Whether :meth:`_adaptive` integrates by the batched Dormand–Prince (``solver="dopri5"``;
         a ``max_steps`` is its step budget per grid interval), one sample as several: ``fit``'s
         solutions are those of each ``fit_many`` sample."""
-        return self.spec.solver == "dopri5"
+        return self.spec.solver == BATCHED_DOPRI
 
     @property
     def _split(self) -> int:
