@@ -252,9 +252,9 @@ def test_rk4_series_of_several_samples_side_by_side_is_each_alone():
         alone = rk4_series(coefficients, rtol=1e-10, atol=1e-12, max_substeps=512)
         columns = slice(k * N, (k + 1) * N)
         assert torch.equal(together.failed[columns], alone.failed)
-        assert torch.equal(together.steps[columns], alone.steps)
+        assert torch.equal(together.substeps[columns], alone.substeps)
         passed = ~alone.failed
         torch.testing.assert_close(together.Y[..., columns][..., passed], alone.Y[..., passed], rtol=1e-14, atol=1e-15)
     failed = together.failed.reshape(3, N).any(dim=1)
     assert failed.tolist() == [False, False, True]  # only the 5000 rate's fast interval fails
-    assert int(together.steps[N:2 * N].max()) > 2  # the 40 rate's fast interval was refined
+    assert int(together.substeps[N:2 * N].max()) > 2  # the 40 rate's fast interval was refined

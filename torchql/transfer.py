@@ -37,7 +37,8 @@ from .budget import check_time
 from .integrate import IntegrationError
 from .trajectory import IntervalSystem
 
-__all__ = ["Transfers", "RK4Transfers", "interval_transfers", "rk4_series", "prefix_products", "compose_transfers"]
+__all__ = ["Transfers", "DoubledTransfers", "interval_transfers", "rk4_series", "step_doubling", "prefix_products",
+           "compose_transfers"]
 
 #: Largest number of interval-steps integrated in one batch (bounds the memory of refinement).
 _CHUNK = 1 << 13
@@ -130,17 +131,18 @@ def interval_transfers(system: IntervalSystem, *, rtol: float, atol: float,
     """
     coefficients = _Coefficients(system)
     out = rk4_series(coefficients, rtol=rtol, atol=atol, max_substeps=max_substeps)
-    capped = out.failed & (out.steps >= max_substeps)
+    capped = out.failed & (out.substeps >= max_substeps)
     if bool(capped.any()):
         index = capped.nonzero().flatten()
-        _fail(system, index, out.steps[index], out.ratio, rtol, atol, max_substeps)
+        _fail(system, index, out.substeps[index], out.ratio, rtol, atol, max_substeps)
     if bool(out.failed.any()):
         raise IntegrationError("the transfer of a grid interval became non-finite (NaN or inf)")
     return Transfers(out.Y, coefficients.order), out.n_evals
 
 
-class RK4Transfers(NamedTuple):
-    """What :func:`rk4_series` returns for ``N`` intervals of ``a`` active components.
+class DoubledTransfers(NamedTuple):
+    """The transfers of ``N`` intervals of ``a`` active components by a step-doubling integrator
+    (:func:`step_doubling`: RK4 here, Radau IIA in :mod:`torchql.propagators.exponential`).
 
     Attributes
     ----------
@@ -148,35 +150,40 @@ class RK4Transfers(NamedTuple):
         The transfers' active rows (see :class:`Transfers`).
     failed : bool Tensor ``(N,)``
         Intervals past the tolerance with ``max_substeps`` steps, or not finite.
-    steps : long Tensor ``(N,)``
-        Fine RK4 steps spent on each interval.
+    substeps : long Tensor ``(N,)``
+        Steps of the returned (finer) result on each interval.
     ratio : Tensor ``(N,)``
         Each interval's error estimate over its tolerance (``<= 1`` where it passed).
     n_evals : int
-        Batched coefficient evaluations (see :func:`interval_transfers`).
+        Batched coefficient evaluations: one evaluates the coefficients at one local time on
+        every interval being integrated.
     """
 
     Y: torch.Tensor
     failed: torch.Tensor
-    steps: torch.Tensor
+    substeps: torch.Tensor
     ratio: torch.Tensor
     n_evals: int
 
 
-def rk4_series(coefficients: "_Coefficients", *, rtol: float, atol: float, max_substeps: int = 1024) -> RK4Transfers:
-    """Transfers of all intervals of ``coefficients`` by RK4 with step doubling, failures marked
-    per interval (never raised): the integrator of :func:`interval_transfers`, for one reference
-    or the intervals of many samples side by side (``linear_solver="rk4_doubling"`` in ``fit_many``).
+def step_doubling(pair, intervals: int, device: torch.device, *, max_substeps: int, order: int,
+                  max_doublings: int | None = None, inf_ratio: float | None = None) -> DoubledTransfers:
+    """Every interval's transfer within its tolerance by step doubling, failures marked per
+    interval (never raised): the refinement of the step-doubling propagators.
 
-    Each interval starts with 1 and 2 steps; one whose estimate exceeds the tolerance is
-    integrated again with the steps its estimate predicts (a power of two, at least double),
-    until it passes or would need more than ``max_substeps``.
+    ``pair(index, n)`` integrates the intervals ``index`` (None: all ``intervals``) with ``n`` and
+    ``2 n`` steps: ``(Y (a, M+1, I), ratio (I,), evaluations)``, the finer (or extrapolated) result
+    and its error estimate over the tolerance. Each interval starts with 1 and 2 steps; one whose
+    ratio exceeds 1 is integrated again, with the steps its ratio predicts for a method of
+    ``order`` (a power of two, at least double, at most ``2 ** max_doublings`` times as many), until
+    it passes or would need more than ``max_substeps`` (a power of two, at least 2). An infinite
+    (or NaN) ratio predicts as ``inf_ratio`` (default ``16 ** order``) or 16 would.
     """
-    if max_substeps < 2 or max_substeps & (max_substeps - 1):
-        raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
-    Y, ratio, n_evals = _rk4_pair(coefficients, None, 1, rtol, atol)
-    steps = torch.full_like(ratio, 2, dtype=torch.long)  # fine steps used per interval
-    failed = torch.zeros_like(ratio, dtype=torch.bool)
+    check_max_substeps(max_substeps)
+    most = max_substeps.bit_length() if max_doublings is None else max_doublings
+    Y, ratio, n_evals = pair(None, 1)
+    steps = torch.full((intervals,), 2, dtype=torch.long, device=device)  # fine steps per interval
+    failed = torch.zeros(intervals, dtype=torch.bool, device=device)
     while True:
         check_time()
         bad = ~(ratio <= 1.0) & ~failed  # NaN fails too
@@ -187,18 +194,45 @@ def rk4_series(coefficients: "_Coefficients", *, rtol: float, atol: float, max_s
             break
         index = bad.nonzero().squeeze(-1)
         current = steps[index]
-        # fine error ~ steps^-4: predict the steps needed, a power of two, at least double
-        r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** 8).clamp(min=1.0)
-        # at most the cap's doublings: a huge finite ratio would overflow 2**factor
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** 0.25)).clamp(1, max_substeps.bit_length()).to(torch.long)
+        # error ~ steps^-order: predict the steps needed; a huge finite ratio would overflow 2**factor
+        r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** order if inf_ratio is None else inf_ratio).clamp(min=1.0)
+        factor = torch.ceil(torch.log2((_SAFETY * r) ** (1 / order))).clamp(1, most).to(torch.long)
         wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
         for n_fine in wanted.unique().tolist():
             group = index[wanted == n_fine]
-            Y_g, ratio_g, evals = _rk4_pair(coefficients, group, n_fine // 2, rtol, atol)
+            Y_g, ratio_g, evals = pair(group, n_fine // 2)
             Y[..., group], ratio[group], steps[group] = Y_g, ratio_g, n_fine
             n_evals += evals
     failed |= ~torch.isfinite(Y).flatten(0, 1).all(dim=0)
-    return RK4Transfers(Y, failed, steps, ratio, n_evals)
+    return DoubledTransfers(Y, failed, steps, ratio, n_evals)
+
+
+def check_max_substeps(max_substeps: int) -> None:
+    """``ValueError`` unless ``max_substeps`` is a power of two, at least 2."""
+    if max_substeps < 2 or max_substeps & (max_substeps - 1):
+        raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
+
+
+def in_chunks(pair, coefficients: "_Coefficients", index: torch.Tensor | None, per_chunk: int, *args):
+    """``pair(coefficients, index, *args)`` over the intervals ``index`` (None: all) in chunks of
+    at most ``per_chunk`` (bounding the memory of a pass): ``(Y, ratio, evaluations)``, or None
+    where they fit in one (the caller then integrates them at once)."""
+    count = coefficients.intervals if index is None else index.numel()
+    if count <= per_chunk:
+        return None
+    if index is None:
+        index = torch.arange(count, device=coefficients.data.device)
+    parts = [pair(coefficients, index[k:k + per_chunk], *args) for k in range(0, count, per_chunk)]
+    return torch.cat([p[0] for p in parts], dim=-1), torch.cat([p[1] for p in parts]), parts[0][2]
+
+
+def rk4_series(coefficients: "_Coefficients", *, rtol: float, atol: float,
+               max_substeps: int = 1024) -> DoubledTransfers:
+    """Transfers of all intervals of ``coefficients`` by RK4 with step doubling (:func:`step_doubling`,
+    order 4), failures marked per interval: the integrator of :func:`interval_transfers`, for one
+    reference or the intervals of many samples side by side (``linear_solver="rk4_doubling"``)."""
+    return step_doubling(lambda index, n: _rk4_pair(coefficients, index, n, rtol, atol), coefficients.intervals,
+                         coefficients.data.device, max_substeps=max_substeps, order=4, inf_ratio=16.0 ** 8)
 
 
 def hermite_to_power(data: torch.Tensor) -> torch.Tensor:
@@ -285,13 +319,9 @@ class _Coefficients:
 def _rk4_pair(coefficients: _Coefficients, index: torch.Tensor | None, n: int, rtol: float,
               atol: float) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Extrapolated active rows ``(a, M+1, I)`` from ``n`` and ``2n`` RK4 steps, error ratios ``(I,)``, evaluations."""
-    count = coefficients.intervals if index is None else index.numel()
-    per_chunk = max(1, _CHUNK // (4 * n + 1))
-    if count > per_chunk:
-        if index is None:
-            index = torch.arange(count, device=coefficients.data.device)
-        parts = [_rk4_pair(coefficients, index[k:k + per_chunk], n, rtol, atol) for k in range(0, count, per_chunk)]
-        return torch.cat([p[0] for p in parts], dim=-1), torch.cat([p[1] for p in parts]), parts[0][2]
+    chunks = in_chunks(_rk4_pair, coefficients, index, max(1, _CHUNK // (4 * n + 1)), n, rtol, atol)
+    if chunks is not None:
+        return chunks
     dtype, device = coefficients.data.dtype, coefficients.data.device
     s = torch.arange(4 * n + 1, dtype=dtype, device=device) / (4 * n)
     X = coefficients.at(s, index)

@@ -52,17 +52,15 @@ see :class:`torchql.transfer.Transfers`).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import torch
 
-from ..budget import check_time
 from ..integrate import IntegrationError
-from ..transfer import Transfers, _Coefficients, _product
+from ..transfer import (DoubledTransfers, Transfers, _Coefficients, _product, check_max_substeps, in_chunks,
+                        step_doubling)
 from ._base import LinearPropagator
 
-__all__ = ["ExponentialRadau", "RadauCollocation", "SensitivityRodas", "ExponentialTransfers", "exponential_series",
-           "exponential_transfers"]
+__all__ = ["ExponentialRadau", "RadauCollocation", "SensitivityRodas", "exponential_series", "exponential_transfers"]
 
 _SQRT6 = math.sqrt(6.0)
 #: Radau IIA (three stages) nodes and coefficient matrix.
@@ -76,8 +74,6 @@ _STEP_TIMES = (0.0,) + _NODES
 _DIVISOR = 7.0
 #: Estimated order of the finer result, for predicting the steps an interval needs.
 _ORDER = 3
-#: Safety factor on the predicted number of steps.
-_SAFETY = 2.0
 #: Multiple of ``eps ||h A||`` allowed for the rounding of the matrix exponential.
 _ROUNDING = 8.0
 #: Most doublings of an interval's steps per refinement (at most 8 times the steps): a stiff
@@ -89,28 +85,6 @@ _ROUNDING = 8.0
 _MAX_DOUBLINGS = 3
 #: Most interval-steps integrated in one batch (bounds the memory of refinement).
 _CHUNK = 1 << 14
-
-
-class ExponentialTransfers(NamedTuple):
-    """Active rows of every interval's transfer, and how they were obtained.
-
-    Attributes
-    ----------
-    Y : Tensor ``(a, M+1, N)``
-        Active rows of ``T_j``, columns in the stored order (see :class:`torchql.transfer.Transfers`).
-    failed : bool Tensor ``(N,)``
-        Intervals that did not meet the tolerance within ``max_substeps`` steps, or are not finite.
-    substeps : Tensor ``(N,)`` of int
-        Steps of the returned (finer) result on each interval.
-    n_evals : int
-        Batched coefficient evaluations: one evaluates ``X_j(s)`` at one local time on every
-        interval being integrated (``12 n`` for a pass with ``n`` and ``2 n`` steps).
-    """
-
-    Y: torch.Tensor
-    failed: torch.Tensor
-    substeps: torch.Tensor
-    n_evals: int
 
 
 def _step(Xm: torch.Tensor, Xc: torch.Tensor, freeze: bool = True) -> torch.Tensor:
@@ -145,14 +119,9 @@ def _step(Xm: torch.Tensor, Xc: torch.Tensor, freeze: bool = True) -> torch.Tens
 def _pair(coefficients: _Coefficients, index: torch.Tensor | None, n: int, rtol: float, atol: float,
           freeze: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The result of ``2 n`` steps ``(a, M+1, I)``, error ratios ``(I,)`` against ``n`` steps, evaluations."""
-    count = coefficients.intervals if index is None else index.numel()
-    per_chunk = max(1, _CHUNK // (3 * n))
-    if count > per_chunk:
-        if index is None:
-            index = torch.arange(count, device=coefficients.data.device)
-        parts = [_pair(coefficients, index[k:k + per_chunk], n, rtol, atol, freeze)
-                 for k in range(0, count, per_chunk)]
-        return torch.cat([p[0] for p in parts], dim=-1), torch.cat([p[1] for p in parts]), parts[0][2]
+    chunks = in_chunks(_pair, coefficients, index, max(1, _CHUNK // (3 * n)), n, rtol, atol, freeze)
+    if chunks is not None:
+        return chunks
     dtype, device = coefficients.data.dtype, coefficients.data.device
     local = torch.tensor(_STEP_TIMES, dtype=dtype, device=device)
     starts = torch.cat([torch.arange(2 * n, dtype=dtype, device=device) / (2 * n),
@@ -177,8 +146,10 @@ def _pair(coefficients: _Coefficients, index: torch.Tensor | None, n: int, rtol:
 
 
 def exponential_series(coefficients: _Coefficients, *, rtol: float, atol: float,
-                       max_substeps: int = 1024, freeze: bool = True) -> ExponentialTransfers:
-    """Transfers of all intervals within the tolerance, failures marked per interval (never raised).
+                       max_substeps: int = 1024, freeze: bool = True) -> DoubledTransfers:
+    """Transfers of all intervals within the tolerance, failures marked per interval (never raised):
+    :func:`~torchql.transfer.step_doubling` of order :data:`_ORDER`, at most
+    :data:`_MAX_DOUBLINGS` doublings per refinement.
 
     Parameters
     ----------
@@ -192,40 +163,15 @@ def exponential_series(coefficients: _Coefficients, *, rtol: float, atol: float,
         ``True``: the exponential of the frozen coefficients plus the Radau IIA correction;
         ``False``: Radau IIA collocation of the whole transfer (``linear_solver="radau"``).
     """
-    if max_substeps < 2 or max_substeps & (max_substeps - 1):
-        raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
     a, M, N = coefficients.a, coefficients.M, coefficients.intervals
     device = coefficients.data.device
-    steps = torch.full((N,), 2, dtype=torch.long, device=device)
+    check_max_substeps(max_substeps)
     if a == 0 or N == 0:
-        return ExponentialTransfers(coefficients.data.new_zeros(a, M + 1, N), torch.zeros(N, dtype=torch.bool, device=device),
-                                    steps, 0)
-    Y, ratio, n_evals = _pair(coefficients, None, 1, rtol, atol, freeze)
-    failed = torch.zeros(N, dtype=torch.bool, device=device)
-    while True:
-        check_time()
-        bad = ~(ratio <= 1.0) & ~failed
-        if not bool(bad.any()):
-            break
-        index = bad.nonzero().squeeze(-1)
-        current = steps[index]
-        capped = current >= max_substeps
-        failed[index[capped]] = True
-        index, current = index[~capped], current[~capped]
-        if index.numel() == 0:
-            break
-        # error ~ steps^-q: predict the steps needed, a power of two, at least double
-        r = ratio[index].nan_to_num(nan=16.0, posinf=16.0 ** _ORDER).clamp(min=1.0)
-        # at most _MAX_DOUBLINGS per pass (a huge finite ratio, a stiff interval's 1e300, would also overflow 2**factor)
-        factor = torch.ceil(torch.log2((_SAFETY * r) ** (1 / _ORDER))).clamp(1, _MAX_DOUBLINGS).to(torch.long)
-        wanted = torch.minimum(current * 2**factor, torch.full_like(current, max_substeps))
-        for n_fine in wanted.unique().tolist():
-            group = index[wanted == n_fine]
-            Y_g, ratio_g, evals = _pair(coefficients, group, n_fine // 2, rtol, atol, freeze)
-            Y[..., group], ratio[group], steps[group] = Y_g, ratio_g, n_fine
-            n_evals += evals
-    failed |= ~torch.isfinite(Y).flatten(0, 1).all(dim=0)
-    return ExponentialTransfers(Y, failed, steps, n_evals)
+        return DoubledTransfers(coefficients.data.new_zeros(a, M + 1, N), torch.zeros(N, dtype=torch.bool, device=device),
+                                torch.full((N,), 2, dtype=torch.long, device=device),
+                                coefficients.data.new_zeros(N), 0)
+    return step_doubling(lambda index, n: _pair(coefficients, index, n, rtol, atol, freeze), N, device,
+                         max_substeps=max_substeps, order=_ORDER, max_doublings=_MAX_DOUBLINGS)
 
 
 def exponential_transfers(coefficients: _Coefficients, *, rtol: float, atol: float, max_substeps: int = 1024,
