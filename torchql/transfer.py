@@ -1,4 +1,5 @@
-"""Every grid interval's transfer at once, by Runge–Kutta steps with step doubling, and their composition.
+"""Every grid interval's transfer at once: the intervals' coefficients, the step-doubling
+integrators' refinement, RK4 transfers, and their composition.
 
 Over the interval ``[t_j, t_{j+1}]`` the quasilinear system ``w' = A(t) w + B(t)`` maps
 ``w(t_j)`` to ``w(t_{j+1}) = Phi_j w(t_j) + c_j``. On the augmented state ``[w; 1]`` that affine
@@ -15,6 +16,11 @@ finer one (RK4 is of order 4); the transfer returned is the Richardson extrapola
 solution. Intervals whose estimate exceeds the tolerance are integrated again with more steps
 (as many as the estimate predicts, a power of two), only those, until all pass or the step
 cap is reached.
+
+Every propagator reads the intervals' coefficients from one builder, :func:`interval_coefficients`
+(the reference ``z``, ``h f`` and ``h A`` as power-basis polynomials in ``s``, for one reference or
+the intervals of many samples side by side), and the step-doubling ones (RK4 here, Radau IIA in
+:mod:`torchql.propagators.exponential`) share one refinement, :func:`step_doubling`.
 
 The transfers are composed by a parallel prefix scan (Hillis–Steele doubling):
 ``ceil(log2(G - 1))`` batched matrix products instead of a loop over the nodes.
@@ -35,10 +41,11 @@ import torch
 
 from .budget import check_time
 from .integrate import IntegrationError
+from .linearize import Linearization
 from .trajectory import IntervalSystem
 
-__all__ = ["Transfers", "DoubledTransfers", "interval_transfers", "rk4_series", "step_doubling", "prefix_products",
-           "compose_transfers"]
+__all__ = ["Transfers", "DoubledTransfers", "interval_coefficients", "interval_transfers", "rk4_series", "step_doubling",
+           "prefix_products", "compose_transfers"]
 
 #: Largest number of interval-steps integrated in one batch (bounds the memory of refinement).
 _CHUNK = 1 << 13
@@ -268,6 +275,110 @@ def raise_to_quintic(power: torch.Tensor, second_start: torch.Tensor, second_end
     return power
 
 
+def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, degree: int = 3
+                          ) -> _Coefficients:
+    """The interval coefficients of ``S`` samples, as :class:`torchql.transfer._Coefficients` holds them.
+
+    ``t``: the shared grid ``(G,)`` or per-sample grids ``(S, G)``. ``degree``: that of the
+    interpolants of ``z`` and ``h f``, 3 (cubic Hermite) or 5 (quintic, see
+    :func:`_quintic_rows`); ``h A`` is cubic either way.
+
+    Built from the node values directly (the intervals' arrays of
+    :class:`torchql.trajectory.IntervalSystem` are never formed): interval ``s (G-1) + j`` is
+    sample ``s``'s interval ``j``. Per interval and Hermite node: the reference values and
+    scaled slopes of every component, then for each active component (a nonzero row of ``f``
+    or ``A`` somewhere) its row ``h [f | A]`` and scaled slope ``h^2 [f' | A']``.
+    """
+    S, G, M = z.shape
+    # a component moves where its row of f or A (or of their slopes) is nonzero somewhere; NaN
+    # counts as moving (a sum of magnitudes with a NaN is NaN, and NaN != 0). Summed over the
+    # nodes as (nodes, entries) arrays: reductions over a leading axis with small trailing ones
+    # are several times slower
+    def magnitude(x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(S * G, -1).abs().sum(dim=0).reshape(M, -1).sum(dim=1)  # (M,)
+
+    size = torch.stack([magnitude(lin.f), magnitude(lin.f_dot), magnitude(lin.jac), magnitude(lin.jac_dot)])
+    moving = (size != 0).any(dim=0)  # (M,)
+    index = torch.arange(M, device=z.device)
+    order = torch.cat([index[moving], index[~moving], torch.tensor([M], device=z.device)])
+    perm = order[:-1]
+    a = int(moving.sum())
+    Q = M + a * (M + 1)
+
+    def rows_of(x: torch.Tensor, both: bool) -> torch.Tensor:
+        """``x[..., act]`` (and ``[..., perm]`` on the last axis too if ``both``); slices when the moving
+        components come first, as the states do before the constant coefficients."""
+        if ordered:
+            return x[..., :a, :] if both else x[..., :a]
+        x = x[..., perm[:a], :] if both else x[..., perm[:a]]
+        return x[..., perm] if both else x
+
+    ordered = bool((perm == index).all())
+    # node values and slopes, component-major: (Q, S, G)
+    values, slopes = z.new_empty(Q, S, G), z.new_empty(Q, S, G)
+    values[:M] = (z if ordered else z[..., perm]).permute(2, 0, 1)
+    slopes[:M] = (z_dot if ordered else z_dot[..., perm]).permute(2, 0, 1)
+    rows = values[M:].unflatten(0, (a, M + 1))
+    rows[:, 0], rows[:, 1:] = rows_of(lin.f, False).permute(2, 0, 1), rows_of(lin.jac, True).permute(2, 3, 0, 1)
+    rows = slopes[M:].unflatten(0, (a, M + 1))
+    rows[:, 0] = rows_of(lin.f_dot, False).permute(2, 0, 1)
+    rows[:, 1:] = rows_of(lin.jac_dot, True).permute(2, 3, 0, 1)
+    # per interval: values at the start, scaled slopes there, then the same at the end; the rows of
+    # f and A scaled by h (values) and h^2 (slopes), those of z by 1 and h
+    h = (t[..., 1:] - t[..., :-1]).reshape(1, -1, G - 1)  # (1, 1 or S, G - 1)
+    value_scale = torch.cat([torch.ones_like(h).expand(M, -1, -1), h.expand(Q - M, -1, -1)])
+    slope_scale = torch.cat([h.expand(M, -1, -1), (h * h).expand(Q - M, -1, -1)])
+    if degree not in (3, 5):
+        raise ValueError(f"`degree` must be 3 or 5; received {degree}")
+    data = z.new_empty(degree + 1, Q, S, G - 1)  # one allocation: the quintic's rows are filled in place
+    start, end = slice(0, G - 1), slice(1, G)
+    blocks = ((values, start, value_scale), (slopes, start, slope_scale), (values, end, value_scale),
+              (slopes, end, slope_scale))
+    for b, (source, side, scale) in enumerate(blocks):
+        torch.mul(source[..., side], scale, out=data[b])
+    data = data.reshape(degree + 1, Q, S * (G - 1))
+    hermite_to_power(data[:4])
+    if degree == 5:
+        _quintic_rows(data, h, z_dot, lin, perm, a)
+    return _Coefficients.of(data, order, a, M)
+
+
+def _quintic_rows(out: torch.Tensor, h: torch.Tensor, z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> None:
+    """The coefficients ``out (6, Q, S N)``, cubic in ``out[:4]``, completed in place: the rows of
+    the active components' ``z`` and ``h f`` become quintic Hermite interpolants
+    (:func:`~torchql.transfer.raise_to_quintic`); the other rows (``h A``'s, and ``z``'s constant
+    components) keep degree 3, zero above.
+
+    The second derivatives along the reference are ``z'' = f'`` (the reference's own second
+    derivative wherever it solves the model: at a converged iterate) and ``f'' = A' z' + A f'``,
+    exact where ``f`` has no explicit time dependence; a sample's component whose ``f'`` is not
+    ``A z'`` to rounding at some node keeps its cubic ``h f`` row. ``perm``: the components in
+    stored order, the ``a`` active ones first; ``h (1, 1 or S, N)``.
+    """
+    M = perm.numel()
+    S, G = z_dot.shape[:2]
+    out[4:].zero_()
+    if a == 0:
+        return
+    act = perm[:a]
+    ordered = bool((act == torch.arange(a, device=act.device)).all())
+    rows_of = (lambda x: x[..., :a, :]) if ordered else (lambda x: x[..., act, :])
+    jac, f_dot = rows_of(lin.jac), lin.f_dot  # (S, G, a, M), (S, G, M)
+    f_t = f_dot[..., act] - torch.einsum("sgij,sgj->sgi", jac, z_dot)  # zero without explicit time dependence
+    size = torch.einsum("sgij,sgj->sgi", jac.abs(), z_dot.abs()) + f_dot[..., act].abs()
+    autonomous = (f_t.abs() <= 64 * torch.finfo(f_t.dtype).eps * size).all(dim=1)  # (S, a)
+    f_ddot = torch.einsum("sgij,sgj->sgi", rows_of(lin.jac_dot), z_dot) + torch.einsum("sgij,sgj->sgi", jac, f_dot)
+    f_rows = slice(M, M + a * (M + 1), M + 1)
+    # scaled to the local time: z's second derivatives by h^2, h f's by h^3
+    for rows, second, scale in ((slice(0, a), f_dot[..., act], h * h), (f_rows, f_ddot, h ** 3)):
+        second = second.permute(2, 0, 1)  # (a, S, G)
+        target = out[:, rows].unflatten(-1, (S, G - 1))  # (6, a, S, N), a view
+        cubic = target.clone() if rows is f_rows and not bool(autonomous.all()) else None
+        raise_to_quintic(target, second[..., :-1] * scale, second[..., 1:] * scale)  # in place
+        if cubic is not None:
+            target.copy_(torch.where(autonomous.T.unsqueeze(-1), target, cubic))
+
+
 class _Coefficients:
     """The local-time coefficients ``X_j(s)`` of every interval, active rows only, in stored order.
 
@@ -278,20 +389,13 @@ class _Coefficients:
     active when its row of ``f`` or ``A`` (or of their slopes) is nonzero at some node.
     """
 
-    def __init__(self, system: IntervalSystem) -> None:
-        N, M = system.z0.shape
-        h = system.h.reshape(1, N, 1)
-        z = torch.stack([system.z0, system.zd0, system.z1, system.zd1])  # (4, N, M)
-        fJ = torch.cat([torch.stack([system.f0, system.fd0, system.f1, system.fd1]).unsqueeze(-1),
-                        torch.stack([system.J0, system.Jd0, system.J1, system.Jd1])], dim=-1) * h.unsqueeze(-1)
-        moving = ~(fJ == 0).all(dim=-1).all(dim=1).all(dim=0)  # (M,); NaN counts as moving
-        index = torch.arange(M, device=z.device)
-        self.order = torch.cat([index[moving], index[~moving], torch.tensor([M], device=z.device)])
-        self.a, self.M = int(moving.sum()), M
-        perm = self.order[:-1]
-        fJ = fJ[:, :, perm[:self.a]][..., torch.cat([torch.zeros(1, dtype=perm.dtype, device=perm.device), perm + 1])]
-        data = torch.cat([z[..., perm], fJ.flatten(-2)], dim=-1)  # (4, N, M + a (M+1))
-        self.data = hermite_to_power(data.transpose(1, 2).contiguous())  # (4, Q, N)
+    def __init__(self, system: IntervalSystem, degree: int = 3) -> None:
+        """One reference's intervals (``system.reference``), by :func:`interval_coefficients` as a
+        batch of one (``degree``: 3, cubic Hermite, or 5, quintic)."""
+        ref = system.reference
+        lin = Linearization(*(v.unsqueeze(0) for v in (ref.f, ref.jac, ref.f_dot, ref.jac_dot)))
+        built = interval_coefficients(ref.t, ref.z.unsqueeze(0), ref.z_dot.unsqueeze(0), lin, degree)
+        self.data, self.order, self.a, self.M = built.data, built.order, built.a, built.M
 
     @classmethod
     def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int) -> "_Coefficients":

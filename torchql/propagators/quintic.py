@@ -27,9 +27,8 @@ intervals), so this propagator buys accuracy, not speed.
 
 from __future__ import annotations
 
-from ..batch_integrate import interval_coefficients
-from ..linearize import Linearization
 from ..taylor import taylor_transfers
+from ..transfer import _Coefficients
 from .taylor import TaylorSeries
 
 
@@ -40,7 +39,4 @@ class TaylorQuintic(TaylorSeries):
     hermite_degree = 5
 
     def transfers(self, system, *, rtol, atol, solver, max_steps):
-        ref = system.reference
-        lin = Linearization(*(v.unsqueeze(0) for v in (ref.f, ref.jac, ref.f_dot, ref.jac_dot)))
-        coefficients = interval_coefficients(ref.t, ref.z.unsqueeze(0), ref.z_dot.unsqueeze(0), lin, degree=5)
-        return taylor_transfers(system, rtol=rtol, atol=atol, coefficients=coefficients)
+        return taylor_transfers(system, rtol=rtol, atol=atol, coefficients=_Coefficients(system, degree=5))
