@@ -23,11 +23,12 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.func import jvp, vmap
+from torch.func import vmap
 
 from .engine_state import shifted_report
 from .grid import (AUTO_COUNTS, AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, geometric_nodes, last_nodes, make_grids,
                    nearest_nodes, needed_intervals, uniform_nodes)
+from .linearize import node_jacobian
 from .splines import hermite_per_sample
 
 __all__ = ["AutoGrid", "fourth_derivative_scale", "pad_nodes"]
@@ -177,14 +178,13 @@ class AutoGrid:
         t0, t_end, probe = self._probe_nodes()
         times = self.grid.expand(S, self.G).gather(1, probe)
         nodes = traj.gather(1, probe.unsqueeze(-1).expand(S, -1, traj.shape[-1]))  # (S, P + 1, M)
-        f = self.system.f
-
-        def slope_and_rate(t, z):  # x' = f and x'' = f_t + f_x f along the model's flow through z
-            return jvp(f, (t, z), (torch.ones_like(t), f(t, z)))
-
-        with torch.no_grad():
-            slopes, rates = vmap(slope_and_rate)(times.reshape(-1), nodes.reshape(-1, nodes.shape[-1]))
-        fourth = fourth_derivative_scale(slopes.reshape(nodes.shape)[..., :n], rates.reshape(nodes.shape)[..., :n])
+        # x' = f and x'' = f_t + f_x f along the model's flow through the nodes, from the states'
+        # rows of the Jacobian (by autograd for a small model, as the engine linearizes it)
+        slopes, (f_t, f_z) = node_jacobian(self.system.f, (times.reshape(-1), nodes.reshape(-1, nodes.shape[-1])),
+                                           (0, 1), n)
+        slopes, f_t, f_z = slopes.detach(), f_t.detach(), f_z.detach()
+        rates = f_t + (f_z @ slopes.unsqueeze(-1)).squeeze(-1)  # (N, n)
+        fourth = fourth_derivative_scale(slopes.reshape(nodes.shape)[..., :n], rates.reshape(*nodes.shape[:-1], n))
         rtol = AUTO_SAFETY * math.sqrt(self.spec.rtol)
         needed = needed_intervals(fourth, traj[..., :n], rtol, self.spec.atol * rtol / self.spec.rtol, span=t_end - t0)
         counts = auto_counts(needed)
