@@ -16,7 +16,7 @@ step decisions per sample (or per sample and grid interval), and reports failure
   truncation bound), composed per sample by the prefix scan.
 * :func:`~torchql.dopri.dopri_batch` (re-exported here): the nonlinear (augmented) model by
   Dormand–Prince 5(4), every sample with its own time, step size and accept/reject decision.
-* :func:`~torchql.grid_solve.solve_on_grid_batch` (re-exported here): the nonlinear model by
+* :func:`~torchql.grid_solve.solve_on_grid_batch` (in its own module): the nonlinear model by
   multiple shooting from a guess, Newton converging per sample.
 * :func:`integrate_each`: one sample at a time by torchdiffeq, the last resort (as
   :func:`torchql.fit` uses it).
@@ -32,12 +32,11 @@ import torch
 from .dopri import dopri_batch
 from .integrate import CountedField, IntegrationError, interval_tolerances, solve
 from .grid import interval_counts, last_nodes
-from .grid_solve import solve_on_grid_batch
 from .model import AugmentedSystem
 from .taylor import series_transfers
 from .transfer import _Coefficients, interval_coefficients, prefix_products
 
-__all__ = ["propagate_linear_batch", "interval_coefficients", "solve_on_grid_batch", "dopri_batch", "integrate_each"]
+__all__ = ["propagate_linear_batch", "interval_coefficients", "dopri_batch", "integrate_each"]
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,

@@ -216,7 +216,7 @@ class Evaluation:
         reference, or to rank two iterates far from the optimum. With a ``guess (S, G, M)`` (a
         prediction of the solution at the nodes: the last linear solution) and a problem of at
         most ``_SHOOTING_POINTS`` sample-intervals, by multiple shooting
-        (:func:`~torchql.batch_integrate.solve_on_grid_batch`: every interval at once by RK4, at
+        (:func:`~torchql.grid_solve.solve_on_grid_batch`: every interval at once by RK4, at
         most ``_GRID_SUBSTEPS`` steps each, ``_GRID_SUBSTEPS_LOOSE`` when ``loose``, and no more
         than the user's ``max_steps``). A sample whose interval needs more is, with
         ``budget_is_final``, a blow-up and fails (a trial step: an adaptive solver would only crawl
@@ -530,17 +530,19 @@ class Evaluation:
         fresh = torch.isnan(it["nl_sse"][rows])
         need = rows[fresh]
         if need.numel():
-            stop = None
-            if above is not None:
-                bound, chunk = above[fresh], idx[need]
-
-                def stop(k, traj, reached):  # k: positions in ``need``
-                    r = need[k]
-                    return self._objective(chunk[k], traj, it["w"][r], it["log"][r], reached) > bound[k]
+            stop = None if above is None else self._exceeds(idx[need], it["w"][need], it["log"][need], above[fresh])
             traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
                                            budget_is_final=True, stop=stop)
             self._keep_model_sse(idx, it, need, traj, errors)
         return it["nl_sse"][rows]
+
+    def _exceeds(self, chunk, w, log, bound):
+        """The stop test (:func:`~torchql.dopri.dopri_batch`'s) that ends the solution of the chunk's
+        samples ``chunk (R,)`` (weights ``w``, log terms ``log (R,)``) once its objective over the
+        data passed exceeds ``bound (R,)``: the terms still to come only add to it."""
+        def stop(k, traj, reached):  # k: positions in ``chunk``
+            return self._objective(chunk[k], traj, w[k], log[k], reached) > bound[k]
+        return stop
 
     def _objective(self, chunk, traj, w, log, reached: torch.Tensor | None = None) -> torch.Tensor:
         """The objective ``(R,)`` of the chunk's samples ``chunk (R,)`` along the model's solutions

@@ -37,7 +37,7 @@ from .grid import interval_counts
 from .integrate import interval_tolerances
 from .linearize import node_jacobian
 from .model import AugmentedSystem, BatchedCall
-from .transfer import prefix_products
+from .transfer import check_max_substeps, prefix_products
 
 __all__ = ["GridSolution", "solve_on_grid_batch"]
 
@@ -107,8 +107,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
         correction grows again from the third iteration on (the guess is outside Newton's
         basin), or Newton does not converge in ``max_newton`` iterations.
     """
-    if max_substeps < 2 or max_substeps & (max_substeps - 1):
-        raise ValueError(f"`max_substeps` must be a power of two, at least 2; received {max_substeps}")
+    check_max_substeps(max_substeps)
     S, M = z0.shape
     G = grid.shape[-1]
     X = z0.unsqueeze(1).expand(S, G, M).clone() if guess is None else guess.detach().clone()
@@ -186,7 +185,7 @@ def solve_on_grid_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.T
     return GridSolution(X, ok, n_evals, over_budget, iterations)
 
 
-def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=None):
+def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner):
     """``phi (N, M)`` of every interval within tolerance, ``failed (N,)`` and the evaluations of
     ``f`` (points); ``steps`` updated in place.
 
@@ -214,7 +213,7 @@ def _integrate_each(field, t0, h, x0, steps, rtol, atol, max_substeps, owner=Non
         current = steps[todo]
         capped = 2 * current >= max_substeps
         failed[todo[capped]] = True
-        if owner is not None and bool(capped.any()):
+        if bool(capped.any()):
             dead = torch.isin(owner[todo], owner[todo[capped]])
             failed[todo[dead]] = True
             capped = capped | dead

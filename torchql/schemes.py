@@ -121,11 +121,7 @@ def _above_current(engine, act, cur):
     spec = engine.spec
     if not spec.damping.filters or spec.sigma_function is not None or not engine_evaluate.STOP_EARLY:
         return None
-    bound, w, log = bound_of(_pick(cur["merit"], act)), _pick(cur["w"], act), _pick(cur["log"], act)
-
-    def stop(k, traj, reached):  # k: positions in ``act``
-        return engine._objective(act[k], traj, w[k], log[k], reached) > bound[k]
-    return stop
+    return engine._exceeds(act, _pick(cur["w"], act), _pick(cur["log"], act), bound_of(_pick(cur["merit"], act)))
 
 
 _REGISTRY = Registry(Scheme, "torchql.schemes.Scheme", "an iteration scheme")
