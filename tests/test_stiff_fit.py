@@ -90,7 +90,11 @@ def test_auto_finds_robertson_stiff_and_an_oscillator_not(robertson_data):
     y = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), t)
     oscillator = torchql.fit(LinearOscillator(A=0.5, B=1.0), torchql.Observations(t, y[:, :1], observe=["y"]),
                              torch.tensor([0.5, 0.5], dtype=DT), grid=50)
-    assert oscillator.success and oscillator.solver_options["solver"] == "dopri5"
+    assert oscillator.success and oscillator.solver_options["solver"] == "dop853"
+    # with a propagator that integrates by torchdiffeq, the explicit solver is torchdiffeq's
+    by_torchdiffeq = torchql.fit(LinearOscillator(A=0.5, B=1.0), torchql.Observations(t, y[:, :1], observe=["y"]),
+                                 torch.tensor([0.5, 0.5], dtype=DT), grid=50, linear_solver="torchdiffeq")
+    assert by_torchdiffeq.success and by_torchdiffeq.solver_options["solver"] == "dopri5"
 
 
 def test_sensitivities_integrated_with_the_solution_give_the_grid_transfers_optimum():

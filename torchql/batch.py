@@ -170,10 +170,11 @@ def fit_many(
         sample whose fit from the data failed.
         ``solver="auto"`` (default) decides as ``fit`` does, once for the batch: ``"rodas5p"``
         when some sample's model is stiff along its data (:mod:`torchql.stiffness`), else
-        ``"dopri5"``. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched
+        ``"dop853"``. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched
         implicit :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as
-        in ``fit``; ``"dopri5"`` is the batched Dormand–Prince (``max_steps`` its trial steps per
-        grid interval, as torchdiffeq counts them per output time). Another ``solver`` (``"dopri8"``,
+        in ``fit``; ``"dop853"`` and ``"dopri5"`` are the batched Dormand–Prince pairs of eighth and
+        fifth order (:func:`torchql.dopri.dopri_batch`; ``max_steps`` their trial steps per grid
+        interval, as torchdiffeq counts them per output time). Another ``solver`` (``"dopri8"``,
         ``"rk4"``, ...) integrates each sample in turn by torchdiffeq, and ``fit_many`` warns so.
     linear_solver : str or LinearPropagator, optional
         As in :func:`torchql.fit` (default ``"radau"`` with a stiff solver, else ``"taylor"``).

@@ -1,8 +1,10 @@
-"""Dormand–Prince 5(4) for a batch of independent samples, each on its own error control.
+"""Embedded explicit Runge–Kutta pairs for a batch of independent samples, each on its own error control.
 
 :func:`dopri_batch` integrates the augmented model ``z = (x, p)`` of ``S`` samples at once: every
 sample has its own time, step size and accept/reject decision, its steps land on the grid nodes
-it must hit, and the other nodes are filled from each step's dense output. It is the explicit
+it must hit, and the other nodes are filled from each step's dense output. The pair is
+Dormand–Prince 5(4) (``"dopri5"``) or Hairer's eighth-order DOP853 (``"dop853"``), from
+:mod:`torchql.rk_pairs`; the loop, the step-size control and the landing are the same for both. It is the explicit
 counterpart of :func:`torchql.solvers.rodas5p_batch`; :mod:`torchql.batch_integrate` holds the
 batch's other integrators.
 """
@@ -16,24 +18,11 @@ import torch
 from .budget import check_time
 from .grid import last_nodes
 from .model import AugmentedSystem, BatchedCall
+from .rk_pairs import PAIRS
 
 __all__ = ["dopri_batch"]
 
 
-# Dormand–Prince 5(4) tableau (the dopri5 of torchdiffeq and scipy's RK45)
-_DP_C = (0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0)
-_DP_A = (
-    (),
-    (1 / 5,),
-    (3 / 40, 9 / 40),
-    (44 / 45, -56 / 15, 32 / 9),
-    (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
-    (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
-    (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
-)
-#: Weights of the dense output at the step's midpoint (Shampine's), over the seven slopes.
-_DP_MID = (6025192743 / 30085553152 / 2, 0.0, 51252292925 / 65400821598 / 2, -2691868925 / 45128329728 / 2,
-           187940372067 / 1594534317056 / 2, -1776094331 / 19743644256 / 2, 11237099 / 235043384 / 2)
 #: The words of a failed sample's last step (:meth:`_DopriRun.messages`), by code.
 _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
              "the solution became non-finite (NaN or inf) after t = {t:.6g}; the step size underflowed to {h:.3g}",
@@ -42,21 +31,26 @@ _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
              "stopped at t = {t:.6g} by the caller's test on the values so far")
 #: A caller's test that ends samples at a node: ``(rows (L,), out (L, G, M), reached (L,)) -> bool (L,)``.
 StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
-#: Fifth-order weights minus the embedded fourth-order ones: the local error estimate.
-_DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
+
 
 
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
                 max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None,
-                interval_steps: int | None = None, stop: StopTest | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The augmented model from ``z0 (S, M)`` over ``grid`` by Dormand–Prince 5(4), each sample its own steps.
+                interval_steps: int | None = None, stop: StopTest | None = None, method: str = "dopri5",
+                norm=None, first_step: float | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The augmented model from ``z0 (S, M)`` over ``grid`` by an embedded Runge–Kutta pair, each sample its own steps.
+
+    ``method``: the pair (:data:`torchql.rk_pairs.PAIRS`), ``"dopri5"`` (Dormand–Prince 5(4)) or
+    ``"dop853"`` (Hairer's DOP853, eighth order: far fewer steps at tight tolerances). ``norm``:
+    the error norm of a sample's scaled errors, ``(A, n) -> (A,)`` (default the RMS norm);
+    ``first_step``: every sample's first trial step (default Hairer's estimate, per sample).
 
     Every sample has its own time, step size and accept/reject decision (error in the RMS norm
-    of its own states, ``atol + rtol * max(|x|, |x_new|)``, as torchdiffeq's ``dopri5``); steps
-    are shortened to land on the grid nodes in ``land`` (bool ``(G,)`` or ``(S, G)``, default
-    every node; the last node always), so the values there are the solver's own; any other node
-    is filled by the step's fourth-order dense output (Shampine's, as torchdiffeq interpolates).
+    of its own states, ``atol + rtol * max(|x|, |x_new|)``, as torchdiffeq's ``dopri5``; DOP853's
+    own norm); steps are shortened to land on the grid nodes in ``land`` (bool ``(G,)`` or
+    ``(S, G)``, default every node; the last node always), so the values there are the solver's
+    own; any other node is filled by the step's dense output (Shampine's quartic for ``"dopri5"``,
+    as torchdiffeq interpolates; DOP853's of seventh order).
     A round advances every unfinished sample by one trial step; only those samples are evaluated.
 
     ``grid`` is shared, ``(G,)``, or each sample's own, ``(S, G)``: a sample stops at the first
@@ -83,7 +77,8 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     ok = torch.isfinite(z0).all(dim=1)
     if grid.shape[-1] == 1:
         return out, ok, 0
-    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop)
+    run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop, PAIRS[method],
+                    norm or _rms, first_step)
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
@@ -106,7 +101,8 @@ class _DopriRun:
 
     def __init__(self, system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, land: torch.Tensor | None,
                  out: torch.Tensor, ok: torch.Tensor, rtol: float, atol: float, max_steps: int,
-                 interval_steps: int | None = None, stop: StopTest | None = None) -> None:
+                 interval_steps: int | None = None, stop: StopTest | None = None, pair=None, norm=None,
+                 first_step: float | None = None) -> None:
         S, n = z0.shape[0], system.n
         dtype, device = z0.dtype, z0.device
         self.S, self.G, self.n, self.grid, self.out, self.ok = S, grid.shape[-1], n, grid, out, ok
@@ -125,13 +121,14 @@ class _DopriRun:
         d1 = (self.k1[:, :n] / scale).square().mean(dim=1).sqrt()
         span = grid[..., -1] - grid[..., 0]
         h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
+        if first_step is not None:
+            h = torch.full_like(d0, first_step)
         self.h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
         self.steps = torch.zeros(S, dtype=torch.long, device=device)
         self.since = torch.zeros(S, dtype=torch.long, device=device)
         self.failure = torch.zeros(S, dtype=torch.long, device=device)  # _FAILURES' index, 0: none
-        # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
-        self.rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
-        self.row_e, self.row_mid = (torch.tensor(row, dtype=dtype, device=device) for row in (_DP_E, _DP_MID))
+        self.pair = (PAIRS["dopri5"] if pair is None else pair)(dtype, device)
+        self.norm = _rms if norm is None else norm
         self._landing_tables(land, device)
 
     def _landing_tables(self, land: torch.Tensor | None, device: torch.device) -> None:
@@ -181,20 +178,21 @@ class _DopriRun:
         gap = target - ta
         clipped = ha >= gap
         he = torch.where(clipped, gap, ha)
-        K, x_new, hc = self._stages(xa, ta, ka, he)
-        self.evals += 6 * active.numel()
+        hc = he.unsqueeze(-1)
+        K, x_new = self.pair.step(self.fv, xa, ta, ka, hc)
+        self.evals += self.pair.evals * active.numel()
         accept, h_next = self._control(xa, x_new, K, hc, he, ha, clipped)
         # accepted steps advance; those landing on a node record it
         t_new = torch.where(clipped, target, ta + he)
         take = accept.unsqueeze(-1)
         if everyone:
             self.x, self.t, self.k1, self.h = (torch.where(take, x_new, xa), torch.where(accept, t_new, ta),
-                                               torch.where(take, K[6], ka), h_next)
+                                               torch.where(take, K[-1], ka), h_next)
             self.steps += 1
         else:
             self.x[active] = torch.where(take, x_new, xa)
             self.t[active] = torch.where(accept, t_new, ta)
-            self.k1[active] = torch.where(take, K[6], ka)
+            self.k1[active] = torch.where(take, K[-1], ka)
             self.h[active] = h_next
             self.steps[active] += 1
         if self.dense:  # nodes passed inside accepted steps, from the dense output
@@ -246,27 +244,14 @@ class _DopriRun:
                                                   k=self.interval_steps))
         return out
 
-    def _stages(self, xa: torch.Tensor, ta: torch.Tensor, ka: torch.Tensor,
-                he: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Slopes ``K (7, A, M)`` (``K[0] = ka``), ``x_new (A, M)``, ``hc (A, 1)`` of steps ``he (A,)`` from ``xa``."""
-        hc = he.unsqueeze(-1)
-        K = xa.new_empty(7, *xa.shape)
-        K[0] = ka
-        for i in range(1, 7):
-            xi = torch.addcmul(xa, hc, _combine(self.rows_a[i], K[:i]))
-            K[i] = self.fv(ta + _DP_C[i] * he, xi)
-        return K, xi, hc  # the last stage is evaluated at the fifth-order solution (first same as last)
-
     def _control(self, xa: torch.Tensor, x_new: torch.Tensor, K: torch.Tensor, hc: torch.Tensor, he: torch.Tensor,
                  ha: torch.Tensor, clipped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Whether each trial step ``he (A,)`` from ``xa (A, M)`` is accepted, bool ``(A,)``, and the next step size."""
-        n = self.n
-        err = hc * _combine(self.row_e, K)
-        sc = self.atol + self.rtol * torch.maximum(xa[:, :n].abs(), x_new[:, :n].abs())
-        ratio = (err[:, :n] / sc).square().mean(dim=1).sqrt()
+        sc = self.atol + self.rtol * torch.maximum(xa[:, :self.n].abs(), x_new[:, :self.n].abs())
+        ratio = self.pair.error_ratio(K, hc, sc, self.norm)
         finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
         accept = finite & (ratio <= 1.0)
-        factor = torch.where(ratio > 0, 0.9 * ratio.clamp(min=1e-10) ** -0.2, torch.full_like(ratio, 10.0))
+        factor = torch.where(ratio > 0, 0.9 * ratio.clamp(min=1e-10) ** self.pair.exponent, torch.full_like(ratio, 10.0))
         # a non-finite trial (NaN ratio, which the test above sends to 10) shrinks the step, so that a
         # blow-up ends in a step-size underflow instead of retrying the same step until max_steps
         factor = torch.where(finite, factor, torch.full_like(factor, 0.2)).clamp(0.2, 10.0)
@@ -298,24 +283,12 @@ class _DopriRun:
         step_rows = rows[which]
         t_node = self.grid[nodes] if base_a is None else self.grid_flat[base_a[step_rows] + nodes]
         theta = ((t_node - ta[step_rows]) / he[step_rows]).unsqueeze(-1)
-        y_mid = torch.addcmul(xa[rows], hc[rows], _combine(self.row_mid, K[:, rows]))
-        quartic = _quartic(xa[rows], x_new[rows], y_mid, K[0, rows], K[6, rows], hc[rows])
-        value = quartic[4][which]
-        for coefficient in quartic[3::-1]:
-            value = value * theta + coefficient[which]
-        self.out[active[step_rows], nodes] = value
+        at = self.pair.dense(self.fv, xa[rows], ta[rows], x_new[rows], K[:, rows], hc[rows])
+        self.evals += self.pair.dense_evals * rows.numel()
+        self.out[active[step_rows], nodes] = at(theta, which)
         self.node[active[rows]] += counts
 
 
-def _combine(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """``sum_i weights[i] K[i]``: ``(A, M)`` from ``weights (i,)`` and slopes ``K (i, A, M)``, one
-    matrix-vector product (``torch.tensordot``'s Python wrapper cost a fifth of a step on one sample)."""
-    return (weights @ K.reshape(K.shape[0], -1)).reshape(K.shape[1:])
-
-
-def _quartic(y0, y1, y_mid, f0, f1, h):
-    """Power-basis coefficients ``(c0, .., c4)`` in ``theta = (t - t0) / h`` of the quartic through
-    ``y0``, ``y_mid`` and ``y1`` with slopes ``f0``, ``f1`` at the ends (the dense output of a step)."""
-    return (y0, h * f0, h * (f1 - 4 * f0) - 11 * y0 - 5 * y1 + 16 * y_mid,
-            h * (5 * f0 - 3 * f1) + 18 * y0 + 14 * y1 - 32 * y_mid,
-            2 * h * (f1 - f0) - 8 * (y1 + y0) + 16 * y_mid)
+def _rms(x: torch.Tensor) -> torch.Tensor:
+    """The RMS norm of each row of ``x (A, n)``, ``(A,)``."""
+    return x.square().mean(dim=1).sqrt()

@@ -18,18 +18,20 @@ from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import solve_on_grid_batch
 from .integrate import IntegrationError
 from .linearize import Linearization, linearize
+from .rk_pairs import PAIRS
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS
 from .solvers.sensitivity import rodas5p_model, rodas5p_sensitivities
 from .superposition import propagate_linear
 from .trajectory import LinearizedReference
 
-__all__ = ["Evaluation", "BATCHED_DOPRI", "BATCHED_SOLVERS"]
+__all__ = ["Evaluation", "BATCHED_EXPLICIT", "BATCHED_SOLVERS"]
 
-#: The ``solver`` that :meth:`Evaluation._adaptive` integrates by the batched Dormand–Prince.
-BATCHED_DOPRI = "dopri5"
+#: The ``solver`` names that :meth:`Evaluation._adaptive` integrates by the batched explicit
+#: integrator (:func:`~torchql.dopri.dopri_batch`, with that pair).
+BATCHED_EXPLICIT = tuple(PAIRS)
 #: The solvers that integrate every sample of a batch at once (any other: torchdiffeq, each in turn).
-BATCHED_SOLVERS = (BATCHED_DOPRI, *STIFF_SOLVERS)
+BATCHED_SOLVERS = (*BATCHED_EXPLICIT, *STIFF_SOLVERS)
 
 #: Largest ``samples x intervals`` for which the final nonlinear solution is found by multiple
 #: shooting from the last linear prediction (all intervals at once, Newton on the node defects,
@@ -228,7 +230,7 @@ class Evaluation:
         the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
         the trial divergent, and the sample's trials are integrated by the adaptive solvers from
         then on. The other samples, or all without a guess, are integrated by
-        :func:`~torchql.batch_integrate.dopri_batch` (``solver="dopri5"``, one sample as several; its
+        :func:`~torchql.dopri.dopri_batch` (``solver="dop853"`` or ``"dopri5"``, one sample as several; its
         message says where one failed), by the implicit :func:`~torchql.solvers.rodas5p_batch` (a
         stiff ``solver``), or each alone by torchdiffeq (another ``solver``). ``stop``: the adaptive solvers' test of
         a sample (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next
@@ -310,10 +312,10 @@ class Evaluation:
                 and spec.solver not in STIFF_SOLVERS)
 
     def _batched_dopri(self) -> bool:
-        """Whether :meth:`_adaptive` integrates by the batched Dormand–Prince (``solver="dopri5"``;
+        """Whether :meth:`_adaptive` integrates by the batched Dormand–Prince (``solver="dop853"`` or ``"dopri5"``;
         a ``max_steps`` is its step budget per grid interval), one sample as several: ``fit``'s
         solutions are those of each ``fit_many`` sample."""
-        return self.spec.solver == BATCHED_DOPRI
+        return self.spec.solver in BATCHED_EXPLICIT
 
     @property
     def _split(self) -> int:
@@ -330,7 +332,7 @@ class Evaluation:
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
-        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dopri5"``), or torchdiffeq per
+        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dop853"``, ``"dopri5"``), or torchdiffeq per
         sample; fills ``traj``, ``ok`` and ``errors`` in place."""
         spec = self.spec
         grid = self._grid_of(idx)
@@ -356,7 +358,7 @@ class Evaluation:
             messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
                                           land=self._landing(idx[sub]), messages=messages,
-                                          interval_steps=spec.max_steps, stop=asked(sub))
+                                          interval_steps=spec.max_steps, stop=asked(sub), method=spec.solver)
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):

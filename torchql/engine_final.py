@@ -140,7 +140,8 @@ class FinalPass:
         z0 = torch.cat([st.z0[rows] for _, st, rows in items])
         with no_time_budget(), torch.no_grad():
             traj, ok, evals = dopri_batch(self.system, z0, torch.cat(grids), rtol=self.spec.rtol, atol=self.spec.atol,
-                                          land=torch.cat(lands), interval_steps=self.spec.max_steps)
+                                          land=torch.cat(lands), interval_steps=self.spec.max_steps,
+                                          method=self.spec.solver)
         self.nfev += evals
         start = 0
         for engine, st, rows in items:

@@ -135,13 +135,16 @@ def fit(
     throw : bool
         Raise :class:`torchql.FitError` instead of returning an unsuccessful result.
     solver : str
-        Nonlinear integrator: ``"auto"`` (default), a torchdiffeq method (``torchql.SOLVER_NAMES``)
-        or ``"rodas5p"`` for stiff models (:mod:`torchql.solvers`: implicit, L-stable; every
+        Nonlinear integrator: ``"auto"`` (default), a torchdiffeq method (``torchql.SOLVER_NAMES``),
+        ``"dop853"`` (Hairer's eighth-order Dormand–Prince pair, torchql's own batched integrator,
+        :mod:`torchql.rk_pairs`; ``"dopri5"`` is the fifth-order one, likewise batched) or
+        ``"rodas5p"`` for stiff models (:mod:`torchql.solvers`: implicit, L-stable; every
         nonlinear pass uses it, none goes through the explicit grid solver, and the storage grid
         gains geometric nodes after ``t0``, :func:`torchql.grid.make_grid`). ``"auto"`` takes
         ``"rodas5p"`` when the model is stiff on the data's span (:mod:`torchql.stiffness`: the
         Jacobian's fastest decay rate times the span, along the data, above ``1e4``), else
-        ``"dopri5"``; ``result.solver_options["solver"]`` says which.
+        ``"dop853"`` (``"dopri5"`` with ``linear_solver="torchdiffeq"``, which integrates with
+        torchdiffeq); ``result.solver_options["solver"]`` says which.
     rtol, atol : float, optional
         Integrator tolerances; default ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` below.
     xtol : float, optional
@@ -193,7 +196,7 @@ def fit(
     max_steps : int, optional
         Step budget of the adaptive solver integrating the nonlinear model, per interval between
         grid nodes: trial steps, accepted or not, as torchdiffeq counts them per output time (the
-        default ``"dopri5"``, torchql's batched Dormand–Prince, counts alike); exceeding it is
+        batched ``"dop853"`` and ``"dopri5"`` count alike); exceeding it is
         INTEGRATION_FAILED.
         It caps the grid solver's RK4 steps per interval too (see ``linear_solver``).
     damping : {"lm", None} or torchql.damping.Damping

@@ -1,5 +1,5 @@
-"""Integration: solver choice (torchdiffeq's explicit solvers, torchql's implicit ``"rodas5p"`` for
-stiff models), tolerances, and plain forward simulation."""
+"""Integration: solver choice (torchdiffeq's explicit solvers, torchql's eighth-order ``"dop853"``
+and implicit ``"rodas5p"`` for stiff models), tolerances, and plain forward simulation."""
 
 from __future__ import annotations
 
@@ -10,16 +10,23 @@ from torchdiffeq._impl.odeint import SOLVERS
 from . import _checks
 from .budget import check_time
 from .inputs import Inputs
+from .dopri import dopri_batch
 from .model import ODEModel, model_dtype_device
 from .solvers import STIFF_SOLVERS, JacobianError, rodas5p_solve
 
 __all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
            "interval_tolerances", "solve", "simulate", "CountedField"]
 
-#: Every solver name: torchdiffeq's, then the implicit solvers of :mod:`torchql.solvers` (for stiff models).
-SOLVER_NAMES: tuple[str, ...] = tuple(name for name in SOLVERS if name != "scipy_solver") + STIFF_SOLVERS
+#: torchql's own explicit solvers (:func:`torchql.dopri.dopri_batch`'s pairs) that torchdiffeq has not:
+#: Hairer's eighth-order DOP853, the one for tight tolerances (:mod:`torchql.rk_pairs`).
+OWN_EXPLICIT_SOLVERS: tuple[str, ...] = ("dop853",)
+#: Every solver name: torchdiffeq's, torchql's explicit ones, then the implicit solvers of
+#: :mod:`torchql.solvers` (for stiff models).
+SOLVER_NAMES: tuple[str, ...] = (tuple(name for name in SOLVERS if name != "scipy_solver") + OWN_EXPLICIT_SOLVERS
+                                 + STIFF_SOLVERS)
 #: Solvers with step-size control (they accept ``rtol``/``atol`` and land steps on ``step_t``).
-ADAPTIVE_SOLVERS: tuple[str, ...] = ("dopri8", "dopri5", "bosh3", "fehlberg2", "adaptive_heun") + STIFF_SOLVERS
+ADAPTIVE_SOLVERS: tuple[str, ...] = (("dopri8", "dopri5", "bosh3", "fehlberg2", "adaptive_heun") + OWN_EXPLICIT_SOLVERS
+                                     + STIFF_SOLVERS)
 
 
 class IntegrationError(RuntimeError):
@@ -78,8 +85,10 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
     t : Tensor ``(G,)``
         Strictly monotonic output times (``t[0]`` is the initial time; decreasing integrates backwards).
     solver : str
-        A torchdiffeq method name, or ``"rodas5p"`` (:func:`torchql.solvers.rodas5p_solve`: implicit,
-        for stiff systems; ``func`` must be differentiable by ``torch.func.jacrev``).
+        A torchdiffeq method name, ``"dop853"`` (:func:`_solve_own`: Hairer's eighth-order pair,
+        torchql's own integrator) or
+        ``"rodas5p"`` (:func:`torchql.solvers.rodas5p_solve`: implicit, for stiff systems; ``func``
+        must be differentiable by ``torch.func.jacrev``).
     rtol, atol : float
         Tolerances of adaptive solvers.
     hit : Tensor, optional
@@ -104,6 +113,9 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
     if solver in STIFF_SOLVERS:
         return _solve_stiff(func, y0, t, rtol=rtol, atol=atol, hit=hit, max_steps=max_steps, norm=norm,
                             first_step=first_step)
+    if solver in OWN_EXPLICIT_SOLVERS:
+        return _solve_own(func, y0, t, solver=solver, rtol=rtol, atol=atol, hit=hit, max_steps=max_steps, jumps=jumps,
+                          norm=norm, first_step=first_step)
     options = {}
     if solver in ADAPTIVE_SOLVERS:
         if jumps is not None:
@@ -131,6 +143,44 @@ def solve(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, 
     if not torch.isfinite(out).all():
         raise IntegrationError("the solution became non-finite (NaN or inf)")
     return out
+
+
+class _OwnField:
+    """``func(t, y)`` of :func:`solve`, as :func:`~torchql.dopri.dopri_batch` takes a model: ``f(t,
+    z)`` on one flat state ``(n,)``, every component under error control (``n``), in the time
+    ``s = sign t`` (``sign = -1`` integrates backwards as forwards)."""
+
+    def __init__(self, func, shape: torch.Size, sign: float) -> None:
+        self.func, self.shape, self.sign = func, shape, sign
+        self.n = shape.numel()
+
+    def f(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return self.sign * self.func(self.sign * s, z.reshape(self.shape)).reshape(-1)
+
+
+def _solve_own(func, y0: torch.Tensor, t: torch.Tensor, *, solver: str, rtol: float, atol: float,
+               hit: torch.Tensor | None, max_steps: int | None, jumps: torch.Tensor | None, norm=None,
+               first_step: float | None = None) -> torch.Tensor:
+    """:func:`solve` by torchql's own explicit integrator (:func:`~torchql.dopri.dopri_batch`, the
+    pair ``solver``) on one sample: as torchdiffeq's solvers, its steps land on the times in
+    ``hit`` and ``jumps`` inside the span and on the last output time, and the other output
+    times are read from its dense output; ``max_steps`` caps its trial steps between two output
+    times; ``norm`` (of the scaled error, shaped as ``y0``) and ``first_step`` as torchdiffeq takes them."""
+    sign = 1.0 if bool(t[-1] > t[0]) else -1.0
+    s = sign * t
+    extra = [sign * v.to(t).reshape(-1) for v in (hit, jumps) if v is not None]
+    extra = torch.cat([v[(v > s[0]) & (v < s[-1])] for v in extra]) if extra else s[:0]
+    nodes = torch.unique(torch.cat([s, extra]))
+    output = torch.searchsorted(nodes, s)
+    land = torch.isin(nodes, extra)
+    messages: list = []
+    rows = None if norm is None else (lambda x: torch.stack([norm(row.reshape(y0.shape)) for row in x]))
+    out, ok, _ = dopri_batch(_OwnField(func, y0.shape, sign), y0.reshape(1, -1), nodes, rtol=rtol, atol=atol,
+                             land=land, messages=messages, interval_steps=max_steps, method=solver, norm=rows,
+                             first_step=first_step)
+    if not bool(ok[0]):
+        raise IntegrationError(messages[0] or "the solution became non-finite (NaN or inf)")
+    return out[0, output].reshape(t.shape[0], *y0.shape)
 
 
 def _solve_stiff(func, y0, t, **options) -> torch.Tensor:

@@ -264,11 +264,12 @@ class Problem:
         """The solver (``"auto"``: stiff if some sample's model is stiff along its data), the linear
         solver, and the grid: ``(G,)`` shared, or ``(B, G)`` per sample (padded by its last node)."""
         n = self.system.n
+        explicit = None if linear_solver is None else check_linear_solver(linear_solver).auto_solver
         try:  # "auto": the Jacobians along the data by jacrev under vmap
             self.solver = choose_solver(self.solver, self.system, self.t_obs,
                                         torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
                                         self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
-                                        (self.t_obs[..., -1] - self.t0).expand(self.B))
+                                        (self.t_obs[..., -1] - self.t0).expand(self.B), explicit=explicit)
         except Exception as exc:  # noqa: BLE001
             raise _not_differentiable(exc) from exc
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))

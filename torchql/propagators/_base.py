@@ -27,12 +27,16 @@ class LinearPropagator:
     hermite_degree : int
         Degree of the interpolants of the reference ``z`` and of ``h f`` between grid nodes in
         the coefficients :meth:`series` receives: 3 (cubic Hermite) or 5 (quintic).
+    auto_solver : str or None
+        The nonlinear ``solver`` that ``solver="auto"`` takes with this propagator for a model
+        that is not stiff; None: :data:`torchql.stiffness.EXPLICIT_SOLVER`.
     """
 
     name: str = ""
     grid_solver: bool = True
     with_solution: bool = False
     hermite_degree: int = 3
+    auto_solver: str | None = None
 
     def transfers(self, system: "IntervalSystem", *, rtol: float, atol: float, solver: str,
                   max_steps: int | None) -> "tuple[Transfers, int]":

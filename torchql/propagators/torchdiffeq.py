@@ -13,10 +13,13 @@ class Torchdiffeq(LinearPropagator):
     """All intervals' transfers in one torchdiffeq call with ``fit``'s ``solver`` (max-norm error
     control, so that no interval dilutes another's error; first step the whole interval, since the
     intervals are short against the dynamics). ``fit`` then integrates every nonlinear pass with
-    ``solver`` too, instead of solving it on the grid."""
+    ``solver`` too, instead of solving it on the grid. ``solver="auto"`` takes torchdiffeq's
+    ``"dopri5"`` with it for a model that is not stiff; torchql's own ``"dop853"``, when given,
+    integrates the transfers alike (:func:`torchql.integrate.solve`)."""
 
     name = "torchdiffeq"
     grid_solver = False
+    auto_solver = "dopri5"
 
     def transfers(self, system, *, rtol, atol, solver, max_steps):
         Y0 = system.initial()
