@@ -33,12 +33,12 @@ _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
 StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
                 max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None,
                 interval_steps: int | None = None, stop: StopTest | None = None, method: str = "dopri5",
                 norm=None, first_step: float | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The augmented model from ``z0 (S, M)`` over ``grid`` by an embedded Runge–Kutta pair, each sample its own steps.
+    """The augmented model from ``z0 (S, M)`` over ``grid`` by an embedded Runge–Kutta pair, each sample
+    its own steps.
 
     ``method``: the pair (:data:`torchql.rk_pairs.PAIRS`), ``"dopri5"`` (Dormand–Prince 5(4)) or
     ``"dop853"`` (Hairer's DOP853, eighth order: far fewer steps at tight tolerances). ``norm``:
@@ -78,7 +78,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     if grid.shape[-1] == 1:
         return out, ok, 0
     run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop, PAIRS[method],
-                    norm or _rms, first_step)
+                    norm, first_step)
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
@@ -115,14 +115,14 @@ class _DopriRun:
         self.node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach
         self.k1 = self.fv(self.t, self.x)
         self.evals = S
-        # initial step (Hairer's heuristic, per sample)
-        scale = atol + rtol * x[:, :n].abs()
-        d0 = (x[:, :n] / scale).square().mean(dim=1).sqrt()
-        d1 = (self.k1[:, :n] / scale).square().mean(dim=1).sqrt()
         span = grid[..., -1] - grid[..., 0]
-        h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
-        if first_step is not None:
-            h = torch.full_like(d0, first_step)
+        if first_step is None:  # Hairer's heuristic, per sample
+            scale = atol + rtol * x[:, :n].abs()
+            d0 = (x[:, :n] / scale).square().mean(dim=1).sqrt()
+            d1 = (self.k1[:, :n] / scale).square().mean(dim=1).sqrt()
+            h = torch.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / d1, torch.full_like(d0, 1e-6))
+        else:
+            h = torch.full((S,), first_step, dtype=dtype, device=device)
         self.h = torch.minimum(h, span).clamp(min=torch.finfo(dtype).tiny)
         self.steps = torch.zeros(S, dtype=torch.long, device=device)
         self.since = torch.zeros(S, dtype=torch.long, device=device)
