@@ -14,7 +14,7 @@ from .dopri import dopri_batch
 from .model import ODEModel, model_dtype_device
 from .solvers import STIFF_SOLVERS, JacobianError, rodas5p_solve
 
-__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
+__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "OWN_EXPLICIT_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
            "interval_tolerances", "solve", "simulate", "CountedField"]
 
 #: torchql's own explicit solvers (:func:`torchql.dopri.dopri_batch`'s pairs) that torchdiffeq has not:
