@@ -14,8 +14,8 @@ from .dopri import dopri_batch
 from .model import ODEModel, model_dtype_device
 from .solvers import STIFF_SOLVERS, JacobianError, rodas5p_solve
 
-__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "OWN_EXPLICIT_SOLVERS", "IntegrationError", "check_solver", "default_tolerances",
-           "interval_tolerances", "solve", "simulate", "CountedField"]
+__all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "OWN_EXPLICIT_SOLVERS", "IntegrationError", "check_solver",
+           "default_tolerances", "interval_tolerances", "solve", "simulate", "CountedField"]
 
 #: torchql's own explicit solvers (:func:`torchql.dopri.dopri_batch`'s pairs) that torchdiffeq has not:
 #: Hairer's eighth-order DOP853, the one for tight tolerances (:mod:`torchql.rk_pairs`).
