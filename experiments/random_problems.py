@@ -27,7 +27,7 @@ first observation, an unobserved one the truth times such a factor.
 
 Methods, from the same guess, with no sigma given (both minimize the plain sum of squares):
 
-* ``torchql.fit`` with its default options (Kantorovich, dopri5, rtol 1e-10, atol 1e-12), only
+* ``torchql.fit`` with its default options (Kantorovich, DOP853, rtol 1e-10, atol 1e-12), only
   ``max_time`` passed (``--max-time``; passed only where ``torchql.fit`` accepts it);
 * ``scipy.optimize.least_squares(method="trf")`` with its default options (xtol = ftol = gtol =
   1e-8, ``x_scale`` 1, ``max_nfev`` 100 m) over ``scipy.integrate.solve_ivp`` with DOP853 at the same
