@@ -101,7 +101,7 @@ class _DopriRun:
 
     def __init__(self, system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, land: torch.Tensor | None,
                  out: torch.Tensor, ok: torch.Tensor, rtol: float, atol: float, max_steps: int,
-                 interval_steps: int | None = None, stop: StopTest | None = None, pair=None, norm=None,
+                 interval_steps: int | None, stop: StopTest | None, pair, norm=None,
                  first_step: float | None = None) -> None:
         S, n = z0.shape[0], system.n
         dtype, device = z0.dtype, z0.device
@@ -127,7 +127,7 @@ class _DopriRun:
         self.steps = torch.zeros(S, dtype=torch.long, device=device)
         self.since = torch.zeros(S, dtype=torch.long, device=device)
         self.failure = torch.zeros(S, dtype=torch.long, device=device)  # _FAILURES' index, 0: none
-        self.pair = (PAIRS["dopri5"] if pair is None else pair)(dtype, device)
+        self.pair = pair(dtype, device)  # a pair of :data:`~torchql.rk_pairs.PAIRS`
         self.norm = _rms if norm is None else norm
         self._landing_tables(land, device)
 
@@ -251,7 +251,8 @@ class _DopriRun:
         ratio = self.pair.error_ratio(K, hc, sc, self.norm)
         finite = torch.isfinite(x_new).all(dim=1) & torch.isfinite(ratio)
         accept = finite & (ratio <= 1.0)
-        factor = torch.where(ratio > 0, 0.9 * ratio.clamp(min=1e-10) ** self.pair.exponent, torch.full_like(ratio, 10.0))
+        factor = torch.where(ratio > 0, 0.9 * ratio.clamp(min=1e-10) ** self.pair.exponent,
+                             torch.full_like(ratio, 10.0))
         # a non-finite trial (NaN ratio, which the test above sends to 10) shrinks the step, so that a
         # blow-up ends in a step-size underflow instead of retrying the same step until max_steps
         factor = torch.where(finite, factor, torch.full_like(factor, 0.2)).clamp(0.2, 10.0)

@@ -61,11 +61,8 @@ class DormandPrince5:
         ``(A, M)`` of steps ``hc (A, 1)`` from ``xa (A, M)`` at ``ta (A,)``."""
         K = xa.new_empty(7, *xa.shape)
         K[0] = ka
-        he = hc.squeeze(-1)
-        for i in range(1, 7):
-            xi = torch.addcmul(xa, hc, _combine(self.rows_a[i], K[:i]))
-            K[i] = fv(ta + _DP_C[i] * he, xi)
-        return K, xi  # the last stage is evaluated at the fifth-order solution (first same as last)
+        # the last stage is evaluated at the fifth-order solution (first same as last)
+        return K, _stages(fv, self.rows_a, _DP_C, K, range(1, 7), xa, ta, hc)
 
     def error_ratio(self, K: torch.Tensor, hc: torch.Tensor, sc: torch.Tensor, norm) -> torch.Tensor:
         """The local error over its tolerance ``sc (A, n)`` in the ``norm`` of the states (``(A, n)
@@ -161,11 +158,8 @@ class DOP853:
         solution ``(A, M)`` of steps ``hc (A, 1)`` from ``xa (A, M)`` at ``ta (A,)``."""
         K = xa.new_empty(13, *xa.shape)
         K[0] = ka
-        he = hc.squeeze(-1)
-        for i in range(1, 13):
-            xi = torch.addcmul(xa, hc, _combine(self.rows_a[i], K[:len(self.rows_a[i])]))
-            K[i] = fv(ta + _C8[i] * he, xi)
-        return K, xi  # the thirteenth row's combination is the eighth-order solution
+        # the thirteenth row's combination is the eighth-order solution, where the last slope is taken
+        return K, _stages(fv, self.rows_a, _C8, K, range(1, 13), xa, ta, hc)
 
     def error_ratio(self, K: torch.Tensor, hc: torch.Tensor, sc: torch.Tensor, norm) -> torch.Tensor:
         """The local error over its tolerance ``sc (A, n)``, ``(A,)``: Hairer's, ``|h| e5^2 / sqrt(e5^2
@@ -184,11 +178,8 @@ class DOP853:
         to ``x_new`` with slopes ``K (13, R, M)`` (three further slopes): a function of
         ``(theta (N, 1), which (N,))`` giving the values at the fractions ``theta`` of the steps
         ``which``, ``(N, M)``."""
-        he = hc.squeeze(-1)
         slopes = torch.cat([K, K.new_empty(3, *K.shape[1:])])
-        for i in range(13, 16):
-            xi = torch.addcmul(xa, hc, _combine(self.rows_a[i], slopes[:len(self.rows_a[i])]))
-            slopes[i] = fv(ta + _C8[i] * he, xi)
+        _stages(fv, self.rows_a, _C8, slopes, range(13, 16), xa, ta, hc)
         delta = x_new - xa
         F = [delta, hc * K[0] - delta, 2 * delta - hc * (K[12] + K[0])]
         F += [hc * _combine(row, slopes) for row in self.rows_d]  # one product per row: a sample's
@@ -201,6 +192,18 @@ class DOP853:
                 value = (value + F[k][which]) * (theta if k % 2 == 0 else 1 - theta)
             return value + xa[which]
         return at
+
+
+def _stages(fv, rows: list, nodes: tuple, K: torch.Tensor, which: range, xa: torch.Tensor, ta: torch.Tensor,
+            hc: torch.Tensor) -> torch.Tensor:
+    """The slopes ``K[i]`` of the stages ``which``, in place: each at ``ta + nodes[i] h`` and
+    ``xa + h rows[i] . K`` (``rows[i]``: the tableau row, no longer than the slopes it combines),
+    for steps ``hc (A, 1)`` from ``xa (A, M)``; returns the last stage's state."""
+    he = hc.squeeze(-1)
+    for i in which:
+        xi = torch.addcmul(xa, hc, _combine(rows[i], K[:rows[i].shape[0]]))
+        K[i] = fv(ta + nodes[i] * he, xi)
+    return xi
 
 
 def _combine(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -218,5 +221,5 @@ def _quartic(y0, y1, y_mid, f0, f1, h):
 
 
 #: The pairs by solver name.
-PAIRS = {"dopri5": DormandPrince5, "dop853": DOP853}
+PAIRS = {pair.name: pair for pair in (DormandPrince5, DOP853)}
 
