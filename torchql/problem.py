@@ -264,15 +264,16 @@ class Problem:
         """The solver (``"auto"``: stiff if some sample's model is stiff along its data), the linear
         solver, and the grid: ``(G,)`` shared, or ``(B, G)`` per sample (padded by its last node)."""
         n = self.system.n
-        explicit = None if linear_solver is None else check_linear_solver(linear_solver).auto_solver
+        given = None if linear_solver is None else check_linear_solver(linear_solver)
         try:  # "auto": the Jacobians along the data by jacrev under vmap
             self.solver = choose_solver(self.solver, self.system, self.t_obs,
                                         torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
                                         self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
-                                        (self.t_obs[..., -1] - self.t0).expand(self.B), explicit=explicit)
+                                        (self.t_obs[..., -1] - self.t0).expand(self.B),
+                                        explicit=None if given is None else given.auto_solver)
         except Exception as exc:  # noqa: BLE001
             raise _not_differentiable(exc) from exc
-        self.linear_solver = check_linear_solver(linear_solver_for(self.solver, linear_solver, DEFAULT_LINEAR_SOLVER))
+        self.linear_solver = check_linear_solver(linear_solver_for(self.solver, given, DEFAULT_LINEAR_SOLVER))
         #: whether the fit takes the stiff path (its grids then have geometric early nodes)
         self.stiff = stiff = self.solver in STIFF_SOLVERS
         #: ``grid="auto"`` (the default): the engine chooses each sample's uniform intervals from
