@@ -16,8 +16,8 @@ import torch
 
 import torchql
 import torchql.engine_grid as engine_grid
-from torchql.engine_grid import fourth_derivative_scale
-from torchql.grid import AUTO_COUNTS, AUTO_SAFETY, auto_counts
+from torchql.engine_grid import derivative_scale, fourth_derivative_scale
+from torchql.grid import AUTO_COUNTS, AUTO_SAFETY, auto_counts, needed_intervals
 from torchql.models import CoastingCar, LinearOscillator
 from testmodels import Relaxation
 
@@ -278,3 +278,49 @@ def test_a_stiff_fits_first_iterate_is_integrated_once_from_the_guesses():
     assert starts.count((100.0, 1e-6)) == 1, starts
     assert len(starts) >= 2  # the later iterates did get their second opinions
     assert math.isfinite(result.history[0].model_merit)  # the first iterate's model SSE, known from the start
+
+
+def test_sixth_derivative_scale_of_an_oscillation_is_omega_to_the_sixth_times_its_amplitude():
+    omega = 2.0
+    t = torch.linspace(0, 2 * math.pi / omega, 101, dtype=DT)
+    slopes = torch.stack([-omega * torch.sin(omega * t), -omega**2 * torch.cos(omega * t)], dim=-1)
+    rates = torch.stack([-omega**2 * torch.cos(omega * t), omega**3 * torch.sin(omega * t)], dim=-1)
+    scale = derivative_scale(slopes.unsqueeze(0), rates.unsqueeze(0), 6)
+    torch.testing.assert_close(scale[0, 0], torch.tensor([omega**6, omega**7], dtype=DT), rtol=1e-12, atol=0)
+    torch.testing.assert_close(derivative_scale(slopes.unsqueeze(0), rates.unsqueeze(0), 4),
+                               fourth_derivative_scale(slopes.unsqueeze(0), rates.unsqueeze(0)), rtol=0, atol=0)
+
+
+def test_needed_intervals_follow_the_hermite_error_bound_of_each_degree():
+    """Width ``(384 tol / x'''')^(1/4)`` for cubic interpolation, ``(46080 tol / x^(6))^(1/6)`` for quintic."""
+    x = torch.ones(1, 5, 1, dtype=DT)
+    span = torch.tensor([10.0], dtype=DT)
+    derivative = torch.full((1, 3, 1), 2.0, dtype=DT)
+    cubic = needed_intervals(derivative, x, 1e-6, 0.0, span)
+    quintic = needed_intervals(derivative, x, 1e-6, 0.0, span, degree=5)
+    assert float(cubic) == pytest.approx(10.0 / (384 * 1e-6 / 2.0) ** 0.25, rel=1e-12)
+    assert float(quintic) == pytest.approx(10.0 / (46080 * 1e-6 / 2.0) ** (1 / 6), rel=1e-12)
+
+
+def test_quintic_storage_takes_fewer_intervals_at_the_same_accuracy():
+    """``linear_solver="taylor_quintic"`` stores ``z``, ``h f`` and ``h A`` as quintic interpolants, and
+    the automatic grid counts its intervals by the quintic's error: on a noisy oscillator over two
+    periods a quarter of the cubic storage's uniform intervals, with the estimates and standard
+    errors of a 1,000-interval grid within 1e-7 and 1e-5 (measured: 25 against 100 uniform intervals,
+    37 against 112 with the observation times; 1.6e-10 and 7.8e-8; the cubic storage's ``h A`` on 25
+    intervals misses the standard errors by about 1e-4)."""
+    t = torch.arange(14, dtype=DT) * 0.5
+    x = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-12, atol=1e-14)
+    noise = 0.01 * torch.randn(t.shape[0], 1, generator=torch.Generator().manual_seed(3), dtype=DT)
+    data = torchql.Observations(t, x[:, :1] + noise, observe=["y"])
+
+    def fit(**options):
+        return torchql.fit(LinearOscillator(0.5, 1.0), data, torch.tensor([0.5, 0.5], dtype=DT), **options)
+
+    reference, cubic, quintic = fit(grid=1000), fit(), fit(linear_solver="taylor_quintic")
+    assert reference.success and cubic.success and quintic.success
+    intervals = {name: _grid_of(r).shape[-1] - 1 for name, r in (("cubic", cubic), ("quintic", quintic))}
+    assert intervals["quintic"] * 2.5 <= intervals["cubic"], intervals
+    assert float(((quintic.estimates - reference.estimates).abs() / reference.estimates.abs().clamp(min=0.1)).max()) < 1e-7
+    errors = {name: torch.tensor(list(r.stderr.values()), dtype=DT) for name, r in (("ref", reference), ("q", quintic))}
+    assert float(((errors["q"] - errors["ref"]).abs() / errors["ref"]).max()) < 1e-5

@@ -6,9 +6,10 @@ from unittest import mock
 import pytest
 import torch
 
+import torchql
 from torchql import linearize as lin_module
 from torchql.linearize import AUTOGRAD_STATES, REVERSE_WORK_LIMIT, linearize, node_jacobian
-from torchql.model import AugmentedSystem
+from torchql.model import AugmentedSystem, ODEModel
 from torchql.models import FitzHughNagumo
 
 
@@ -175,3 +176,65 @@ def test_node_jacobian_falls_back_to_jacrev_where_autograd_fails():
         value, (J,) = node_jacobian(f, (x,), (0,), 2)
     expected = torch.stack([torch.stack([x[:, 1], x[:, 0]], 1), torch.stack([2 * x[:, 0], 0 * x[:, 0]], 1)], 1)
     torch.testing.assert_close(J, expected, rtol=0, atol=1e-15)
+
+
+def _second_by_hand(z: torch.Tensor, z_dot: torch.Tensor, z_ddot: torch.Tensor) -> torch.Tensor:
+    """FitzHugh–Nagumo's ``d^2/dt^2 A`` along ``z'`` and ``z''``, written out (``a``, ``b``, ``c`` constant)."""
+    V, R, a, b, c = z.unbind(-1)
+    Vd, Rd, Vdd, Rdd = z_dot[:, 0], z_dot[:, 1], z_ddot[:, 0], z_ddot[:, 1]
+    A_ddot = torch.zeros(z.shape[0], 5, 5, dtype=z.dtype)
+    A_ddot[:, 0, 0] = -2 * c * (Vd**2 + V * Vdd)
+    A_ddot[:, 0, 4] = -2 * V * Vd**2 + (1 - V**2) * Vdd + Rdd
+    A_ddot[:, 1, 3], A_ddot[:, 1, 4] = -Rdd / c, (Vdd + b * Rdd) / c**2
+    return A_ddot
+
+
+@pytest.mark.parametrize("order", ["autograd", "reverse", "forward", None])
+def test_each_order_gives_the_second_time_derivative_of_the_jacobian(order):
+    """``second=True``: ``d^2/dt^2 A`` along the slopes given and ``z'' = f'``, the same by every way of
+    differentiating; without it the plain linearization, unchanged."""
+    system = _system()
+    t, z, z_dot = _nodes(9)
+    lin = linearize(system, t, z, z_dot, order=order, second=True)
+    plain = linearize(system, t, z, z_dot, order=order)
+    assert type(plain).__name__ == "Linearization" and type(lin).__name__ == "SecondLinearization"
+    for a, b in zip(lin, plain):  # the first four fields are the plain linearization's
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-14)
+    torch.testing.assert_close(lin.jac_ddot, _second_by_hand(z, z_dot, lin.f_dot), rtol=1e-12, atol=1e-12)
+
+
+class Driven(ODEModel):
+    """``x' = -k x^2 + sin(w t) x``, ``v' = x - v``: explicit time dependence, nonlinear in ``x``."""
+
+    state_names = ("x", "v")
+
+    def __init__(self, k: float = 0.4, w: float = 1.3) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
+        self.register_buffer("w", torch.tensor(w, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return torch.stack([-self.k * x[0] ** 2 + torch.sin(self.w * t) * x[0], x[0] - x[1]])
+
+
+def test_the_second_derivative_has_the_explicit_time_terms_along_a_solution():
+    """Along the model's own solution ``d^2/dt^2 A`` is the second derivative in time of the Jacobian
+    there: against central differences (step 1e-3: their error is about 1e-7 of ``A''``), by
+    autograd and by forward mode alike."""
+    model = Driven()
+    system = AugmentedSystem(model, ["k", "w"], torch.float64, torch.device("cpu"))
+    delta = 1e-3
+    centres = torch.tensor([0.5, 1.7, 3.1], dtype=torch.float64)
+    times = torch.stack([centres - delta, centres, centres + delta], dim=1).reshape(-1)
+    start = torch.zeros(1, dtype=torch.float64)
+    x = torchql.simulate(model, torch.tensor([0.8, 0.1], dtype=torch.float64), torch.cat([start, times]),
+                         rtol=1e-13, atol=1e-15)[1:]
+    z = torch.cat([x, torch.tensor([0.4, 1.3], dtype=torch.float64).expand(x.shape[0], 2)], dim=1)
+    lin = linearize(system, times, z, second=True)
+    A = lin.jac.reshape(3, 3, 4, 4)
+    differences = (A[:, 2] - 2 * A[:, 1] + A[:, 0]) / delta**2
+    middle = lin.jac_ddot.reshape(3, 3, 4, 4)[:, 1]
+    scale = float(middle.abs().amax())
+    assert float((middle - differences).abs().amax()) < 1e-6 * scale
+    jets = linearize(system, times, z, order="forward", second=True)
+    torch.testing.assert_close(jets.jac_ddot, lin.jac_ddot, rtol=1e-12, atol=1e-12 * scale)

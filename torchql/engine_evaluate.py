@@ -17,7 +17,7 @@ from .dopri import dopri_batch
 from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import solve_on_grid_batch
 from .integrate import IntegrationError
-from .linearize import Linearization, linearize
+from .linearize import Linearization, linearize, map_fields
 from .rk_pairs import PAIRS
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS
@@ -102,9 +102,10 @@ class Evaluation:
         """The linearization about ``z (S, G, M)`` (slopes ``z_dot``) of the chunk's samples ``idx``, at their nodes."""
         S, G, M = z.shape
         t = self.grid.repeat(S) if self.grid.dim() == 1 else _pick(self.grid, idx).reshape(-1)
-        lin = linearize(self.system, t, z.reshape(-1, M), None if z_dot is None else z_dot.reshape(-1, M))
+        lin = linearize(self.system, t, z.reshape(-1, M), None if z_dot is None else z_dot.reshape(-1, M),
+                        second=self.spec.linear_solver.jacobian_degree > 3)
         self.nfev += S * G
-        return Linearization(*(v.reshape(S, G, *v.shape[1:]) for v in lin))
+        return map_fields(lin, lambda v: v.reshape(S, G, *v.shape[1:]))
 
     def _rows(self, idx, z_ref_obs, zp_obs, Z_obs):
         """``C (S, R, m)``, ``d (S, R)``, residuals ``(S, R)`` at the observations (zero where missing)."""
@@ -199,7 +200,7 @@ class Evaluation:
         grid = self._grid_of(idx)
         for k in range(S):
             t = grid if grid.dim() == 1 else grid[k]
-            reference = LinearizedReference(t, z[k], z_dot[k], Linearization(*(v[k] for v in lin)))
+            reference = LinearizedReference(t, z[k], z_dot[k], map_fields(lin, lambda v: v[k]))
             try:
                 W[k], evals = propagate_linear(reference, w0[k], solver=spec.solver, rtol=rtol, atol=atol,
                                                max_steps=spec.max_steps, linear_solver=spec.linear_solver)

@@ -31,7 +31,7 @@ from .grid import (AUTO_COUNTS, AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_ind
 from .linearize import node_jacobian
 from .splines import hermite_per_sample
 
-__all__ = ["AutoGrid", "fourth_derivative_scale", "pad_nodes"]
+__all__ = ["AutoGrid", "fourth_derivative_scale", "derivative_scale", "pad_nodes"]
 
 
 class AutoGrid:
@@ -184,9 +184,13 @@ class AutoGrid:
                                            (0, 1), n)
         slopes, f_t, f_z = slopes.detach(), f_t.detach(), f_z.detach()
         rates = f_t + (f_z @ slopes.unsqueeze(-1)).squeeze(-1)  # (N, n)
-        fourth = fourth_derivative_scale(slopes.reshape(nodes.shape)[..., :n], rates.reshape(*nodes.shape[:-1], n))
+        slopes, rates = slopes.reshape(nodes.shape)[..., :n], rates.reshape(*nodes.shape[:-1], n)
+        degree = self.spec.linear_solver.storage_degree
+        derivative = (fourth_derivative_scale(slopes, rates) if degree == 3
+                      else derivative_scale(slopes, rates, degree + 1))
         rtol = AUTO_SAFETY * math.sqrt(self.spec.rtol)
-        needed = needed_intervals(fourth, traj[..., :n], rtol, self.spec.atol * rtol / self.spec.rtol, span=t_end - t0)
+        needed = needed_intervals(derivative, traj[..., :n], rtol, self.spec.atol * rtol / self.spec.rtol,
+                                  span=t_end - t0, degree=degree)
         counts = auto_counts(needed)
         failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=counts.device)
         return torch.where(failed, torch.full_like(counts, AUTO_PROBE), counts)
@@ -279,10 +283,19 @@ def fourth_derivative_scale(slopes: torch.Tensor, rates: torch.Tensor) -> torch.
     differences follow the spline's knots instead of the model (on an oscillator's exact data,
     3.5 times its fourth derivative), and higher derivatives of the model cost more than a small fit.
     """
+    return derivative_scale(slopes, rates, 4)
+
+
+def derivative_scale(slopes: torch.Tensor, rates: torch.Tensor, order: int) -> torch.Tensor:
+    """The size ``(S, 1, n)`` of the derivatives of order ``order >= 2`` of trajectories from their first
+    and second derivatives ``slopes, rates (S, P, n)``: ``max |x''| / tau^(order - 2)`` with the
+    fastest time scale ``tau = max |x'| / max |x''|`` (see :func:`fourth_derivative_scale`; the sixth,
+    ``max |x''|^5 / max |x'|^4``, sizes the grid of quintic storage)."""
     first = slopes.abs().amax(dim=1, keepdim=True)
     second = rates.abs().amax(dim=1, keepdim=True)
     tiny = torch.finfo(slopes.dtype).tiny
-    return torch.where(first > 0, second**3 / first.clamp(min=tiny) ** 2, torch.zeros_like(first))
+    k = order - 2
+    return torch.where(first > 0, second ** (k + 1) / first.clamp(min=tiny) ** k, torch.zeros_like(first))
 
 
 def difference_slopes(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -172,18 +172,26 @@ def smooth_intervals(times: torch.Tensor, x: torch.Tensor, slopes: torch.Tensor,
     return min(DEFAULT_INTERVALS, max(MIN_INTERVALS, math.ceil(float(needed.max()))))
 
 
-def needed_intervals(fourth: torch.Tensor, x: torch.Tensor, rtol: float, atol: float,
-                     span: torch.Tensor) -> torch.Tensor:
-    """Uniform intervals ``(S,)`` (real-valued; inf where not finite) that a cubic Hermite
-    interpolation of trajectories needs to stay within ``atol + rtol max |x|`` per component.
+#: The largest error of Hermite interpolation over an interval of width ``h``, by degree: ``h^(d+1)``
+#: times the derivative of order ``d + 1`` divided by this (cubic: ``4! 2^4``; quintic: ``6! 2^6``).
+HERMITE_ERROR_DIVISOR = {3: 384.0, 5: 46080.0}
 
-    ``fourth (S, P, n)``: the trajectories' fourth derivatives at nodes spread over the span;
-    ``x (S, G, n)``: their values (the scale of the tolerance); ``span (S,)``: the length to
-    cover. Over an interval of width ``h`` the error is at most ``h^4 / 384`` times the largest
-    fourth derivative.
+
+def needed_intervals(derivative: torch.Tensor, x: torch.Tensor, rtol: float, atol: float,
+                     span: torch.Tensor, degree: int = 3) -> torch.Tensor:
+    """Uniform intervals ``(S,)`` (real-valued; inf where not finite) that a Hermite interpolation of
+    degree ``degree`` (3, cubic, or 5, quintic) of trajectories needs to stay within ``atol + rtol
+    max |x|`` per component.
+
+    ``derivative (S, P, n)``: the trajectories' derivatives of order ``degree + 1`` (the fourth for
+    cubic interpolation) at nodes spread over the span; ``x (S, G, n)``: their values (the scale of
+    the tolerance); ``span (S,)``: the length to cover. Over an interval of width ``h`` the error
+    is at most ``h^(degree+1)`` times the largest such derivative over
+    :data:`HERMITE_ERROR_DIVISOR` (``h^4 / 384`` for cubic interpolation).
     """
     tol = atol + rtol * x.abs().amax(dim=1)
-    width = (384 * tol / fourth.abs().amax(dim=1).clamp(min=torch.finfo(x.dtype).tiny)) ** 0.25
+    size = derivative.abs().amax(dim=1).clamp(min=torch.finfo(x.dtype).tiny)
+    width = (HERMITE_ERROR_DIVISOR[degree] * tol / size) ** (1.0 / (degree + 1))
     needed = span / width.amin(dim=1)
     return torch.where(torch.isfinite(needed), needed, torch.full_like(needed, math.inf))
 

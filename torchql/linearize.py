@@ -40,7 +40,7 @@ from torch.func import jacfwd, jacrev, jvp, vmap
 
 from .model import AugmentedSystem
 
-__all__ = ["Linearization", "linearize", "node_jacobian", "REVERSE_WORK_LIMIT", "AUTOGRAD_STATES"]
+__all__ = ["Linearization", "SecondLinearization", "map_fields", "linearize", "node_jacobian", "REVERSE_WORK_LIMIT", "AUTOGRAD_STATES"]
 
 #: Largest ``nodes * M**2`` linearized in reverse over forward mode (see the module docstring).
 #: Measured crossovers: 7e4 to 1.5e5 on 3- to 6-component nonlinear models, below 6.4e4 on a
@@ -72,8 +72,32 @@ class Linearization(NamedTuple):
     jac_dot: torch.Tensor
 
 
+class SecondLinearization(NamedTuple):
+    """A :class:`Linearization` with the second time derivative of ``A`` (``linearize(...,
+    second=True)``, for the quintic interpolant of ``h A``, :mod:`torchql.propagators.quintic`).
+
+    Attributes
+    ----------
+    f, jac, f_dot, jac_dot
+        As :class:`Linearization`'s.
+    jac_ddot : Tensor ``(G, M, M)``
+        ``d^2/dt^2 A(t, z(t))`` at the nodes, with ``z'' = f'``.
+    """
+
+    f: torch.Tensor
+    jac: torch.Tensor
+    f_dot: torch.Tensor
+    jac_dot: torch.Tensor
+    jac_ddot: torch.Tensor
+
+
+def map_fields(lin, fn):
+    """``lin`` (a :class:`Linearization` or :class:`SecondLinearization`) with ``fn`` applied to every field."""
+    return type(lin)(*(fn(v) for v in lin))
+
+
 def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
-              z_dot: torch.Tensor | None = None, order: str | None = None) -> Linearization:
+              z_dot: torch.Tensor | None = None, order: str | None = None, second: bool = False) -> Linearization:
     """Linearize ``f`` along a trajectory given at nodes ``(t_j, z_j)`` with slopes ``z'_j``.
 
     Parameters
@@ -94,17 +118,33 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
         again (:class:`~torchql.problem.Problem` linearizes one node so before a fit, to name a
         model that no way takes). All give the same values to rounding.
 
+    second : bool
+        Also ``jac_ddot``, the second time derivative of ``A`` along the trajectory (one more
+        backward pass per state by autograd; a second forward-mode tangent otherwise).
+
     Returns
     -------
     Linearization
     """
     if z_dot is None:
         z_dot = vmap(system.f)(t, z)
+    lin = _linearize_first(system, t, z, z_dot, order, second)
+    if second and not isinstance(lin, SecondLinearization):
+        try:
+            lin = SecondLinearization(*lin, _second_by_jets(system.f, t, z, z_dot, lin.f_dot))
+        except Exception as exc:  # noqa: BLE001 -- an operation without a forward-mode derivative
+            raise ValueError("the quintic interpolant of `h A` (linear_solver=\"taylor_quintic\") needs the "
+                             "second time derivative of the model's Jacobian, which torch could not take through "
+                             f"this model ({type(exc).__name__}: {exc}); use linear_solver=\"taylor\"") from exc
+    return lin
 
+
+def _linearize_first(system: AugmentedSystem, t, z, z_dot, order: str | None, second: bool) -> Linearization:
+    """:func:`linearize` in the order chosen (``second``: autograd gives ``jac_ddot`` in its passes)."""
     if order is None:
         if system.n <= AUTOGRAD_STATES and "autograd" in system.linearization_orders:
             try:
-                return _linearize("autograd", system.f, t, z, z_dot, system.n)
+                return _linearize("autograd", system.f, t, z, z_dot, system.n, second)
             except Exception:  # noqa: BLE001 -- the model's forward does not take double backward
                 system.linearization_orders = tuple(o for o in system.linearization_orders if o != "autograd")
         order = "reverse" if t.shape[0] * system.M**2 <= REVERSE_WORK_LIMIT else "forward"
@@ -116,14 +156,14 @@ def linearize(system: AugmentedSystem, t: torch.Tensor, z: torch.Tensor,
             except Exception:  # noqa: BLE001 -- the model's forward does not take nested forward mode
                 system.linearization_orders = ("reverse",)
                 order = "reverse"
-    return _linearize(order, system.f, t, z, z_dot, system.n)
+    return _linearize(order, system.f, t, z, z_dot, system.n, second)
 
 
-def _linearize(order: str, f, t, z, z_dot, n: int) -> Linearization:
+def _linearize(order: str, f, t, z, z_dot, n: int, second: bool = False) -> Linearization:
     """The linearization in ``order`` (``"autograd"``, ``"reverse"`` or ``"forward"``) at every node;
-    ``n``: the model's states (the rows autograd differentiates)."""
+    ``n``: the model's states (the rows autograd differentiates); ``second``: autograd's with ``jac_ddot``."""
     if order == "autograd":
-        return _by_autograd(f, t, z, z_dot, n)
+        return _by_autograd(f, t, z, z_dot, n, second=True) if second else _by_autograd(f, t, z, z_dot, n)
     if order == "reverse":
         value, jac, value_dot, jac_dot = vmap(_reverse_over_forward(f))(t, z, z_dot)
     else:
@@ -157,23 +197,29 @@ def _forward_over_forward(f):
     return node
 
 
-def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: int) -> Linearization:
+def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: int, second: bool = False
+                 ) -> Linearization:
     """The linearization by torch.autograd through the model vmapped over the nodes: ``2 n`` backward
     passes over the whole grid at once (a node's outputs depend on its own inputs only, so the
     gradient of an output summed over the nodes is, at each node, that node's derivative).
 
     For each state ``i < n``: ``g = d f_i / d(z, t)`` with a graph (row ``i`` of ``A`` and ``f_t``),
     then ``d/dt A_i = d/dz (g_z . z' + g_t)``, a Hessian-vector product. The coefficients' rows are
-    zero (``p' = 0``).
+    zero (``p' = 0``). With ``second``, ``n`` passes more: ``d^2/dt^2 A_i = d/dz (h . z' + g_z . z'' +
+    d/dt (g_z . z' + g_t))`` with ``h = d/dz (g_z . z' + g_t)`` and ``z'' = f'`` (``z'`` and ``z''``
+    held fixed: the third derivatives of ``f`` contracted twice with the tangent, the second ones
+    once with ``z''``, and the explicit time terms).
     """
     G, M = z.shape
     jac = torch.zeros(G, M, M, dtype=z.dtype, device=z.device)
     jac_dot = torch.zeros_like(jac)
+    jac_ddot = torch.zeros_like(jac) if second else None
     value_dot = torch.zeros_like(z)
     with torch.enable_grad():
         tt = t.detach().requires_grad_()
         zz = z.detach().requires_grad_()
         value = vmap(f)(tt, zz)
+        rows = []
         for i in range(n):
             g_z, g_t = torch.autograd.grad(value[:, i].sum(), (zz, tt), create_graph=True, allow_unused=True)
             if g_z is None:
@@ -181,11 +227,49 @@ def _by_autograd(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, n: in
             tangent = (g_z * z_dot).sum(dim=1) + (g_t if g_t is not None else 0.0)
             jac[:, i] = g_z.detach()
             value_dot[:, i] = tangent.detach()
-            if tangent.requires_grad:
-                (h,) = torch.autograd.grad(tangent.sum(), zz, retain_graph=i < n - 1, allow_unused=True)
-                if h is not None:
-                    jac_dot[:, i] = h
+            rows.append((i, g_z, tangent))
+        for k, (i, g_z, tangent) in enumerate(rows):
+            if not tangent.requires_grad:
+                continue
+            last = k == len(rows) - 1
+            wrt = (zz, tt) if second else (zz,)
+            h, *h_t = torch.autograd.grad(tangent.sum(), wrt, create_graph=second, retain_graph=second or not last,
+                                          allow_unused=True)
+            if h is None:
+                continue
+            jac_dot[:, i] = h.detach()
+            if second:
+                twice = (h * z_dot).sum(dim=1) + (g_z * value_dot).sum(dim=1)
+                if h_t and h_t[0] is not None:
+                    twice = twice + h_t[0]
+                if twice.requires_grad:
+                    (h2,) = torch.autograd.grad(twice.sum(), zz, retain_graph=not last, allow_unused=True)
+                    if h2 is not None:
+                        jac_ddot[:, i] = h2
+    if second:
+        return SecondLinearization(value.detach(), jac, value_dot, jac_dot, jac_ddot)
     return Linearization(f=value.detach(), jac=jac, f_dot=value_dot, jac_dot=jac_dot)
+
+
+def _second_by_jets(f, t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, z_ddot: torch.Tensor) -> torch.Tensor:
+    """``d^2/dt^2 A (G, M, M)`` along the trajectory through the nodes ``(t, z)`` with slopes ``z_dot``
+    and second derivatives ``z_ddot``: the second derivative in ``tau`` at 0 of ``A(t + tau, z +
+    tau z' + tau^2 z'' / 2)``, by nested forward mode over ``jacrev`` (the way for the models
+    autograd does not take)."""
+
+    def node(ti, zi, zdi, zddi):
+        one, zero = torch.ones_like(ti), torch.zeros_like(ti)
+
+        def jacobian(tt, zz):
+            return jacrev(f, argnums=1)(tt, zz)
+
+        def along(tt, zz, dt, dz):
+            return jvp(jacobian, (tt, zz), (dt, dz))[1]
+
+        curvature = jvp(lambda tt, zz: along(tt, zz, one, zdi), (ti, zi), (one, zdi))[1]
+        return curvature + along(ti, zi, zero, zddi)
+
+    return vmap(node)(t, z, z_dot, z_ddot)
 
 
 def node_jacobian(f, args: tuple, wrt: tuple[int, ...], rows: int, vectorize: bool = True,

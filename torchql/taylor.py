@@ -88,11 +88,11 @@ class SeriesTransfers(NamedTuple):
     points: int
 
 
-def _forcing_degree(degree: int) -> int:
+def _forcing_degree(degree: int, jacobian_degree: int = _HERMITE_DEGREE) -> int:
     """Degree of the forcing ``h B = h f - h A z`` when ``z`` and ``h f`` have ``degree`` and ``h A``
-    is cubic; the terms up to it are summed before the truncation bound is first tested (it holds
-    from the first term without forcing on; testing costs about as much as a term)."""
-    return degree + _HERMITE_DEGREE
+    has ``jacobian_degree``; the terms up to it are summed before the truncation bound is first
+    tested (it holds from the first term without forcing on; testing costs about as much as a term)."""
+    return degree + jacobian_degree
 
 
 def _substep_matrices(n: int, dtype: torch.dtype, device: torch.device, degree: int = 3) -> torch.Tensor:
@@ -127,29 +127,30 @@ def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
     return out
 
 
-def _norms(mono: torch.Tensor, a: int, M: int) -> torch.Tensor:
-    """``||A_aa,k||_inf (4, J)`` per interval-substep, from power-basis coefficients ``(D, Q, J)``
-    (``h A``'s degrees above 3 are zero).
+def _norms(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_DEGREE) -> torch.Tensor:
+    """``||A_aa,k||_inf (d + 1, J)`` per interval-substep, from power-basis coefficients ``(D, Q, J)``
+    (``h A``'s degrees above ``d = jacobian_degree`` are zero).
 
     Their sum ``rho`` bounds ``||h A_aa(s)||_inf`` on the substep.
     """
-    A_aa = mono[:_HERMITE_DEGREE + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (4, a, a, J)
+    A_aa = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (4, a, a, J)
     return A_aa[:, 0, 0] if a == 1 else A_aa.sum(dim=2).amax(dim=1)
 
 
-def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float, r: torch.Tensor | None = None
-            ) -> tuple[torch.Tensor, torch.Tensor, int]:
+def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float, r: torch.Tensor | None = None,
+            jacobian_degree: int = _HERMITE_DEGREE) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Transfers ``(a, M+1, J)`` of substeps from their power-basis coefficients ``(D, Q, J)``
-    (``z`` and ``h f`` of degree ``D - 1``, ``h A`` cubic).
+    (``z`` and ``h f`` of degree ``D - 1``, ``h A`` of degree ``jacobian_degree``: 3 or 5).
 
-    ``r (4, J)``: the norms ``||A_aa,i||_inf`` of the coefficients, if already at hand (:func:`_norms`).
+    ``r (d + 1, J)``: the norms ``||A_aa,i||_inf`` of the coefficients, if already at hand (:func:`_norms`).
 
     Returns the active rows, the ratio of the truncation bound to the tolerance ``(J,)`` (the
     substep's share ``1 / n`` of it) and the number of terms summed.
     """
     P = M + 1
     degree = mono.shape[0] - 1
-    forcing_degree = _forcing_degree(degree)
+    dA = jacobian_degree
+    forcing_degree = _forcing_degree(degree, dA)
     z = mono[:, :M]  # (D, M, J)
     fA = mono[:, M:].unflatten(1, (a, P))  # (D, a, P, J): column 0 = h f, then h A
     F, A = fA[:, :, 0], fA[:, :, 1:]
@@ -157,33 +158,33 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
     # the forcing h B = h f - h A z, a polynomial of degree forcing_degree
     B = F.new_zeros(forcing_degree + 1, a, F.shape[-1])
     B[:degree + 1] = F
-    for i in range(_HERMITE_DEGREE + 1):
+    for i in range(dA + 1):
         B[i:i + degree + 1] -= (A[i].unsqueeze(0) * z.unsqueeze(1)).sum(dim=2)
     if r is None:
-        r = _norms(mono, a, M)
+        r = _norms(mono, a, M, dA)
     growth = r.sum(dim=0).exp()  # e^rho, rho = sum_i ||A_aa,i|| >= ||A_aa(s)|| on the substep
     eye = torch.eye(a, P, dtype=mono.dtype, device=mono.device).unsqueeze(-1)
-    recent = [torch.cat([A[0], B[0].unsqueeze(1)], dim=1)]  # T_1; then the last four terms, newest last
+    recent = [torch.cat([A[0], B[0].unsqueeze(1)], dim=1)]  # T_1; then the last dA + 1 terms, newest last
     T = eye + recent[0]
     result = result_ratio = passed = None
     k = 1  # terms T_1 .. T_k summed
     while True:
         check_time()  # a term costs O(a) products: a long sum must not outlast the fit's budget
         new = A_aa[0, :, 0].unsqueeze(1) * recent[-1][0].unsqueeze(0)  # the products A_i T_{k-i}
-        for i in range(min(_HERMITE_DEGREE + 1, k)):
+        for i in range(min(dA + 1, k)):
             previous = recent[-1 - i]  # T_{k-i}
             for c in range(1 if i == 0 else 0, a):
                 new.addcmul_(A_aa[i, :, c].unsqueeze(1), previous[c].unsqueeze(0))
-        if k <= _HERMITE_DEGREE:
+        if k <= dA:
             new[:, :M] += A[k]
         if k <= forcing_degree:
             new[:, M] += B[k]
         new /= k + 1
-        recent = recent[-3:] + [new]
+        recent = recent[-dA:] + [new]
         T += new
         k += 1
         if k > forcing_degree + 1:  # (< _MAX_TERMS: the cap below always follows a test)
-            norms = torch.stack(recent).abs()  # (4, a, P, J) -> (4, P, J): ||T_{k-3}||, .., ||T_k|| by column
+            norms = torch.stack(recent).abs()  # (dA+1, a, P, J) -> (dA+1, P, J): ||T_{k-dA}||, .., ||T_k|| by column
             norms = norms[:, 0] if a == 1 else norms.amax(dim=1)
             weights = _tail_weights(k, r)  # (4, J) in the same order
             tail = (weights.unsqueeze(1) * norms).sum(dim=0) * growth  # (P, J)
@@ -203,25 +204,26 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
 
 
 def _tail_weights(K: int, r: torch.Tensor) -> torch.Tensor:
-    """Weights ``(4, J)`` of the last four terms ``T_{K-3}, .., T_K`` in the bound of the series' tail.
+    """Weights ``(D + 1, J)`` of the last ``D + 1`` terms ``T_{K-D}, .., T_K`` in the bound of the
+    series' tail, for ``h A`` of degree ``D`` (``r (D + 1, J)``, 3 or 5).
 
     The remainder ``R = sum_{k>K} T_k s^k`` solves ``R' = A_aa R + g`` with ``R(0) = 0``, where
-    ``g`` collects the degrees ``K .. K+3`` of ``A_aa (sum_{k<=K} T_k s^k)``:
+    ``g`` collects the degrees ``K .. K+D`` of ``A_aa (sum_{k<=K} T_k s^k)``:
     ``g_{K+j} = sum_{i>=j} A_i T_{K+j-i}`` (``K`` above the forcing's degree: the forcing and
     the constant columns are matched by the terms summed). Gronwall's inequality with
     ``||A_aa(s)|| <= rho`` gives ``||R(1)|| <= e^rho sum_j ||g_{K+j}|| / (K+j+1)``, column by column,
-    so ``T_{K-d}`` weighs ``sum_{j<=3-d} ||A_{j+d}|| / (K+j+1)``.
+    so ``T_{K-d}`` weighs ``sum_{j<=D-d} ||A_{j+d}|| / (K+j+1)``.
     """
-    return _tail_matrix(K, r.dtype, r.device) @ r
+    return _tail_matrix(K, r.dtype, r.device, r.shape[0] - 1) @ r
 
 
 @functools.lru_cache(maxsize=256)
-def _tail_matrix(K: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``C (4, 4)``: the weights of :func:`_tail_weights` are ``C @ r``."""
-    C = torch.zeros(4, 4, dtype=torch.float64)
-    for d in range(4):
-        for j in range(4 - d):
-            C[3 - d, j + d] = 1.0 / (K + j + 1)
+def _tail_matrix(K: int, dtype: torch.dtype, device: torch.device, dA: int = _HERMITE_DEGREE) -> torch.Tensor:
+    """``C (dA + 1, dA + 1)``: the weights of :func:`_tail_weights` are ``C @ r`` (``h A`` of degree ``dA``)."""
+    C = torch.zeros(dA + 1, dA + 1, dtype=torch.float64)
+    for d in range(dA + 1):
+        for j in range(dA + 1 - d):
+            C[dA - d, j + d] = 1.0 / (K + j + 1)
     return C.to(dtype=dtype, device=device)
 
 
@@ -244,6 +246,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
     if max_substeps < 1 or max_substeps & (max_substeps - 1):
         raise ValueError(f"`max_substeps` must be a power of two; received {max_substeps}")
     data, a, M = coefficients.data, coefficients.a, coefficients.M
+    degree = getattr(coefficients, "jacobian_degree", _HERMITE_DEGREE)  # of h A
     N = data.shape[-1]
     device = data.device
     Y = data.new_zeros(a, M + 1, N)
@@ -255,7 +258,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
 
     def integrate(mono: torch.Tensor, part, n: int, r: torch.Tensor | None = None) -> None:
         """Sum the series of the intervals ``part`` in ``n`` substeps (``mono``: their coefficients)."""
-        T, ratio, terms = _series(mono, a, M, n, rtol, atol, r)
+        T, ratio, terms = _series(mono, a, M, n, rtol, atol, r, degree)
         counts[0] += terms
         counts[1] += terms * mono.shape[-1]
         width = T.shape[-1] // n
@@ -270,7 +273,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
     for start in range(0, N, _CHUNK):
         part = slice(start, start + _CHUNK)
         mono = data[..., part]  # one substep: the interval's own coefficients
-        r = _norms(mono, a, M)
+        r = _norms(mono, a, M, degree)
         rho = r.sum(dim=0)
         wanted = torch.ceil(torch.log2((rho / RHO_MAX).clamp(min=1.0))).nan_to_num(nan=62.0, posinf=62.0)
         substeps[part] = 2 ** wanted.clamp(max=62).to(torch.long)

@@ -69,6 +69,7 @@ class LinearizedReference:
         self.jac = lin.jac
         self.f_dot = lin.f_dot
         self.jac_dot = lin.jac_dot
+        self.jac_ddot = getattr(lin, "jac_ddot", None)  # a SecondLinearization's
 
 
 class IntervalSystem:

@@ -41,7 +41,7 @@ import torch
 
 from .budget import check_time
 from .integrate import IntegrationError
-from .linearize import Linearization
+from .linearize import Linearization, SecondLinearization
 from .trajectory import IntervalSystem
 
 __all__ = ["Transfers", "DoubledTransfers", "interval_coefficients", "interval_transfers", "rk4_series", "step_doubling",
@@ -281,7 +281,8 @@ def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor,
 
     ``t``: the shared grid ``(G,)`` or per-sample grids ``(S, G)``. ``degree``: that of the
     interpolants of ``z`` and ``h f``, 3 (cubic Hermite) or 5 (quintic, see
-    :func:`_quintic_rows`); ``h A`` is cubic either way.
+    :func:`_quintic_rows`); ``h A`` is cubic, or quintic where ``degree`` is 5 and ``lin`` is a
+    :class:`~torchql.linearize.SecondLinearization` (:func:`_quintic_jacobian_rows`).
 
     Built from the node values directly (the intervals' arrays of
     :class:`torchql.trajectory.IntervalSystem` are never formed): interval ``s (G-1) + j`` is
@@ -338,9 +339,13 @@ def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor,
         torch.mul(source[..., side], scale, out=data[b])
     data = data.reshape(degree + 1, Q, S * (G - 1))
     hermite_to_power(data[:4])
+    jacobian_degree = 3
     if degree == 5:
         _quintic_rows(data, h, z_dot, lin, perm, a)
-    return _Coefficients.of(data, order, a, M)
+        if isinstance(lin, SecondLinearization):
+            _quintic_jacobian_rows(data, h, lin.jac_ddot, perm, a, S)
+            jacobian_degree = 5
+    return _Coefficients.of(data, order, a, M, jacobian_degree)
 
 
 def _quintic_rows(out: torch.Tensor, h: torch.Tensor, z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> None:
@@ -379,6 +384,24 @@ def _quintic_rows(out: torch.Tensor, h: torch.Tensor, z_dot: torch.Tensor, lin, 
             target.copy_(torch.where(autonomous.T.unsqueeze(-1), target, cubic))
 
 
+def _quintic_jacobian_rows(out: torch.Tensor, h: torch.Tensor, jac_ddot: torch.Tensor, perm: torch.Tensor, a: int,
+                           S: int) -> None:
+    """The rows of ``h A`` in the coefficients ``out (6, Q, S N)`` raised to quintic Hermite
+    interpolants, in place, from the second time derivatives ``jac_ddot (S, G, M, M)`` of ``A`` at
+    the nodes (scaled to the local time by ``h^3``; ``perm``: the components in stored order, the
+    ``a`` active ones first; ``h (1, 1 or S, N)``). Exact with explicit time dependence too: the
+    linearization's ``d^2/dt^2 A`` has its time terms."""
+    M = perm.numel()
+    G = jac_ddot.shape[1]
+    second = jac_ddot[:, :, perm[:a]][..., perm]  # (S, G, a, M): active rows, stored column order
+    second = second.permute(2, 3, 0, 1)  # (a, M, S, G)
+    scale = h ** 3
+    for i in range(a):
+        rows = slice(M + i * (M + 1) + 1, M + (i + 1) * (M + 1))
+        target = out[:, rows].unflatten(-1, (S, G - 1))  # (6, M, S, N), a view
+        raise_to_quintic(target, second[i, ..., :-1] * scale, second[i, ..., 1:] * scale)
+
+
 class _Coefficients:
     """The local-time coefficients ``X_j(s)`` of every interval, active rows only, in stored order.
 
@@ -393,16 +416,20 @@ class _Coefficients:
         """One reference's intervals (``system.reference``), by :func:`interval_coefficients` as a
         batch of one (``degree``: 3, cubic Hermite, or 5, quintic)."""
         ref = system.reference
-        lin = Linearization(*(v.unsqueeze(0) for v in (ref.f, ref.jac, ref.f_dot, ref.jac_dot)))
+        second = None if degree == 3 else getattr(ref, "jac_ddot", None)
+        fields = (ref.f, ref.jac, ref.f_dot, ref.jac_dot) + (() if second is None else (second,))
+        lin = (Linearization if second is None else SecondLinearization)(*(v.unsqueeze(0) for v in fields))
         built = interval_coefficients(ref.t, ref.z.unsqueeze(0), ref.z_dot.unsqueeze(0), lin, degree)
         self.data, self.order, self.a, self.M = built.data, built.order, built.a, built.M
+        self.jacobian_degree = built.jacobian_degree
 
     @classmethod
-    def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int) -> "_Coefficients":
-        """Coefficients already in stored form: power-basis ``data (4, Q, N)``, ``order (M+1,)``,
-        ``a`` active components of ``M``."""
+    def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int, jacobian_degree: int = 3) -> "_Coefficients":
+        """Coefficients already in stored form: power-basis ``data (D, Q, N)``, ``order (M+1,)``,
+        ``a`` active components of ``M``, the rows of ``h A`` of degree ``jacobian_degree``."""
         coefficients = object.__new__(cls)
         coefficients.data, coefficients.order, coefficients.a, coefficients.M = data, order, a, M
+        coefficients.jacobian_degree = jacobian_degree
         return coefficients
 
     @property

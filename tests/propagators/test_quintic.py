@@ -1,7 +1,8 @@
-"""``linear_solver="taylor_quintic"``: the reference and ``h f`` as quintic Hermite interpolants."""
+"""``linear_solver="taylor_quintic"``: the reference, ``h f`` and ``h A`` as quintic Hermite interpolants."""
 
 import pytest
 import torch
+from torch.func import jacrev
 
 import torchql
 import torchql.engine_final as engine_final
@@ -78,6 +79,38 @@ def test_along_a_solution_the_quintic_storage_is_two_orders_more_accurate():
     assert 40 < errors[5, 10] / errors[5, 20] < 90
 
 
+def _sensitivity_error(t, second: bool) -> float:
+    """Largest relative error of the homogeneous solutions (``dx/dx0``, ``dx/dr``, ``dx/dK``) along the
+    exact logistic solution, by ``taylor_quintic`` from a linearization with (``second``) or without
+    the second time derivative of ``A``, against their closed form."""
+    system = AugmentedSystem(Logistic(), ["r", "K"], DT, torch.device("cpu"))
+    z = torch.stack([_logistic(t), torch.full_like(t, 1.5), torch.full_like(t, 10.0)], dim=-1)
+    lin = linearize(system, t, z, second=second)
+    batch = type(lin)(*(v.unsqueeze(0) for v in lin))
+    w0 = initial_columns(z[0], torch.tensor([0, 1, 2])).unsqueeze(0)
+    W, failed, _ = propagate_linear_batch(t, z.unsqueeze(0), lin.f.unsqueeze(0), batch, w0, rtol=1e-14, atol=1e-16,
+                                          propagator=TaylorQuintic())
+    assert not bool(failed.any())
+    unknowns = (torch.tensor(0.5, dtype=DT), torch.tensor(1.5, dtype=DT), torch.tensor(10.0, dtype=DT))
+    exact = torch.stack(jacrev(lambda x0, r, K: _logistic(t, r, K, x0), argnums=(0, 1, 2))(*unknowns), dim=-1)
+    return float(((W[0, :, 0, 1:] - exact).abs().amax(dim=0) / exact.abs().amax(dim=0)).max())
+
+
+def test_with_the_second_derivative_of_a_the_sensitivities_are_of_sixth_order():
+    """The homogeneous solutions read ``h A``: cubic, their error is of order ``h^4`` (halving ``h``
+    divides it by about 16) whatever the storage of ``z``; quintic (the engine's linearization for
+    this propagator), of order ``h^6`` and 100 times smaller on 10 intervals already (measured: 2.9e-4
+    against 2.7e-6 on 10 intervals, 1.8e-5 against 4.9e-8 on 20)."""
+    errors = {}
+    for N in (10, 20):
+        t = torch.linspace(0.0, 6.0, N + 1, dtype=DT)
+        for second in (False, True):
+            errors[second, N] = _sensitivity_error(t, second)
+    assert 10 < errors[False, 10] / errors[False, 20] < 24
+    assert 40 < errors[True, 10] / errors[True, 20] < 90
+    assert errors[True, 10] < errors[False, 10] / 50 and errors[True, 20] < errors[False, 20] / 200
+
+
 class Forced(ODEModel):
     """``x' = -k x + sin(t)``: explicit time dependence."""
 
@@ -135,8 +168,8 @@ def _noisy_oscillator(seed: int, B: int = 1):
 def test_the_fixed_point_on_a_coarse_grid_is_far_closer_to_the_optimum(monkeypatch):
     """The final pass's Gauss-Newton steps off: the estimates are the Kantorovich fixed point of
     the grid. Against a 2,000-interval grid's, cubic storage on 160 intervals leaves a relative
-    offset of 1.7e-5, quintic storage 7.4e-7 (23 times less; 19 to 23 times on 40 to 320
-    intervals: here the cubic ``h A``, which the homogeneous solutions read, sets the order)."""
+    offset of 1.7e-5, quintic storage of ``z``, ``h f`` and ``h A`` 1.3e-8 (1,300 times less; 75
+    times on 40 intervals, 2,800 times on 320: the orders ``h^4`` and ``h^6``)."""
     monkeypatch.setattr(engine_final, "POLISH_STEPS", 0)
     data = _noisy_oscillator(1)[0]
     x0 = torch.tensor([0.3, 0.0], dtype=DT)

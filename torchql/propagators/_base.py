@@ -27,6 +27,9 @@ class LinearPropagator:
     hermite_degree : int
         Degree of the interpolants of the reference ``z`` and of ``h f`` between grid nodes in
         the coefficients :meth:`series` receives: 3 (cubic Hermite) or 5 (quintic).
+    jacobian_degree : int
+        Degree of the interpolant of ``h A``: 3 (cubic Hermite), or 5 (quintic, from the second
+        time derivative of ``A`` that the linearization then also gives).
     auto_solver : str or None
         The nonlinear ``solver`` that ``solver="auto"`` takes with this propagator for a model
         that is not stiff; None: :data:`torchql.stiffness.EXPLICIT_SOLVER`.
@@ -36,7 +39,14 @@ class LinearPropagator:
     grid_solver: bool = True
     with_solution: bool = False
     hermite_degree: int = 3
+    jacobian_degree: int = 3
     auto_solver: str | None = None
+
+    @property
+    def storage_degree(self) -> int:
+        """The degree that sets the storage's interpolation error (the lower of
+        :attr:`hermite_degree` and :attr:`jacobian_degree`), from which ``grid="auto"`` counts its intervals."""
+        return min(self.hermite_degree, self.jacobian_degree)
 
     def transfers(self, system: "IntervalSystem", *, rtol: float, atol: float, solver: str,
                   max_steps: int | None) -> "tuple[Transfers, int]":
