@@ -297,7 +297,9 @@ class Evaluation:
         if not sub.numel():
             return over
         k = self._split
-        grid, guess = refine(grid if grid.dim() == 1 else grid[sub], guess[sub], self._slopes(grid, guess[sub]), k)
+        grid = grid if grid.dim() == 1 else grid[sub]
+        slopes = self._slopes(grid, guess[sub])
+        grid, guess = refine(grid, guess[sub], slopes, k, self._curvatures(grid, guess[sub], slopes))
         solved = solve_on_grid_batch(self.system, z0[sub], grid, rtol=rtol, atol=atol, guess=guess,
                                      max_newton=_GRID_NEWTON, max_substeps=substeps)
         self.nfev += solved.n_evals
@@ -330,6 +332,25 @@ class Evaluation:
             return torch.zeros_like(z)
         t = grid.expand(z.shape[0], -1).reshape(-1)
         return torch.vmap(self.system.f)(t, z.reshape(-1, z.shape[-1])).reshape(z.shape)
+
+    def _curvatures(self, grid: torch.Tensor, z: torch.Tensor, slopes: torch.Tensor) -> torch.Tensor | None:
+        """The augmented model's second derivatives ``d/dt f = f_t + A f`` along its flow at ``z (S, G, M)``
+        (``slopes``: ``f`` there), by forward mode, where the grid solver splits the intervals of a
+        storage of quintic interpolants (whose grids are coarser: a cubic interpolant of the guess on
+        their sub-intervals would cost Newton an iteration); otherwise, or where the model does
+        not take forward mode, None (the cubic interpolant)."""
+        if self._split == 1 or self.spec.linear_solver.storage_degree < 5:
+            return None
+        t = grid.expand(z.shape[0], -1).reshape(-1)
+        f = self.system.f
+
+        def along(ti, zi, di):
+            return torch.func.jvp(f, (ti, zi), (torch.ones_like(ti), di))[1]
+
+        try:
+            return torch.vmap(along)(t, z.reshape(-1, z.shape[-1]), slopes.reshape(-1, z.shape[-1])).reshape(z.shape)
+        except Exception:  # noqa: BLE001 -- an operation without a forward-mode derivative
+            return None
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:

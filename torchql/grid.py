@@ -247,12 +247,15 @@ def coarse_index(keep: torch.Tensor) -> torch.Tensor:
 
 
 def refine(grid: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor,
-           k: int) -> tuple[torch.Tensor, torch.Tensor]:
+           k: int, second: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Every interval of ``grid`` split into ``k`` equal sub-intervals, with values there.
 
-    ``grid``: ``(G,)`` shared or ``(S, G)`` per sample; ``values, slopes (S, G, M)`` at its nodes.
-    Returns the finer grid, ``((G - 1) k + 1,)`` or ``(S, (G - 1) k + 1)`` (node ``j`` of ``grid``
-    is its node ``j k``), and the cubic Hermite interpolants of ``values`` there ``(S, (G - 1) k + 1, M)``.
+    ``grid``: ``(G,)`` shared or ``(S, G)`` per sample; ``values, slopes (S, G, M)`` at its nodes,
+    and optionally their second derivatives ``second (S, G, M)``. Returns the finer grid,
+    ``((G - 1) k + 1,)`` or ``(S, (G - 1) k + 1)`` (node ``j`` of ``grid`` is its node ``j k``), and
+    the cubic Hermite interpolants of ``values`` there ``(S, (G - 1) k + 1, M)``, or with ``second``
+    the quintic ones (the cubic plus ``s^2 (1 - s)^2 (alpha + beta s)``, which matches the second
+    derivatives at both ends: :func:`torchql.transfer.raise_to_quintic`).
     """
     if k == 1:
         return grid, values
@@ -266,5 +269,12 @@ def refine(grid: torch.Tensor, values: torch.Tensor, slopes: torch.Tensor,
     y0, y1 = values[:, :-1, None], values[:, 1:, None]  # (S, N, 1, M)
     f0, f1 = hh * slopes[:, :-1, None], hh * slopes[:, 1:, None]
     b = [c.reshape(1, 1, k, 1) for c in basis]
-    inner = (b[0] * y0 + b[1] * f0 + b[2] * y1 + b[3] * f1).flatten(1, 2)  # (S, N k, M)
-    return fine, torch.cat([inner, values[:, -1:]], dim=1)
+    inner = b[0] * y0 + b[1] * f0 + b[2] * y1 + b[3] * f1  # (S, N, k, M)
+    if second is not None:
+        c2 = 3 * (y1 - y0) - 2 * f0 - f1  # the cubic's power-basis coefficients of s^2 and s^3
+        c3 = 2 * (y0 - y1) + f0 + f1
+        alpha = hh * hh * second[:, :-1, None] / 2 - c2
+        beta = hh * hh * second[:, 1:, None] / 2 - c2 - 3 * c3 - alpha
+        bump = (s2 * (1 - s) ** 2).reshape(1, 1, k, 1)
+        inner = inner + bump * (alpha + beta * s.reshape(1, 1, k, 1))
+    return fine, torch.cat([inner.flatten(1, 2), values[:, -1:]], dim=1)
