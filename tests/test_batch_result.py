@@ -1,6 +1,7 @@
 """``fit_many(...)[i]`` is sample ``i``'s :class:`torchql.FitResult`: the one ``torchql.fit`` gives."""
 
 import math
+import re
 
 import pytest
 import torch
@@ -109,3 +110,19 @@ def test_callback_receives_each_samples_records_as_fit_hands_them():
         assert all(abs(s - t) <= 1e-8 * t for (_, s), (_, t) in zip(seen[b], alone)), b
     with pytest.raises(TypeError, match="`callback` must be callable"):
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, callback=3)
+
+
+def test_a_sample_is_indexed_by_any_integer_and_nothing_else(fleet):
+    """``result[i]`` takes a NumPy integer or a one-element integer tensor (as ``(~result.success).nonzero()``
+    gives) like an int; a float, a bool or a tensor of several indices is an error that says what it received."""
+    import numpy as np
+
+    result = fleet[1]
+    for index in (np.int64(1), torch.tensor(1), torch.tensor([1]), -len(result) + 1):
+        assert torch.equal(result[index].estimates, result[1].estimates)
+    for index, received in ((1.0, "float"), (True, "bool"), (torch.tensor([0, 1]), "shape (2,)"),
+                            (torch.tensor(1.0), "dtype torch.float32")):
+        with pytest.raises(TypeError, match=f"a sample index must be an integer; received .*{re.escape(received)}"):
+            result[index]
+    with pytest.raises(IndexError, match="out of range for a batch of"):
+        result[np.int64(len(result))]

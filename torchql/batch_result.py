@@ -8,6 +8,7 @@ every fit.
 from __future__ import annotations
 
 import math
+import operator
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -178,10 +179,16 @@ class BatchFitResult:
     def __len__(self) -> int:
         return int(self.success.shape[0])
 
-    def _index(self, i: int) -> int:
+    def _index(self, i) -> int:
+        """Sample index ``i`` in ``[0, B)``: anything an index may be (an int, a NumPy integer, a
+        one-element integer tensor; not a bool), negative counting from the end."""
         B = len(self)
-        if isinstance(i, bool) or not isinstance(i, int):
-            raise TypeError(f"a sample index must be an int; received {type(i).__name__}")
+        if isinstance(i, bool) or isinstance(i, torch.Tensor) and (i.dtype == torch.bool or i.numel() != 1):
+            raise TypeError(f"a sample index must be an integer; received {_describe(i)}")
+        try:
+            i = operator.index(i)
+        except TypeError:
+            raise TypeError(f"a sample index must be an integer; received {_describe(i)}") from None
         if not -B <= i < B:
             raise IndexError(f"sample index {i} is out of range for a batch of {B}")
         return i % B
@@ -384,3 +391,10 @@ def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
     out["start_params"] = ({name: torch.cat([s[name] for s in starts]) for name in starts[0]}
                            if all(s is not None for s in starts) else None)
     return out
+
+
+def _describe(i) -> str:
+    """A rejected index, as an error message names it: its type, and a tensor's shape and dtype."""
+    if isinstance(i, torch.Tensor):
+        return f"a tensor of shape {tuple(i.shape)} and dtype {i.dtype}"
+    return type(i).__name__
