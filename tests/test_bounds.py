@@ -504,3 +504,18 @@ def test_log_scale_in_fit_many_equals_fit(data):
         one = torchql.fit(LinearOscillator(**GUESS), batch[i], X0, scale={"A": "log"})
         assert many[i].log_scaled == ["A"] and many[i].iterations == one.iterations
         assert torch.allclose(many[i].estimates, one.estimates, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("argument, given", [
+    ("bounds", {"v": (2.0, 3.0), "v(t0)": (0.0, 5.0)}),
+    ("bounds", {"v(t0)": (0.0, 5.0), "v": (2.0, 3.0)}),
+    ("scale", {"v": "log", "v(t0)": "log"}),
+])
+def test_an_unknown_named_twice_in_bounds_or_scale_is_an_error(argument, given):
+    """A state under its two names (``"v"``, ``"v(t0)"``) in one dict: which entry would win depended on
+    the dict's order; now it is an error naming both keys."""
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=DT), t)[:, :1]
+    data = torchql.Observations(t, y, observe=["y"])
+    with pytest.raises(ValueError, match=rf"`{argument}` gives v\(t0\) twice, under '.*' and '.*': give it once"):
+        torchql.fit(LinearOscillator(0.5, 1.0), data, torch.tensor([0.2, 0.8], dtype=DT), **{argument: given})

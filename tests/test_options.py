@@ -90,6 +90,19 @@ def test_a_keyword_at_its_default_takes_the_field_and_a_conflict_is_named():
         torchql.fit(Decay(0.2), data, X0, options={"rtol": 1e-9})
 
 
+def test_a_keyword_passed_at_its_default_value_against_options_is_a_conflict_too():
+    """Passing ``method="kantorovich"`` (the default) with ``options`` that say shooting is two answers to
+    one question: an error, as ``multistart`` and ``profile`` give, not the options' silently; a keyword
+    not passed takes the field."""
+    data = _decay_data(0.01)
+    shooting = torchql.FitOptions(method="shooting")
+    with pytest.raises(ValueError, match="`method` is given twice, 'kantorovich' as a keyword and 'shooting' in `options`"):
+        torchql.fit(Decay(0.2), data, X0, method="kantorovich", options=shooting)
+    with pytest.raises(ValueError, match="`method` is given twice"):
+        torchql.fit_many(Decay(0.2), [data, data], X0, method="kantorovich", options=shooting)
+    assert torchql.fit(Decay(0.2), data, X0, options=shooting).method == "shooting"
+
+
 @pytest.mark.parametrize("kwargs, error, match", [
     (dict(method="newton"), ValueError, "`method` must be one of"),
     (dict(rtol=-1.0), ValueError, "`rtol`"),

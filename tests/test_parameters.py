@@ -102,3 +102,17 @@ def test_bad_specifications_are_named(data, parameters, kwargs, error, match):
 def test_bad_parameter_fields_are_named(kwargs, error, match):
     with pytest.raises(error, match=match):
         Parameter(1.0, **kwargs)
+
+
+def test_a_role_that_contradicts_params_or_fixed_x0_is_named(data):
+    """A coefficient ``params`` lists as an unknown and ``parameters`` holds fixed, or a state ``fixed_x0``
+    fixes and ``parameters`` lets vary, is an error: the two places disagree, and neither may silently win."""
+    x0 = torch.tensor([762.0, 0.5, 0.0], dtype=DT)
+    with pytest.raises(ValueError, match=r"`parameters\['N'\]` has vary=False, but `params` lists 'N' as an unknown"):
+        torchql.fit(SIR(), data, x0, params=["beta", "gamma", "N"], parameters={"N": Parameter(763.0, vary=False)})
+    with pytest.raises(ValueError, match=r"`parameters\['S\(t0\)'\]` has vary=True, but `fixed_x0` fixes 'S'"):
+        torchql.fit(SIR(), data, x0, fixed_x0=["S", "R"], parameters={"S(t0)": Parameter(762.0)})
+    # the same role in both places is no contradiction
+    agreed = torchql.fit(SIR(), data, x0, params=["beta", "gamma"], fixed_x0=["S", "R"],
+                         parameters={"N": Parameter(763.0, vary=False), "R": Parameter(0.0, vary=False)})
+    assert agreed.success and agreed.unknown_names == ["I(t0)", "beta", "gamma"]

@@ -96,19 +96,23 @@ class Bounds:
             if not isinstance(bounds, Mapping):
                 raise TypeError(
                     f"`bounds` must be a dict {{name: (lower, upper)}}; received {type(bounds).__name__}")
+            given: dict[int, str] = {}
             for name, pair in bounds.items():
                 lo, hi = _pair(name, pair)
                 for i in _named(index, "bounds", name, all_names, unknown_names):
+                    _once("bounds", given, i, name, unknown_names)
                     lower[i], upper[i] = lo, hi
         log = [False] * m
         if scale is not None:
             if not isinstance(scale, Mapping):
                 raise TypeError(f"`scale` must be a dict {{name: 'lin' | 'log' | 'log10'}}; received "
                                 f"{type(scale).__name__}")
+            scaled: dict[int, str] = {}
             for name, kind in scale.items():
                 if kind not in SCALES:
                     raise ValueError(f"`scale[{name!r}]` must be one of {list(SCALES)}; received {kind!r}")
                 for i in _named(index, "scale", name, all_names, unknown_names):
+                    _once("scale", scaled, i, name, unknown_names)
                     log[i] = kind != "lin"
                     if log[i] and (-math.inf < lower[i] < 0 or upper[i] <= 0):
                         raise ValueError(f"`scale[{name!r}]` is {kind!r}, so {unknown_names[i]} is positive; its "
@@ -338,6 +342,15 @@ def moved_guesses_note(moved: Mapping[str, tuple[float, float]]) -> str:
         return ""
     return ("The guesses of " + str(list(moved)) + " lay on or outside their bounds and were moved inside: "
             + ", ".join(f"{name} = {given:g} -> {used:.6g}" for name, (given, used) in moved.items()) + ".")
+
+
+def _once(argument: str, given: dict, i: int, name, unknown_names: Sequence[str]) -> None:
+    """Record that key ``name`` of ``argument`` (``bounds`` or ``scale``) sets unknown ``i``; a ``ValueError``
+    where another key set it already (a state under its two names, ``"v"`` and ``"v(t0)"``, or a
+    buffer and one of its entries), rather than the later key silently winning."""
+    if i in given:
+        raise ValueError(f"`{argument}` gives {unknown_names[i]} twice, under {given[i]!r} and {name!r}: give it once")
+    given[i] = name
 
 
 def _pair(name: str, pair) -> tuple[float, float]:

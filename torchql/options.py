@@ -198,12 +198,14 @@ def _given_twice(name: str, keyword, value) -> ValueError:
     return ValueError(f"`{name}` is given twice, {keyword!r} as a keyword and {value!r} in `options`; give it once")
 
 
-def with_options(options: "FitOptions | None", given: dict, defaults: dict | None = None) -> dict:
+def with_options(options: "FitOptions | None", given: dict, defaults: dict | None = None,
+                 explicit: set | None = None) -> dict:
     """The keyword arguments ``given`` (as an entry point received them) with ``options``' fields.
 
-    A keyword left at its default (``defaults``, else :class:`FitOptions`' own) takes the field; a
-    field that the entry point does not take (not in ``given``) must be at its default; a field and a
-    keyword set to different values is a ``ValueError`` naming it.
+    A keyword the caller did not pass (not in ``explicit``; without ``explicit``, one left at its
+    default: ``defaults``, else :class:`FitOptions`' own) takes the field; a field that the entry
+    point does not take (not in ``given``) must be at its default; a field and a keyword passed with
+    different values is a ``ValueError`` naming it, also where the keyword passed is its default.
     """
     out = dict(given)
     if options is None:
@@ -213,7 +215,9 @@ def with_options(options: "FitOptions | None", given: dict, defaults: dict | Non
             raise ValueError(f"`options.{name}` = {value!r} does not apply here (this function takes no "
                              f"`{name}`); leave it at its default {default!r}")
         keyword = given[name]
-        if not (_same(keyword, (defaults or {}).get(name, default)) or _same(keyword, value)):
+        passed = (name in explicit if explicit is not None
+                  else not _same(keyword, (defaults or {}).get(name, default)))
+        if passed and not _same(keyword, value):
             raise _given_twice(name, keyword, value)
         out[name] = value
     return out
@@ -246,10 +250,11 @@ def accepts_options(function):
         if options is None:
             return function(*args, **kwargs)
         bound = signature.bind(*args, **kwargs)
+        explicit = {name for name in names if name in bound.arguments}
         bound.apply_defaults()
         given = {name: bound.arguments[name] for name in names}
         bound.arguments.update(with_options(options, given, {name: signature.parameters[name].default
-                                                             for name in names}))
+                                                             for name in names}, explicit))
         return function(*bound.args, **bound.kwargs)
     return call
 

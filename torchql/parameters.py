@@ -16,8 +16,9 @@ It is written into the keywords the fit already takes (``params``, ``fixed_x0``,
 ``scale``, ``x0_expr``) and a copy of the model holding the given coefficient values, so everything else
 (profiles, multistart, reports, ``result.fit_kwargs``) sees one ordinary fit. Names not in the
 specification keep their defaults: the model's buffers and ``constants``, ``x0``, and the other
-keywords as given. A name given both here and in ``bounds`` or ``scale`` is an error, not a
-silent choice.
+keywords as given. A name given both here and in ``bounds``, ``scale`` or ``x0_expr`` is an error,
+not a silent choice, and so is one whose role here contradicts ``params`` (a coefficient listed
+there with ``vary=False`` here) or ``fixed_x0`` (a state fixed there with ``vary=True`` here).
 """
 
 from __future__ import annotations
@@ -128,6 +129,9 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
                 out_params.append(name)
                 changed = True
             if not spec.vary and name in out_params:
+                if params is not None and name in params:
+                    raise ValueError(f"`parameters[{key!r}]` has vary=False, but `params` lists {name!r} as an unknown: "
+                                     "give it in one place")
                 out_params.remove(name)
                 changed = True
         elif name in states and spec.expr is not None:
@@ -139,6 +143,9 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
         elif name in states:
             if spec.value is not None:
                 state_values[states.index(name)] = _checks.finite_number(f"parameters[{key!r}].value", spec.value)
+            if spec.vary and fixed_x0 is not None and any(name in own for own in fixed):
+                raise ValueError(f"`parameters[{key!r}]` has vary=True, but `fixed_x0` fixes {name!r}: give it in one "
+                                 "place")
             for own in fixed:
                 if not spec.vary and name not in own:
                     own.append(name)
