@@ -97,6 +97,16 @@ def test_auto_finds_robertson_stiff_and_an_oscillator_not(robertson_data):
     assert by_torchdiffeq.success and by_torchdiffeq.solver_options["solver"] == "dopri5"
 
 
+def test_auto_finds_robertson_stiff_along_log_normal_data_too(robertson_data):
+    """Log-normal data are fitted on ``log y``; the stiffness test reads the states they measure,
+    ``exp(log y)``, as it reads normal data (it saw only the guesses (1, 0, 0), chose the explicit
+    solver and crawled through the first iteration)."""
+    data, x0 = robertson_data
+    logs = torchql.Observations(data.t, data.y, observe=["y1", "y2", "y3"], noise="lognormal", sigma=0.01)
+    result = torchql.fit(Robertson(), logs, x0, fixed_x0=["y1", "y2", "y3"], t0=0.0, max_iter=1)
+    assert result.solver_options["solver"] == "rodas5p"
+
+
 def test_sensitivities_integrated_with_the_solution_give_the_grid_transfers_optimum():
     """``linear_solver="rodas5p"`` (shooting's sensitivities integrated with each solution by
     Rodas5P on its own steps) reaches the optimum that ``"radau"``'s grid transfers reach, to

@@ -503,6 +503,11 @@ class ObservationOperator:
         """A label per output: the state it reads directly, else ``"y[k]"``."""
         return [self.state_names[i] if i is not None else f"y[{k}]" for k, i in enumerate(self.observed_states)]
 
+    def measured_states(self, y: torch.Tensor) -> tuple[torch.Tensor, list[int | None]]:
+        """The data ``y (..., T, K)`` as values of the states the outputs read directly, and for each
+        output that state's index (``None``: an output that is no state itself); here ``y`` as it is."""
+        return y, self.observed_states
+
     @property
     def observed_states(self) -> list[int | None]:
         """For each output, the index of the single state it reads directly, else ``None``."""
@@ -575,6 +580,11 @@ class LogObservation:
     def observed_states(self) -> list[None]:
         """No output is a state itself (it is the logarithm of one)."""
         return [None] * self.K
+
+    def measured_states(self, y: torch.Tensor) -> tuple[torch.Tensor, list[int | None]]:
+        """The log data ``y (..., T, K)`` as values of the states the inner operator reads directly:
+        ``exp(y)``, with its indices (as :meth:`ObservationOperator.measured_states`)."""
+        return torch.exp(y), self.inner.observed_states
 
     def check(self, x: torch.Tensor, params: dict | None = None) -> None:
         self.inner.check(x, params)

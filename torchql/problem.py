@@ -265,10 +265,11 @@ class Problem:
         solver, and the grid: ``(G,)`` shared, or ``(B, G)`` per sample (padded by its last node)."""
         n = self.system.n
         given = None if linear_solver is None else check_linear_solver(linear_solver)
+        measured, observed = self.operator.measured_states(self.y)  # log-normal data: exp(log y)
         try:  # "auto": the Jacobians along the data by jacrev under vmap
             self.solver = choose_solver(self.solver, self.system, self.t_obs,
-                                        torch.where(self.mask, self.y, torch.full_like(self.y, float("nan"))),
-                                        self.operator.observed_states, self.z0[:, :n], self.z0[:, n:],
+                                        torch.where(self.mask, measured, torch.full_like(measured, float("nan"))),
+                                        observed, self.z0[:, :n], self.z0[:, n:],
                                         (self.t_obs[..., -1] - self.t0).expand(self.B),
                                         explicit=None if given is None else given.auto_solver)
         except Exception as exc:  # noqa: BLE001
