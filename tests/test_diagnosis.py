@@ -6,7 +6,8 @@ import pytest
 import torch
 
 import torchql
-from torchql.diagnosis import RUNAWAY_FACTOR, SSE_GROWTH, WEAK_RUNAWAY_FACTOR, final_status, null_detail, ran_away
+from torchql.diagnosis import (RUNAWAY_FACTOR, SSE_GROWTH, WEAK_RUNAWAY_FACTOR, final_status, negligible_columns,
+                               null_detail, ran_away)
 from torchql.status import Status
 
 DT = torch.float64
@@ -173,3 +174,64 @@ def test_rank_deficient_far_from_a_stationary_point_is_not_called_not_identifiab
     near = final_status(Status.STALLED, step=torch.tensor([0.1 * STATIONARY_STEP, 0.0], dtype=torch.float64), **common)
     assert near[0] is Status.NOT_IDENTIFIABLE and "{a, b}" in near[1]
     assert final_status(Status.MAX_ITER, **common)[0] is Status.NOT_IDENTIFIABLE  # no step given: as before
+
+
+def test_negligible_columns_compare_effects_over_the_unknowns_magnitudes():
+    """Column j times max(|estimate_j|, scale_j) against max(L, m) eps times the largest such product."""
+    tol = 10 * torch.finfo(DT).eps  # L = 10 rows, m = 5 unknowns
+    J = torch.zeros(10, 5, dtype=DT)
+    J[0, 0], J[1, 1], J[2, 2], J[3, 3] = 1.0, 0.5 * tol, 2.0 * tol, 1e-25
+    estimates = torch.zeros(5, dtype=DT)
+    scale = torch.tensor([1.0, 1.0, 1.0, 1e25, 1.0], dtype=DT)  # unknown 3 in units 1e25 times too small
+    assert negligible_columns(J, estimates, scale).tolist() == [False, True, False, False, True]
+    # an estimate above its typical magnitude counts: 4 * 0.5 tol is above the threshold
+    assert not negligible_columns(J, torch.tensor([0.0, 4.0, 0.0, 0.0, 0.0], dtype=DT), scale)[1]
+    batch = torch.stack([J, torch.zeros_like(J)])  # with every column zero, every unknown is undetermined
+    assert negligible_columns(batch, estimates, scale).tolist() == [[False, True, False, False, True], [True] * 5]
+
+
+def _at_rest_fit(kind):
+    """The linear oscillator seen at rest, y = 0 at 14 times, fitted from A = 0.5, B = 1 and (y, v) = (0.2, 0.8)."""
+    from torchql.models import LinearOscillator
+
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = torch.zeros(14, 1, dtype=DT)
+    if kind == "fit":
+        return torchql.fit(LinearOscillator(0.5, 1.0), torchql.Observations(t, y, observe=["y"]),
+                           torch.tensor([0.2, 0.8], dtype=DT))
+    batch = torchql.fit_many(LinearOscillator(0.5, 1.0), torchql.Observations(t, torch.stack([y, y]), observe=["y"]),
+                             torch.tensor([0.2, 0.8], dtype=DT))
+    return batch[0]
+
+
+@pytest.mark.parametrize("kind", ["fit", "fit_many"])
+def test_data_that_carry_no_information_about_the_parameters_are_not_identifiable(kind):
+    """At rest the trajectory is 0 and so are its sensitivities to A and B (~1e-32, from the estimates'
+    rounding, or exactly 0), while those to y(t0), v(t0) are of order 1. Scaled to unit norm the columns
+    looked well conditioned (singular values 1.35 to 0.31) and the fit CONVERGED with A and B at their
+    guesses, +/- 0.5. Over their magnitudes (0.5, 1) their effects are 1e-31 of the others' or nothing:
+    not identifiable, A and B named and without error bars; the initial states, determined as 0, keep theirs."""
+    result = _at_rest_fit(kind)
+    assert result.status is Status.NOT_IDENTIFIABLE and not result.success, result.message
+    assert "{B}; {A}" in result.message
+    se = result.stderr
+    assert math.isnan(se["A"]) and math.isnan(se["B"])
+    # residuals of 1e-31 at most (SSE below 4e-62) and unit sensitivities: the states are 0 to within 1e-30
+    for name in ("y(t0)", "v(t0)"):
+        assert 0 <= se[name] < 1e-30 and abs(float(result.estimates[result.unknown_names.index(name)])) < 1e-30
+
+
+def test_a_tiny_initial_state_in_its_own_units_is_no_negligible_column():
+    """Data of scale 1e-20: the raw sensitivity to k (1.6e-20) is 1e-20 of that to y(t0) (1.8), but over
+    the unknowns' magnitudes (1e-20 and 0.7) the two effects are alike. The fit is that of the same data
+    in units 1e20 times larger: k and its standard error the same to the integration's accuracy."""
+    from testmodels import Decay
+
+    times = torch.linspace(0, 5, 20, dtype=DT)
+    noise = 1e-3 * torch.randn(20, generator=torch.Generator().manual_seed(1), dtype=DT)
+    fits = [torchql.fit(Decay(1.0), torchql.Observations(times, (s * torch.exp(-0.7 * times) * (1 + noise))[:, None],
+                                                         observe=["y"]), torch.tensor([2 * s], dtype=DT))
+            for s in (1.0, 1e-20)]
+    assert all(f.status is Status.CONVERGED for f in fits), [f.message for f in fits]
+    assert fits[1].stderr["k"] == pytest.approx(fits[0].stderr["k"], rel=1e-5)
+    assert fits[1].stderr["y(t0)"] == pytest.approx(1e-20 * fits[0].stderr["y(t0)"], rel=1e-5)

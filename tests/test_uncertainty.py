@@ -9,7 +9,7 @@ import torch
 import torchql
 from testmodels import Decay, Product
 from torchql.models import CoastingCar
-from torchql.uncertainty import normal_quantile, student_t_quantile
+from torchql.uncertainty import covariance, normal_quantile, student_t_quantile
 
 DT = torch.float64
 
@@ -92,6 +92,58 @@ def test_not_identifiable_has_no_error_bars():
     assert math.isnan(se["a"]) and math.isnan(se["b"])
     assert se["y(t0)"] >= 0 and not math.isnan(se["y(t0)"])
     assert torch.isnan(result.covariance[1:, :]).all() and torch.isnan(result.covariance[:, 1:]).all()
+
+
+def test_a_zero_column_takes_only_its_own_unknowns_error_bars():
+    """The other columns' covariance is that of the fit without the unknown: ``s^2 (J^T J)^{-1}``
+    of the two nonzero columns (``s^2 = SSE / (L - m)`` with all ``m = 3`` unknowns counted)."""
+    J = torch.randn(8, 3, generator=torch.Generator().manual_seed(0), dtype=DT)
+    J[:, 1] = 0.0
+    cov = covariance(J, torch.zeros(8, dtype=torch.bool), sse=2.0, sigma_known=False, rcond=1e-12).matrix
+    rest = J[:, [0, 2]]
+    expected = 2.0 / (8 - 3) * torch.linalg.inv(rest.T @ rest)
+    torch.testing.assert_close(cov[[0, 2]][:, [0, 2]], expected, rtol=1e-12, atol=0)
+    assert torch.isnan(cov[1]).all() and torch.isnan(cov[:, 1]).all()
+
+
+class FedDecay(torchql.ODEModel):
+    """``y' = -k1 y + k2 z``, ``z' = -k3 z``: with ``z(0) = 0`` known, ``z`` stays 0 and the
+    sensitivities of ``y`` to ``k2`` and ``k3`` are exactly zero."""
+
+    state_names = ("y", "z")
+
+    def __init__(self, k1=0.5, k2=0.3, k3=0.2):
+        super().__init__()
+        for name, value in dict(k1=k1, k2=k2, k3=k3).items():
+            self.register_buffer(name, torch.tensor(value, dtype=DT))
+
+    def forward(self, t, x):
+        y, z = x.unbind(-1)
+        return torch.stack((-self.k1 * y + self.k2 * z, -self.k3 * z), -1)
+
+
+def test_unknowns_without_sensitivity_leave_the_determined_ones_their_error_bars():
+    """k2 and k3 move nothing: NOT_IDENTIFIABLE, named, without error bars. y(t0) and k1 keep those
+    of the fit of those two alone, up to the residual variance's degrees of freedom (L - m: 16, not
+    18), in fit and in each sample of fit_many."""
+    times = torch.linspace(0, 5, 20, dtype=DT)
+    x0 = torch.tensor([1.0, 0.0], dtype=DT)
+    y = torchql.simulate(FedDecay(1.0), x0, times)[:, :1]
+    y = y + 1e-3 * torch.randn(y.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+    data = torchql.Observations(times, y, observe=["y"])
+    result = torchql.fit(FedDecay(), data, x0, fixed_x0=["z"])
+    assert result.status is torchql.Status.NOT_IDENTIFIABLE and "{k3}; {k2}" in result.message
+    alone = torchql.fit(FedDecay(), data, x0, fixed_x0=["z"], params=["k1"])
+    assert alone.success and (result.dof, alone.dof) == (16, 18)
+    se = result.stderr
+    assert math.isnan(se["k2"]) and math.isnan(se["k3"])
+    for name in ("y(t0)", "k1"):
+        assert se[name] == pytest.approx(alone.stderr[name] * math.sqrt(18 / 16), rel=1e-9)
+    batch = torchql.fit_many(FedDecay(), torchql.Observations(times, torch.stack([y, y]), observe=["y"]), x0,
+                             fixed_x0=["z"])
+    for k in range(2):
+        assert batch.status[k] is torchql.Status.NOT_IDENTIFIABLE
+        torch.testing.assert_close(batch.covariance[k], result.covariance, rtol=1e-9, atol=0, equal_nan=True)
 
 
 @pytest.mark.slow

@@ -13,6 +13,9 @@ A fit that ends at ``MAX_ITER`` or ``STALLED`` is examined at its final estimate
   from a stationary point, the status stands and the message names the unknowns;
 * otherwise the status stands.
 
+A Jacobian column whose effect is below rounding (:func:`negligible_columns`) is no information:
+its unknown is treated as one with a zero column, which the data do not determine.
+
 A converged fit is examined too: a rank-deficient Jacobian at its estimates means the data do
 not determine them (``NOT_IDENTIFIABLE``), unless the estimates ran away along that direction.
 A runaway into a degenerate limit (a Michaelis–Menten ``V, Km -> inf`` with ``V / Km`` fixed,
@@ -35,7 +38,7 @@ import torch
 from .status import Status
 
 __all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "STATIONARY_STEP", "null_detail",
-           "typical_magnitudes", "ran_away", "final_status"]
+           "typical_magnitudes", "negligible_columns", "ran_away", "final_status"]
 
 #: An unknown whose magnitude exceeds this many times its typical one has run away.
 RUNAWAY_FACTOR = 1e6
@@ -66,6 +69,37 @@ def typical_magnitudes(guess: torch.Tensor, first: torch.Tensor | None = None) -
     near 0), 1 where both are 0."""
     typical = guess.abs() if first is None else torch.maximum(first, guess.abs())
     return torch.where(typical > 0, typical, torch.ones_like(typical))
+
+
+def negligible_columns(jacobian: torch.Tensor, estimates: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Which columns of the weighted Jacobian carry no information: bool ``(..., m)``.
+
+    The rank tests scale each column to unit norm, which makes them blind to the units of the
+    unknowns but also to a column that is numerically nothing (the sensitivities of a trajectory
+    identically ~0, of order 1e-32, look like any other once scaled). Columns of different units
+    are compared here in the units of their unknowns' own magnitudes: column ``j`` times
+    ``|u_j| = max(|estimate_j|, scale_j)`` is the change of the weighted values when unknown ``j``
+    changes by its magnitude. Column ``j`` is negligible when that change is at most
+    ``max(L, m) eps`` times the largest such change of any unknown: the rounding threshold of the
+    numerical rank of ``J diag(|u|)`` (that of numpy's ``matrix_rank``). That matrix then has a
+    singular value below rounding (at most the column's norm), with ``e_j`` its direction up to
+    rounding: no data in this precision tell ``u_j`` within its magnitude. A sensitivity that is small but real (a weak parameter, a tiny initial
+    state measured in its own units) is many orders above that threshold. The residuals are no
+    reference: an exact fit has none, and a fit to a trajectory at rest has them at the same 1e-32
+    as its columns. A zero column is negligible; so are all columns when every one is zero.
+
+    Parameters
+    ----------
+    jacobian : Tensor ``(..., L, m)``
+        Weighted sensitivities of the values to the unknowns.
+    estimates, scale : Tensor ``(..., m)``
+        The estimates and the unknowns' typical magnitudes (:func:`typical_magnitudes`).
+    """
+    magnitude = torch.maximum(estimates.abs(), scale.abs())
+    effect = torch.linalg.vector_norm(jacobian, dim=-2) * magnitude
+    L, m = jacobian.shape[-2:]
+    eps = torch.finfo(jacobian.dtype).eps
+    return effect <= max(L, m) * eps * effect.amax(dim=-1, keepdim=True)
 
 
 def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequence[str],

@@ -22,7 +22,7 @@ import math
 import torch
 
 from .bounds import at_bound_note, moved_guesses_note
-from .diagnosis import final_status, null_detail, typical_magnitudes
+from .diagnosis import final_status, negligible_columns, null_detail, typical_magnitudes
 from .budget import no_time_budget
 from .dopri import dopri_batch
 from .engine_evaluate import not_above
@@ -95,6 +95,7 @@ class FinalPass:
             rows, J, s, rw, J_info = rows[keep], J[keep], s[keep], rw[keep], J_info[keep]
         if rows.numel():
             used = self._used(rows)
+            J, J_info = self._without_negligible(rows, z0, J, J_info)
             deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail, used)
             exact = torch.cat([self.exact[rows], torch.zeros_like(used[:, self.exact.shape[1]:])], dim=1)
             cov[rows] = _covariance(J_info, used, s, self.L[rows], spec, deficient | exact.any(dim=1), exact)
@@ -277,8 +278,7 @@ class FinalPass:
                                                  None)
         deficient |= L < m
         estimates = z0[rows][:, spec.unknown_index]
-        scales = typical_magnitudes(self.z0_guess[rows][:, spec.unknown_index],
-                                    None if self.scale is None else self.scale[rows])
+        scales = self._typical(rows)
         sse_list = sse.tolist()
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
         for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
@@ -298,6 +298,20 @@ class FinalPass:
                 sse_start=first_sse[k], step=step[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
+
+    def _typical(self, rows) -> torch.Tensor:
+        """The typical magnitudes ``(S, m)`` of the unknowns of samples ``rows``
+        (:func:`torchql.diagnosis.typical_magnitudes`)."""
+        idx = self.spec.unknown_index
+        return typical_magnitudes(self.z0_guess[rows][:, idx], None if self.scale is None else self.scale[rows])
+
+    def _without_negligible(self, rows, z0, *jacobians):
+        """The weighted Jacobians ``(S, R, m)`` of samples ``rows`` at the estimates ``z0`` with
+        their columns below rounding (:func:`torchql.diagnosis.negligible_columns`, judged on the
+        first) set to zero: the rank test, the status and the covariance treat those unknowns as
+        ones the data do not determine. The reported Jacobian keeps its values."""
+        zero = negligible_columns(jacobians[0], z0[rows][:, self.spec.unknown_index], self._typical(rows))
+        return tuple(torch.where(zero.unsqueeze(1), torch.zeros_like(J), J) for J in jacobians)
 
 
 def _fisher_rows(C_mean: torch.Tensor, w: torch.Tensor, g: torch.Tensor) -> torch.Tensor:

@@ -55,6 +55,8 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     rcond : float
         Relative singular-value threshold. Unknowns with a component along a direction whose
         singular value falls below it get NaN variances and covariances; the others keep theirs.
+        A zero column (an unknown, or a combination left free by the exact values, that moves no
+        value) is such a direction, with singular value 0: it takes only its own unknowns' error bars.
     """
     L, m = jacobian.shape
     nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
@@ -74,8 +76,9 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     if A.shape[1] == 0:
         return Covariance(torch.zeros_like(nan), dof, s2)
     scale = torch.linalg.vector_norm(A, dim=0)
-    if bool((scale == 0).any()):
-        return Covariance(nan, dof, s2)
+    # a zero column is a direction the data do not see: its singular value is 0 and it is
+    # dropped like any other below ``rcond``, so only the unknowns along it lose their variance
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
     _, S, Vh = torch.linalg.svd(A / scale, full_matrices=True)
     r = S.shape[0]
     keep = S > rcond * S[0]
