@@ -7,8 +7,9 @@ samples still running. One iteration of a sample:
 
 1. at a fresh iterate, the budgets (``max_iter``, ``max_time``) and the rows' finiteness;
 2. the least-squares update ``alpha`` (:meth:`Engine._solve`: batched SVD with each sample's
-   damping; equality-constrained per sample where values are marked ``exact``; bounds in their
-   transformed variables), and the convergence tests on undamped steps;
+   damping; equality-constrained per sample where values are marked ``exact``, their merit then
+   an exact penalty weighted above the constraints' multipliers, :meth:`Engine._weigh_exact`;
+   bounds in their transformed variables), and the convergence tests on undamped steps;
 3. the trial iterate (:meth:`Engine._propose`: Kantorovich's superposed trajectory, re-linearized;
    shooting's model solution), accepted when it lowers the merit or, failing that test, the
    model's own sum of squares;
@@ -30,8 +31,8 @@ import torch
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
-from .engine_evaluate import _LOOSE_RTOL, INEXACT_FACTOR, Evaluation, _pick, not_above
-from .engine_final import FinalPass
+from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation, _pick, not_above
+from .engine_final import FinalPass, Records
 from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, put_samples, shifted_report
 from .grid import last_nodes
@@ -104,7 +105,7 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
     return result
 
 
-class Engine(Evaluation, FinalPass, AutoGrid):
+class Engine(Evaluation, FinalPass, AutoGrid, Records):
     """The iteration of one chunk of samples (indices ``index`` of the problem's batch)."""
 
     def __init__(self, spec: Problem, index: torch.Tensor, max_time: float | None = None, history: bool = False,
@@ -116,6 +117,8 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         self.system = spec.system
         self.y, self.w, self.mask = spec.y[index], spec.weights[index], spec.mask[index]
         self.exact = spec.exact[index].reshape(index.numel(), -1)  # (S, R) rows met exactly
+        #: (S,) the exact rows' weight in the merit (:meth:`_weigh_exact`)
+        self.exact_weight = torch.zeros(index.numel(), dtype=spec.dtype, device=spec.device)
         self.L = spec.L[index]
         #: each sample's iterates (``torchql.fit``'s ``history``), when kept, and the open record
         self.history: list[list[IterationRecord]] | None = [[] for _ in range(index.numel())] if history else None
@@ -145,29 +148,33 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         self.G = self.grid.shape[-1]
 
     def _lstsq(self, idx, C, d, w, damping):
-        """Damped weighted least squares of the chunk's samples ``idx``: ``alpha (S, m)`` and
-        ``infeasible (S,)``. Batched (:func:`torchql.lstsq.solve_update_batch`); a sample with
-        values marked ``exact`` by :func:`torchql.lstsq.solve_update` on its used rows, those
-        rows met exactly, and ``infeasible`` (NaN update) where they cannot all be met."""
+        """Damped weighted least squares of the chunk's samples ``idx``: ``alpha (S, m)``,
+        ``infeasible (S,)`` and ``nu (S,)``. Batched (:func:`torchql.lstsq.solve_update_batch`); a
+        sample with values marked ``exact`` by :func:`torchql.lstsq.solve_update` on its used rows,
+        those rows met (a damped step: their fraction ``1 / (1 + damping)``), ``nu`` the largest
+        magnitude of their multipliers (else 0), and ``infeasible`` (NaN update) where they cannot
+        all be met."""
         spec = self.spec
         alpha, _, _ = solve_update_batch(C, d, w, spec.rcond, damping)
         infeasible = torch.zeros(idx.numel(), dtype=torch.bool, device=alpha.device)
+        nu = torch.zeros(idx.numel(), dtype=alpha.dtype, device=alpha.device)
         if not spec.has_exact:
-            return alpha, infeasible
+            return alpha, infeasible, nu
         exact, mask = self.exact[idx], self.mask[idx].reshape(idx.numel(), -1)
         for k in exact.any(dim=1).nonzero().flatten().tolist():
             used = mask[k]
             try:
-                alpha[k] = solve_update(C[k][used], d[k][used], w[k][used], exact[k][used], spec.rcond,
-                                        float(damping[k])).alpha
+                sol = solve_update(C[k][used], d[k][used], w[k][used], exact[k][used], spec.rcond, float(damping[k]))
+                alpha[k], nu[k] = sol.alpha, sol.multipliers.abs().max()
             except ExactRowsError:
                 alpha[k], infeasible[k] = float("nan"), True
-        return alpha, infeasible
+        return alpha, infeasible, nu
 
     def _solve(self, idx, cur, damping):
         """The damped updates of the samples ``idx``: ``alpha (S, m)``, the change of the unknowns,
-        ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``), and
-        ``infeasible (S,)``, samples whose exact values cannot all be met (:meth:`_lstsq`).
+        ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``),
+        ``infeasible (S,)``, samples whose exact values cannot all be met, and ``nu (S,)``, their
+        exact rows' largest multiplier (:meth:`_lstsq`).
 
         With bounds, solved for the internal variables (columns times ``du/dq``) and mapped back;
         the unknowns that the step pushes onto a bound or whose step is capped are held at their
@@ -177,11 +184,11 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(cur["w"], idx)
         bounds = spec.bounds
         if not bounds.active:
-            alpha, infeasible = self._lstsq(idx, C, d, w, damping)
-            return alpha, torch.zeros_like(infeasible), infeasible
+            alpha, infeasible, nu = self._lstsq(idx, C, d, w, damping)
+            return alpha, torch.zeros_like(infeasible), infeasible, nu
         u = _pick(cur["z0"], idx)[:, spec.unknown_index]
         Cq = bounds.internal_columns(C, u)
-        alpha_q, infeasible = self._lstsq(idx, Cq, d, w, damping)
+        alpha_q, infeasible, nu = self._lstsq(idx, Cq, d, w, damping)
         capped = bounds._capped(alpha_q, u).any(dim=1)
         alpha, blocked = bounds.step(u, alpha_q)
         rows = (blocked.any(dim=1) & ~infeasible).nonzero().flatten()
@@ -189,53 +196,16 @@ class Engine(Evaluation, FinalPass, AutoGrid):
             held = blocked[rows]
             move = alpha[rows].masked_fill(~held, 0.0)
             rhs = d[rows] - (C[rows] @ move.unsqueeze(-1)).squeeze(-1)
-            rest_q, stuck = self._lstsq(idx[rows], Cq[rows].masked_fill(held.unsqueeze(1), 0.0), rhs, w[rows],
-                                        damping[rows])
+            rest_q, stuck, _ = self._lstsq(idx[rows], Cq[rows].masked_fill(held.unsqueeze(1), 0.0), rhs, w[rows],
+                                           damping[rows])
             rest, _ = bounds.step(u[rows], rest_q.masked_fill(held, 0.0))
             alpha[rows] = torch.where(held, move, rest)
             infeasible[rows] |= stuck
-        return alpha, capped, infeasible
-
-    def _record(self, r: int, iteration: int, z0: torch.Tensor, sse: float, traj: torch.Tensor | None = None
-                ) -> IterationRecord:
-        """Sample ``r``'s record of an iterate: its estimates ``z0 (M,)``, ``sse`` and trajectory ``(G, M)``."""
-        n = self.system.n
-        grid = self.grid if self.grid.dim() == 1 else self.grid[r]
-        params = {k: v.detach().clone() for k, v in self.system.unpack_params(z0[n:]).items()}
-        return IterationRecord(iteration=iteration, params=params, x0=z0[:n].detach().clone(), sse=sse,
-                               trajectory=None if traj is None else traj[:, :n].detach().clone(),
-                               trajectory_t=None if traj is None else grid)
-
-    def _open(self, rows: torch.Tensor, cur: dict, iterations: torch.Tensor) -> None:
-        """Start the records of the iterates ``cur`` of samples ``rows``."""
-        if self.history is None:
-            return
-        for r in rows.tolist():
-            record = self._record(r, int(iterations[r]), cur["z0"][r], float(cur["sse"][r]), cur["rz"][r])
-            record.merit = float(cur["merit"][r])
-            self.history[r].append(record)
-
-    def _annotate(self, rows: torch.Tensor, **values) -> None:
-        """Set fields of the open records of samples ``rows`` (per-sample tensors or plain values)."""
-        if self.history is None:
-            return
-        for k, r in enumerate(rows.tolist()):
-            record = self.history[r][-1]
-            for key, value in values.items():
-                if isinstance(value, torch.Tensor):
-                    value = value[k].detach().clone() if value.dim() > 1 else value[k].item()
-                setattr(record, key, value)
+        return alpha, capped, infeasible, nu
 
     def _model_merit(self, rows: torch.Tensor, cur: dict) -> torch.Tensor:
         """The model's own merit at the iterates of ``rows`` where known (shooting: the merit), else NaN."""
         return cur["merit"][rows] if self.spec.scheme.integrates_model else cur["nl_sse"][rows]
-
-    def _notify(self, rows) -> None:
-        """Hand the open records of samples ``rows`` to the callback."""
-        if self.callback is None or self.history is None:
-            return
-        for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
-            self.callback(int(self.index[r]), self.history[r][-1])
 
     def run(self, report, first: tuple | None = None) -> dict:
         """Iterate every sample of the chunk to its status; then the final pass. ``report``
@@ -385,7 +355,9 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         samples whose exact rows cannot be met, or whose update is not finite, stop. Also their
         scaled sizes ``st.scaled``, recorded."""
         spec, cur = self.spec, st.cur
-        alpha, capped, infeasible = self._solve(act, cur, st.damping[act])
+        alpha, capped, infeasible, nu = self._solve(act, cur, st.damping[act])
+        if spec.has_exact:
+            self._weigh_exact(st, act[(st.damping[act] == 0) & ~infeasible], nu[(st.damping[act] == 0) & ~infeasible])
         if bool(infeasible.any()):
             st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
             act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
@@ -397,6 +369,22 @@ class Engine(Evaluation, FinalPass, AutoGrid):
         self._annotate(act, alpha=alpha, alpha_norm=scaled, damping=st.damping[act], rejected=st.rejected[act])
         st.scaled = scaled
         return act, alpha, capped
+
+    def _weigh_exact(self, st: LoopState, rows: torch.Tensor, nu: torch.Tensor) -> None:
+        """After undamped solves of samples ``rows`` whose exact rows' largest multiplier is ``nu
+        (R,)``, their weights in the merit rise to :data:`EXACT_MARGIN` times it where below (never
+        fall), and the current iterates' merits (and models' objectives, where known) follow."""
+        new = torch.maximum(self.exact_weight[rows], EXACT_MARGIN * nu)
+        up = new > self.exact_weight[rows]
+        rows, cur = rows[up], st.cur
+        if not rows.numel():
+            return
+        self.exact_weight[rows] = new[up]
+        cur["merit"][rows] = self._ssq(rows, cur["d"][rows], cur["w"][rows], penalty=True) + cur["log"][rows]
+        known = rows[torch.isfinite(cur["nl_sse"][rows])]
+        if known.numel():
+            cur["nl_sse"][known] = self._objective(known, cur["nl_traj"][known], cur["w"][known], cur["log"][known])
+        self._annotate(rows, merit=cur["merit"][rows])
 
     def _converged(self, st: LoopState, act, alpha, capped):
         """The convergence tests, on undamped steps only: the scaled step below ``xtol``, or the

@@ -14,6 +14,7 @@ import torch
 
 from .batch_integrate import integrate_each, propagate_linear_batch
 from .dopri import dopri_batch
+from .engine_state import _pick, bound_of, not_above
 from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import solve_on_grid_batch
 from .integrate import IntegrationError
@@ -59,27 +60,15 @@ _LOOSE_RTOL = 1e-6
 #: so early, long steps need no more (inexact Newton). A stiff interval's Radau IIA substeps grow as
 #: the tolerance's cube root: on Robertson kinetics the first transfers took most of a fit's time.
 INEXACT_FACTOR = 1e-2
-#: A trial step is accepted when its merit exceeds the current one by at most ``_MERIT_SLACK`` times
-#: its magnitude (rounding of the sums of squares must not reject a converging step).
-_MERIT_SLACK = 1e-10
-#: Weight of the exact rows' squared misfit in the merit (exact values are constraints).
-_EXACT_PENALTY = 1e6
-
-
-def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a <= b`` up to :data:`_MERIT_SLACK` relative to ``|b|`` (an objective with a ``sigma(p)``
-    function may be negative; for ``b >= 0`` this is ``a <= b (1 + _MERIT_SLACK)``)."""
-    return a <= bound_of(b)
+#: The exact rows' weight in the merit, ``mu``, is at least ``EXACT_MARGIN`` times the largest magnitude
+#: of their Lagrange multipliers seen (:meth:`Evaluation._ssq`): above the multipliers, the exact
+#: penalty's minimum is the constrained one.
+EXACT_MARGIN = 2.0
 
 
 #: Whether a second opinion (:meth:`Evaluation._model_not_above`) or a shooting trial stops integrating a
 #: model solution once it cannot win the comparison; ``False`` integrates every one whole (the same decisions).
 STOP_EARLY = True
-
-
-def bound_of(b: torch.Tensor) -> torch.Tensor:
-    """The largest value that :func:`not_above` takes as not above ``b``."""
-    return torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
 
 
 class Evaluation:
@@ -141,15 +130,23 @@ class Evaluation:
 
     def _ssq(self, idx, residual, w, penalty: bool = False):
         """Weighted sums of squares ``(S,)`` of ``residual (S, R)`` with weights ``w (S, R')`` (the
-        first ``R`` apply), the exact rows left out; with ``penalty``, the merit: plus
-        ``_EXACT_PENALTY`` times their squared misfit."""
-        r2 = (residual * w[:, :residual.shape[1]]) ** 2
+        first ``R`` apply), the exact rows left out; with ``penalty``, the merit: plus the exact
+        rows' weighted misfits ``|w r|`` summed, times the chunk's samples' weights ``mu``
+        (``exact_weight``).
+
+        The step meets the exact rows as constraints (:func:`torchql.lstsq.solve_update`), and
+        this is Han's exact penalty for such steps: with ``mu`` above the multipliers' magnitudes
+        (:data:`EXACT_MARGIN`) the constrained optimum is the merit's minimum and every undamped
+        step descends it. (A penalty on the squared misfit has its minimum off the exact values, by
+        the multiplier over twice its weight, where no step that meets them could be accepted.)
+        """
+        wr = residual * w[:, :residual.shape[1]]
         if not self.spec.has_exact:
-            return r2.sum(dim=1)
+            return (wr ** 2).sum(dim=1)
         exact = _pick(self.exact, idx)
-        zero = torch.zeros((), dtype=r2.dtype, device=r2.device)
-        total = torch.where(exact, zero, r2).sum(dim=1)
-        return total + _EXACT_PENALTY * torch.where(exact, r2, zero).sum(dim=1) if penalty else total
+        zero = torch.zeros((), dtype=wr.dtype, device=wr.device)
+        total = torch.where(exact, zero, wr ** 2).sum(dim=1)
+        return total + self.exact_weight[idx] * torch.where(exact, wr.abs(), zero).sum(dim=1) if penalty else total
 
     def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False, W: torch.Tensor | None = None) -> dict:
         """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
@@ -594,12 +591,3 @@ class Evaluation:
         it["nl_sse"][rows] = sse
         it["nl_traj"][rows] = traj
 
-
-def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``x[index]`` for sorted, distinct sample indices; ``x`` itself (no copy) when they are all of them.
-
-    Most iterations keep every sample of a chunk running, and the gathers of its largest arrays
-    (the propagated columns, the linearization) would copy them whole. The result may be ``x``:
-    callers only read it.
-    """
-    return x if index.numel() == x.shape[0] else x[index]

@@ -1,4 +1,6 @@
-"""The state of one chunk's iteration between the engine's phases, sample by sample."""
+"""The state of one chunk's iteration between the engine's phases, sample by sample: the loop's
+state (:class:`LoopState`), the samples' rows (:func:`put_samples`, :func:`_pick`) and the
+acceptance test's comparison of merits (:func:`not_above`)."""
 
 from __future__ import annotations
 
@@ -6,12 +8,12 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .result import Status
+from .status import Status
 
 if TYPE_CHECKING:
     from .engine import Engine
 
-__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "shifted_report"]
+__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "shifted_report", "not_above", "bound_of"]
 
 _STATUSES = list(Status)
 #: The status code of a sample still iterating.
@@ -19,6 +21,20 @@ RUNNING = -1
 
 #: Entries of a trial iterate that only decide its acceptance and are not kept.
 TRIAL_ONLY = ("failed", "defect")
+#: A trial step is accepted when its merit exceeds the current one by at most ``_MERIT_SLACK`` times
+#: its magnitude (rounding of the sums of squares must not reject a converging step).
+_MERIT_SLACK = 1e-10
+
+
+def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a <= b`` up to :data:`_MERIT_SLACK` relative to ``|b|`` (an objective with a ``sigma(p)``
+    function may be negative; for ``b >= 0`` this is ``a <= b (1 + _MERIT_SLACK)``)."""
+    return a <= bound_of(b)
+
+
+def bound_of(b: torch.Tensor) -> torch.Tensor:
+    """The largest value that :func:`not_above` takes as not above ``b``."""
+    return torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
 
 
 def shifted_report(report, offset: int):
@@ -86,3 +102,13 @@ class LoopState:
 
     def report_stopped(self) -> None:
         self.report(int((self.status != RUNNING).sum()))
+
+
+def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``x[index]`` for sorted, distinct sample indices; ``x`` itself (no copy) when they are all of them.
+
+    Most iterations keep every sample of a chunk running, and the gathers of its largest arrays
+    (the propagated columns, the linearization) would copy them whole. The result may be ``x``:
+    callers only read it.
+    """
+    return x if index.numel() == x.shape[0] else x[index]

@@ -26,7 +26,8 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["LstsqSolution", "ExactRowsError", "solve_update", "solve_update_batch", "relative_spectrum"]
+__all__ = ["LstsqSolution", "ExactRowsError", "solve_update", "solve_update_batch", "relative_spectrum",
+           "exact_multipliers"]
 
 
 class ExactRowsError(ValueError):
@@ -47,12 +48,18 @@ class LstsqSolution(NamedTuple):
         Whether some singular value fell below ``rcond`` times the largest.
     null_vectors : Tensor ``(m, k)``
         Unit directions (in the unknowns' own units) that the data cannot determine.
+    multipliers : Tensor ``(e,)``
+        The Lagrange multipliers ``nu`` of the ``e`` exact rows (in their order; empty without):
+        ``2 A^T (A alpha - b) + E^T nu = 0`` for the weighted rows ``A, b`` and the weighted exact
+        rows ``E``, so ``|nu_i|`` is the rate at which the least-squares part's optimum changes
+        per unit of exact row ``i``'s weighted misfit (see :func:`exact_multipliers`).
     """
 
     alpha: torch.Tensor
     singular_values: torch.Tensor
     rank_deficient: bool
     null_vectors: torch.Tensor
+    multipliers: torch.Tensor | None = None
 
 
 def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact: torch.Tensor,
@@ -72,8 +79,12 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     rcond : float
         Relative singular-value threshold for rank decisions.
     damping : float
-        Levenberg–Marquardt parameter relative to the largest singular value squared (``>= 0``).
-        The exact rows are met whatever the damping.
+        Levenberg–Marquardt parameter ``lambda`` relative to the largest singular value squared
+        (``>= 0``). The step toward the exact rows is shortened by ``1 / (1 + lambda)``, as the
+        damping shortens the best-determined direction of the data (an exact row is a row of
+        unbounded weight, whose relative squared singular value tends to one); the data's part is
+        damped as usual. ``lambda = 0`` meets the exact rows; every damped step meets the fraction
+        ``1 / (1 + lambda)`` of their misfit, so that a large damping shortens the whole step.
 
     Returns
     -------
@@ -89,6 +100,7 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     alpha_s = torch.zeros(m, dtype=C.dtype, device=C.device)
 
     A, b = Cs[~exact], dw[~exact]
+    A0, b0, R1, Q1 = A, b, None, None
     basis = torch.eye(m, dtype=C.dtype, device=C.device)
     if bool(exact.any()):
         E, e = Cs[exact], dw[exact]
@@ -102,7 +114,8 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
                 "iterate: they cannot all be met exactly; mark fewer values exact"
             )
         y1 = torch.linalg.solve_triangular(R1.T, e.unsqueeze(-1), upper=False).squeeze(-1)
-        alpha_s = Q[:, :k] @ y1
+        Q1 = Q[:, :k]
+        alpha_s = Q1 @ y1 / (1.0 + damping)
         basis = Q[:, k:]
         b = b - A @ alpha_s
         A = A @ basis
@@ -111,7 +124,8 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
         sv = torch.zeros(0, dtype=C.dtype, device=C.device)
         deficient = A.shape[1] > 0
         null = basis / scale.unsqueeze(-1) if deficient else torch.zeros(m, 0, dtype=C.dtype, device=C.device)
-        return LstsqSolution(alpha_s / scale, sv, deficient or bool(zero_cols.any()), _normalize(null))
+        return LstsqSolution(alpha_s / scale, sv, deficient or bool(zero_cols.any()), _normalize(null),
+                             exact_multipliers(A0, b0, alpha_s, Q1, R1))
     U, S, Vh = torch.linalg.svd(A, full_matrices=True)
     r = S.shape[0]
     keep = S > rcond * S[0] if r else S > 0
@@ -124,7 +138,21 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     deficient = bool((~keep).any()) or A.shape[0] < A.shape[1] or bool(zero_cols.any())
     dropped = torch.cat([Vh[:r][~keep], Vh[r:]], dim=0).T  # (cols of A, k)
     null = basis @ dropped / scale.unsqueeze(-1)
-    return LstsqSolution(alpha_s / scale, S, deficient, _normalize(null))
+    return LstsqSolution(alpha_s / scale, S, deficient, _normalize(null), exact_multipliers(A0, b0, alpha_s, Q1, R1))
+
+
+def exact_multipliers(A: torch.Tensor, b: torch.Tensor, alpha: torch.Tensor, Q1: torch.Tensor | None,
+                      R1: torch.Tensor | None) -> torch.Tensor:
+    """The multipliers ``nu (e,)`` of exact rows ``E`` with ``E^T = Q1 R1`` (``Q1 (m, e)``, ``R1 (e,
+    e)``; None: no exact rows, ``nu`` empty) at the step ``alpha (m,)`` of the rows ``A (L, m)``,
+    ``b (L,)``: ``nu = -2 R1^{-1} Q1^T A^T (A alpha - b)``, the least-squares solution of the
+    stationarity condition ``2 A^T (A alpha - b) + E^T nu = 0`` (exact for the undamped step).
+    Column scaling of ``A`` and ``E`` alike leaves ``nu`` unchanged: it is per unit of the exact
+    rows' (weighted) values."""
+    if Q1 is None:
+        return alpha.new_zeros(0)
+    g = A.T @ (A @ alpha - b)
+    return -2 * torch.linalg.solve_triangular(R1, (Q1.T @ g).unsqueeze(-1), upper=True).squeeze(-1)
 
 
 def _normalize(vectors: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,138 @@
+"""Values marked ``exact`` in mid-series: the iteration's merit and its constrained steps agree.
+
+Every step meets the exact rows as equality constraints (:func:`torchql.lstsq.solve_update`).
+The merit that accepts the steps was once the sum of squares plus ``1e6`` times the exact rows'
+*squared* misfit: its minimum lies off the exact values by the constraint's multiplier over
+``2e6`` (about ``1e-8`` on the oscillator below), where the point scores below the constrained
+optimum, so that no step toward the exact values could be accepted and the default fit STALLED
+at the truth (``damping=None`` converged). Damping did not shorten the step toward the exact
+values either, so a shooting fit from far guesses stalled with an exact value missed by 0.48.
+
+The merit is now Han's exact penalty, the misfit's magnitude weighted above the multipliers
+(:meth:`torchql.engine.Engine._weigh_exact`), whose minimum is the constrained optimum, and a
+damping ``lambda`` meets the fraction ``1 / (1 + lambda)`` of the exact rows' misfit.
+
+Bounds: a converged fit meets its linearized exact rows to rounding (about 1e-15); the reported
+misfit is the model's own solution's at the estimates, integrated at ``rtol = 1e-10`` relative to
+values of magnitude at most 1, so it is at most about ``1e-10`` (observed 5e-14 to 2e-13).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchql
+from torchql.lstsq import solve_update
+from torchql.models import LinearOscillator
+
+DT = torch.float64
+TIMES = torch.arange(14, dtype=DT) * 0.5
+MET = 1e-10  # rtol times the largest |y| (see the module's notes)
+
+
+def _data() -> torch.Tensor:
+    """The linear oscillator (A, B) = (0.1, 3) from (0, 1), y observed with noise 1e-2: ``(14, 1)``."""
+    y = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=DT), TIMES)[:, :1]
+    return y + 1e-2 * torch.randn(y.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+
+
+def _marked(*rows: int) -> torch.Tensor:
+    exact = torch.zeros(14, 1, dtype=torch.bool)
+    exact[list(rows)] = True
+    return exact
+
+
+@pytest.fixture(scope="module")
+def noisy() -> torch.Tensor:
+    return _data()
+
+
+@pytest.mark.parametrize("row", [5, 3, 9])
+def test_fit_from_the_truth_converges_with_the_exact_value_met(noisy, row):
+    """From the true coefficients, one exact value at y(2.5) STALLED (exact misfit 2e-8) and at
+    y(1.5) stopped CONVERGED_SSE; each now CONVERGES as the undamped iteration does, at its
+    optimum (the same SSE and estimates to 1e-9), the exact value met to ``MET``."""
+    data = torchql.Observations(TIMES, noisy, observe=["y"], exact=_marked(row))
+    x0 = torch.tensor([0.0, 1.0], dtype=DT)
+    result = torchql.fit(LinearOscillator(0.1, 3.0), data, x0)
+    undamped = torchql.fit(LinearOscillator(0.1, 3.0), data, x0, damping=None)
+    assert result.status is torchql.Status.CONVERGED, result.message
+    assert result.exact_residual < MET
+    assert result.sse == pytest.approx(undamped.sse, rel=1e-9)
+    torch.testing.assert_close(result.estimates, undamped.estimates, rtol=1e-9, atol=1e-11)
+
+
+def test_fit_many_meets_each_samples_exact_value_as_fit_does(noisy):
+    """A batch of the three datasets (one exact value each, at different times): every sample
+    CONVERGED, its exact value met to ``MET``, with its single fit's status and iterations."""
+    exact = torch.stack([_marked(5), _marked(3), _marked(9)])
+    y = noisy.expand(3, -1, -1)
+    x0 = torch.tensor([0.0, 1.0], dtype=DT)
+    batch = torchql.fit_many(LinearOscillator(0.1, 3.0), torchql.Observations(TIMES, y, observe=["y"], exact=exact), x0)
+    for b in range(3):
+        single = torchql.fit(LinearOscillator(0.1, 3.0),
+                             torchql.Observations(TIMES, noisy, observe=["y"], exact=exact[b]), x0)
+        assert batch.status[b] is torchql.Status.CONVERGED, batch.message[b]
+        assert batch.status[b] is single.status and int(batch.iterations[b]) == single.iterations
+        assert float(batch.exact_residual[b]) < MET
+
+
+def test_shooting_from_far_guesses_reaches_the_optimum(noisy):
+    """Shooting from (A, B) = (0.5, 1), y(0) and y(2.5) exact: it stalled at A = 2.52, B = 7.36
+    (SSE 1.14, y(2.5) missed by 0.48), the damping unable to shorten the step toward the exact
+    values. It now reaches Kantorovich's optimum (SSE 0.00262, to 1e-9) with both values met."""
+    data = torchql.Observations(TIMES, noisy, observe=["y"], exact=_marked(0, 5))
+    shooting = torchql.fit(LinearOscillator(0.5, 1.0), data, torch.tensor([0.2, 0.8], dtype=DT), method="shooting")
+    reference = torchql.fit(LinearOscillator(0.1, 3.0), data, torch.tensor([0.0, 1.0], dtype=DT), damping=None)
+    assert reference.success and reference.sse == pytest.approx(0.0026213, rel=1e-4)
+    assert shooting.status is torchql.Status.CONVERGED, shooting.message
+    assert shooting.sse == pytest.approx(reference.sse, rel=1e-9)
+    assert shooting.exact_residual < MET
+
+
+def test_a_fit_stopped_with_an_exact_value_unmet_says_so(noisy):
+    """One iteration from far guesses leaves the nonlinear misfit of the exact value (its
+    linearization met): the unconverged result's message names it."""
+    data = torchql.Observations(TIMES, noisy, observe=["y"], exact=_marked(0, 5))
+    result = torchql.fit(LinearOscillator(0.5, 1.0), data, torch.tensor([0.2, 0.8], dtype=DT), max_iter=1)
+    assert not result.success and result.exact_residual > 1e-6
+    assert "The values marked `exact` are not met: the largest misfit is" in result.message
+
+
+def _problem():
+    g = torch.Generator().manual_seed(11)
+    C = torch.randn(12, 4, generator=g, dtype=DT) * torch.tensor([1.0, 10.0, 0.1, 5.0], dtype=DT)
+    d = torch.randn(12, generator=g, dtype=DT)
+    w = torch.rand(12, generator=g, dtype=DT) + 0.5
+    exact = torch.zeros(12, dtype=torch.bool)
+    exact[[2, 7]] = True
+    return C, d, w, exact
+
+
+def test_multipliers_are_those_of_the_kkt_system():
+    """``solve_update``'s multipliers solve the KKT system of min ||W (C a - d)||^2 subject to
+    ``W_e C_e a = W_e d_e`` (per unit of the exact rows' weighted values), to rounding."""
+    C, d, w, exact = _problem()
+    sol = solve_update(C, d, w, exact, rcond=1e-12)
+    A, b = C[~exact] * w[~exact, None], d[~exact] * w[~exact]
+    E, e = C[exact] * w[exact, None], d[exact] * w[exact]
+    kkt = torch.zeros(6, 6, dtype=DT)
+    kkt[:4, :4], kkt[:4, 4:], kkt[4:, :4] = 2 * A.T @ A, E.T, E
+    expected = torch.linalg.solve(kkt, torch.cat([2 * A.T @ b, e]))
+    torch.testing.assert_close(sol.alpha, expected[:4], rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(sol.multipliers, expected[4:], rtol=1e-10, atol=1e-12)
+    assert solve_update(C, d, w, torch.zeros_like(exact), rcond=1e-12).multipliers.numel() == 0
+
+
+@pytest.mark.parametrize("damping", [0.0, 1e-3, 1.0, 1e6])
+def test_a_damped_step_meets_its_fraction_of_the_exact_misfit(damping):
+    """Damping ``lambda`` meets ``1 / (1 + lambda)`` of the exact rows' misfit (all at 0), so a
+    large damping shortens the whole step: at 1e6 its length is of order a millionth of the undamped
+    one's (both its parts scale as ``1 / lambda``; 2.4e-6 here, below 1e-5)."""
+    C, d, w, exact = _problem()
+    step = solve_update(C, d, w, exact, rcond=1e-12, damping=damping).alpha
+    torch.testing.assert_close(C[exact] @ step, d[exact] / (1 + damping), rtol=1e-10, atol=1e-13)
+    if damping == 1e6:
+        full = solve_update(C, d, w, exact, rcond=1e-12).alpha
+        assert torch.linalg.vector_norm(step) < 1e-5 * torch.linalg.vector_norm(full)
