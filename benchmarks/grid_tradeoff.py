@@ -2,7 +2,8 @@
 
 ``fit_many``'s defaults (``grid="auto"``: each dataset's own storage intervals, from the fourth
 derivative of its first trajectory; ``rtol=1e-10``) against settings a user may try for speed:
-a fixed number of uniform storage intervals (``grid=``) or a looser tolerance (``rtol=1e-8``).
+a fixed number of uniform storage intervals (``grid=``), a looser tolerance (``rtol=1e-8``), or the
+quintic storage (``linear_solver="taylor_quintic"``, with its own automatic grid or 20 intervals).
 On ``benchmarks/batch.py``'s families (the same truths, noise and starts), ``--size`` datasets
 each, torch on one thread. Every row is timed ``--repeat`` times (the fastest counts) after one
 untimed warm-up on a small batch.
@@ -39,6 +40,9 @@ import batch  # noqa: E402  (the families, their data and the fit_many runner)
 #: The rows: a label and the options given to ``fit_many`` (none: its defaults).
 SETTINGS = (("defaults", {}), ("grid=20", {"grid": 20}), ("grid=50", {"grid": 50}), ("grid=100", {"grid": 100}),
             ("rtol=1e-8", {"rtol": 1e-8}))
+#: The quintic storage's rows, in a table of their own below each family's (same columns and reference).
+QUINTIC = (('linear_solver="taylor_quintic"', {"linear_solver": "taylor_quintic"}),
+           ('linear_solver="taylor_quintic", grid=20', {"linear_solver": "taylor_quintic", "grid": 20}))
 #: The reference of the accuracy columns.
 REFERENCE = ("grid=1000 (reference)", {"grid": 1000})
 
@@ -47,7 +51,7 @@ def measure(family: batch.Family, data: batch.Data, repeat: int) -> list[tuple]:
     """``(label, seconds, result)`` of every setting and of the reference, fastest of ``repeat`` runs."""
     batch.run_fit_many(family, data.head(min(8, len(data.y))))  # warm-up
     rows = []
-    for label, options in (*SETTINGS, REFERENCE):
+    for label, options in (*SETTINGS, REFERENCE, *QUINTIC):
         result, seconds = batch.best_of(repeat, lambda: batch.run_fit_many(family, data, **options))
         rows.append((label, seconds, result))
         print(f"... {family.key}: {label} {seconds:.3f} s", file=sys.stderr, flush=True)
@@ -55,14 +59,22 @@ def measure(family: batch.Family, data: batch.Data, repeat: int) -> list[tuple]:
 
 
 def table(family: batch.Family, size: int, rows: list[tuple]) -> str:
-    """The markdown table of one family's rows (the last one the reference)."""
-    reference = rows[-1][2]
+    """The markdown tables of one family's rows: the settings and the reference (the last of them),
+    then the quintic storage's (:data:`QUINTIC`) in a table of their own."""
+    main, quintic = rows[:len(SETTINGS) + 1], rows[len(SETTINGS) + 1:]
+    reference = main[-1][2]
     estimates, errors = reference.estimates.numpy(), batch.standard_errors(reference)
-    defaults = rows[0][1]
-    lines = [f"## {family.title}, B = {size}", "",
-             "| setting | time | fits/s | speed-up over defaults | estimates: max rel. diff | "
-             "standard errors: max rel. diff | converged |", "|---|---|---|---|---|---|---|"]
-    for label, seconds, result in rows:
+    defaults = main[0][1]
+    head = ["| setting | time | fits/s | speed-up over defaults | estimates: max rel. diff | "
+            "standard errors: max rel. diff | converged |", "|---|---|---|---|---|---|---|"]
+    lines = [f"## {family.title}, B = {size}", "", *head]
+    for row in [*main, None, *quintic]:
+        if row is None:
+            lines += ["", "### The quintic storage (tuned: not the default), against the defaults and reference above", "",
+                      "| quintic storage | time | fits/s | speed-up over the defaults | estimates: max rel. diff | "
+                      "standard errors: max rel. diff | converged |", head[1]]
+            continue
+        label, seconds, result = row
         d_est = float(np.max(batch.relative_difference(result.estimates.numpy(), estimates)))
         d_se = float(np.max(batch.relative_difference(batch.standard_errors(result), errors)))
         lines.append(f"| {label} | {seconds:.3f} s | {size / seconds:,.0f} | {defaults / seconds:.2f} | {d_est:.1e} | "

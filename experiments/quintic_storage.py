@@ -1,11 +1,12 @@
 """Cubic against quintic storage of the reference: how far each grid's Kantorovich fixed point is
 from the model's optimum, and what that does to whole fits.
 
-The storage grid holds the reference ``z`` and ``h f`` between its nodes as Hermite interpolants:
-cubic for ``linear_solver="taylor"`` (the default), quintic for ``"taylor_quintic"``
-(:mod:`torchql.propagators.quintic`). Their error moves the Kantorovich fixed point off the
-model's optimum; the final pass's Gauss–Newton steps on the model then remove it, each at the
-cost of a new integration.
+The storage grid holds the reference ``z``, ``h f`` and ``h A`` between its nodes as Hermite
+interpolants: cubic for ``linear_solver="taylor"`` (the default), quintic for ``"taylor_quintic"``
+(:mod:`torchql.propagators.quintic`; ``h A``'s from the second time derivative of ``A``). Their
+error moves the Kantorovich fixed point off the model's optimum; the final pass's Gauss–Newton
+steps on the model then remove it, each at the cost of a new integration. With ``grid="auto"``
+each storage counts its own intervals (the quintic fewer, for the same interpolation error).
 
 Two tables, on the seeded random problems of ``experiments/random_problems.py`` (noise 1e-3):
 

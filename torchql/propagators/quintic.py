@@ -21,12 +21,14 @@ instead of 8; and ``grid="auto"`` counts the intervals by the quintic's error bo
 (:func:`torchql.grid.needed_intervals`), for the same interpolation error as the cubic storage's.
 
 Measured (``benchmarks/grid_tradeoff.py``, torch on one thread): 1,000 noisy linear oscillators
-choose 25 or 40 intervals where the cubic storage chooses 100 or 200, and take 0.66 of the
-default's time, with the estimates and standard errors of a 1,000-interval grid within 5e-9 and
+choose 25 or 40 intervals where the cubic storage chooses 100 or 200, and take 0.62 of the
+default's time, with the estimates and standard errors of a 1,000-interval grid within 5.3e-9 and
 1.2e-7 (the default's: 8.7e-10 and 2.6e-7); 1,000 coasting cars, on 20 intervals either way,
-take 1.2 times as long, within 2.5e-10 and 1.7e-10 (the default's: 7.4e-8 and 4e-7), one
+take 1.19 times as long, within 2.5e-10 and 1.7e-10 (the default's: 7.4e-8 and 4e-7), one
 iteration fewer. Single fits, whose cost is the number of operations rather than of intervals,
-take 1.1 to 1.4 times the default's time (``benchmarks/fit_speed.py``'s problems), hence not the default.
+take 1.16 to 1.36 times the default's time on ``benchmarks/fit_speed.py``'s problems and 1.06 to
+1.82 (median 1.20) on ``experiments/quintic_storage.py``'s, where the fixed points on 50 to 200
+intervals are 60 to 370,000 times closer to the optimum; hence not the default.
 """
 
 from __future__ import annotations
