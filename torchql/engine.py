@@ -32,7 +32,8 @@ from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation, _pick, not_above
-from .engine_final import FinalPass, Records
+from .engine_final import FinalPass
+from .engine_records import Records
 from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, put_samples, shifted_report
 from .grid import last_nodes

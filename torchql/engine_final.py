@@ -1,7 +1,5 @@
 """The engine's final pass: each sample's model integrated at its estimates, with sensitivities.
 
-(:class:`Records` keeps the samples' records of their iterates, which the final pass completes.)
-
 The reported SSE, residuals, Jacobian, singular values, status diagnosis and covariance are those
 of the fitted model itself, not of the last linear problem.
 
@@ -30,11 +28,11 @@ from .dopri import dopri_batch
 from .engine_evaluate import not_above
 from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
-from .result import IterationRecord, Status
+from .result import Status
 from .solvers import STIFF_SOLVERS
 from .uncertainty import covariance
 
-__all__ = ["FinalPass", "Records"]
+__all__ = ["FinalPass"]
 
 _STATUSES = list(Status)
 #: The statuses whose samples get no final evaluation (nothing to evaluate, or no time left).
@@ -48,49 +46,6 @@ POLISH_STEPS = 2
 #: integration: the second-order remainder, the step's square times the trajectory's relative
 #: curvature in the unknowns, stays below ``rtol`` where that curvature is below 100.
 LINEAR_STEP = 0.1
-
-
-class Records:
-    """The records of the iterates (``torchql.fit``'s ``history``), mixed into
-    :class:`torchql.engine.Engine`, whose ``system``, ``grid``, ``history`` (per sample, a list
-    of records, or None when not kept), ``callback`` and ``index`` they use."""
-
-    def _record(self, r: int, iteration: int, z0: torch.Tensor, sse: float, traj: torch.Tensor | None = None
-                ) -> IterationRecord:
-        """Sample ``r``'s record of an iterate: its estimates ``z0 (M,)``, ``sse`` and trajectory ``(G, M)``."""
-        n = self.system.n
-        grid = self.grid if self.grid.dim() == 1 else self.grid[r]
-        params = {k: v.detach().clone() for k, v in self.system.unpack_params(z0[n:]).items()}
-        return IterationRecord(iteration=iteration, params=params, x0=z0[:n].detach().clone(), sse=sse,
-                               trajectory=None if traj is None else traj[:, :n].detach().clone(),
-                               trajectory_t=None if traj is None else grid)
-
-    def _open(self, rows: torch.Tensor, cur: dict, iterations: torch.Tensor) -> None:
-        """Start the records of the iterates ``cur`` of samples ``rows``."""
-        if self.history is None:
-            return
-        for r in rows.tolist():
-            record = self._record(r, int(iterations[r]), cur["z0"][r], float(cur["sse"][r]), cur["rz"][r])
-            record.merit = float(cur["merit"][r])
-            self.history[r].append(record)
-
-    def _annotate(self, rows: torch.Tensor, **values) -> None:
-        """Set fields of the open records of samples ``rows`` (per-sample tensors or plain values)."""
-        if self.history is None:
-            return
-        for k, r in enumerate(rows.tolist()):
-            record = self.history[r][-1]
-            for key, value in values.items():
-                if isinstance(value, torch.Tensor):
-                    value = value[k].detach().clone() if value.dim() > 1 else value[k].item()
-                setattr(record, key, value)
-
-    def _notify(self, rows) -> None:
-        """Hand the open records of samples ``rows`` to the callback."""
-        if self.callback is None or self.history is None:
-            return
-        for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
-            self.callback(int(self.index[r]), self.history[r][-1])
 
 
 class FinalPass:
