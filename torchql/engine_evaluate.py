@@ -18,7 +18,7 @@ from .engine_state import _pick, bound_of, not_above
 from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import solve_on_grid_batch
 from .integrate import IntegrationError
-from .linearize import Linearization, linearize, map_fields
+from .linearize import Linearization, linearize, map_fields, node_jacobian
 from .rk_pairs import PAIRS
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS
@@ -332,22 +332,20 @@ class Evaluation:
 
     def _curvatures(self, grid: torch.Tensor, z: torch.Tensor, slopes: torch.Tensor) -> torch.Tensor | None:
         """The augmented model's second derivatives ``d/dt f = f_t + A f`` along its flow at ``z (S, G, M)``
-        (``slopes``: ``f`` there), by forward mode, where the grid solver splits the intervals of a
-        storage of quintic interpolants (whose grids are coarser: a cubic interpolant of the guess on
-        their sub-intervals would cost Newton an iteration); otherwise, or where the model does
-        not take forward mode, None (the cubic interpolant)."""
+        (``slopes``: ``f`` there; the coefficients' rows zero), from the states' rows of the
+        Jacobian (:func:`torchql.linearize.node_jacobian`), where the grid solver splits the
+        intervals of a storage of quintic interpolants (whose grids are coarser: a cubic
+        interpolant of the guess on their sub-intervals would cost Newton an iteration); otherwise
+        None (the cubic interpolant)."""
         if self._split == 1 or self.spec.linear_solver.storage_degree < 5:
             return None
+        n, M = self.system.n, z.shape[-1]
         t = grid.expand(z.shape[0], -1).reshape(-1)
-        f = self.system.f
-
-        def along(ti, zi, di):
-            return torch.func.jvp(f, (ti, zi), (torch.ones_like(ti), di))[1]
-
-        try:
-            return torch.vmap(along)(t, z.reshape(-1, z.shape[-1]), slopes.reshape(-1, z.shape[-1])).reshape(z.shape)
-        except Exception:  # noqa: BLE001 -- an operation without a forward-mode derivative
-            return None
+        _, (f_t, f_z) = node_jacobian(self.system.f, (t, z.reshape(-1, M)), (0, 1), n)
+        curvatures = torch.zeros_like(z)
+        rates = f_t.reshape(-1, n) + (f_z @ slopes.reshape(-1, M, 1)).squeeze(-1)
+        curvatures[..., :n] = rates.reshape(*z.shape[:-1], n)
+        return curvatures
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
