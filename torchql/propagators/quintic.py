@@ -26,8 +26,8 @@ default's time, with the estimates and standard errors of a 1,000-interval grid 
 1.2e-7 (the default's: 8.7e-10 and 2.6e-7); 1,000 coasting cars, on 20 intervals either way,
 take 1.19 times as long, within 2.5e-10 and 1.7e-10 (the default's: 7.4e-8 and 4e-7), one
 iteration fewer. Single fits, whose cost is the number of operations rather than of intervals,
-take 1.16 to 1.36 times the default's time on ``benchmarks/fit_speed.py``'s problems and 1.06 to
-1.82 (median 1.20) on ``experiments/quintic_storage.py``'s, where the fixed points on 50 to 200
+take 1.10 to 1.35 times the default's time on ``benchmarks/fit_speed.py``'s problems and 1.09 to
+1.80 (median 1.16) on ``experiments/quintic_storage.py``'s, where the fixed points on 50 to 200
 intervals are 60 to 370,000 times closer to the optimum; hence not the default.
 """
 
