@@ -10,9 +10,12 @@ therefore checks them on the model itself: where the Gauss–Newton step from it
 residuals is larger than the step bound of the convergence test that stopped the fit (``xtol``,
 or ``sqrt(xtol)`` for the sum-of-squares test; scaled as the iteration's steps), or promises to
 lower the sum of squares by more than ``ftol`` of it and the integration's own floor, it is
-taken, as a shooting iteration, at most :data:`POLISH_STEPS` times, each kept only if it lowers
-the model's merit. On the default grid the step is far below that bound and nothing is taken; a step short
-enough (:data:`LINEAR_STEP`) is taken along the sensitivities, with no new integration.
+taken, as a shooting iteration, each kept only if it lowers the model's merit, until the step
+falls below that bound. On the default grid the step is far below it and nothing is taken; a step
+short enough (:data:`LINEAR_STEP`) is taken along the sensitivities, with no new integration.
+Where the grid misses a fast change of the model (a steep ``tanh``), the fixed point may be several
+steps away: a fit whose steps on the model still exceed the bound when ``max_iter`` or
+:data:`POLISH_STEPS` runs out is not converged, and says so (``MAX_ITER``).
 """
 
 from __future__ import annotations
@@ -37,10 +40,10 @@ __all__ = ["FinalPass"]
 _STATUSES = list(Status)
 #: The statuses whose samples get no final evaluation (nothing to evaluate, or no time left).
 _NOT_EVALUATED = tuple(_STATUSES.index(s) for s in (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.MAX_TIME))
-#: Gauss–Newton steps on the model itself that the final pass may take from converged estimates
-#: (from a storage grid's fixed point one step reaches the model's optimum; a second one follows
-#: when the first still leaves more than ``xtol``).
-POLISH_STEPS = 2
+#: Most Gauss–Newton steps on the model itself that the final pass takes from converged estimates
+#: (from a storage grid's fixed point one step usually reaches the model's optimum; a grid that
+#: misses a fast change of the model may leave several, each a shooting iteration).
+POLISH_STEPS = 20
 #: A polishing step whose scaled size is at most this fraction of ``sqrt(rtol)`` moves the solution
 #: and its residuals by their linear prediction (the sensitivities times the step) instead of a new
 #: integration: the second-order remainder, the step's square times the trajectory's relative
@@ -68,7 +71,7 @@ class FinalPass:
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
         rows, traj, W = self._final_solutions(_evaluated(status), z0, final_guess, codes, detail)
         if rows.numel():
-            traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish)
+            traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish, detail)
         if rows.numel():
             traj_obs = self._at_obs(traj, rows)
             C_mean, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
@@ -182,11 +185,31 @@ class FinalPass:
                 detail[r] = f" The solver said, at the final estimates: {errors[k]}."
         return rows[good], traj[good], W[good]
 
-    def _model_at(self, rows, z0, guess):
+    def _model_at(self, rows, z0, guess, joint=None):
         """The model integrated from ``z0 (S, M)`` of samples ``rows`` (``guess (S, G, M)``: a
         prediction of the trajectory), with its sensitivities: ``(good (S,), traj (S, G, M),
         W (S, G, M, 1 + m), errors)``, the solver's words for each sample that failed (None: good).
+        ``joint (S,)``: samples whose sensitivities are integrated with their solutions whatever
+        the propagator (:meth:`_accurate_solutions`).
         """
+        if joint is not None and bool(joint.any()):
+            parts = [(joint.nonzero().flatten(), True), ((~joint).nonzero().flatten(), False)]
+            out = [None, guess.clone(), None, [None] * z0.shape[0]]
+            good = torch.zeros(z0.shape[0], dtype=torch.bool, device=z0.device)
+            for j, together in parts:
+                if not j.numel():
+                    continue
+                if together:
+                    traj, W, errors = self._solve_with_sensitivities(rows[j], z0[j])
+                    ok = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+                else:
+                    ok, traj, W, errors = self._model_at(rows[j], z0[j], guess[j])
+                if out[2] is None:
+                    out[2] = W.new_empty((z0.shape[0], *W.shape[1:]))
+                good[j], out[1][j], out[2][j] = ok, traj, W
+                for i, e in zip(j.tolist(), errors):
+                    out[3][i] = e
+            return good, out[1], out[2], out[3]
         if self._joint_sensitivities or self.spec.solver in STIFF_SOLVERS:
             # the solution and its sensitivities on the same adaptive steps: for a stiff model the
             # grid's transfers may miss a fast change inside an interval, and the status and the
@@ -203,29 +226,31 @@ class FinalPass:
         good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
         return good, traj, W, errors
 
-    def _polish(self, rows, traj, W, z0, iterations, codes, polish):
+    def _polish(self, rows, traj, W, z0, iterations, codes, polish, detail):
         """Gauss–Newton steps on the model itself from the estimates ``z0`` of the converged
         samples among ``rows`` that ``polish (S,)`` allows, with their solutions ``traj (R, G, M)``
         and ``W (R, G, M, 1 + m)`` (see the module's description). A step is taken where its scaled
         size exceeds ``xtol`` and kept where it lowers the merit; ``z0``, ``iterations`` and the
         samples' records follow. Returns the solutions at the estimates kept."""
         spec = self.spec
-        for _ in range(POLISH_STEPS):
-            take = polish[rows] & (iterations[rows] < spec.max_iter)
+        accurate = torch.zeros_like(polish)  # samples whose sensitivities are integrated with their solutions
+        for step in range(POLISH_STEPS + 1 if POLISH_STEPS else 0):  # the last pass only checks
+            take = polish[rows].clone()
             take &= torch.tensor([codes[r].success for r in rows.tolist()], dtype=torch.bool, device=take.device)
             if not bool(take.any()):
                 break
             k = take.nonzero().flatten()
             r = rows[k]
-            here = self._evaluate(r, z0[r], traj[k], None, None, solution=True, W=W[k])
-            alpha, _, infeasible, _ = self._solve(r, here, torch.zeros_like(here["sse"]))
-            u = z0[r][:, spec.unknown_index]
-            scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[r])).amax(dim=1)
-            # the step bound of the test that stopped the fit: xtol, or the sum-of-squares test's sqrt(xtol)
-            bound = torch.tensor([spec.xtol if codes[i] is Status.CONVERGED else math.sqrt(spec.xtol)
-                                  for i in r.tolist()], dtype=scaled.dtype, device=scaled.device)
-            need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
+            here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
+            again = need & ~accurate[r] if step >= 1 and not self._joint_sensitivities else torch.zeros_like(need)
+            if bool(again.any()):  # a second step: the grid's sensitivities did not land the first
+                j = again.nonzero().flatten()
+                fresh, traj[k[j]], W[k[j]] = self._accurate_solutions(r[j], z0[r[j]], traj[k[j]], W[k[j]])
+                accurate[r[j]] = True
+                if bool(fresh.any()):
+                    here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
             polish[r[~need]] = False
+            need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS)
             if not bool(need.any()):
                 break
             k, r, alpha, scaled = k[need], r[need], alpha[need], scaled[need]
@@ -237,7 +262,8 @@ class FinalPass:
             W_new[..., 0] = guess
             far = (~linear).nonzero().flatten()
             if far.numel():
-                good[far], traj_new[far], W_new[far], _ = self._model_at(r[far], z0_new[far], guess[far])
+                good[far], traj_new[far], W_new[far], _ = self._model_at(r[far], z0_new[far], guess[far],
+                                                                         joint=accurate[r[far]])
             merit = torch.full_like(scaled, float("inf"))
             g = good.nonzero().flatten()
             if g.numel():
@@ -256,6 +282,47 @@ class FinalPass:
             z0[r[a]], traj[k[a]], W[k[a]] = z0_new[a], traj_new[a], W_new[a]
             iterations[r[a]] += 1
         return traj, W
+
+    def _polish_step(self, r, z0, traj, W, codes):
+        """The Gauss–Newton step on the model of samples ``r`` from ``z0[r]`` with their solutions
+        ``traj`` and ``W``: ``(here, alpha, infeasible, scaled, need)``, the evaluation there, the
+        step, its scaled size and whether it is needed (above the step bound of the test that
+        stopped the fit, ``xtol`` or the sum-of-squares test's ``sqrt(xtol)``, or not minimal)."""
+        spec = self.spec
+        here = self._evaluate(r, z0[r], traj, None, None, solution=True, W=W)
+        alpha, _, infeasible, _ = self._solve(r, here, torch.zeros_like(here["sse"]))
+        u = z0[r][:, spec.unknown_index]
+        scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[r])).amax(dim=1)
+        bound = torch.tensor([spec.xtol if codes[i] is Status.CONVERGED else math.sqrt(spec.xtol)
+                              for i in r.tolist()], dtype=scaled.dtype, device=scaled.device)
+        need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
+        return here, alpha, infeasible, scaled, need
+
+    def _accurate_solutions(self, rows, z0, traj, W):
+        """The solutions of samples ``rows`` at ``z0`` with their sensitivities integrated together
+        (:meth:`~torchql.engine_evaluate.Evaluation._solve_with_sensitivities`): where a grid misses
+        a fast change of the model its transfers' sensitivities miss it too, and Gauss–Newton with
+        them converges to the wrong point. Returns ``(fresh, traj, W)``, ``fresh (R,)`` the samples
+        that integrated (the others keep ``traj`` and ``W``)."""
+        accurate, W_acc, errors = self._solve_with_sensitivities(rows, z0)
+        fresh = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+        traj = torch.where(fresh.reshape(-1, 1, 1), accurate, traj)
+        return fresh, traj, torch.where(fresh.reshape(-1, 1, 1, 1), W_acc, W)
+
+    def _out_of_steps(self, rows, need, scaled, iterations, codes, detail, last: bool) -> torch.Tensor:
+        """Of the samples ``rows`` whose next step on the model is needed (``need``; its scaled size
+        ``scaled``), those that may not take it (``max_iter`` reached, or the ``last`` pass): their
+        fits are not converged on the model, ``MAX_ITER`` with the step's size in the message."""
+        out = need & ((iterations[rows] >= self.spec.max_iter) | last)
+        for j in out.nonzero().flatten().tolist():
+            r = int(rows[j])
+            codes[r] = Status.MAX_ITER
+            detail[r] = (f" The iteration's fixed point was off the model's optimum (the storage grid "
+                                     f"misses a change of the model), and the final pass's Gauss–Newton steps on "
+                                     f"the model stopped before converging: the next would move the unknowns by "
+                                     f"{float(scaled[j]):.2g} of their scale; a finer `grid` or `method=\"shooting\"` "
+                                     f"reaches the optimum.")
+        return out
 
     def _not_minimal(self, rows, here: dict, alpha: torch.Tensor) -> torch.Tensor:
         """Whether the Gauss–Newton steps ``alpha (S, m)`` of the evaluated iterates ``here`` of
