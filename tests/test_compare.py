@@ -63,3 +63,12 @@ def test_compare_refuses_what_it_cannot_compare():
     batch = torchql.Observations(first.t, torch.stack([first.y, second.y]), observe=["y"])
     with pytest.raises(TypeError, match="one torchql.Observations \\(a validation experiment\\); received a batch"):
         torchql.compare(result, batch)
+
+
+def test_validation_data_without_their_inputs_are_refused():
+    """The fitted model still holds the training signal; validation data that carry no inputs of their
+    own would be simulated with it, silently. An error as ``fit`` gives, naming the inputs."""
+    result = torchql.fit(DrivenOscillator(), measured(force(1)), x0=GUESS_X0)
+    bare = torchql.Observations(measured(force(4)).t, measured(force(4)).y, observe=["y"])
+    with pytest.raises(ValueError, match=r"`model` takes inputs \('u',\) .* but `data` carries none"):
+        torchql.compare(result, bare)

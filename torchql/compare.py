@@ -137,6 +137,11 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
         start = float(data.t[0]) if t0 is None else finite_number("t0", t0)
         if experiment is not None and result.experiment_t0 is not None:
             model = result.experiment_model(experiment)
+    takes = tuple(getattr(model, "input_names", ()))
+    if takes and data.inputs is None:  # the fitted model still holds the training signal: never use it here
+        raise ValueError(f"`model` takes inputs {takes} (its `input_names`) but `data` carries none: give the "
+                         f"validation experiment its own, Observations(t, y, observe, inputs=torchql.Inputs(t_u, u, "
+                         f"names={list(takes)}))")
     t = data.t.to(dtype=dtype, device=device)
     names = list(model.state_names)
     operator = ObservationOperator(data.observe, names, data.n_outputs, dtype, device)
