@@ -255,3 +255,14 @@ def test_unidentifiable_pair_has_a_flat_open_profile():
     assert prof.sse.max().item() == pytest.approx(result.sse, rel=1e-6)  # a * b = 0.6 at every a
     torch.testing.assert_close(prof.estimates[:, 1] * prof.estimates[:, 2],
                                torch.full_like(prof.values, result.params["a"].item() * result.params["b"].item()))
+
+
+def test_a_fit_of_several_experiments_is_refused_with_its_reason():
+    """The re-fits of a profile take one experiment's data; a fit of several says so, instead of an
+    error about a `data` argument the user never gave."""
+    t = torch.linspace(0, 5, 21, dtype=DT)
+    first = torchql.Observations(t, torch.exp(-0.7 * t)[:, None], observe=["y"])
+    second = torchql.Observations(t, 2 * torch.exp(-0.7 * t)[:, None], observe=["y"])
+    result = torchql.fit(Decay(0.5), [first, second], x0=torch.tensor([[1.0], [2.0]], dtype=DT))
+    with pytest.raises(ValueError, match="`result` is a fit of 2 experiments, which `profile` does not re-fit yet"):
+        torchql.profile(result, "k")

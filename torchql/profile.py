@@ -269,6 +269,10 @@ def _check_arguments(result: FitResult, name: str, data: Observations | None, le
         data = result.data
     if data is None:
         raise ValueError("`data` is required: this FitResult does not hold the observations it was fitted to")
+    if isinstance(data, (list, tuple)) and result.experiment_t0 is not None:
+        raise ValueError(f"`result` is a fit of {len(data)} experiments, which `profile` does not re-fit yet: "
+                         "profile a fit of one experiment, or compare the likelihoods of fits with the unknown held "
+                         "at chosen values (`parameters={name: Parameter(value, vary=False)}`)")
     if not isinstance(data, Observations):
         raise TypeError(f"`data` must be a torchql.Observations; received {type(data).__name__}")
     if not (result.success or result.status is Status.NOT_IDENTIFIABLE) or not math.isfinite(result.sse):
