@@ -8,7 +8,7 @@ import torch
 
 import torchql
 from testmodels import Decay
-from torchql.models import HarmonicOscillator
+from torchql.models import HarmonicOscillator, LinearOscillator
 
 #: The module (``torchql.multistart`` the attribute is the function of the same name).
 multistart_module = importlib.import_module("torchql.multistart")
@@ -144,3 +144,21 @@ def test_a_batch_of_datasets_is_rejected(decay_data):
     batch = torchql.Observations(decay_data.t, torch.stack([decay_data.y, decay_data.y]), observe=["y"])
     with pytest.raises(ValueError, match=r"`data` holds a batch of 2 independent datasets.*torchql.fit_many"):
         torchql.multistart(Decay(0.3), batch, torch.tensor([1.0], dtype=DT), starts=2)
+
+
+def test_bounds_given_in_a_parameter_specification_bound_the_draws_alike():
+    """``parameters={"B": Parameter(1.0, min=0.5, max=10.0), ...}`` stands for ``bounds={"B": (0.5, 10.0)}``
+    in the draws too: the same starts from the same seed, inside the bounds (they were drawn as if
+    unbounded, below the lower bound), and the same best fit."""
+    P = torchql.Parameter
+    t = torch.linspace(0, 10, 41, dtype=torch.float64)
+    x = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=torch.float64), t)
+    noise = 0.01 * torch.randn(41, 1, generator=torch.Generator().manual_seed(12), dtype=torch.float64)
+    data = torchql.Observations(t, x[:, :1] + noise, observe=["y"])
+    by_keywords = torchql.multistart(LinearOscillator(0.5, 1.0), data, torch.tensor([0.5, 0.5], dtype=torch.float64),
+                                     starts=4, bounds={"A": (0.0, 1.0), "B": (0.5, 10.0)})
+    by_specification = torchql.multistart(LinearOscillator(0.5, 1.0), data, starts=4, parameters={
+        "A": P(0.5, min=0.0, max=1.0), "B": P(1.0, min=0.5, max=10.0), "y": P(0.5), "v": P(0.5)})
+    assert torch.equal(by_specification.guesses, by_keywords.guesses)
+    assert bool((by_specification.guesses[:, 1] > 0.5).all())
+    torch.testing.assert_close(by_specification.best.estimates, by_keywords.best.estimates, rtol=1e-12, atol=0)

@@ -31,6 +31,7 @@ from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .observations import Observations
 from .options import expand_options
+from .parameters import apply_parameters
 from .result import FitResult
 from .propagators import linear_propagator
 
@@ -172,6 +173,12 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     fit_kwargs = expand_options(fit_kwargs)
     if "throw" in fit_kwargs:
         raise TypeError("`throw` is not accepted by multistart: failed starts are part of the result")
+    if fit_kwargs.get("parameters") is not None:  # the specification's bounds bound the draws too
+        spec = apply_parameters(model, fit_kwargs.pop("parameters"), x0=x0, params=params,
+                                fixed_x0=fit_kwargs.get("fixed_x0"), bounds=bounds, scale=fit_kwargs.get("scale"),
+                                x0_expr=fit_kwargs.get("x0_expr"))
+        model, x0, params, bounds = spec["model"], spec["x0"], spec["params"], spec["bounds"]
+        fit_kwargs.update({key: spec[key] for key in ("fixed_x0", "scale", "x0_expr") if spec[key] is not None})
     if params is None:
         params = [name for name in coefficient_names(model) if name not in tuple(model.constants)]
     system = AugmentedSystem(model, list(params), *model_dtype_device(model))
