@@ -113,3 +113,19 @@ def test_fit_many_starts_each_sample_from_its_own_scatter():
     assert batch.sigma.shape == (2, 2) and batch.sigma_stderr.shape == (2, 2)
     assert batch[0].sigma["v"] == pytest.approx(0.002, rel=0.3)
     assert batch[1].sigma["v"] == pytest.approx(0.2, rel=0.3)
+
+
+def test_a_sigma_group_without_values_is_named_before_the_fit():
+    """An output with no values leaves its estimated sigma undetermined: the fit ended NOT_IDENTIFIABLE
+    with advice to fix the sigma by `params=`, which does not take it. Now an error names the output,
+    for one dataset and for the sample of a batch that lacks it."""
+    t = torch.arange(14, dtype=torch.float64) * 0.5
+    x = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=torch.float64), t)
+    y = x.clone()
+    y[:, 1] = float("nan")
+    x0 = torch.tensor([0.5, 0.5], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"the output\(s\) \['v'\] of sigma group 'v' have no values, so nothing"):
+        torchql.fit(LinearOscillator(0.5, 1.0), torchql.Observations(t, y, observe=["y", "v"], sigma="estimate"), x0)
+    batch = torchql.Observations(t, torch.stack([x, y]), observe=["y", "v"], sigma="estimate")
+    with pytest.raises(ValueError, match=r"have no values of `data\[1\]`"):
+        torchql.fit_many(LinearOscillator(0.5, 1.0), batch, x0)

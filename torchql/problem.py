@@ -132,6 +132,7 @@ class Problem:
         names = tuple(model.state_names)
         labels = ObservationOperator(self.observe, names, self.K, self.dtype, self.device).labels()
         group_names, group = sigma_group_index(self.sigma_groups, self.K, labels)
+        self._check_groups_measured(group_names, group, labels)
         noise = self.estimated_noise = EstimatedNoise(group_names, group, list(coefficient_names(model)) + list(names))
         y = self.y
         if self.noise == "lognormal":
@@ -139,6 +140,19 @@ class Problem:
         self.sigma_callable = noise
         return noise.added(model, params, guesses, bounds, scale, noise.start(self.t, y, self.mask),
                            noise.floor(y, self.mask))
+
+    def _check_groups_measured(self, group_names, group, labels) -> None:
+        """``sigma="estimate"``: every sigma group has values in every sample (a ``ValueError`` naming the
+        first that has none: nothing would determine its sigma)."""
+        present = self.mask.reshape(self.B, -1, self.K).sum(dim=1)  # (B, K)
+        for g, name in enumerate(group_names):
+            outputs = [k for k in range(self.K) if group[k] == g]
+            empty = (present[:, outputs].sum(dim=1) == 0).nonzero().flatten().tolist()
+            if empty:
+                where = "" if self.single else f" of `data[{empty[0]}]`"
+                raise ValueError(f'`sigma="estimate"`: the output(s) {[labels[k] for k in outputs]} of sigma group '
+                                 f"{name!r} have no values{where}, so nothing determines their sigma: leave them out "
+                                 "of `observe`, or give their `sigma`")
 
     def _coefficients(self, model, params, guesses) -> tuple[list[str], torch.Tensor]:
         """The estimated coefficients (``self.params``), the augmented system over them and the
