@@ -266,3 +266,20 @@ def test_a_fit_of_several_experiments_is_refused_with_its_reason():
     result = torchql.fit(Decay(0.5), [first, second], x0=torch.tensor([[1.0], [2.0]], dtype=DT))
     with pytest.raises(ValueError, match="`result` is a fit of 2 experiments, which `profile` does not re-fit yet"):
         torchql.profile(result, "k")
+
+
+@pytest.mark.parametrize("options", [dict(bounds={"k": (0.0, None)}), dict(scale={"k": "log"}),
+                                     dict(bounds={"k": (0.005, 1.0)})])
+def test_a_profile_searches_within_the_fits_own_bounds(options):
+    """A slow decay (k = 0.004) measured over 5 s with 5% noise: the likelihood stays within the
+    threshold down to k = 0. The profile of a fit that keeps k positive, or above 0.005, re-fitted
+    at negative k (and reported a closed lower end there); it now stops at the fit's bound, open."""
+    t = torch.linspace(0, 5, 12, dtype=DT)
+    y = torchql.simulate(Decay(0.004), torch.tensor([1.0], dtype=DT), t)
+    y = y + 0.05 * torch.randn(12, 1, generator=torch.Generator().manual_seed(11), dtype=DT)
+    result = torchql.fit(Decay(0.5), torchql.Observations(t, y, observe=["y"]), torch.tensor([1.0], dtype=DT),
+                         **options)
+    profile = torchql.profile(result, "k")
+    floor = options.get("bounds", {"k": (0.0, None)})["k"][0]
+    assert float(profile.values.min()) >= floor and profile.closed == (False, True)
+    assert floor < profile.interval[1] < 0.1

@@ -186,7 +186,8 @@ def profile(
         Confidence level, strictly between 0 and 1.
     bounds : (float or None, float or None), optional
         Limits of the search for ``name``'s value (e.g. ``(0, None)`` for a rate that must stay
-        positive). A side that reaches its limit without crossing is reported open.
+        positive). A side that reaches its limit without crossing is reported open. Default: the
+        fit's own bounds on it (``0`` below for an unknown on a logarithmic scale), else none.
     step : float, optional
         Scale of the first step out from the estimate, in the unknown's units. Default: its
         standard error (or 10% of its magnitude when that is not available); the first step is
@@ -220,7 +221,7 @@ def profile(
     options = _refit_options(result, name, fit_options)
     threshold = _threshold(result, level)
     h = _first_step(result, name, theta_hat, step)
-    lower_bound, upper_bound = _check_bounds(bounds, theta_hat)
+    lower_bound, upper_bound = _check_bounds(_fit_bounds(result, name) if bounds is None else bounds, theta_hat)
 
     refit = _Refitter(result, name, data, options, params, fixed_x0, state_index, buffers, threshold.likelihood)
     center = refit(theta_hat, result)
@@ -540,6 +541,17 @@ def _original_params(result: FitResult, buffers: dict) -> list[str]:
         if buf in unknown or any(u.startswith(buf + "[") for u in unknown):
             out.append(buf)
     return out
+
+
+def _fit_bounds(result: FitResult, name: str) -> tuple[float | None, float | None] | None:
+    """The fit's own bounds on the unknown ``name`` (``0`` below for one on a logarithmic scale): the
+    profile's default search limits, so that it never re-fits at values the fit excludes."""
+    i = list(result.unknown_names).index(name)
+    lo = None if result.lower is None or not math.isfinite(float(result.lower[i])) else float(result.lower[i])
+    hi = None if result.upper is None or not math.isfinite(float(result.upper[i])) else float(result.upper[i])
+    if name in result.log_scaled:
+        lo = 0.0 if lo is None else max(lo, 0.0)
+    return None if lo is None and hi is None else (lo, hi)
 
 
 def _check_bounds(bounds, theta_hat: float) -> tuple[float | None, float | None]:
