@@ -91,3 +91,19 @@ def test_where_the_grid_misses_a_fast_change_the_final_pass_still_reaches_the_op
         assert result.status is torchql.Status.CONVERGED, result.message
         assert abs(result.sse - optimum.sse) <= 1e-9 * optimum.sse
         assert float(((result.estimates - optimum.estimates) / se).abs().max()) < 1e-4
+
+
+def test_fit_many_steps_to_the_optimum_as_each_fit_does():
+    """The final pass's steps with sensitivities integrated alongside are each sample's own: two noisy
+    friction datasets fitted together end where each fits alone (estimates 1e-8, the same status
+    and iterations)."""
+    t = torch.linspace(0, 10, 41, dtype=DT)
+    x = torchql.simulate(_Friction(), torch.tensor([1.0, 0.0], dtype=DT), t)
+    sets = [torchql.Observations(t, x[:, :1] + 0.01 * torch.randn(41, 1, generator=torch.Generator().manual_seed(s),
+                                                                  dtype=DT), observe=["x"]) for s in (5, 6)]
+    x0 = torch.tensor([1.0, 0.0], dtype=DT)
+    batch = torchql.fit_many(_Friction(0.2, 0.2), sets, x0)
+    for i, data in enumerate(sets):
+        alone = torchql.fit(_Friction(0.2, 0.2), data, x0)
+        assert batch[i].status is alone.status and batch[i].iterations == alone.iterations
+        torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-8, atol=1e-10)

@@ -193,23 +193,7 @@ class FinalPass:
         the propagator (:meth:`_accurate_solutions`).
         """
         if joint is not None and bool(joint.any()):
-            parts = [(joint.nonzero().flatten(), True), ((~joint).nonzero().flatten(), False)]
-            out = [None, guess.clone(), None, [None] * z0.shape[0]]
-            good = torch.zeros(z0.shape[0], dtype=torch.bool, device=z0.device)
-            for j, together in parts:
-                if not j.numel():
-                    continue
-                if together:
-                    traj, W, errors = self._solve_with_sensitivities(rows[j], z0[j])
-                    ok = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
-                else:
-                    ok, traj, W, errors = self._model_at(rows[j], z0[j], guess[j])
-                if out[2] is None:
-                    out[2] = W.new_empty((z0.shape[0], *W.shape[1:]))
-                good[j], out[1][j], out[2][j] = ok, traj, W
-                for i, e in zip(j.tolist(), errors):
-                    out[3][i] = e
-            return good, out[1], out[2], out[3]
+            return self._model_at_mixed(rows, z0, guess, joint)
         if self._joint_sensitivities or self.spec.solver in STIFF_SOLVERS:
             # the solution and its sensitivities on the same adaptive steps: for a stiff model the
             # grid's transfers may miss a fast change inside an interval, and the status and the
@@ -224,6 +208,26 @@ class FinalPass:
             for k in failed.nonzero().flatten().tolist():
                 errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
         good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+        return good, traj, W, errors
+
+    def _model_at_mixed(self, rows, z0, guess, joint):
+        """:meth:`_model_at` where the samples ``joint (S,)`` get their sensitivities integrated with
+        their solutions and the others the propagator's."""
+        S = z0.shape[0]
+        good = torch.zeros(S, dtype=torch.bool, device=z0.device)
+        traj, W, errors = guess.clone(), None, [None] * S
+        for j, together in ((joint.nonzero().flatten(), True), ((~joint).nonzero().flatten(), False)):
+            if not j.numel():
+                continue
+            if together:
+                traj_j, W_j, errors_j = self._solve_with_sensitivities(rows[j], z0[j])
+                ok = torch.tensor([e is None for e in errors_j], dtype=torch.bool, device=z0.device)
+            else:
+                ok, traj_j, W_j, errors_j = self._model_at(rows[j], z0[j], guess[j])
+            W = W_j.new_empty((S, *W_j.shape[1:])) if W is None else W
+            good[j], traj[j], W[j] = ok, traj_j, W_j
+            for i, e in zip(j.tolist(), errors_j):
+                errors[i] = e
         return good, traj, W, errors
 
     def _polish(self, rows, traj, W, z0, iterations, codes, polish, detail):
