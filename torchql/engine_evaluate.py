@@ -18,7 +18,7 @@ from .engine_state import _pick, bound_of, not_above
 from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import solve_on_grid_batch
 from .integrate import IntegrationError
-from .linearize import Linearization, linearize, map_fields, node_jacobian
+from .linearize import Linearization, flow_rates, linearize, map_fields
 from .rk_pairs import PAIRS
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS
@@ -295,8 +295,8 @@ class Evaluation:
             return over
         k = self._split
         grid = grid if grid.dim() == 1 else grid[sub]
-        slopes = self._slopes(grid, guess[sub])
-        grid, guess = refine(grid, guess[sub], slopes, k, self._curvatures(grid, guess[sub], slopes))
+        slopes, curvatures = self._guess_derivatives(grid, guess[sub])
+        grid, guess = refine(grid, guess[sub], slopes, k, curvatures)
         solved = solve_on_grid_batch(self.system, z0[sub], grid, rtol=rtol, atol=atol, guess=guess,
                                      max_newton=_GRID_NEWTON, max_substeps=substeps)
         self.nfev += solved.n_evals
@@ -322,30 +322,24 @@ class Evaluation:
         """Sub-intervals per grid interval in the grid solver (see :data:`_GRID_SOLVE_INTERVALS`)."""
         return max(1, math.ceil(_GRID_SOLVE_INTERVALS / max(1, self.G - 1)))
 
-    def _slopes(self, grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """The augmented model's slopes ``(S, G, M)`` at ``z (S, G, M)`` on ``grid`` (``(G,)`` or
-        ``(S, G)``); not evaluated (zeros) where the grid solver needs no sub-intervals."""
+    def _guess_derivatives(self, grid: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """What the grid solver's interpolant of its guess ``z (S, G, M)`` on ``grid`` (``(G,)`` or
+        ``(S, G)``) takes at the nodes: the augmented model's slopes (zeros, not evaluated, where it
+        splits no interval), and for a storage of quintic interpolants, whose grids are coarser (a
+        cubic interpolant on their sub-intervals would cost Newton an iteration), their rates
+        ``d/dt f = f_t + A f`` along the flow (:func:`torchql.linearize.flow_rates`; the
+        coefficients' rows zero); otherwise None (the cubic interpolant)."""
         if self._split == 1:
-            return torch.zeros_like(z)
-        t = grid.expand(z.shape[0], -1).reshape(-1)
-        return torch.vmap(self.system.f)(t, z.reshape(-1, z.shape[-1])).reshape(z.shape)
-
-    def _curvatures(self, grid: torch.Tensor, z: torch.Tensor, slopes: torch.Tensor) -> torch.Tensor | None:
-        """The augmented model's second derivatives ``d/dt f = f_t + A f`` along its flow at ``z (S, G, M)``
-        (``slopes``: ``f`` there; the coefficients' rows zero), from the states' rows of the
-        Jacobian (:func:`torchql.linearize.node_jacobian`), where the grid solver splits the
-        intervals of a storage of quintic interpolants (whose grids are coarser: a cubic
-        interpolant of the guess on their sub-intervals would cost Newton an iteration); otherwise
-        None (the cubic interpolant)."""
-        if self._split == 1 or self.spec.linear_solver.storage_degree < 5:
-            return None
-        n, M = self.system.n, z.shape[-1]
-        t = grid.expand(z.shape[0], -1).reshape(-1)
-        _, (f_t, f_z) = node_jacobian(self.system.f, (t, z.reshape(-1, M)), (0, 1), n)
+            return torch.zeros_like(z), None
+        S, G, M = z.shape
+        t = grid.expand(S, -1).reshape(-1)
+        if self.spec.linear_solver.storage_degree < 5:
+            return torch.vmap(self.system.f)(t, z.reshape(-1, M)).reshape(z.shape), None
+        n = self.system.n
+        slopes, rates = flow_rates(self.system.f, t, z.reshape(-1, M), n)
         curvatures = torch.zeros_like(z)
-        rates = f_t.reshape(-1, n) + (f_z @ slopes.reshape(-1, M, 1)).squeeze(-1)
-        curvatures[..., :n] = rates.reshape(*z.shape[:-1], n)
-        return curvatures
+        curvatures[..., :n] = rates.reshape(S, G, n)
+        return slopes.reshape(z.shape), curvatures
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:

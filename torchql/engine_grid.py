@@ -28,7 +28,7 @@ from torch.func import vmap
 from .engine_state import shifted_report
 from .grid import (AUTO_COUNTS, AUTO_PROBE, AUTO_SAFETY, auto_counts, coarse_index, geometric_nodes, last_nodes, make_grids,
                    nearest_nodes, needed_intervals, uniform_nodes)
-from .linearize import node_jacobian
+from .linearize import flow_rates
 from .splines import hermite_per_sample
 
 __all__ = ["AutoGrid", "fourth_derivative_scale", "derivative_scale", "pad_nodes"]
@@ -178,12 +178,8 @@ class AutoGrid:
         t0, t_end, probe = self._probe_nodes()
         times = self.grid.expand(S, self.G).gather(1, probe)
         nodes = traj.gather(1, probe.unsqueeze(-1).expand(S, -1, traj.shape[-1]))  # (S, P + 1, M)
-        # x' = f and x'' = f_t + f_x f along the model's flow through the nodes, from the states'
-        # rows of the Jacobian (by autograd for a small model, as the engine linearizes it)
-        slopes, (f_t, f_z) = node_jacobian(self.system.f, (times.reshape(-1), nodes.reshape(-1, nodes.shape[-1])),
-                                           (0, 1), n)
-        slopes, f_t, f_z = slopes.detach(), f_t.detach(), f_z.detach()
-        rates = f_t + (f_z @ slopes.unsqueeze(-1)).squeeze(-1)  # (N, n)
+        # x' = f and x'' = f_t + f_x f along the model's flow through the nodes
+        slopes, rates = flow_rates(self.system.f, times.reshape(-1), nodes.reshape(-1, nodes.shape[-1]), n)
         slopes, rates = slopes.reshape(nodes.shape)[..., :n], rates.reshape(*nodes.shape[:-1], n)
         degree = self.spec.linear_solver.storage_degree
         derivative = (fourth_derivative_scale(slopes, rates) if degree == 3

@@ -133,7 +133,7 @@ def _norms(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_D
 
     Their sum ``rho`` bounds ``||h A_aa(s)||_inf`` on the substep.
     """
-    A_aa = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (4, a, a, J)
+    A_aa = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (d + 1, a, a, J)
     return A_aa[:, 0, 0] if a == 1 else A_aa.sum(dim=2).amax(dim=1)
 
 
@@ -246,7 +246,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
     if max_substeps < 1 or max_substeps & (max_substeps - 1):
         raise ValueError(f"`max_substeps` must be a power of two; received {max_substeps}")
     data, a, M = coefficients.data, coefficients.a, coefficients.M
-    degree = getattr(coefficients, "jacobian_degree", _HERMITE_DEGREE)  # of h A
+    degree = coefficients.jacobian_degree  # of h A
     N = data.shape[-1]
     device = data.device
     Y = data.new_zeros(a, M + 1, N)

@@ -393,13 +393,10 @@ def _quintic_jacobian_rows(out: torch.Tensor, h: torch.Tensor, jac_ddot: torch.T
     linearization's ``d^2/dt^2 A`` has its time terms."""
     M = perm.numel()
     G = jac_ddot.shape[1]
-    second = jac_ddot[:, :, perm[:a]][..., perm]  # (S, G, a, M): active rows, stored column order
-    second = second.permute(2, 3, 0, 1)  # (a, M, S, G)
+    second = jac_ddot[:, :, perm[:a]][..., perm].permute(2, 3, 0, 1)  # (a, M, S, G): active rows, stored columns
     scale = h ** 3
-    for i in range(a):
-        rows = slice(M + i * (M + 1) + 1, M + (i + 1) * (M + 1))
-        target = out[:, rows].unflatten(-1, (S, G - 1))  # (6, M, S, N), a view
-        raise_to_quintic(target, second[i, ..., :-1] * scale, second[i, ..., 1:] * scale)
+    rows = out[:, M:].unflatten(1, (a, M + 1))[:, :, 1:]  # (6, a, M, S N), a view: the rows of h A
+    raise_to_quintic(rows.unflatten(-1, (S, G - 1)), second[..., :-1] * scale, second[..., 1:] * scale)
 
 
 class _Coefficients:
