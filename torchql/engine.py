@@ -31,11 +31,11 @@ import torch
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
-from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation, _pick, not_above
+from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation
 from .engine_final import FinalPass
 from .engine_records import Records
 from .engine_grid import AutoGrid
-from .engine_state import RUNNING, LoopState, put_samples, shifted_report
+from .engine_state import RUNNING, LoopState, _pick, not_above, put_samples, shifted_report
 from .grid import last_nodes
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 from .problem import Problem
@@ -358,7 +358,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         spec, cur = self.spec, st.cur
         alpha, capped, infeasible, nu = self._solve(act, cur, st.damping[act])
         if spec.has_exact:
-            self._weigh_exact(st, act[(st.damping[act] == 0) & ~infeasible], nu[(st.damping[act] == 0) & ~infeasible])
+            undamped = (st.damping[act] == 0) & ~infeasible
+            self._weigh_exact(st, act[undamped], nu[undamped])
         if bool(infeasible.any()):
             st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
             act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]

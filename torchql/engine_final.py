@@ -28,7 +28,7 @@ from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, negligible_columns, null_detail, typical_magnitudes
 from .budget import no_time_budget
 from .dopri import dopri_batch
-from .engine_evaluate import not_above
+from .engine_state import not_above
 from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
@@ -190,7 +190,7 @@ class FinalPass:
         prediction of the trajectory), with its sensitivities: ``(good (S,), traj (S, G, M),
         W (S, G, M, 1 + m), errors)``, the solver's words for each sample that failed (None: good).
         ``joint (S,)``: samples whose sensitivities are integrated with their solutions whatever
-        the propagator (:meth:`_accurate_solutions`).
+        the propagator (:meth:`_jointly`).
         """
         if joint is not None and bool(joint.any()):
             return self._model_at_mixed(rows, z0, guess, joint)
@@ -198,15 +198,14 @@ class FinalPass:
             # the solution and its sensitivities on the same adaptive steps: for a stiff model the
             # grid's transfers may miss a fast change inside an interval, and the status and the
             # covariance are only as true as this Jacobian
-            traj, W, errors = self._solve_with_sensitivities(rows, z0)
-        else:
-            traj, errors = self._nonlinear(rows, z0, loose=False, guess=guess)
-            good = [e is None for e in errors]
-            traj = torch.where(torch.tensor(good, device=z0.device).reshape(-1, 1, 1), traj, guess)
-            lin = self._linearize(rows, traj)
-            W, failed = self._propagate(rows, traj, lin.f, lin, self.spec.columns(z0))
-            for k in failed.nonzero().flatten().tolist():
-                errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
+            return self._jointly(rows, z0)
+        traj, errors = self._nonlinear(rows, z0, loose=False, guess=guess)
+        good = [e is None for e in errors]
+        traj = torch.where(torch.tensor(good, device=z0.device).reshape(-1, 1, 1), traj, guess)
+        lin = self._linearize(rows, traj)
+        W, failed = self._propagate(rows, traj, lin.f, lin, self.spec.columns(z0))
+        for k in failed.nonzero().flatten().tolist():
+            errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
         good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
         return good, traj, W, errors
 
@@ -219,11 +218,8 @@ class FinalPass:
         for j, together in ((joint.nonzero().flatten(), True), ((~joint).nonzero().flatten(), False)):
             if not j.numel():
                 continue
-            if together:
-                traj_j, W_j, errors_j = self._solve_with_sensitivities(rows[j], z0[j])
-                ok = torch.tensor([e is None for e in errors_j], dtype=torch.bool, device=z0.device)
-            else:
-                ok, traj_j, W_j, errors_j = self._model_at(rows[j], z0[j], guess[j])
+            ok, traj_j, W_j, errors_j = (self._jointly(rows[j], z0[j]) if together
+                                         else self._model_at(rows[j], z0[j], guess[j]))
             W = W_j.new_empty((S, *W_j.shape[1:])) if W is None else W
             good[j], traj[j], W[j] = ok, traj_j, W_j
             for i, e in zip(j.tolist(), errors_j):
@@ -249,7 +245,8 @@ class FinalPass:
             again = need & ~accurate[r] if step >= 1 and not self._joint_sensitivities else torch.zeros_like(need)
             if bool(again.any()):  # a second step: the grid's sensitivities did not land the first
                 j = again.nonzero().flatten()
-                fresh, traj[k[j]], W[k[j]] = self._accurate_solutions(r[j], z0[r[j]], traj[k[j]], W[k[j]])
+                fresh, traj_j, W_j, _ = self._jointly(r[j], z0[r[j]])
+                traj[k[j[fresh]]], W[k[j[fresh]]] = traj_j[fresh], W_j[fresh]
                 accurate[r[j]] = True
                 if bool(fresh.any()):
                     here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
@@ -302,16 +299,14 @@ class FinalPass:
         need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
         return here, alpha, infeasible, scaled, need
 
-    def _accurate_solutions(self, rows, z0, traj, W):
-        """The solutions of samples ``rows`` at ``z0`` with their sensitivities integrated together
-        (:meth:`~torchql.engine_evaluate.Evaluation._solve_with_sensitivities`): where a grid misses
-        a fast change of the model its transfers' sensitivities miss it too, and Gauss–Newton with
-        them converges to the wrong point. Returns ``(fresh, traj, W)``, ``fresh (R,)`` the samples
-        that integrated (the others keep ``traj`` and ``W``)."""
-        accurate, W_acc, errors = self._solve_with_sensitivities(rows, z0)
-        fresh = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
-        traj = torch.where(fresh.reshape(-1, 1, 1), accurate, traj)
-        return fresh, traj, torch.where(fresh.reshape(-1, 1, 1, 1), W_acc, W)
+    def _jointly(self, rows, z0):
+        """The model integrated from ``z0 (S, M)`` of samples ``rows`` with its sensitivities, the two
+        together (:meth:`~torchql.engine_evaluate.Evaluation._solve_with_sensitivities`), as
+        :meth:`_model_at` returns them: ``(good, traj, W, errors)``. Where a grid misses a fast change
+        of the model its transfers' sensitivities miss it too, and Gauss–Newton with them converges
+        to the wrong point."""
+        traj, W, errors = self._solve_with_sensitivities(rows, z0)
+        return torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device), traj, W, errors
 
     def _out_of_steps(self, rows, need, scaled, iterations, codes, detail, last: bool) -> torch.Tensor:
         """Of the samples ``rows`` whose next step on the model is needed (``need``; its scaled size
@@ -321,11 +316,10 @@ class FinalPass:
         for j in out.nonzero().flatten().tolist():
             r = int(rows[j])
             codes[r] = Status.MAX_ITER
-            detail[r] = (f" The iteration's fixed point was off the model's optimum (the storage grid "
-                                     f"misses a change of the model), and the final pass's Gauss–Newton steps on "
-                                     f"the model stopped before converging: the next would move the unknowns by "
-                                     f"{float(scaled[j]):.2g} of their scale; a finer `grid` or `method=\"shooting\"` "
-                                     f"reaches the optimum.")
+            detail[r] = (" The iteration's fixed point was off the model's optimum (the storage grid misses a "
+                         "change of the model), and the final pass's Gauss–Newton steps on the model stopped before "
+                         f"converging: the next would move the unknowns by {float(scaled[j]):.2g} of their scale; a "
+                         "finer `grid` or `method=\"shooting\"` reaches the optimum.")
         return out
 
     def _not_minimal(self, rows, here: dict, alpha: torch.Tensor) -> torch.Tensor:

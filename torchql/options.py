@@ -198,12 +198,10 @@ def _given_twice(name: str, keyword, value) -> ValueError:
     return ValueError(f"`{name}` is given twice, {keyword!r} as a keyword and {value!r} in `options`; give it once")
 
 
-def with_options(options: "FitOptions | None", given: dict, defaults: dict | None = None,
-                 explicit: set | None = None) -> dict:
+def with_options(options: "FitOptions | None", given: dict, explicit: set) -> dict:
     """The keyword arguments ``given`` (as an entry point received them) with ``options``' fields.
 
-    A keyword the caller did not pass (not in ``explicit``; without ``explicit``, one left at its
-    default: ``defaults``, else :class:`FitOptions`' own) takes the field; a field that the entry
+    A keyword the caller did not pass (not in ``explicit``) takes the field; a field that the entry
     point does not take (not in ``given``) must be at its default; a field and a keyword passed with
     different values is a ``ValueError`` naming it, also where the keyword passed is its default.
     """
@@ -215,9 +213,7 @@ def with_options(options: "FitOptions | None", given: dict, defaults: dict | Non
             raise ValueError(f"`options.{name}` = {value!r} does not apply here (this function takes no "
                              f"`{name}`); leave it at its default {default!r}")
         keyword = given[name]
-        passed = (name in explicit if explicit is not None
-                  else not _same(keyword, (defaults or {}).get(name, default)))
-        if passed and not _same(keyword, value):
+        if name in explicit and not _same(keyword, value):
             raise _given_twice(name, keyword, value)
         out[name] = value
     return out
@@ -241,7 +237,7 @@ def expand_options(keywords: dict) -> dict:
 def accepts_options(function):
     """Decorate a fitting function whose keywords include some of :class:`FitOptions`' fields and
     ``options=None``: a call with ``options`` runs it with those keywords resolved by
-    :func:`with_options` (the function's own defaults deciding which keywords were left alone)."""
+    :func:`with_options` (the keywords the call passed against the options' fields)."""
     signature = inspect.signature(function)
     names = [f.name for f in fields(FitOptions) if f.name in signature.parameters]
 
@@ -253,8 +249,7 @@ def accepts_options(function):
         explicit = {name for name in names if name in bound.arguments}
         bound.apply_defaults()
         given = {name: bound.arguments[name] for name in names}
-        bound.arguments.update(with_options(options, given, {name: signature.parameters[name].default
-                                                             for name in names}, explicit))
+        bound.arguments.update(with_options(options, given, explicit))
         return function(*bound.args, **bound.kwargs)
     return call
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 
 from . import engine_evaluate
-from .engine_evaluate import _pick, bound_of
+from .engine_state import _pick, bound_of
 from .registry import Registry
 from .trajectory import model_defect
 
