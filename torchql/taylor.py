@@ -164,29 +164,34 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
         r = _norms(mono, a, M, dA)
     growth = r.sum(dim=0).exp()  # e^rho, rho = sum_i ||A_aa,i|| >= ||A_aa(s)|| on the substep
     eye = torch.eye(a, P, dtype=mono.dtype, device=mono.device).unsqueeze(-1)
-    recent = [torch.cat([A[0], B[0].unsqueeze(1)], dim=1)]  # T_1; then the last dA + 1 terms, newest last
-    T = eye + recent[0]
+    # the views a term's products read, taken once (a term is a few dozen small kernels: on a
+    # single fit's intervals their dispatch, not the arithmetic, is its cost): A_aa's columns
+    # (a, 1, J) by degree, and each recent term's rows (1, P, J), with its column norms (P, J)
+    columns = [[A_aa[i, :, c].unsqueeze(1) for c in range(a)] for i in range(dA + 1)]
+    first = torch.cat([A[0], B[0].unsqueeze(1)], dim=1)  # T_1
+    recent = [_rows(first)]  # the last dA + 1 terms' rows and norms, newest last
+    T = eye + first
     result = result_ratio = passed = None
     k = 1  # terms T_1 .. T_k summed
     while True:
         check_time()  # a term costs O(a) products: a long sum must not outlast the fit's budget
-        new = A_aa[0, :, 0].unsqueeze(1) * recent[-1][0].unsqueeze(0)  # the products A_i T_{k-i}
+        new = columns[0][0] * recent[-1][0][0]  # the products A_i T_{k-i}
         for i in range(min(dA + 1, k)):
-            previous = recent[-1 - i]  # T_{k-i}
+            previous, column = recent[-1 - i][0], columns[i]  # T_{k-i}
             for c in range(1 if i == 0 else 0, a):
-                new.addcmul_(A_aa[i, :, c].unsqueeze(1), previous[c].unsqueeze(0))
+                new.addcmul_(column[c], previous[c])
         if k <= dA:
             new[:, :M] += A[k]
         if k <= forcing_degree:
             new[:, M] += B[k]
         new /= k + 1
-        recent = recent[-dA:] + [new]
         T += new
         k += 1
-        if k > forcing_degree + 1:  # (< _MAX_TERMS: the cap below always follows a test)
-            norms = torch.stack(recent).abs()  # (dA+1, a, P, J) -> (dA+1, P, J): ||T_{k-dA}||, .., ||T_k|| by column
-            norms = norms[:, 0] if a == 1 else norms.amax(dim=1)
-            weights = _tail_weights(k, r)  # (4, J) in the same order
+        testing = k > forcing_degree + 1  # (< _MAX_TERMS: the cap below always follows a test)
+        recent = recent[-dA:] + [_rows(new, norms=k > forcing_degree + 1 - dA)]
+        if testing:
+            norms = torch.stack([term[1] for term in recent])  # (dA+1, P, J): ||T_{k-dA}||, .., ||T_k|| by column
+            weights = _tail_weights(k, r)  # (dA+1, J) in the same order
             tail = (weights.unsqueeze(1) * norms).sum(dim=0) * growth  # (P, J)
             share = (atol + rtol * torch.maximum(eye, T.abs())).amin(dim=0) / n  # (P, J)
             ratio = (tail / share).amax(dim=0).nan_to_num(nan=math.inf)
@@ -201,6 +206,13 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
                 passed = passed | (ratio <= 1)
             if k >= _MAX_TERMS or bool(passed.all()):
                 return result, result_ratio, k
+
+
+def _rows(term: torch.Tensor, norms: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+    """A series term ``(a, P, J)``'s rows as the products read them (``(1, P, J)`` each) and, if
+    ``norms``, its column norms ``||T_k||_inf (P, J)`` that the truncation bound weighs."""
+    size = term.abs()[0] if norms and term.shape[0] == 1 else term.abs().amax(dim=0) if norms else None
+    return [term[c].unsqueeze(0) for c in range(term.shape[0])], size
 
 
 def _tail_weights(K: int, r: torch.Tensor) -> torch.Tensor:
