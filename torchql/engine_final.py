@@ -16,6 +16,12 @@ short enough (:data:`LINEAR_STEP`) is taken along the sensitivities, with no new
 Where the grid misses a fast change of the model (a steep ``tanh``), the fixed point may be several
 steps away: a fit whose steps on the model still exceed the bound when ``max_iter`` or
 :data:`POLISH_STEPS` runs out is not converged, and says so (``MAX_ITER``).
+
+The grid's sensitivities miss such a change too, and Gauss–Newton with them may see no step left
+where there is one. So on an automatic grid the final solution checks the storage's interpolants
+against the model between the nodes (:mod:`torchql.storage_check`), and a sample whose grid
+misses its model gets its sensitivities integrated with its solution (:meth:`FinalPass._jointly`)
+for all its steps and its covariance; elsewhere a second needed step takes them.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
 from .solvers import STIFF_SOLVERS
+from .storage_check import interpolation_misfit, storage_misses
 from .uncertainty import covariance
 
 __all__ = ["FinalPass"]
@@ -207,7 +214,28 @@ class FinalPass:
         for k in failed.nonzero().flatten().tolist():
             errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
         good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
+        missed = self._missed_by_storage(rows, traj, lin) & good
+        if bool(missed.any()):  # the sensitivities integrated with the solution, where the grid misses the model
+            j = missed.nonzero().flatten()
+            ok, traj[j], W[j], errors_j = self._jointly(rows[j], z0[j])
+            good[j] = ok
+            for i, e in zip(j.tolist(), errors_j):
+                errors[i] = e
         return good, traj, W, errors
+
+    def _missed_by_storage(self, rows, traj, lin) -> torch.Tensor:
+        """Of the samples ``rows`` with their model's solutions ``traj (S, G, M)`` and its linearization
+        ``lin``, those whose automatic storage grid misses a change of the model between its nodes
+        (:mod:`torchql.storage_check`): their sensitivities are integrated with their solutions from
+        then on (``self.storage_missed``), and their messages say so."""
+        missed = torch.zeros(rows.numel(), dtype=torch.bool, device=traj.device)
+        if not self.spec.auto_grid:
+            return missed
+        misfit = interpolation_misfit(self.system.f, self._grid_of(rows), traj, lin,
+                                      self.spec.linear_solver.hermite_degree, self.system.n)
+        missed = storage_misses(misfit, self.spec.rtol)
+        self.storage_missed.update(int(r) for r in rows[missed].tolist())
+        return missed
 
     def _model_at_mixed(self, rows, z0, guess, joint):
         """:meth:`_model_at` where the samples ``joint (S,)`` get their sensitivities integrated with
@@ -234,6 +262,7 @@ class FinalPass:
         samples' records follow. Returns the solutions at the estimates kept."""
         spec = self.spec
         accurate = torch.zeros_like(polish)  # samples whose sensitivities are integrated with their solutions
+        accurate[sorted(self.storage_missed)] = True
         for step in range(POLISH_STEPS + 1 if POLISH_STEPS else 0):  # the last pass only checks
             take = polish[rows].clone()
             take &= torch.tensor([codes[r].success for r in rows.tolist()], dtype=torch.bool, device=take.device)

@@ -1,0 +1,77 @@
+"""The storage grid's interpolants against the model between their nodes (torchql.storage_check)."""
+
+import math
+
+import pytest
+import torch
+
+import torchql
+from torchql.linearize import linearize, map_fields
+from torchql.model import AugmentedSystem, ODEModel
+from torchql.models import LinearOscillator, NonlinearOscillator
+from torchql.storage_check import MISS_FACTOR, interpolation_misfit, storage_misses
+
+DT = torch.float64
+
+
+class _Friction(ODEModel):
+    """``x' = v``, ``v' = -2 x - 0.1 v - 0.3 tanh(50 v)``: a friction that switches over ``|v| < 0.02``."""
+
+    state_names = ("x", "v")
+
+    def forward(self, t, x):
+        p, v = x.unbind(-1)
+        return torch.stack((v, -0.1 * v - 0.3 * torch.tanh(50.0 * v) - 2.0 * p), -1)
+
+
+def _misfit(model, intervals: int, degree: int, span: float = 10.0) -> float:
+    """The misfit of the storage of ``model``'s solution from ``(1, 0)`` on ``intervals`` uniform intervals."""
+    system = AugmentedSystem(model, [], DT, torch.device("cpu"))
+    t = torch.linspace(0.0, span, intervals + 1, dtype=DT)
+    z = torchql.simulate(model, torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-13, atol=1e-15)
+    lin = linearize(system, t, z, second=degree == 5)
+    lin = map_fields(lin, lambda v: v.unsqueeze(0))
+    return float(interpolation_misfit(system.f, t, z.unsqueeze(0), lin, degree, system.n)[0])
+
+
+@pytest.mark.parametrize("degree", [3, 5])
+def test_on_a_smooth_solution_the_misfit_is_the_interpolation_error_of_its_order(degree):
+    """Halving the intervals of a nonlinear oscillation's storage divides the misfit by 2^(degree + 1)
+    (the interpolants' order; measured 16.0 for the cubic and 62.8 for the quintic from 400 to 800
+    intervals), and 400 intervals are far below the miss threshold."""
+    model = NonlinearOscillator()
+    coarse, fine = _misfit(model, 400, degree), _misfit(model, 800, degree)
+    assert coarse / fine == pytest.approx(2.0 ** (degree + 1), rel=0.1)
+    assert coarse < 0.02 * MISS_FACTOR * math.sqrt(1e-10)
+
+
+def test_a_linear_model_is_stored_exactly_on_any_grid():
+    """For a linear model ``f = A z`` the Hermite interpolant of ``f`` is ``A`` times that of ``z``:
+    no misfit to rounding on 10 intervals, where the interpolants of the solution itself are far off."""
+    assert _misfit(LinearOscillator(0.1, 3.0), 10, 3) < 1e-14
+
+
+def test_a_switch_between_the_nodes_is_a_miss_on_either_storage():
+    """``tanh(50 v)`` switches within a fraction of one of 200 intervals: the interpolants stray
+    by percents of the slopes, 10^4 times the threshold at the default ``rtol``."""
+    for degree in (3, 5):
+        misfit = _misfit(_Friction(), 200, degree)
+        assert misfit > 1e-2
+        assert bool(storage_misses(torch.tensor([misfit], dtype=DT), 1e-10)[0])
+    assert not bool(storage_misses(torch.tensor([_misfit(LinearOscillator(0.1, 3.0), 200, 3)], dtype=DT), 1e-10)[0])
+
+
+def test_padded_intervals_of_per_sample_grids_count_nothing():
+    """A grid padded at its end by repeating its last node (zero-length intervals) gets the misfit
+    of its real intervals."""
+    model = LinearOscillator(0.1, 3.0)
+    system = AugmentedSystem(model, [], DT, torch.device("cpu"))
+    t = torch.linspace(0.0, 5.0, 41, dtype=DT)
+    padded = torch.cat([t, t[-1:].expand(5)])
+    z = torchql.simulate(model, torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-13, atol=1e-15)
+    misfits = []
+    for grid, values in ((t, z), (padded, torch.cat([z, z[-1:].expand(5, -1)]))):
+        lin = map_fields(linearize(system, grid, values), lambda v: v.unsqueeze(0))
+        misfits.append(interpolation_misfit(system.f, grid.unsqueeze(0), values.unsqueeze(0), lin, 3, system.n))
+    assert torch.isfinite(misfits[1]).all()
+    torch.testing.assert_close(misfits[1], misfits[0], rtol=1e-12, atol=0.0)
