@@ -138,8 +138,9 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         self.coarse_grid: set[int] = set()
         #: per sample, the current iterate (its initial state's bytes) seen to fit in that budget
         self.fits_grid: dict[int, bytes] = {}
-        #: samples whose automatic storage grid misses a change of their model (FinalPass._missed_by_storage)
-        self.storage_missed: set[int] = set()
+        #: samples whose automatic storage grid misses a change of their model, with the misfit
+        #: (FinalPass._missed_by_storage)
+        self.storage_missed: dict[int, float] = {}
         #: the tolerance of the trials' linear transfers while they are proposed (None: ``rtol``;
         #: see :data:`~torchql.engine_evaluate.INEXACT_FACTOR`)
         self.trial_rtol: float | None = None

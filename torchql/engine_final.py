@@ -116,6 +116,11 @@ class FinalPass:
                 last = self.history[r][-1] if self.history[r] else None
                 if last is None or last.iteration != int(iterations[r]) or not torch.equal(last.x0, z0[r, :self.system.n]):
                     self.history[r].append(self._record(r, int(iterations[r]), z0[r], float("nan")))
+        for k, misfit in self.storage_missed.items():
+            detail[k] += (f" The automatic storage grid misses a change of the model between its nodes (its "
+                          f"interpolants stray by {misfit:.2g} of the states over an interval): the final pass "
+                          "integrated the sensitivities with the solution; a finer `grid` makes the iterations "
+                          "faithful too.")
         for k, r in enumerate(self.index.tolist()):
             if spec.bounds.active:
                 detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index]))
@@ -234,7 +239,8 @@ class FinalPass:
         misfit = interpolation_misfit(self.system.f, self._grid_of(rows), traj, lin,
                                       self.spec.linear_solver.hermite_degree, self.system.n)
         missed = storage_misses(misfit, self.spec.rtol)
-        self.storage_missed.update(int(r) for r in rows[missed].tolist())
+        for k in missed.nonzero().flatten().tolist():
+            self.storage_missed[int(rows[k])] = float(misfit[k])
         return missed
 
     def _model_at_mixed(self, rows, z0, guess, joint):
@@ -262,7 +268,7 @@ class FinalPass:
         samples' records follow. Returns the solutions at the estimates kept."""
         spec = self.spec
         accurate = torch.zeros_like(polish)  # samples whose sensitivities are integrated with their solutions
-        accurate[sorted(self.storage_missed)] = True
+        accurate[list(self.storage_missed)] = True
         for step in range(POLISH_STEPS + 1 if POLISH_STEPS else 0):  # the last pass only checks
             take = polish[rows].clone()
             take &= torch.tensor([codes[r].success for r in rows.tolist()], dtype=torch.bool, device=take.device)
