@@ -55,7 +55,7 @@ _RTOL, _ATOL = 1e-7, 1e-9
 _MAX_LINE_SEARCH = 25
 
 
-@accepts_options
+@accepts_options(unlike=("max_steps",))
 def adjoint_fit(
     model: ODEModel,
     data: Observations,
@@ -127,7 +127,8 @@ def adjoint_fit(
         Show a ``tqdm`` progress bar if ``tqdm`` is installed (silently nothing otherwise).
     options : FitOptions, optional
         Of :class:`torchql.FitOptions` only ``solver``, ``rtol``, ``atol`` and ``max_time`` apply here
-        (a keyword left at its default takes the field); another field set is an error.
+        (a keyword left at its default takes the field); another field set is an error, ``max_steps``
+        too (the solver's step budget there, the optimizer's here).
 
     Returns
     -------

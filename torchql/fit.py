@@ -157,10 +157,11 @@ def fit(
         below: the SSE of an integrated model is not known more closely than the integration.
     rcond : float, optional
         Relative singular-value threshold below which a direction of the unknowns counts as
-        not identifiable. Default ``max(1e3 * rtol, 1e3 * eps)``.
+        not identifiable. Default ``max(min(1e3 * rtol, sqrt(rtol)), 1e3 * eps)``.
     grid : int, "auto", "smooth" or Tensor, optional
         Kantorovich's storage grid: the number of uniform intervals over ``[t0, t_last]``, or
-        extra times to include (with 1000 uniform intervals). Observation times and ``t0`` are
+        extra times to include (with 1000 uniform intervals; times outside ``(t0, t_last)`` lie
+        outside the integration and are not nodes). Observation times and ``t0`` are
         always nodes. ``"auto"`` (default, also ``None``): each dataset's own count, 20 to 1000,
         chosen from its first reference (built on 100 intervals): the fewest whose cubic Hermite
         interpolation of the model's solutions through it stays within ``sqrt(rtol) / 16`` of the

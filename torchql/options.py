@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import math
 from dataclasses import dataclass, fields, replace
 
 import torch
@@ -45,7 +46,10 @@ class Tolerances:
         Sum-of-squares test: default ``max(1e-12, rtol)`` in float64, ``max(1e-6, rtol)`` below
         (a change of the SSE below the integration's relative accuracy is no change).
     rcond : float
-        Relative singular-value threshold of the rank tests: default ``max(1e3 rtol, 1e3 eps)``.
+        Relative singular-value threshold of the rank tests: default ``max(min(1e3 rtol, sqrt(rtol)),
+        1e3 eps)``: a thousand times the integration's accuracy, and no more than its square root
+        where that is loose (``rtol=1e-3``, scipy's default, would make it 1: every direction
+        undetermined).
     """
 
     rtol: float
@@ -60,13 +64,16 @@ class Tolerances:
         """The given tolerances, validated (positive numbers), and the defaults of ``dtype`` for the rest."""
         rtol, atol = default_tolerances(dtype, rtol, atol)
         rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
+        if rtol >= 1:
+            raise ValueError(f"`rtol` must be below 1 (a relative tolerance); received {rtol:g}")
         double = dtype == torch.float64
         eps = torch.finfo(dtype).eps
         return cls(
             rtol=rtol, atol=atol,
             xtol=_checks.positive_number("xtol", xtol) if xtol is not None else max(1e-8 if double else 1e-4, 100 * rtol),
             ftol=_checks.positive_number("ftol", ftol) if ftol is not None else max(1e-12 if double else 1e-6, rtol),
-            rcond=_checks.positive_number("rcond", rcond) if rcond is not None else max(1e3 * rtol, 1e3 * eps),
+            rcond=(_checks.positive_number("rcond", rcond) if rcond is not None
+                   else max(min(1e3 * rtol, math.sqrt(rtol)), 1e3 * eps)),
         )
 
 
@@ -182,7 +189,12 @@ def _same(a, b) -> bool:
     if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
         return isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor) and a.shape == b.shape and bool(
             torch.equal(a, b))
-    return a == b if type(a) is type(b) else a is b
+    if type(a) is type(b):
+        return a == b
+    numbers = (int, float)  # 10 and 10.0 are one value; True is no number here
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+        return a == b
+    return a is b
 
 
 def _set_fields(options) -> list[tuple[str, object, object]]:
@@ -198,20 +210,23 @@ def _given_twice(name: str, keyword, value) -> ValueError:
     return ValueError(f"`{name}` is given twice, {keyword!r} as a keyword and {value!r} in `options`; give it once")
 
 
-def with_options(options: "FitOptions | None", given: dict, explicit: set) -> dict:
+def with_options(options: "FitOptions | None", given: dict, explicit: set, unlike: tuple = ()) -> dict:
     """The keyword arguments ``given`` (as an entry point received them) with ``options``' fields.
 
     A keyword the caller did not pass (not in ``explicit``) takes the field; a field that the entry
-    point does not take (not in ``given``) must be at its default; a field and a keyword passed with
-    different values is a ``ValueError`` naming it, also where the keyword passed is its default.
+    point does not take (not in ``given``, or in ``unlike``: a keyword of the same name that means
+    something else there) must be at its default; a field and a keyword passed with different
+    values is a ``ValueError`` naming it, also where the keyword passed is its default.
     """
     out = dict(given)
     if options is None:
         return out
     for name, value, default in _set_fields(options):
-        if name not in given:
-            raise ValueError(f"`options.{name}` = {value!r} does not apply here (this function takes no "
-                             f"`{name}`); leave it at its default {default!r}")
+        if name not in given or name in unlike:
+            what = (f"this function's `{name}` is another quantity" if name in unlike
+                    else f"this function takes no `{name}`")
+            raise ValueError(f"`options.{name}` = {value!r} does not apply here ({what}); leave it at its "
+                             f"default {default!r}")
         keyword = given[name]
         if name in explicit and not _same(keyword, value):
             raise _given_twice(name, keyword, value)
@@ -234,12 +249,16 @@ def expand_options(keywords: dict) -> dict:
     return keywords
 
 
-def accepts_options(function):
+def accepts_options(function=None, *, unlike: tuple = ()):
     """Decorate a fitting function whose keywords include some of :class:`FitOptions`' fields and
     ``options=None``: a call with ``options`` runs it with those keywords resolved by
-    :func:`with_options` (the keywords the call passed against the options' fields)."""
+    :func:`with_options` (the keywords the call passed against the options' fields). ``unlike``:
+    the function's keywords named as a field but meaning something else (``adjoint_fit``'s
+    ``max_steps`` counts optimizer steps, the field solver steps): such a field set is an error."""
+    if function is None:
+        return lambda wrapped: accepts_options(wrapped, unlike=unlike)
     signature = inspect.signature(function)
-    names = [f.name for f in fields(FitOptions) if f.name in signature.parameters]
+    names = [f.name for f in fields(FitOptions) if f.name in signature.parameters and f.name not in unlike]
 
     @functools.wraps(function)
     def call(*args, options: "FitOptions | None" = None, **kwargs):
@@ -249,7 +268,7 @@ def accepts_options(function):
         explicit = {name for name in names if name in bound.arguments}
         bound.apply_defaults()
         given = {name: bound.arguments[name] for name in names}
-        bound.arguments.update(with_options(options, given, explicit))
+        bound.arguments.update(with_options(options, given, explicit, unlike))
         return function(*bound.args, **bound.kwargs)
     return call
 
