@@ -104,6 +104,27 @@ def test_bad_parameter_fields_are_named(kwargs, error, match):
         Parameter(1.0, **kwargs)
 
 
+def _follows(v):
+    return v["N"] - v["S"]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(expr=_follows, min=0.0), r"`Parameter.expr` makes the state follow the others.*\['min'\] do not apply"),
+    (dict(expr=_follows, value=0.7, vary=False), r"\['value', 'vary'\] do not apply with it"),
+    (dict(expr=_follows, scale="log"), r"\['scale'\] do not apply with it"),
+    (dict(value=5.0, vary=False, min=0.0, max=1.0), r"`Parameter\(vary=False\)` holds a known value, which takes no "
+                                                    r"bounds or scale; received \{'min': 0.0, 'max': 1.0\}"),
+    (dict(value=0.2, vary=False, scale="log"), r"takes no bounds or scale; received \{'scale': 'log'\}"),
+    (dict(value=-0.1, scale="log"), r"`Parameter.scale` = 'log' needs a positive value; received -0.1"),
+])
+def test_roles_that_exclude_each_other_are_an_error(kwargs, match):
+    """What the keywords a specification stands for refuse (``x0_expr`` with ``bounds``, ``bounds`` on a known
+    value) was silently dropped from a Parameter: a state following an expression to -1 with ``min=0``, a
+    known value held at 5 outside its own bounds [0, 1]."""
+    with pytest.raises(ValueError, match=match):
+        Parameter(**kwargs)
+
+
 def test_a_role_that_contradicts_params_or_fixed_x0_is_named(data):
     """A coefficient ``params`` lists as an unknown and ``parameters`` holds fixed, or a state ``fixed_x0``
     fixes and ``parameters`` lets vary, is an error: the two places disagree, and neither may silently win."""

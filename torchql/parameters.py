@@ -80,6 +80,21 @@ class Parameter:
             if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float))
                                       or math.isnan(bound)):
                 raise TypeError(f"`Parameter.{side}` must be a number or None; received {bound!r}")
+        # roles that exclude each other are an error, as the keywords they stand for make them
+        given = {name: getattr(self, name) for name in ("min", "max") if getattr(self, name) is not None}
+        if self.scale != "lin":
+            given["scale"] = self.scale
+        if self.expr is not None:
+            extra = dict(given, **({"value": self.value} if self.value is not None else {}),
+                         **({"vary": False} if not self.vary else {}))
+            if extra:
+                raise ValueError(f"`Parameter.expr` makes the state follow the others: it is neither estimated nor "
+                                 f"given, so {sorted(extra)} do not apply with it; received {extra}")
+        elif not self.vary and given:
+            raise ValueError(f"`Parameter(vary=False)` holds a known value, which takes no bounds or scale; received "
+                             f"{given}")
+        elif self.scale != "lin" and self.value is not None and bool((torch.as_tensor(self.value) <= 0).any()):
+            raise ValueError(f"`Parameter.scale` = {self.scale!r} needs a positive value; received {self.value!r}")
 
 
 def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds, scale, x0_expr=None,
