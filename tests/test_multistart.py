@@ -33,6 +33,19 @@ def test_every_start_finds_the_single_optimum(decay_data):
     assert "5 starts, 5 converged, 1 distinct optima" in ms.summary()
 
 
+def test_each_start_begins_at_its_own_guesses(decay_data):
+    """With ``y`` measured, ``fit``'s default first reference is built from the data, the same for every
+    start: the draws made no difference (every start's first iterate was one point). multistart
+    integrates each start from its guesses unless told otherwise."""
+    ms = torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), starts=4, seed=1)
+    first = [r.history[0].params["k"].item() for r in ms.results]
+    assert first == pytest.approx(ms.guesses[:, 0].tolist(), rel=1e-12)
+    assert ms.best.fit_kwargs["initial_trajectory"] == "integrate"
+    auto = torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), starts=4, seed=1,
+                              initial_trajectory="auto")
+    assert len({round(r.history[0].params["k"].item(), 12) for r in auto.results}) == 1  # the data's, as asked
+
+
 def test_draws_are_reproducible_and_respect_bounds(decay_data):
     kwargs = dict(starts=4, seed=7, grid=50, bounds={"k": (0.5, 2.0)}, max_iter=0)
     a = torchql.multistart(Decay(1.0), decay_data, torch.tensor([1.0], dtype=DT), **kwargs)
@@ -65,6 +78,7 @@ def test_distinct_optima_are_separated_and_best_is_the_lowest():
     (dict(spread=0.5), ValueError, "spread"),
     (dict(throw=True), TypeError, "throw"),
     (dict(callback=3), TypeError, "callback"),
+    (dict(foo=1), TypeError, r"multistart\(\) got unexpected keyword argument\(s\) \['foo'\]"),
 ])
 def test_bad_arguments(decay_data, kwargs, error, match):
     with pytest.raises(error, match=match):

@@ -19,6 +19,7 @@ give. Otherwise (exact values, several experiments, ...) each start is one
 from __future__ import annotations
 
 import copy
+import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,6 +42,8 @@ __all__ = ["multistart", "MultiStartResult", "Optimum"]
 _FIT_MANY_OPTIONS = frozenset({"fixed_x0", "t0", "max_iter", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
                                "damping", "solver", "max_steps", "method", "linear_solver",
                                "initial_trajectory"})
+#: The keywords of :func:`torchql.fit` (``options`` included), which ``multistart`` passes on.
+_FIT_KEYWORDS = frozenset(inspect.signature(fit).parameters) | {"options"}
 #: Options of :func:`torchql.fit` that ``fit_many`` always runs with these values.
 _FIT_MANY_FIXED: dict = {}
 
@@ -129,8 +132,11 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     model : ODEModel
         Its buffers are the central guesses (never modified).
     data, x0, params, bounds
-        As in :func:`torchql.fit` (the same ``x0`` for every start; with
-        ``initial_trajectory="data"`` the first iterate comes from the data anyway).
+        As in :func:`torchql.fit` (the same ``x0`` for every start). Each start's first iterate is
+        the model integrated from its own guesses: ``initial_trajectory`` defaults to
+        ``"integrate"`` here, since a first reference built from the data (``fit``'s ``"auto"``
+        where a state is measured) would be the same for every start and make the draws moot;
+        pass ``initial_trajectory="auto"`` or ``"data"`` for those.
     starts : int
         Number of fits.
     spread : float
@@ -170,7 +176,14 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         raise ValueError(f"`spread` must be >= 1 (a factor around the guesses); received {spread:g}")
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable as callback(k, result); received {callback!r}")
+    unknown = sorted(set(fit_kwargs) - _FIT_KEYWORDS)
+    if unknown:
+        raise TypeError(f"multistart() got unexpected keyword argument(s) {unknown}: it takes its own and "
+                        "torchql.fit's")
     fit_kwargs = expand_options(fit_kwargs)
+    # each start from its own guesses: a first reference built from the data ("auto"'s, where a state
+    # is measured) is the same for every start, and so would the fits be
+    fit_kwargs.setdefault("initial_trajectory", "integrate")
     if "throw" in fit_kwargs:
         raise TypeError("`throw` is not accepted by multistart: failed starts are part of the result")
     if fit_kwargs.get("parameters") is not None:  # the specification's bounds bound the draws too
