@@ -63,6 +63,11 @@ def test_compare_refuses_what_it_cannot_compare():
     batch = torchql.Observations(first.t, torch.stack([first.y, second.y]), observe=["y"])
     with pytest.raises(TypeError, match="one torchql.Observations \\(a validation experiment\\); received a batch"):
         torchql.compare(result, batch)
+    one = torchql.fit(DrivenOscillator(), first, x0=torch.zeros(2, dtype=DT))
+    with pytest.raises(ValueError, match="`experiment` applies only to fits of several experiments; received 7"):
+        torchql.compare(one, second, experiment=7)  # as predict says; it was ignored
+    with pytest.raises(TypeError, match="`result` must be a torchql.FitResult; received str"):
+        torchql.compare("not a result", second)
 
 
 def test_validation_data_without_their_inputs_are_refused():

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -22,9 +21,7 @@ from ._checks import finite_number
 from .integrate import simulate
 from .model import coefficients
 from .observations import ObservationOperator, Observations
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .result import FitResult
+from .result import FitResult
 
 __all__ = ["Comparison", "compare", "fit_percent"]
 
@@ -115,9 +112,15 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
     >>> comparison.fit_percent                              # doctest: +SKIP
     tensor([97.31])
     """
+    if not isinstance(result, FitResult):
+        what = " (compare one fit of it: `result[i]`)" if type(result).__name__ == "BatchFitResult" else ""
+        raise TypeError(f"`result` must be a torchql.FitResult{what}; received {type(result).__name__}")
     if not isinstance(data, Observations) or data.batch_size is not None:
         received = type(data).__name__ if not isinstance(data, Observations) else f"a batch of {data.batch_size}"
         raise TypeError(f"`data` must be one torchql.Observations (a validation experiment); received {received}")
+    if experiment is not None and result.experiment_t0 is None:
+        raise ValueError(f"`experiment` applies only to fits of several experiments; received {experiment!r} for a "
+                         "fit of one")
     model = result.model
     dtype = result.estimates.dtype
     device = result.estimates.device
