@@ -340,6 +340,14 @@ def test_throw_raises_fit_error_with_result():
     assert not result.success
     assert result.status is torchql.Status.MAX_ITER
     assert str(info.value) == result.message
+    # it crosses process boundaries (a worker pool's fit raising it) with its result
+    import copy
+    import pickle
+
+    for again in (pickle.loads(pickle.dumps(info.value)), copy.deepcopy(info.value)):
+        assert isinstance(again, torchql.FitError) and str(again) == result.message
+        assert again.result.status is torchql.Status.MAX_ITER
+        torch.testing.assert_close(again.result.estimates, result.estimates, rtol=0, atol=0)
 
 
 def test_no_throw_returns_unsuccessful_result():

@@ -183,6 +183,29 @@ def test_plot_fit_writes_a_figure(car, agg, tmp_path):
     assert none is None
 
 
+def test_plot_fit_of_several_experiments_draws_the_one_named(agg):
+    """A fit of two experiments: each drawn with its own data, initial state and curve; without
+    ``experiment`` a clear error (it was an AttributeError of the list of datasets)."""
+    from torchql.models import LinearOscillator
+
+    t = torch.arange(14, dtype=torch.float64) * 0.5
+    starts = (torch.tensor([0.0, 1.0], dtype=torch.float64), torch.tensor([1.0, 0.0], dtype=torch.float64))
+    sets = [torchql.Observations(t, torchql.simulate(LinearOscillator(0.1, 3.0), x0, t)[:, :1], observe=["y"])
+            for x0 in starts]
+    result = torchql.fit(LinearOscillator(0.5, 2.0), sets, x0=torch.stack(starts))
+    assert result.success, result.message
+    for k in (0, 1):
+        _, (ax_fit, ax_res) = result.plot_fit(experiment=k)
+        fitted, measured = ax_fit.lines[0].get_ydata(), ax_fit.lines[1].get_ydata()
+        assert measured == pytest.approx(sets[k].y[:, 0].tolist())
+        assert fitted[0] == pytest.approx(float(starts[k][0]), abs=1e-6)  # the curve from that experiment's start
+        assert max(abs(v) for v in ax_res.lines[0].get_ydata()) < 1e-6
+    with pytest.raises(ValueError, match=r"`experiment` must be an index 0..1 \(the fit has 2 experiments\)"):
+        result.plot_fit()
+    with pytest.raises(ValueError, match="`experiment` applies only to fits of several experiments"):
+        torchql.fit(LinearOscillator(0.5, 2.0), sets[0], x0=starts[0]).plot_fit(experiment=0)
+
+
 def test_plot_convergence_writes_a_figure(car, agg, tmp_path):
     fig, (ax_u, ax_sse) = car.plot_convergence()
     assert ax_u.get_yscale() == "log" and ax_sse.get_yscale() == "log"

@@ -48,19 +48,23 @@ def _output_labels(observe, state_names, K: int) -> list[str]:
     return [f"y[{k}]" for k in range(K)]
 
 
-def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n_points: int = 400):
+def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n_points: int = 400,
+             experiment: int | None = None):
     """The fitted model's observed quantities against the data, with a residual panel.
 
     Parameters
     ----------
     result : FitResult
     data : Observations, optional
-        Default ``result.data``.
+        Default ``result.data`` (with several experiments, that of ``experiment``).
     ax : matplotlib Axes or pair of Axes, optional
         ``None``: a new figure with the fit above and the residuals ``y - h(x(t))`` below; a
         pair ``(ax_fit, ax_residuals)``: drawn there; one Axes: the fit only.
     n_points : int
         Points of the fitted curve.
+    experiment : int, optional
+        With a fit of several experiments, which one (its data, initial state and conditions);
+        required then.
 
     Returns
     -------
@@ -69,30 +73,42 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     from .model import coefficients
     from .observations import ObservationOperator
 
+    several = result.experiment_t0 is not None
+    if several:
+        E = len(result.experiment_t0)
+        if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
+            raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments); received "
+                             f"{experiment!r}")
+        if data is None and isinstance(result.data, (list, tuple)):
+            data = result.data[experiment]
+    elif experiment is not None:
+        raise ValueError("`experiment` applies only to fits of several experiments")
     if data is None:
         data = result.data
     if data is None:
         raise ValueError("`data` is required: this FitResult does not hold the observations it was fitted to")
     fig, (ax_fit, ax_res) = _two_axes(ax, sharex=True)
     dtype, device = result.x0.dtype, result.x0.device
-    names = list(result.model.state_names)
+    model = result.experiment_model(experiment) if several else result.model
+    names = list(model.state_names)
     K = data.n_outputs
     operator = ObservationOperator(data.observe, names, K, dtype, device)
     t_obs = data.t.to(dtype=dtype, device=device)
-    t_first = min(result.t0, float(t_obs[0]))
+    t0 = result.experiment_t0[experiment] if several else result.t0
+    t_first = min(t0, float(t_obs[0]))
     t_last = float(t_obs[-1])
     if t_last > t_first:
         t_fine = torch.linspace(t_first, t_last, n_points, dtype=dtype, device=device)
     else:
         t_fine = t_obs.clone()
     with torch.no_grad():
-        h_fine = operator.values(result.predict(t_fine), coefficients(result.model))
-        h_obs = operator.values(result.predict(t_obs), coefficients(result.model))
+        h_fine = operator.values(result.predict(t_fine, experiment=experiment), coefficients(model))
+        h_obs = operator.values(result.predict(t_obs, experiment=experiment), coefficients(model))
     y = data.y.to(dtype=dtype, device=device)
     labels = _output_labels(data.observe, names, K)
     tf = t_fine.cpu().numpy()
     to = t_obs.cpu().numpy()
-    sigma = data.sigma_at(coefficients(result.model))  # with a sigma(p) function, at the estimates
+    sigma = data.sigma_at(coefficients(model))  # with a sigma(p) function, at the estimates
     for k in range(K):
         (line,) = ax_fit.plot(tf, h_fine[:, k].cpu().numpy(), label=f"{labels[k]} fitted")
         color = line.get_color()

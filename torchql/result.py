@@ -26,6 +26,11 @@ class FitError(RuntimeError):
         super().__init__(result.message)
         self.result = result
 
+    def __reduce__(self):
+        """Pickled (and deep-copied) with its result, so that it crosses process boundaries
+        (a worker pool's ``fit(..., throw=True)``): the default would rebuild it from the message."""
+        return type(self), (self.result,)
+
 
 @dataclass
 class IterationRecord:
@@ -301,11 +306,12 @@ class FitResult:
 
         return fit_report(self, level=level, min_correlation=min_correlation, iterations=iterations, print=print)
 
-    def plot_fit(self, data=None, ax=None):
-        """Plot the fit against the data, with a residual panel; see :func:`torchql.plotting.plot_fit`."""
+    def plot_fit(self, data=None, ax=None, experiment: int | None = None):
+        """Plot the fit against the data, with a residual panel (with several experiments, that of
+        ``experiment``); see :func:`torchql.plotting.plot_fit`."""
         from .plotting import plot_fit
 
-        return plot_fit(self, data, ax=ax)
+        return plot_fit(self, data, ax=ax, experiment=experiment)
 
     def plot_convergence(self, ax=None, *, values: bool = False):
         """Plot the unknowns and the SSE against iteration; see :func:`torchql.plotting.plot_convergence`."""
