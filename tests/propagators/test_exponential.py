@@ -179,3 +179,18 @@ def test_a_huge_error_ratio_refines_to_the_cap_instead_of_overflowing():
     finally:
         exponential._pair = original
     assert bool(out.failed.all()) and int(out.substeps.max()) == 8
+
+
+def test_a_singular_stage_system_is_a_nan_step_not_an_exception():
+    """Where ``h A`` makes Radau IIA's stage system singular (here ``h a = 1 / R_00`` at the first node,
+    zero elsewhere: a zero pivot), the step is NaN, which the step doubling refines or marks failed,
+    instead of torch's LinAlgError escaping the fit (van der Pol, mu = 100, data across its jumps)."""
+    from torchql.propagators.exponential import _RADAU, _step
+
+    R = torch.tensor(_RADAU, dtype=torch.float64).reshape(3, 3)
+    Xc = torch.zeros(3, 2, 1, 2, dtype=torch.float64)  # two intervals, one active component, its forcing column
+    Xc[0, 0, 0, 0] = 1.0 / R[0, 0]
+    Xc[:, 1, 0, 0] = -0.5  # the second, an ordinary decay
+    out = _step(torch.zeros(2, 1, 2, dtype=torch.float64), Xc, freeze=False)
+    assert torch.isnan(out[0]).all()
+    assert torch.isfinite(out[1]).all() and 0.5 < float(out[1, 0, 0]) < 0.7  # exp(-0.5) to the method's order

@@ -112,7 +112,10 @@ def _step(Xm: torch.Tensor, Xc: torch.Tensor, freeze: bool = True) -> torch.Tens
         torch.eye(a, dtype=Xm.dtype, device=Xm.device)
     L = blocks.permute(2, 0, 3, 1, 4).reshape(J, 3 * a, 3 * a)
     R = torch.einsum("ij,jkap->kiap", radau, G).reshape(J, 3 * a, P)
-    Z = torch.linalg.solve(L, R)
+    # a singular stage system (h X with an eigenvalue where Radau's collocation matrix is singular)
+    # gives NaN, not an exception: the step-doubling refines that interval, or marks it failed
+    Z, info = torch.linalg.solve_ex(L, R)
+    Z = torch.where((info != 0).reshape(J, 1, 1), torch.full_like(Z, float("nan")), Z)
     return frozen[2, :, :a] + Z[:, 2 * a:]
 
 
