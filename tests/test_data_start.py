@@ -173,3 +173,21 @@ def test_observation_times_off_the_uniform_nodes_by_round_off_still_give_the_dat
     assert not _started_from_the_guesses(r, dict(A=0.098, B=7.2))
     assert abs(float(r.params["A"]) - 0.1824) < 1e-7 and abs(float(r.params["B"]) - 2.7194) < 1e-7
     assert torch.allclose(r.x0, truth, rtol=0, atol=1e-7)
+
+
+def test_where_neither_start_has_a_sum_of_squares_the_one_cut_short_by_max_time_is_reported():
+    """The data's start ended INTEGRATION_FAILED and the fit from the guesses ran out of ``max_time``
+    before any sum of squares: the fit did not finish, so it is MAX_TIME (it said INTEGRATION_FAILED,
+    the first start's), and the message keeps what the other start gave. A finite SSE still wins."""
+    from torchql.data_start import keep_the_better_fit
+    from torchql.status import Status
+
+    nan = float("nan")
+    chunk = dict(status=[Status.INTEGRATION_FAILED, Status.INTEGRATION_FAILED], message=["a.", "b."],
+                 sse=torch.tensor([nan, nan], dtype=torch.float64), z0=torch.zeros(2, 3, dtype=torch.float64))
+    other = dict(status=[Status.MAX_TIME, Status.DIVERGED], message=["c.", "d."],
+                 sse=torch.tensor([nan, nan], dtype=torch.float64), z0=torch.ones(2, 3, dtype=torch.float64))
+    keep_the_better_fit(chunk, [0, 1], other)
+    assert chunk["status"] == [Status.MAX_TIME, Status.INTEGRATION_FAILED]
+    assert "INTEGRATION_FAILED" in chunk["message"][0] and chunk["z0"][0].eq(1).all() and chunk["z0"][1].eq(0).all()
+    assert "DIVERGED" in chunk["message"][1]

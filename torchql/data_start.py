@@ -127,14 +127,16 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start:
     """Rows ``rows`` of the engine's ``chunk`` against ``other`` (the same samples fitted from the
     ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s
     from the other one): each keeps the better fit (a success over a failure, else the lower sum of
-    squares, a finite one over NaN), its message saying what the other start gave. Updates
-    ``chunk`` in place."""
+    squares, a finite one over NaN; where neither has a sum of squares, one cut short by ``max_time``:
+    the fit did not finish), its message saying what the other start gave. Updates ``chunk`` in place."""
     S = len(chunk["status"])
     for j, k in enumerate(rows):
         first, second = chunk["status"][k], other["status"][j]
         sse_first, sse_second = float(chunk["sse"][k]), float(other["sse"][j])
+        unknown = sse_first != sse_first and sse_second != sse_second
         wins = not first.success and (second.success or sse_second < sse_first
-                                      or (sse_first != sse_first and sse_second == sse_second))
+                                      or (sse_first != sse_first and sse_second == sse_second)
+                                      or (unknown and second is Status.MAX_TIME))
         if wins:
             for key, value in chunk.items():
                 if isinstance(value, list) or (isinstance(value, torch.Tensor) and value.shape[:1] == (S,)):
