@@ -91,6 +91,27 @@ def test_noisy_data_give_intervals_that_hold_the_truth():
     assert 0.5 < result.sse / result.dof < 1.6
 
 
+def test_the_quintic_storage_fits_a_held_input_as_the_default_does():
+    """A zero-order hold's grid nodes lie just outside its smooth steps, where the input is held: one
+    computed at a step's very end fell inside it by a roundoff, the step's second derivative there
+    (9e8 for a unit step) entered the quintic storage's A'', and its fit stuck at MAX_ITER 0.1-0.3
+    standard errors from the optimum."""
+    inputs = force(1)
+    nodes = inputs.nodes
+    for order in (1, 2):  # the input is held at every node: its derivatives vanish there exactly
+        derivative = lambda t: inputs(t.reshape(1))[0, 0]  # noqa: E731
+        for _ in range(order):
+            derivative = torch.func.grad(derivative)
+        assert bool((torch.vmap(derivative)(nodes) == 0).all())
+    data = measured(inputs, noise=0.02, seed=3)
+    default = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0)
+    quintic = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0, linear_solver="taylor_quintic")
+    assert default.success and quintic.status is torchql.Status.CONVERGED, quintic.message
+    se = torch.tensor(list(default.stderr.values()), dtype=DT)
+    assert float(((quintic.estimates - default.estimates) / se).abs().max()) < 1e-4
+    assert quintic.sse == pytest.approx(default.sse, rel=1e-9)
+
+
 def test_predict_and_simulate_use_the_fit_inputs_or_new_ones():
     data = measured(force(0))
     result = torchql.fit(DrivenOscillator(), data, x0=GUESS_X0)

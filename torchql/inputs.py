@@ -27,7 +27,7 @@ Outside ``[t_0, t_{N-1}]`` the signal holds its end values; a fit requires the s
 the data's times (from the initial time to the last observation), and says so otherwise.
 
 A fit's storage grid holds the times where the interpolant is not smooth (:attr:`Inputs.nodes`):
-the ends of each zero-order-hold step; each linear sample, with a node a relative
+the ends of each zero-order-hold step (just outside it, :data:`NODE_MARGIN`); each linear sample, with a node a relative
 :data:`BRACKET` of the span before it (the interval ending at a kink reads the slope after it in
 its end data, so that interval is made negligibly short); each cubic sample.
 """
@@ -42,7 +42,7 @@ import torch
 from ._arrays import float_tensor
 from .splines import hermite_basis, knot_slopes
 
-__all__ = ["Inputs", "INTERPOLATIONS", "RAMP", "BRACKET"]
+__all__ = ["Inputs", "INTERPOLATIONS", "RAMP", "NODE_MARGIN", "BRACKET"]
 
 #: The interpolation kinds of :class:`Inputs`.
 INTERPOLATIONS = ("zoh", "linear", "cubic")
@@ -54,6 +54,11 @@ BRACKET = 1e-9
 #: Width of a zero-order hold's smooth step, relative to the samples' span (at most a hundredth of
 #: the shortest sample interval, and at least 1e5 roundoffs of the times).
 RAMP = 1e-9
+#: A zero-order hold's grid nodes lie this fraction of its ramp outside it (at least 50
+#: roundoffs of the times), where the input is held: a node computed at the ramp's very end fell
+#: inside it by a roundoff, and the smooth step's second derivative there (``~1/ramp^2`` times a
+#: roundoff over the ramp, 9e8 for a unit step) entered the quintic storage's ``A''``.
+NODE_MARGIN = 1e-3
 
 
 class Inputs:
@@ -144,7 +149,8 @@ class Inputs:
         it, or the cubic samples."""
         if self.kind == "zoh":
             inner = self.t[1:]
-            return torch.cat([inner - self.ramp / 2, inner + self.ramp / 2])
+            half = self.ramp / 2 * (1.0 + NODE_MARGIN)
+            return torch.cat([inner - half, inner + half])
         if self.kind == "linear":
             before = self.t - max(BRACKET * float(self.t[-1] - self.t[0]), 1e3 * torch.finfo(self.t.dtype).eps
                                   * float(self.t.abs().max()))
