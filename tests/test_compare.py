@@ -52,6 +52,12 @@ def test_compare_from_a_given_initial_state():
     validation = measured(force(4), x0=x0, times=times)
     assert float(torchql.compare(result, validation, x0=x0).fit_percent[0]) > 99.999
     assert float(torchql.compare(result, validation).fit_percent[0]) < 99  # the fit's own x0 at t0 = 0
+    import pickle  # a comparison pickles, its curve with it (a closure did not)
+
+    comparison = torchql.compare(result, validation, x0=x0)
+    again = pickle.loads(pickle.dumps(comparison))
+    torch.testing.assert_close(again.curve(times), comparison.predicted, rtol=0, atol=0)
+    assert repr(again) == repr(comparison)
 
 
 def test_compare_refuses_what_it_cannot_compare():

@@ -149,11 +149,25 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
     names = list(model.state_names)
     operator = ObservationOperator(data.observe, names, data.n_outputs, dtype, device)
 
-    def outputs(times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        states = simulate(model, x0, times, t0=float(start), inputs=data.inputs, **result.solver_options)
-        return states, operator.values(states, coefficients(model)).detach()
-
-    states, predicted = outputs(t)
+    curve = _Outputs(model, x0, float(start), data.inputs, dict(result.solver_options), operator)
+    states, predicted = curve.with_states(t)
     y = data.y.to(dtype=dtype, device=device)
     return Comparison(fit_percent=fit_percent(y, predicted), t=t, y=y, predicted=predicted, states=states,
-                      output_names=operator.labels(), curve=lambda times: outputs(times)[1])
+                      output_names=operator.labels(), curve=curve)
+
+
+class _Outputs:
+    """The fitted model's outputs at any times, ``(Q,) -> (Q, K)``: a :class:`Comparison`'s ``curve``
+    (an object, not a closure, so that the comparison pickles)."""
+
+    def __init__(self, model, x0, start: float, inputs, solver_options: dict, operator: ObservationOperator) -> None:
+        self.model, self.x0, self.start, self.inputs = model, x0, start, inputs
+        self.solver_options, self.operator = solver_options, operator
+
+    def with_states(self, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The simulated states ``(Q, n_states)`` and outputs ``(Q, K)`` at ``times``."""
+        states = simulate(self.model, self.x0, times, t0=self.start, inputs=self.inputs, **self.solver_options)
+        return states, self.operator.values(states, coefficients(self.model)).detach()
+
+    def __call__(self, times: torch.Tensor) -> torch.Tensor:
+        return self.with_states(times)[1]
