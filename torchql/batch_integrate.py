@@ -40,8 +40,8 @@ __all__ = ["propagate_linear_batch", "interval_coefficients", "dopri_batch", "in
 
 
 def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor, lin, w0: torch.Tensor, *,
-                           rtol: float, atol: float, max_substeps: int = 1024, propagator=None
-                           ) -> tuple[torch.Tensor, torch.Tensor, int]:
+                           rtol: float, atol: float, max_substeps: int = 1024, propagator=None,
+                           coefficients: _Coefficients | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Particular and homogeneous solutions of ``S`` samples' quasilinear systems on the grid ``t``.
 
     Parameters
@@ -64,6 +64,9 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
     propagator : LinearPropagator, optional
         Whose batched :meth:`~torchql.propagators.LinearPropagator.series` integrates the
         intervals (default: the Taylor series).
+    coefficients : _Coefficients, optional
+        The intervals' coefficients, if already built (:func:`torchql.transfer.interval_coefficients`
+        of these arguments, in the propagator's degree).
 
     Returns
     -------
@@ -79,7 +82,8 @@ def propagate_linear_batch(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor
     if G == 1:
         return w0.unsqueeze(1).clone(), torch.zeros(S, dtype=torch.bool, device=z.device), 0
     N = G - 1
-    coefficients = interval_coefficients(t, z, z_dot, lin, 3 if propagator is None else propagator.hermite_degree)
+    if coefficients is None:
+        coefficients = interval_coefficients(t, z, z_dot, lin, 3 if propagator is None else propagator.hermite_degree)
     series = _taylor_series if propagator is None else propagator.series
     if t.dim() == 1:
         rtol_j, atol_j = interval_tolerances(rtol, atol, N, z.dtype)

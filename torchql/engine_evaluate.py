@@ -174,10 +174,10 @@ class Evaluation:
                     anchored=torch.zeros(S, dtype=torch.bool, device=z0.device),
                     nl_sse=torch.full_like(sse, float("nan")), nl_traj=torch.full_like(z, float("nan")))
 
-    def _propagate(self, idx, z, z_dot, lin, w0, rtol: float | None = None):
+    def _propagate(self, idx, z, z_dot, lin, w0, rtol: float | None = None, coefficients=None):
         """The particular and homogeneous solutions ``W (S, G, M, 1 + m)`` of the chunk's samples
         ``idx`` about ``z`` from ``w0 (S, M, 1 + m)``, and ``failed (S,)``, at ``rtol`` (default the
-        fit's; ``atol`` scaled alike).
+        fit's; ``atol`` scaled alike); ``coefficients``: the intervals', if already built.
 
         A propagator with a batched form takes every sample at once
         (:func:`~torchql.batch_integrate.propagate_linear_batch`); another one each sample in turn
@@ -187,8 +187,8 @@ class Evaluation:
         rtol = spec.rtol if rtol is None else rtol
         atol = spec.atol * rtol / spec.rtol
         if spec.linear_solver.batched:
-            W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=rtol,
-                                                      atol=atol, propagator=spec.linear_solver)
+            W, failed, evals = propagate_linear_batch(self._grid_of(idx), z, z_dot, lin, w0, rtol=rtol, atol=atol,
+                                                      propagator=spec.linear_solver, coefficients=coefficients)
             self.nfev += evals
             return W, failed
         S, G = z.shape[:2]

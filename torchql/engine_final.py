@@ -40,6 +40,7 @@ from .lstsq import solve_update, solve_update_batch
 from .result import Status
 from .solvers import STIFF_SOLVERS
 from .storage_check import interpolation_misfit, storage_misses
+from .transfer import interval_coefficients
 from .uncertainty import covariance
 
 __all__ = ["FinalPass"]
@@ -215,11 +216,15 @@ class FinalPass:
         good = [e is None for e in errors]
         traj = torch.where(torch.tensor(good, device=z0.device).reshape(-1, 1, 1), traj, guess)
         lin = self._linearize(rows, traj)
-        W, failed = self._propagate(rows, traj, lin.f, lin, self.spec.columns(z0))
+        spec = self.spec
+        checked = spec.auto_grid and traj.shape[1] > 1  # (storage_check) the storage's coefficients, built once
+        coefficients = (interval_coefficients(self._grid_of(rows), traj, lin.f, lin, spec.linear_solver.hermite_degree)
+                        if checked and spec.linear_solver.batched else None)
+        W, failed = self._propagate(rows, traj, lin.f, lin, spec.columns(z0), coefficients=coefficients)
         for k in failed.nonzero().flatten().tolist():
             errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
         good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
-        missed = self._missed_by_storage(rows, traj, lin) & good
+        missed = self._missed_by_storage(rows, traj, lin, coefficients) & good
         if bool(missed.any()):  # the sensitivities integrated with the solution, where the grid misses the model
             j = missed.nonzero().flatten()
             ok, traj[j], W[j], errors_j = self._jointly(rows[j], z0[j])
@@ -228,7 +233,7 @@ class FinalPass:
                 errors[i] = e
         return good, traj, W, errors
 
-    def _missed_by_storage(self, rows, traj, lin) -> torch.Tensor:
+    def _missed_by_storage(self, rows, traj, lin, coefficients=None) -> torch.Tensor:
         """Of the samples ``rows`` with their model's solutions ``traj (S, G, M)`` and its linearization
         ``lin``, those whose automatic storage grid misses a change of the model between its nodes
         (:mod:`torchql.storage_check`): their sensitivities are integrated with their solutions from
@@ -237,7 +242,7 @@ class FinalPass:
         if not self.spec.auto_grid:
             return missed
         misfit = interpolation_misfit(self.system.f, self._grid_of(rows), traj, lin,
-                                      self.spec.linear_solver.hermite_degree, self.system.n)
+                                      self.spec.linear_solver.hermite_degree, self.system.n, coefficients)
         missed = storage_misses(misfit, self.spec.rtol)
         for k in missed.nonzero().flatten().tolist():
             self.storage_missed[int(rows[k])] = float(misfit[k])
