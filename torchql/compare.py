@@ -118,18 +118,13 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
     if not isinstance(data, Observations) or data.batch_size is not None:
         received = type(data).__name__ if not isinstance(data, Observations) else f"a batch of {data.batch_size}"
         raise TypeError(f"`data` must be one torchql.Observations (a validation experiment); received {received}")
-    if experiment is not None and result.experiment_t0 is None:
-        raise ValueError(f"`experiment` applies only to fits of several experiments; received {experiment!r} for a "
-                         "fit of one")
+    if result.experiment_t0 is None:
+        result._experiment_index(experiment)  # (None: a fit of one experiment takes none)
     model = result.model
     dtype = result.estimates.dtype
     device = result.estimates.device
     if x0 is None:
-        if result.experiment_t0 is not None:
-            E = len(result.experiment_t0)
-            if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
-                raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments) when `x0` "
-                                 f"is not given; received {experiment!r}")
+        if result._experiment_index(experiment, " when `x0` is not given") is not None:
             x0, start = result.x0[experiment], result.experiment_t0[experiment]
             model = result.experiment_model(experiment)
         else:

@@ -73,16 +73,9 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     from .model import coefficients
     from .observations import ObservationOperator
 
-    several = result.experiment_t0 is not None
-    if several:
-        E = len(result.experiment_t0)
-        if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
-            raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments); received "
-                             f"{experiment!r}")
-        if data is None and isinstance(result.data, (list, tuple)):
-            data = result.data[experiment]
-    elif experiment is not None:
-        raise ValueError("`experiment` applies only to fits of several experiments")
+    several = result._experiment_index(experiment) is not None
+    if several and data is None and isinstance(result.data, (list, tuple)):
+        data = result.data[experiment]
     if data is None:
         data = result.data
     if data is None:

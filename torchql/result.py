@@ -338,18 +338,27 @@ class FitResult:
         """
         from .integrate import simulate
 
-        if self.experiment_t0 is None:
-            if experiment is not None:
-                raise ValueError("`experiment` applies only to fits of several experiments")
+        if self._experiment_index(experiment) is None:
             return simulate(self.model, self.x0, t, t0=self.t0, inputs=inputs, **self.solver_options)
-        E = len(self.experiment_t0)
-        if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
-            raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments); "
-                             f"received {experiment!r}")
         if inputs is None and isinstance(self.data, (list, tuple)):
             inputs = self.data[experiment].inputs
         return simulate(self.experiment_model(experiment), self.x0[experiment], t, t0=self.experiment_t0[experiment],
                         inputs=inputs, **self.solver_options)
+
+    def _experiment_index(self, experiment, when: str = "") -> int | None:
+        """``experiment`` checked against this fit: None for a fit of one experiment (where it must be
+        None), else an index ``0..E-1`` of its ``E`` experiments (required; ``when``: the condition
+        under which it is, for the message). ``ValueError`` naming it otherwise."""
+        if self.experiment_t0 is None:
+            if experiment is not None:
+                raise ValueError(f"`experiment` applies only to fits of several experiments; received {experiment!r} "
+                                 "for a fit of one")
+            return None
+        E = len(self.experiment_t0)
+        if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
+            raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments){when}; "
+                             f"received {experiment!r}")
+        return experiment
 
     def experiment_model(self, experiment: int) -> "ODEModel":
         """The fitted model as experiment ``experiment`` sees it: :attr:`model` with that

@@ -71,7 +71,7 @@ def interpolation_misfit(f, t: torch.Tensor, traj: torch.Tensor, lin, degree: in
         return traj.new_zeros(S)
     if coefficients is None:
         coefficients = interval_coefficients(t, traj, lin.f, lin, degree)
-    data, order, a = coefficients.data, coefficients.order, coefficients.a
+    order, a = coefficients.order, coefficients.a
     perm = order[:-1]
     h = (t[..., 1:] - t[..., :-1]).expand(S, G - 1).reshape(-1)  # (S N,)
     start = t[..., :-1].expand(S, G - 1).reshape(-1)
@@ -82,9 +82,8 @@ def interpolation_misfit(f, t: torch.Tensor, traj: torch.Tensor, lin, degree: in
     components = perm[rows]
     scale = traj[..., :n].abs().amax(dim=1).clamp(min=torch.finfo(traj.dtype).tiny)  # (S, n)
     scale = scale[:, components].repeat_interleave(G - 1, dim=0).T  # (states, S N)
-    points = torch.tensor(CHECK_POINTS, dtype=data.dtype, device=data.device)
-    powers = points.unsqueeze(1) ** torch.arange(data.shape[0], dtype=data.dtype, device=data.device)  # (P, D)
-    values = (powers @ data.flatten(1)).unflatten(1, data.shape[1:])  # (P, Q, S N): every check point at once
+    points = torch.tensor(CHECK_POINTS, dtype=traj.dtype, device=traj.device)
+    values = coefficients.values(points)  # (P, Q, S N): every check point at once
     z = torch.empty(M, *values.shape[::2], dtype=values.dtype, device=values.device)  # (M, P, S N)
     z[perm] = values[:, :M].transpose(0, 1)
     times = start + points.unsqueeze(1) * h  # (P, S N)

@@ -211,8 +211,11 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
 def _rows(term: torch.Tensor, norms: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
     """A series term ``(a, P, J)``'s rows as the products read them (``(1, P, J)`` each) and, if
     ``norms``, its column norms ``||T_k||_inf (P, J)`` that the truncation bound weighs."""
-    size = term.abs()[0] if norms and term.shape[0] == 1 else term.abs().amax(dim=0) if norms else None
-    return [term[c].unsqueeze(0) for c in range(term.shape[0])], size
+    rows = [term[c].unsqueeze(0) for c in range(term.shape[0])]
+    if not norms:
+        return rows, None
+    size = term.abs()
+    return rows, size[0] if term.shape[0] == 1 else size.amax(dim=0)
 
 
 def _tail_weights(K: int, r: torch.Tensor) -> torch.Tensor:

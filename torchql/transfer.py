@@ -433,11 +433,19 @@ class _Coefficients:
     def intervals(self) -> int:
         return self.data.shape[-1]
 
+    def values(self, s: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+        """The interpolants' values ``(K, Q, I)`` at local times ``s (K,)``, in the stored rows (the
+        reference ``z``, then each active component's ``h f`` and ``h A``), of the intervals ``index``
+        (default all): one matrix product with the powers of ``s``."""
+        data = self.data if index is None else self.data[..., index]
+        powers = [torch.ones_like(s)]
+        for _ in range(data.shape[0] - 1):
+            powers.append(powers[-1] * s)
+        return (torch.stack(powers, dim=-1) @ data.flatten(1)).unflatten(1, data.shape[1:])
+
     def at(self, s: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
         """``X (K, a, M+1, I)``: active rows of ``[[h A, h B], [0, 0]]`` at local times ``s (K,)``."""
-        data = self.data if index is None else self.data[..., index]
-        basis = torch.stack([torch.ones_like(s), s, s * s, s * s * s], dim=-1)  # (K, 4)
-        values = (basis @ data.flatten(1)).unflatten(1, data.shape[1:])  # (K, Q, I)
+        values = self.values(s, index)  # (K, Q, I)
         M, a = self.M, self.a
         z, fA = values[:, :M], values[:, M:].unflatten(1, (a, M + 1))  # (K, M, I), (K, a, 1 + M, I)
         b = fA[:, :, 0] - (fA[:, :, 1:] * z.unsqueeze(1)).sum(dim=2)
