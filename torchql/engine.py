@@ -247,7 +247,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
 
     def _start(self, st: LoopState, first: tuple | None = None) -> list | None:
         """The first iterate of every sample: the data-built reference, or the model integrated
-        from the guesses (loosely, from a constant guess, for Kantorovich), on each sample's grid
+        from the guesses (loosely, from a constant guess, for Kantorovich, except a stiff model's:
+        :meth:`_first_reference`), on each sample's grid
         (``grid="auto"``: chosen from this reference, :mod:`torchql.engine_grid`); the unknowns'
         typical magnitudes and the model's sums of squares at the guesses. Returns the groups of
         samples that chose different grids (to be fitted apart), else None."""
@@ -278,9 +279,9 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
                                     solution=spec.scheme.integrates_model, W=W)
         self._fail_integration_rows((st.cur["failed"] & ~bad).nonzero().flatten(), st.status, st.detail)
         if spec.stiff and self.start != "data" and not spec.scheme.integrates_model:
-            # Kantorovich's first reference of a stiff model is the model's own loose solution from the
-            # guesses on this grid (a subset of the probe's, or solved again): the second opinion on
-            # the first iterate, and its re-anchoring, would integrate it once more
+            # Kantorovich's first reference of a stiff model is the model's own solution from the
+            # guesses on this grid, at the fit's tolerance: the second opinion on the first iterate,
+            # and its re-anchoring, would integrate it once more
             good = (~bad).nonzero().flatten()
             self._keep_model_sse(all_idx, st.cur, good, traj[good], [None] * good.numel())
             st.cur["anchored"][good] = True
@@ -304,7 +305,9 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         kantorovich = not self.spec.scheme.integrates_model
         if kantorovich or not self._joint_sensitivities:
             guess = z0.unsqueeze(1).expand(idx.numel(), self.G, z0.shape[1]) if kantorovich else None
-            traj, errors = self._nonlinear(idx, z0, loose=kantorovich, guess=guess)
+            # a stiff model's at the fit's tolerance: the storage's slopes f(z) multiply its error by
+            # the stiffness (h |lambda| to 1e5; tests/test_stiff_fit.py's exact data with unit weights)
+            traj, errors = self._nonlinear(idx, z0, loose=kantorovich and not self.spec.stiff, guess=guess)
             return z0, traj, None, None, errors
         traj, W, errors = self._solve_with_sensitivities(idx, z0)
         return z0, traj, None, W, errors
@@ -509,10 +512,11 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
 
     def _reanchor(self, st: LoopState, rejected) -> torch.Tensor:
         """Kantorovich's undamped rejections, not yet anchored, re-linearized about the model's
-        own solution from their estimates (where it integrates and its transfers succeed); returns
-        those samples. A sample whose re-linearized transfers fail (a fast layer of the model's
-        solution inside a grid interval) keeps its iterate, as one whose solution does not
-        integrate: re-anchoring is a second try, and the damping is raised instead."""
+        own solution from their estimates (where it integrates and its transfers succeed; a stiff
+        model's integrated again at the fit's tolerance); returns those samples. A sample whose
+        re-linearized transfers fail (a fast layer of the model's solution inside a grid interval)
+        keeps its iterate, as one whose solution does not integrate: re-anchoring is a second
+        try, and the damping is raised instead."""
         cur, n = st.cur, self.system.n
         candidates = rejected[(st.damping[rejected] == 0) & ~cur["anchored"][rejected]]
         if self.spec.scheme.integrates_model or not candidates.numel():  # the model's own solution already
@@ -522,6 +526,13 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         rows = candidates[integrable]
         if not rows.numel():
             return rows
+        if self.spec.stiff:  # the reference at the fit's tolerance, as the first one (_first_reference)
+            traj, errors = self._nonlinear(st.all_idx[rows], cur["z0"][rows], loose=False, guess=cur["nl_traj"][rows])
+            ok = torch.tensor([e is None for e in errors], dtype=torch.bool, device=rows.device)
+            rows = rows[ok]  # (one that fails keeps its iterate)
+            self._keep_model_sse(st.all_idx, cur, rows, traj[ok], [None] * rows.numel())
+            if not rows.numel():
+                return rows
         traj = cur["nl_traj"][rows]
         lin = self._linearize(rows, traj)
         anchored = self._evaluate(rows, cur["z0"][rows], traj, lin.f, lin)

@@ -133,7 +133,7 @@ class AutoGrid:
         with its slopes: the data's, or the model's), the Kantorovich reference as it is; a
         shooting reference, and a stiff model's integrated one (whose interpolant across the
         probe's wide intervals misses its fast layers), is the model's own solution, found again
-        from that prediction."""
+        from that prediction (at the fit's tolerance, as :meth:`Engine._first_reference` says)."""
         grid = self.grid.expand(self.S, self.G)[fine]
         slopes = probe_dot
         if slopes is None:
@@ -149,9 +149,7 @@ class AutoGrid:
             z_dot[fine] = derivatives
         if self.start == "data" or not self.spec.scheme.integrates_model and not self.spec.stiff:
             return errors  # an interpolant (shooting's from the data is solved on the whole grid after)
-        if not self.spec.scheme.integrates_model:  # a stiff model's reference is no interpolant: solved again
-            traj[fine], again = self._nonlinear(fine, z0[fine], loose=True, guess=values)
-        elif W is not None:  # the solution with its sensitivities, on the new grid
+        if W is not None:  # the solution with its sensitivities, on the new grid
             traj[fine], W[fine], again = self._solve_with_sensitivities(fine, z0[fine])
         else:
             traj[fine], again = self._nonlinear(fine, z0[fine], loose=False, guess=values)
