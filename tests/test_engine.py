@@ -1,10 +1,13 @@
 """The engine's flat-minimum test (MINPACK's ``ftol`` test on accepted damped steps), on hand-made
-iterates: the linear problem ``C alpha ~ d`` with weights ``w``, the merits before and after."""
+iterates: the linear problem ``C alpha ~ d`` with weights ``w``, the merits before and after; and
+each stiff sample's own trial tolerance in a batch."""
 
 from types import SimpleNamespace
 
+import pytest
 import torch
 
+import torchql
 from torchql.damping import LevenbergMarquardt, Undamped
 from torchql.engine import FLAT_DAMPING, Engine
 
@@ -37,3 +40,25 @@ def test_the_flat_test_needs_every_condition():
     assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], accept=False)
     assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], filters=False)
     assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], exact=True)
+
+
+def test_a_stiff_batchs_samples_each_take_the_trial_tolerance_of_their_own_step():
+    """On the stiff path a trial's transfers are integrated at a tolerance that follows its step
+    (inexact Newton). Each sample has its own: taken from the batch's longest step, a sample near
+    its optimum (k from 990) got the loose transfers of another's long step (from 300), which the
+    convergence test does not accept, and took 6 iterations in the batch against 3 alone."""
+    from testmodels import Relaxation
+
+    t = torch.logspace(-4, 0.5, 30, dtype=DT)
+    x = torchql.simulate(Relaxation(k=1e3), torch.tensor([2.0], dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
+                         solver="rodas5p", rtol=1e-12, atol=1e-14)[1:]
+    data, x0 = torchql.Observations(t, x, observe=["x"]), torch.tensor([2.0], dtype=DT)
+    options = dict(t0=0.0, params=["k"], fixed_x0=["x"], solver="rodas5p", rtol=1e-8, atol=1e-12)
+    guesses = [990.0, 300.0, 3000.0]
+    batch = torchql.fit_many(Relaxation(), [data] * 3, x0, guesses={"k": torch.tensor(guesses, dtype=DT)}, **options)
+    for i, k in enumerate(guesses):
+        single = torchql.fit(Relaxation(k=k), data, x0, **options)
+        assert single.success and batch[i].success, (single.message, batch[i].message)
+        assert batch[i].iterations == single.iterations
+        assert batch[i].params["k"].item() == pytest.approx(single.params["k"].item(), rel=1e-12)
+        assert single.params["k"].item() == pytest.approx(1e3, rel=1e-8)

@@ -35,7 +35,7 @@ from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluati
 from .engine_final import FinalPass
 from .engine_records import Records
 from .engine_grid import AutoGrid
-from .engine_state import RUNNING, LoopState, _pick, not_above, put_samples, shifted_report
+from .engine_state import RUNNING, LoopState, _pick, by_level, not_above, put_samples, shifted_report
 from .grid import last_nodes
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 from .problem import Problem
@@ -138,11 +138,9 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         self.coarse_grid: set[int] = set()
         #: per sample, the current iterate (its initial state's bytes) seen to fit in that budget
         self.fits_grid: dict[int, bytes] = {}
-        #: samples whose automatic storage grid misses a change of their model, with the misfit
-        #: (FinalPass._missed_by_storage)
+        #: samples whose automatic storage grid misses their model's change: misfit (FinalPass._missed_by_storage)
         self.storage_missed: dict[int, float] = {}
-        #: the tolerance of the trials' linear transfers while they are proposed (None: ``rtol``;
-        #: see :data:`~torchql.engine_evaluate.INEXACT_FACTOR`)
+        #: the trials' linear transfers' tolerance while proposed (None: ``rtol``; see ``INEXACT_FACTOR``)
         self.trial_rtol: float | None = None
         if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)
             self.grid, self.obs, self.t_obs = spec.grid, spec.obs_in_grid, spec.t_obs
@@ -559,14 +557,15 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
     def _propose(self, act, cur, alpha):
         """The trial iterates from ``cur``'s samples ``act`` with updates ``alpha``; ``ok`` where
         usable (the scheme's :meth:`~torchql.schemes.Scheme.propose`). On the stiff path their
-        linear transfers are integrated at the inexact tolerance of the longest step
-        (:data:`~torchql.engine_evaluate.INEXACT_FACTOR`)."""
+        linear transfers are integrated at the inexact tolerance of each one's step
+        (:data:`~torchql.engine_evaluate.INEXACT_FACTOR`), rounded down to a quarter decade, the
+        samples at one tolerance together: a sample's trial is the same in a batch as alone."""
         spec = self.spec
-        rtol = None
-        if spec.stiff:
-            rtol = min(INEXACT_FACTOR * float(self._scaled(act, cur, alpha).amax()) ** 2, _LOOSE_RTOL)
-        with self._transfers_at(rtol):
+        if not spec.stiff:
             return spec.scheme.propose(self, act, cur, alpha)
+        wanted = (INEXACT_FACTOR * self._scaled(act, cur, alpha) ** 2).clamp(max=_LOOSE_RTOL)
+        levels = (10 ** (torch.floor(4 * torch.log10(wanted)) / 4)).clamp(min=spec.rtol)
+        return by_level(levels, lambda pos: spec.scheme.propose(self, act[pos], cur, alpha[pos]), self._transfers_at)
 
     def _scaled(self, act, cur, alpha) -> torch.Tensor:
         """The scaled sizes ``(S,)`` of the updates ``alpha (S, m)`` of ``cur``'s samples ``act``:
