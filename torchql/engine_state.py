@@ -47,12 +47,24 @@ def put_samples(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) 
     """Copy samples ``rows`` of ``new`` into samples ``target`` of ``cur`` (sorted, distinct indices).
 
     When ``target`` is every sample of ``cur`` and ``rows`` every sample of ``new``, ``cur`` takes
-    ``new``'s arrays instead of copying them (``new`` is not used after).
+    ``new``'s arrays instead of copying them (``new`` is not used after), each with storage of its
+    own: two of ``new``'s arrays that share one (a re-anchored iterate's reference is its model
+    solution) would otherwise stay one, and a later copy of some samples into either would write
+    the other (the model solution's NaN into the reference: a batch's trials then failed).
     """
     if target.numel() == cur["z0"].shape[0] and rows.numel() == new["z0"].shape[0]:
+        seen: set[int] = set()
+
+        def own(value):
+            if value is None:
+                return None
+            pointer = value.untyped_storage().data_ptr()
+            fresh = value.clone() if pointer in seen else value
+            seen.add(pointer)
+            return fresh
         for key, value in new.items():
             if key not in TRIAL_ONLY:
-                cur[key] = value
+                cur[key] = type(value)(*map(own, value)) if key == "lin" else own(value)
         return
     for key, value in new.items():
         if key in TRIAL_ONLY:
