@@ -37,6 +37,7 @@ from .engine_records import Records
 from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, _pick, by_level, not_above, put_samples, shifted_report
 from .grid import last_nodes
+from .linearize import map_fields
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 from .problem import Problem
 from .result import IterationRecord, Status
@@ -245,11 +246,10 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
 
     def _start(self, st: LoopState, first: tuple | None = None) -> list | None:
         """The first iterate of every sample: the data-built reference, or the model integrated
-        from the guesses (loosely, from a constant guess, for Kantorovich, except a stiff model's:
-        :meth:`_first_reference`), on each sample's grid
-        (``grid="auto"``: chosen from this reference, :mod:`torchql.engine_grid`); the unknowns'
-        typical magnitudes and the model's sums of squares at the guesses. Returns the groups of
-        samples that chose different grids (to be fitted apart), else None."""
+        from the guesses (loosely, from a constant guess, for Kantorovich unless stiff), on each
+        sample's grid (``grid="auto"``: chosen from this reference, :mod:`torchql.engine_grid`); the
+        unknowns' typical magnitudes and the model's sums of squares at the guesses. Returns the
+        groups of samples that chose different grids (to be fitted apart), else None."""
         spec, S, n, all_idx = self.spec, self.S, self.system.n, st.all_idx
         if first is None:
             z0, traj, z_dot, W, errors = self._first_reference(all_idx, st.z0)
@@ -522,24 +522,25 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         self._nonlinear_sse(st.all_idx, cur, candidates)
         integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
         rows = candidates[integrable]
-        if not rows.numel():
-            return rows
-        if self.spec.stiff:  # the reference at the fit's tolerance, as the first one (_first_reference)
+        if self.spec.stiff and rows.numel():  # the reference at the fit's tolerance, as the first one (_first_reference)
             traj, errors = self._nonlinear(st.all_idx[rows], cur["z0"][rows], loose=False, guess=cur["nl_traj"][rows])
             ok = torch.tensor([e is None for e in errors], dtype=torch.bool, device=rows.device)
+            self._keep_model_sse(st.all_idx, cur, rows[ok], traj[ok], [None] * int(ok.sum()))
             rows = rows[ok]  # (one that fails keeps its iterate)
-            self._keep_model_sse(st.all_idx, cur, rows, traj[ok], [None] * rows.numel())
-            if not rows.numel():
-                return rows
+        if not rows.numel():
+            return rows
         traj = cur["nl_traj"][rows]
         lin = self._linearize(rows, traj)
-        anchored = self._evaluate(rows, cur["z0"][rows], traj, lin.f, lin)
+
+        def anchor(pos):  # its transfers at the tolerance of the iterate it replaces (stiff: INEXACT_FACTOR's)
+            part = map_fields(lin, lambda v: v[pos])
+            return self._evaluate(rows[pos], cur["z0"][rows[pos]], traj[pos], part.f, part), None
+        anchored, _ = by_level(cur["rtol"][rows], anchor, self._transfers_at)
         anchored["anchored"][:] = True
         anchored["nl_sse"], anchored["nl_traj"] = cur["nl_sse"][rows], traj
         cur["anchored"][candidates] = True  # tried once
         keep = (~anchored["failed"]).nonzero().flatten()
-        rows = rows[keep]
-        put_samples(cur, rows, anchored, keep)
+        put_samples(cur, rows := rows[keep], anchored, keep)
         if self.history is not None:
             for r in rows.tolist():
                 record = self.history[r][-1]

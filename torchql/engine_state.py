@@ -128,8 +128,9 @@ def _pick(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 def by_level(levels: torch.Tensor, run, at) -> tuple[dict, torch.Tensor]:
     """The trials of samples ``(S,)`` made in groups of equal ``levels (S,)`` (a tolerance): within
-    ``at(level)`` (a context), ``run(positions (R,))`` returns a group's ``(trial, ok)``; their rows
-    are put back in the samples' order, one ``(trial, ok)`` over all (a single group's as it is)."""
+    ``at(level)`` (a context), ``run(positions (R,))`` returns a group's ``(trial, ok)`` (``ok`` may be
+    None); their rows are put back in the samples' order, one ``(trial, ok)`` over all (a single
+    group's as it is)."""
     parts = []
     for level in levels.unique().tolist():
         pos = (levels == level).nonzero().flatten()
@@ -142,9 +143,10 @@ def by_level(levels: torch.Tensor, run, at) -> tuple[dict, torch.Tensor]:
     def empty(v):
         return None if v is None else v.new_empty((S, *v.shape[1:]))
     trial = {k: type(v)(*map(empty, v)) if k == "lin" else empty(v) for k, v in parts[0][1].items()}
-    ok = parts[0][2].new_empty(S)
+    ok = None if parts[0][2] is None else parts[0][2].new_empty(S)
     for pos, part, good in parts:
-        ok[pos] = good
+        if ok is not None:
+            ok[pos] = good
         for key, value in part.items():
             for out, fresh in (zip(trial[key], value) if key == "lin" else [(trial[key], value)]):
                 if fresh is not None:
