@@ -522,7 +522,7 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         self._nonlinear_sse(st.all_idx, cur, candidates)
         integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
         rows = candidates[integrable]
-        if self.spec.stiff and rows.numel():  # the reference at the fit's tolerance, as the first one (_first_reference)
+        if self.spec.stiff and rows.numel():  # at the fit's tolerance, as the first reference (_first_reference)
             traj, errors = self._nonlinear(st.all_idx[rows], cur["z0"][rows], loose=False, guess=cur["nl_traj"][rows])
             ok = torch.tensor([e is None for e in errors], dtype=torch.bool, device=rows.device)
             self._keep_model_sse(st.all_idx, cur, rows[ok], traj[ok], [None] * int(ok.sum()))
@@ -533,8 +533,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         lin = self._linearize(rows, traj)
 
         def anchor(pos):  # its transfers at the tolerance of the iterate it replaces (stiff: INEXACT_FACTOR's)
-            part = map_fields(lin, lambda v: v[pos])
-            return self._evaluate(rows[pos], cur["z0"][rows[pos]], traj[pos], part.f, part), None
+            part = map_fields(lin, lambda v: _pick(v, pos))  # (the rows themselves where one tolerance has all)
+            return self._evaluate(_pick(rows, pos), cur["z0"][_pick(rows, pos)], _pick(traj, pos), part.f, part), None
         anchored, _ = by_level(cur["rtol"][rows], anchor, self._transfers_at)
         anchored["anchored"][:] = True
         anchored["nl_sse"], anchored["nl_traj"] = cur["nl_sse"][rows], traj

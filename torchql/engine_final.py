@@ -224,7 +224,7 @@ class FinalPass:
         for k in failed.nonzero().flatten().tolist():
             errors[k] = errors[k] or "the transfer of a grid interval did not meet the tolerance"
         good = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device)
-        missed = self._missed_by_storage(rows, traj, lin, good, coefficients)
+        missed = self._missed_by_storage(rows, traj, lin, good, coefficients) if checked else torch.zeros_like(good)
         if bool(missed.any()):  # the sensitivities integrated with the solution, where the grid misses the model
             j = missed.nonzero().flatten()
             ok, traj[j], W[j], errors_j = self._jointly(rows[j], z0[j])
@@ -235,13 +235,10 @@ class FinalPass:
 
     def _missed_by_storage(self, rows, traj, lin, good, coefficients=None) -> torch.Tensor:
         """Of the samples ``rows`` whose model integrated (``good (S,)``), with their solutions
-        ``traj (S, G, M)`` and its linearization ``lin``, those whose automatic storage grid misses a
-        change of the model between its nodes (:mod:`torchql.storage_check`): their sensitivities are
-        integrated with their solutions from then on (``self.storage_missed``), and their messages
-        say so."""
-        missed = torch.zeros(rows.numel(), dtype=torch.bool, device=traj.device)
-        if not self.spec.auto_grid:
-            return missed
+        ``traj (S, G, M)`` on an automatic storage grid and its linearization ``lin``, those whose
+        storage misses a change of the model between its nodes (:mod:`torchql.storage_check`):
+        their sensitivities are integrated with their solutions from then on
+        (``self.storage_missed``), and their messages say so."""
         misfit = interpolation_misfit(self.system.f, self._grid_of(rows), traj, lin,
                                       self.spec.linear_solver.hermite_degree, self.system.n, coefficients)
         missed = storage_misses(misfit, self.spec.rtol) & good

@@ -8,12 +8,13 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from .linearize import map_fields
 from .status import Status
 
 if TYPE_CHECKING:
     from .engine import Engine
 
-__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "shifted_report", "not_above", "bound_of"]
+__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "by_level", "shifted_report", "not_above", "bound_of"]
 
 _STATUSES = list(Status)
 #: The status code of a sample still iterating.
@@ -64,16 +65,23 @@ def put_samples(cur: dict, target: torch.Tensor, new: dict, rows: torch.Tensor) 
             return fresh
         for key, value in new.items():
             if key not in TRIAL_ONLY:
-                cur[key] = type(value)(*map(own, value)) if key == "lin" else own(value)
+                cur[key] = _each(own, key, value)
         return
     for key, value in new.items():
-        if key in TRIAL_ONLY:
-            continue
-        if key == "lin":
-            for old, fresh in zip(cur["lin"], value):
+        if key not in TRIAL_ONLY:
+            for old, fresh in _pairs(key, cur[key], value):
                 old[target] = fresh[rows]
-        else:
-            cur[key][target] = value[rows]
+
+
+def _each(fn, key: str, value):
+    """``fn`` applied to an iterate's entry ``key``: to each field of its linearization (``"lin"``),
+    else to the array itself."""
+    return map_fields(value, fn) if key == "lin" else fn(value)
+
+
+def _pairs(key: str, a, b):
+    """The arrays of two iterates' entries ``key``, side by side (field by field for ``"lin"``)."""
+    return zip(a, b) if key == "lin" else ((a, b),)
 
 
 class LoopState:
@@ -142,13 +150,13 @@ def by_level(levels: torch.Tensor, run, at) -> tuple[dict, torch.Tensor]:
 
     def empty(v):
         return None if v is None else v.new_empty((S, *v.shape[1:]))
-    trial = {k: type(v)(*map(empty, v)) if k == "lin" else empty(v) for k, v in parts[0][1].items()}
+    trial = {k: _each(empty, k, v) for k, v in parts[0][1].items()}
     ok = None if parts[0][2] is None else parts[0][2].new_empty(S)
     for pos, part, good in parts:
         if ok is not None:
             ok[pos] = good
         for key, value in part.items():
-            for out, fresh in (zip(trial[key], value) if key == "lin" else [(trial[key], value)]):
+            for out, fresh in _pairs(key, trial[key], value):
                 if fresh is not None:
                     out[pos] = fresh
     return trial, ok
