@@ -429,3 +429,28 @@ def test_data_driven_first_trajectory_on_sparse_two_digit_data(A, B):
     assert abs(first["A"].item() / 0.1 - 1) < 0.5 and abs(first["B"].item() / 3.0 - 1) < 0.05
     assert torch.allclose(result.estimates, optimum.estimates, rtol=1e-7, atol=1e-9)
     assert result.sse == pytest.approx(optimum.sse, rel=1e-9)
+
+
+def _oscillator_in_time_units(s: float, method: str) -> torch.Tensor:
+    """The noisy damped oscillation of 25 values over 6 time units, its time measured in units ``1 / s``
+    of them (times ``s t``, coefficients ``A / s`` and ``B / s^2``, velocity ``v / s``): the estimates
+    fitted from guesses 0.2-5x off, converted back to the first units."""
+    t = torch.linspace(0, 6, 25, dtype=DT)
+    noise = torch.randn(25, 1, generator=torch.Generator().manual_seed(0), dtype=DT)
+    y = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=DT), t)[:, :1] + 0.01 * noise
+    result = torchql.fit(LinearOscillator(0.5 / s, 1.0 / s**2), torchql.Observations(s * t, y, observe=["y"]),
+                         torch.tensor([0.2, 0.8 / s], dtype=DT), method=method)
+    assert result.status is torchql.Status.CONVERGED, result.message
+    return result.estimates * torch.tensor([1.0, s, s, s * s], dtype=DT)
+
+
+@pytest.mark.parametrize("method", ["kantorovich", "shooting"])
+@pytest.mark.parametrize("s", [1e-5, 1e5])
+def test_a_fit_does_not_depend_on_the_time_unit(method, s):
+    """The same oscillation in microseconds or in days: the interval transfers' growth bound is taken
+    in states scaled to balance ``h A`` (:func:`torchql.taylor._balance`), where the raw norm of ``h A``
+    (``h omega^2`` in the thousands, ``h omega`` a tenth) asked more substeps than allowed and every
+    such fit ended ``INTEGRATION_FAILED`` before its first iteration. The estimates are those of the
+    first units to 1e-10."""
+    torch.testing.assert_close(_oscillator_in_time_units(s, method), _oscillator_in_time_units(1.0, method),
+                               rtol=1e-10, atol=1e-12)

@@ -1,5 +1,7 @@
 """Interval transfers from their Taylor series: exactness, the truncation bound, substeps, failures."""
 
+import math
+
 import pytest
 import torch
 
@@ -170,3 +172,28 @@ def test_a_spent_time_budget_stops_the_series_sum():
         time.sleep(0.001)
         with pytest.raises(TimeBudgetExceeded):
             series_transfers(coefficients, rtol=1e-10, atol=1e-12)
+
+
+def test_a_badly_scaled_state_is_summed_in_the_balanced_norm():
+    """An oscillation in microseconds, ``y'' = -w^2 y`` with ``w = 1e4``: over an interval turning
+    half a radian, ``h A = [[0, h], [-h w^2, 0]]`` has the infinity norm ``h w^2 = 5,000``, which
+    asked 8,192 substeps (more than allowed: every fit of such data failed), where the norm in
+    states scaled to balance it (:func:`torchql.taylor._balance`) is ``h w = 0.5``: no substeps.
+    The transfers are the exact rotations, entry by entry within the tolerance."""
+    w, rtol, atol = 1e4, 1e-10, 1e-12
+    t = torch.linspace(0, 10 / w, 21, dtype=DT)
+    A = torch.tensor([[0.0, 1.0], [-w * w, 0.0]], dtype=DT)
+    z = torch.stack([torch.cos(w * t), -w * torch.sin(w * t)], dim=-1)
+    f = z @ A.T
+    lin = Linearization(f=f, jac=A.expand(21, 2, 2).clone(), f_dot=f @ A.T, jac_dot=torch.zeros(21, 2, 2, dtype=DT))
+    coefficients = _Coefficients(IntervalSystem(LinearizedReference(t, z, f, lin)))
+    out = series_transfers(coefficients, rtol=rtol, atol=atol, max_substeps=16)
+    assert not out.failed.any() and (out.substeps == 1).all()
+    T = Transfers(out.Y, coefficients.order).full()
+    c, s = math.cos(0.5), math.sin(0.5)
+    rotation = torch.tensor([[c, s / w], [-w * s, c]], dtype=DT)
+    # the rotation within the tolerance; the particular column (exactly 0: the forcing h f - h A z
+    # cancels) within the rounding of its terms, a few eps times |h f| = h w^2 = 5,000
+    scale = atol + rtol * torch.maximum(torch.eye(2, dtype=DT), rotation.abs())
+    assert float(((T[:, :2, :2] - rotation).abs() / scale).max()) <= 1.0
+    assert float(T[:, :2, 2].abs().max()) <= 8 * torch.finfo(DT).eps * 5e3

@@ -127,22 +127,55 @@ def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
     return out
 
 
-def _norms(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_DEGREE) -> torch.Tensor:
+def _norms(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_DEGREE,
+           scale: torch.Tensor | None = None) -> torch.Tensor:
     """``||A_aa,k||_inf (d + 1, J)`` per interval-substep, from power-basis coefficients ``(D, Q, J)``
-    (``h A``'s degrees above ``d = jacobian_degree`` are zero).
+    (``h A``'s degrees above ``d = jacobian_degree`` are zero), in the norm of the states scaled by
+    ``scale (a, J)`` (:func:`_balance`; default none): ``||S^-1 A_aa,k S||_inf``, ``S = diag(scale)``.
 
-    Their sum ``rho`` bounds ``||h A_aa(s)||_inf`` on the substep.
+    Their sum ``rho`` bounds ``||h A_aa(s)||`` on the substep in that norm.
     """
     A_aa = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (d + 1, a, a, J)
+    if scale is not None:
+        A_aa = A_aa * (scale.unsqueeze(0) / scale.unsqueeze(1))
     return A_aa[:, 0, 0] if a == 1 else A_aa.sum(dim=2).amax(dim=1)
 
 
+def _balance(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_DEGREE,
+             sweeps: int = 4) -> torch.Tensor:
+    """Scales ``(a, J)`` of the active states, powers of two, that balance ``sum_k |A_aa,k|`` per
+    interval (Osborne's iteration, as LAPACK's ``gebal``: each state's off-diagonal row and
+    column sums made alike).
+
+    The bound ``rho`` of :func:`_norms` is that of one norm; a diagonal similarity leaves the
+    series' sums as they are but not the norm, which for states of very different magnitudes
+    (an oscillator in microseconds: ``h A = [[0, h], [-h omega^2, ..]]`` with ``h omega^2`` in the
+    thousands where ``h omega`` is a tenth) overstates the growth by orders of magnitude, and
+    with it the substeps and the truncation bound. Powers of two scale without rounding.
+    """
+    A = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs().sum(dim=0)  # (a, a, J)
+    A = A * (1 - torch.eye(a, dtype=A.dtype, device=A.device)).unsqueeze(-1)  # the diagonal is invariant
+    scale = torch.ones(a, A.shape[-1], dtype=A.dtype, device=A.device)
+    for _ in range(sweeps):
+        for i in range(a):
+            rows, columns = A[i].sum(dim=0), A[:, i].sum(dim=0)
+            ok = (rows > 0) & (columns > 0) & torch.isfinite(rows) & torch.isfinite(columns)
+            f = torch.where(ok, torch.exp2(torch.round(0.5 * torch.log2(rows / columns))), torch.ones_like(rows))
+            f = torch.where(torch.isfinite(f), f, torch.ones_like(f))
+            scale[i] = scale[i] * f
+            A[i] = A[i] / f
+            A[:, i] = A[:, i] * f
+    return scale
+
+
 def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float, r: torch.Tensor | None = None,
-            jacobian_degree: int = _HERMITE_DEGREE) -> tuple[torch.Tensor, torch.Tensor, int]:
+            jacobian_degree: int = _HERMITE_DEGREE, scale: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Transfers ``(a, M+1, J)`` of substeps from their power-basis coefficients ``(D, Q, J)``
     (``z`` and ``h f`` of degree ``D - 1``, ``h A`` of degree ``jacobian_degree``: 3 or 5).
 
-    ``r (d + 1, J)``: the norms ``||A_aa,i||_inf`` of the coefficients, if already at hand (:func:`_norms`).
+    ``r (d + 1, J)``: the norms ``||A_aa,i||_inf`` of the coefficients, if already at hand (:func:`_norms`),
+    in the norm of the states scaled by ``scale (a, J)`` (:func:`_balance`; default unscaled), in
+    which the truncation bound is then taken, entry by entry scaled back.
 
     Returns the active rows, the ratio of the truncation bound to the tolerance ``(J,)`` (the
     substep's share ``1 / n`` of it) and the number of terms summed.
@@ -161,7 +194,8 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
     for i in range(dA + 1):
         B[i:i + degree + 1] -= (A[i].unsqueeze(0) * z.unsqueeze(1)).sum(dim=2)
     if r is None:
-        r = _norms(mono, a, M, dA)
+        r = _norms(mono, a, M, dA, scale)
+    rows_scale = None if scale is None else scale.unsqueeze(1)  # (a, 1, J)
     growth = r.sum(dim=0).exp()  # e^rho, rho = sum_i ||A_aa,i|| >= ||A_aa(s)|| on the substep
     eye = torch.eye(a, P, dtype=mono.dtype, device=mono.device).unsqueeze(-1)
     # the views a term's products read, taken once (a term is a few dozen small kernels: on a
@@ -188,13 +222,18 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
         T += new
         k += 1
         testing = k > forcing_degree + 1  # (< _MAX_TERMS: the cap below always follows a test)
-        recent = recent[-dA:] + [_rows(new, norms=k > forcing_degree + 1 - dA)]
+        recent = recent[-dA:] + [_rows(new, norms=k > forcing_degree + 1 - dA, scale=rows_scale)]
         if testing:
             norms = torch.stack([term[1] for term in recent])  # (dA+1, P, J): ||T_{k-dA}||, .., ||T_k|| by column
             weights = _tail_weights(k, r)  # (dA+1, J) in the same order
             tail = (weights.unsqueeze(1) * norms).sum(dim=0) * growth  # (P, J)
-            share = (atol + rtol * torch.maximum(eye, T.abs())).amin(dim=0) / n  # (P, J)
-            ratio = (tail / share).amax(dim=0).nan_to_num(nan=math.inf)
+            if rows_scale is None:
+                share = (atol + rtol * torch.maximum(eye, T.abs())).amin(dim=0) / n  # (P, J)
+                ratio = (tail / share).amax(dim=0)
+            else:  # the bound of entry (i, c) is scale_i times column c's in the scaled norm
+                share = (atol + rtol * torch.maximum(eye, T.abs())) / n  # (a, P, J)
+                ratio = (tail * rows_scale / share).amax(dim=(0, 1))
+            ratio = ratio.nan_to_num(nan=math.inf)
             # each interval keeps the sum at its own first passing test, so that the result does
             # not depend on which intervals are summed together
             if result is None:
@@ -208,13 +247,15 @@ def _series(mono: torch.Tensor, a: int, M: int, n: int, rtol: float, atol: float
                 return result, result_ratio, k
 
 
-def _rows(term: torch.Tensor, norms: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+def _rows(term: torch.Tensor, norms: bool = False,
+          scale: torch.Tensor | None = None) -> tuple[list[torch.Tensor], torch.Tensor | None]:
     """A series term ``(a, P, J)``'s rows as the products read them (``(1, P, J)`` each) and, if
-    ``norms``, its column norms ``||T_k||_inf (P, J)`` that the truncation bound weighs."""
+    ``norms``, its column norms ``||T_k||_inf (P, J)`` that the truncation bound weighs (of the
+    rows divided by ``scale (a, 1, J)``, if given)."""
     rows = [term[c].unsqueeze(0) for c in range(term.shape[0])]
     if not norms:
         return rows, None
-    size = term.abs()
+    size = term.abs() if scale is None else term.abs() / scale
     return rows, size[0] if term.shape[0] == 1 else size.amax(dim=0)
 
 
@@ -270,10 +311,12 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
         return SeriesTransfers(Y, torch.zeros(N, dtype=torch.bool, device=device), substeps, 0, 0)
     pending = torch.zeros(N, dtype=torch.bool, device=device)
     counts = [0, 0]  # passes, points
+    scales = None  # (a, N): the states' scales of the intervals balanced (:func:`_balance`), once there are any
 
     def integrate(mono: torch.Tensor, part, n: int, r: torch.Tensor | None = None) -> None:
         """Sum the series of the intervals ``part`` in ``n`` substeps (``mono``: their coefficients)."""
-        T, ratio, terms = _series(mono, a, M, n, rtol, atol, r, degree)
+        scale = None if scales is None else scales[:, part].repeat(1, n)
+        T, ratio, terms = _series(mono, a, M, n, rtol, atol, r, degree, scale)
         counts[0] += terms
         counts[1] += terms * mono.shape[-1]
         width = T.shape[-1] // n
@@ -290,6 +333,17 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
         mono = data[..., part]  # one substep: the interval's own coefficients
         r = _norms(mono, a, M, degree)
         rho = r.sum(dim=0)
+        wide = rho > RHO_MAX
+        if a > 1 and bool(wide.any()):  # in the balanced norm, where that is smaller
+            scale = _balance(mono, a, M, degree)
+            balanced = _norms(mono, a, M, degree, scale)
+            better = wide & (balanced.sum(dim=0) < rho)
+            if bool(better.any()):
+                if scales is None:
+                    scales = data.new_ones(a, N)
+                scales[:, part] = torch.where(better, scale, scales[:, part])
+                r = torch.where(better, balanced, r)
+                rho = r.sum(dim=0)
         wanted = torch.ceil(torch.log2((rho / RHO_MAX).clamp(min=1.0))).nan_to_num(nan=62.0, posinf=62.0)
         substeps[part] = 2 ** wanted.clamp(max=62).to(torch.long)
         single = substeps[part] == 1
