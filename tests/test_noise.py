@@ -117,6 +117,30 @@ def test_profile_with_estimated_sigma_is_a_likelihood_profile():
     assert abs(high - wald_high) < 0.2 * (wald_high - wald_low)
 
 
+def test_two_sensors_of_one_state_each_get_their_own_sigma():
+    """One sigma per output by default, as documented, also where two outputs read one state (two
+    sensors of ``y``, noise 0.01 and 0.2): they were pooled into one sigma (0.14), which weighted the
+    good sensor as the bad one and made the coefficients' standard errors several times too large.
+    Experiments fitted together share a sigma per sensor: ``y`` with ``y``, ``y#2`` with ``y#2``."""
+    def sensors(seed):
+        states = noisy(seed)
+        second = STATES[:, :1] + torch.randn(41, 1, generator=torch.Generator().manual_seed(seed + 100), dtype=DT) * 0.2
+        return torch.cat([states[:, :1], second], dim=1)
+    result = fit(torchql.Observations(T, sensors(10), observe=["y", "y"], sigma="estimate"))
+    assert result.success, result.message
+    assert list(result.sigma) == ["y", "y#2"]
+    assert result.sigma["y"] == pytest.approx(0.01, rel=0.25) and result.sigma["y#2"] == pytest.approx(0.2, rel=0.25)
+    labelled = fit(torchql.Observations(T, sensors(10), observe=["y", "y"], sigma="estimate", sigma_groups=["a", "b"]))
+    torch.testing.assert_close(result.estimates, labelled.estimates, rtol=0, atol=0)
+    pooled = fit(torchql.Observations(T, sensors(10), observe=["y", "y"], sigma="estimate", sigma_groups="shared"))
+    assert pooled.stderr["B"] > 3 * result.stderr["B"]
+    both = torchql.fit(LinearOscillator(0.5, 2.0), [torchql.Observations(T, sensors(s), observe=["y", "y"],
+                                                                         sigma="estimate") for s in (11, 12)],
+                       x0=torch.stack([GUESS_X0, GUESS_X0]))
+    assert list(both.sigma) == ["y", "y#2"]
+    assert both.sigma["y"] == pytest.approx(0.01, rel=0.25) and both.sigma["y#2"] == pytest.approx(0.2, rel=0.25)
+
+
 def test_fit_many_and_several_experiments_estimate_sigma_too():
     datasets = [torchql.Observations(T, noisy(s), observe=["y", "v"], sigma="estimate") for s in (8, 9)]
     batch = torchql.fit_many(LinearOscillator(0.5, 2.0), datasets, x0=GUESS_X0)
@@ -144,3 +168,13 @@ def test_bad_noise_settings_are_named(kwargs, error, match):
 def test_lognormal_values_must_be_positive():
     with pytest.raises(ValueError, match="`y` must be positive with noise='lognormal'"):
         torchql.Observations(T, STATES, observe=["y", "v"], noise="lognormal")
+
+
+def test_a_lognormal_fit_whose_predictions_cross_zero_says_so():
+    """Positive values (``|y| + 0.5``) fitted with an oscillation that crosses zero: the logarithm of
+    its predictions is not defined there. The fit stops ``DIVERGED`` saying why, where its message
+    spoke only of estimates running away."""
+    y = STATES.abs() + 0.5
+    result = fit(torchql.Observations(T, y, observe=["y", "v"], noise="lognormal"))
+    assert result.status is torchql.Status.DIVERGED
+    assert "noise='lognormal'" in result.message and "prediction is zero or negative" in result.message

@@ -1,9 +1,8 @@
 """The quasilinearization engine: the package's one iteration loop, over ``S >= 1`` samples.
 
-:func:`torchql.fit` runs it with one sample and keeps every iterate's record;
-:func:`torchql.fit_many` runs it over a batch, chunk after chunk (:func:`run_engine`). Each
-sample has its own iterate, damping, status and history; the work is vectorized over the
-samples still running. One iteration of a sample:
+:func:`torchql.fit` runs it with one sample and keeps every iterate's record; :func:`torchql.fit_many`
+runs it over a batch, chunk after chunk (:func:`run_engine`). Each sample has its own iterate,
+damping, status and history; the work is vectorized over the samples still running. One iteration:
 
 1. at a fresh iterate, the budgets (``max_iter``, ``max_time``) and the rows' finiteness;
 2. the least-squares update ``alpha`` (:meth:`Engine._solve`: batched SVD with each sample's
@@ -39,6 +38,7 @@ from .engine_state import RUNNING, LoopState, _pick, by_level, not_above, put_sa
 from .grid import last_nodes
 from .linearize import map_fields
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
+from .noise import non_finite_residuals
 from .problem import Problem
 from .result import IterationRecord, Status
 from .trajectory import DEFECT_TRUST
@@ -350,7 +350,7 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
                   & torch.isfinite(cur["d"]).all(dim=1))
         diverged = (start & ~finite).nonzero().flatten()
         if diverged.numel():
-            st.stop(diverged, Status.DIVERGED, " The residuals became non-finite.")
+            st.stop(diverged, Status.DIVERGED, non_finite_residuals(self.spec.noise))
             self._notify(diverged)
         st.fresh &= ~start
         return (st.status == RUNNING).nonzero().flatten()

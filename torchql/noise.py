@@ -31,7 +31,8 @@ from collections.abc import Sequence
 
 import torch
 
-__all__ = ["NOISE_MODELS", "sigma_group_index", "estimate_sigma", "negative_log_likelihood", "run_with_noise"]
+__all__ = ["NOISE_MODELS", "sigma_group_index", "estimate_sigma", "negative_log_likelihood", "run_with_noise",
+           "non_finite_residuals"]
 
 #: The noise distributions of :class:`torchql.Observations`.
 NOISE_MODELS = ("normal", "lognormal")
@@ -40,11 +41,21 @@ NOISE_MODELS = ("normal", "lognormal")
 def sigma_group_index(groups, K: int, labels: Sequence[str]) -> tuple[list[str], list[int]]:
     """``(group names, group of each of the K outputs)`` from ``Observations``' ``sigma_groups``.
 
-    ``labels`` name the outputs (the observed state, else ``"y[k]"``) for the default grouping.
+    ``labels`` name the outputs (the observed state, else ``"y[k]"``) for the default grouping: one
+    group per output, named by its label, the second output with a label (two sensors of one state)
+    ``"label#2"``, and so on; so that experiments fitted together share a sigma per label and
+    occurrence (:mod:`torchql.multi`).
     """
     if groups is None:
-        names = list(dict.fromkeys(labels))
-        return names, [names.index(label) for label in labels]
+        names, seen = [], {}
+        for label in labels:
+            seen[label] = seen.get(label, 0) + 1
+            name, n = label, seen[label]
+            while name in names:
+                name = f"{label}#{n}"
+                n += 1
+            names.append(name)
+        return names, list(range(len(labels)))
     if isinstance(groups, str):
         if groups != "shared":
             raise ValueError(f"`sigma_groups` must be None, 'shared' or one label per output; received {groups!r}")
@@ -54,6 +65,15 @@ def sigma_group_index(groups, K: int, labels: Sequence[str]) -> tuple[list[str],
         raise ValueError(f"`sigma_groups` must give one label per output (K = {K}); received {received}")
     names = list(dict.fromkeys(str(g) for g in groups))
     return names, [names.index(str(g)) for g in groups]
+
+
+def non_finite_residuals(noise: str) -> str:
+    """The detail of a fit's ``DIVERGED`` status when its residuals are not finite, for the noise model ``noise``."""
+    if noise == "lognormal":
+        return (" The residuals became non-finite: with noise='lognormal' they compare log y with the logarithm "
+                "of the model's predictions, which is not defined where a prediction is zero or negative. Observe "
+                "a positive quantity, start from guesses whose predictions are positive, or use noise='normal'.")
+    return " The residuals became non-finite."
 
 
 def estimate_sigma(residual: torch.Tensor, counted: torch.Tensor, group: torch.Tensor, n_groups: int) -> torch.Tensor:

@@ -145,7 +145,8 @@ class Observations:
         The values' noise: additive Gaussian (default), or log-normal (``log y`` Gaussian about
         ``log h(x)``; every present value must be positive).
     sigma_groups : None, "shared" or sequence of ``K`` labels
-        With ``sigma="estimate"``: one sigma per output (default), one for all, or one per label.
+        With ``sigma="estimate"``: one sigma per output (default; named by the state it observes,
+        a second sensor of one state ``"y#2"``), one for all, or one per label.
     inputs : Inputs, or for a batch a sequence of ``B`` Inputs, optional
         The experiment's measured inputs ``u(t)`` (:class:`torchql.Inputs`), for a model with
         ``input_names``; their samples must cover the data's times. A batch takes one
