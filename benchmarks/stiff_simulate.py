@@ -70,27 +70,33 @@ def robertson_numpy(p: dict) -> tuple[Callable, Callable]:
 robertson_f, robertson_jac = robertson_numpy({"k1": 0.04, "k2": 3e7, "k3": 1e4})
 
 
-def hires_f(t, y):
-    k1, k2, k3, k4, k5, k6, k7, k8, k9 = HIRES_K
-    b, r = k7 * y[5] * y[7], (k2 + k8 + k9) * y[6]
-    return np.array([-k1 * y[0] + k2 * y[1] + k6 * y[2] + 0.0007, k1 * y[0] - (k2 + k3) * y[1],
-                     -(k6 + k1) * y[2] + k2 * y[3] + k5 * y[4], k3 * y[1] + k1 * y[2] - (k4 + k2) * y[3],
-                     -(k5 + k1) * y[4] + k2 * (y[5] + y[6]), -b + k8 * y[3] + k1 * y[4] - k2 * y[5] + k8 * y[6],
-                     b - r, -b + r])
+def hires_numpy(p: dict) -> tuple[Callable, Callable]:
+    """HIRES's right-hand side and Jacobian in NumPy, at its rate constants with those of ``p``
+    (any of ``"k1" .. "k9"``) in place of the defaults :data:`HIRES_K`."""
+    k1, k2, k3, k4, k5, k6, k7, k8, k9 = (p.get(f"k{i + 1}", k) for i, k in enumerate(HIRES_K))
+
+    def f(t, y):
+        b, r = k7 * y[5] * y[7], (k2 + k8 + k9) * y[6]
+        return np.array([-k1 * y[0] + k2 * y[1] + k6 * y[2] + 0.0007, k1 * y[0] - (k2 + k3) * y[1],
+                         -(k6 + k1) * y[2] + k2 * y[3] + k5 * y[4], k3 * y[1] + k1 * y[2] - (k4 + k2) * y[3],
+                         -(k5 + k1) * y[4] + k2 * (y[5] + y[6]), -b + k8 * y[3] + k1 * y[4] - k2 * y[5] + k8 * y[6],
+                         b - r, -b + r])
+
+    def jac(t, y):
+        J = np.zeros((8, 8))
+        J[0, :3] = -k1, k2, k6
+        J[1, :2] = k1, -(k2 + k3)
+        J[2, 2:5] = -(k6 + k1), k2, k5
+        J[3, 1:4] = k3, k1, -(k4 + k2)
+        J[4, 4:7] = -(k5 + k1), k2, k2
+        J[5, 3:8] = k8, k1, -k7 * y[7] - k2, k8, -k7 * y[5]
+        J[6, 5:8] = k7 * y[7], -(k2 + k8 + k9), k7 * y[5]
+        J[7, 5:8] = -k7 * y[7], k2 + k8 + k9, -k7 * y[5]
+        return J
+    return f, jac
 
 
-def hires_jac(t, y):
-    k1, k2, k3, k4, k5, k6, k7, k8, k9 = HIRES_K
-    J = np.zeros((8, 8))
-    J[0, :3] = -k1, k2, k6
-    J[1, :2] = k1, -(k2 + k3)
-    J[2, 2:5] = -(k6 + k1), k2, k5
-    J[3, 1:4] = k3, k1, -(k4 + k2)
-    J[4, 4:7] = -(k5 + k1), k2, k2
-    J[5, 3:8] = k8, k1, -k7 * y[7] - k2, k8, -k7 * y[5]
-    J[6, 5:8] = k7 * y[7], -(k2 + k8 + k9), k7 * y[5]
-    J[7, 5:8] = -k7 * y[7], k2 + k8 + k9, -k7 * y[5]
-    return J
+hires_f, hires_jac = hires_numpy({})
 
 
 def vdp_numpy(p: dict) -> tuple[Callable, Callable]:
