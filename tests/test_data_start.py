@@ -159,6 +159,28 @@ def test_slopes_on_a_grid_with_a_hair_wide_interval():
     assert err[away].max() < 2e-5
 
 
+def test_slopes_at_a_node_with_a_neighbour_a_hair_away_on_each_side():
+    """A held input's switch at a uniform node puts nodes 1e-8 on either side of it: the two
+    intervals about the middle node together span 2e-8, and a difference over them divided the
+    values' small disagreement (here a kink of the values, as between a velocity derived from the
+    data on either side) by 2e-8. The difference is widened to the nodes beyond the cluster; every
+    other node keeps its central difference, bit for bit."""
+    from torchql.data_start import slopes
+
+    uniform = torch.linspace(0, 2, 201, dtype=DT)
+    grid = torch.cat([uniform, torch.tensor([1.0 - 1e-8, 1.0 + 1e-8], dtype=DT)]).sort().values
+    z = torch.stack([torch.sin(grid), (grid - 1.0).abs()], dim=1)  # the second with a kink at the cluster
+    z[grid > 1.0, 1] += 1e-3  # and a jump of 1e-3 across it
+    out = slopes(grid, z)
+    middle = int((grid == 1.0).nonzero())
+    assert (out[:, 0] - torch.cos(grid)).abs().max() <= 0.0101
+    assert out[middle, 1].abs() <= 0.06  # the difference over [0.99, 1.01]: 1e-3 / 0.02, not 1e-3 / 2e-8
+    plain = (z[2:] - z[:-2]) / (grid[2:] - grid[:-2]).unsqueeze(-1)
+    others = torch.ones(grid.shape[0] - 2, dtype=torch.bool)
+    others[middle - 1] = False
+    assert torch.equal(out[1:-1][others], plain[others])
+
+
 def test_observation_times_off_the_uniform_nodes_by_round_off_still_give_the_data_start():
     """A position-only oscillator observed at t = 0.2 k (51 times over [0, 10]): some of these
     times lie 1e-15 from the 1000-interval grid's nodes. From poor guesses (B 2.6x the truth,

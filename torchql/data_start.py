@@ -147,6 +147,13 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start:
             chunk["message"][k] += _LOST[second_start] + f"{second.name} (SSE {sse_second:.6g})."
 
 
+#: :func:`slopes`: a difference is widened to the next neighbours while its span is below this
+#: fraction of theirs (nodes that nearly coincide).
+CLUSTER_RATIO = 1e-3
+#: :func:`slopes`: the most neighbours on either side a difference is widened to.
+MAX_WIDENING = 6
+
+
 def slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     """Node slopes of values ``z (G, M)`` on ``grid (G,)`` (zeros on a one-node grid).
 
@@ -154,19 +161,39 @@ def slopes(grid: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     over the first and last two intervals at the ends: where an observation time falls a hair
     from a uniform node, the grid has an interval of ~1e-15, over which a one-interval difference
     (or the second-order non-uniform formula) is round-off divided by that interval (slopes of
-    1e12 that ruined the gradient matching); the span of two intervals is never that small.
+    1e12 that ruined the gradient matching). Where even the two intervals nearly vanish (a node
+    with a neighbour a hair away on each side: a held input's switch, whose grid nodes lie 1e-8
+    on either side of it, at an observation time), the difference is taken over the next
+    neighbours, ``k`` on each side, for the first ``k`` whose span is at least
+    :data:`CLUSTER_RATIO` of the next one's: a difference of values derived from the data across
+    2e-8 made a slope of 3e6 that set the gradient matching's coefficients 1e5 times too large.
     """
     G = grid.shape[0]
     if G == 1:
         return torch.zeros_like(z)
     if G == 2:
         return ((z[1] - z[0]) / (grid[1] - grid[0])).expand_as(z).clone()
-    out = torch.empty_like(z)
-    span = (grid[2:] - grid[:-2]).unsqueeze(-1)
-    out[1:-1] = (z[2:] - z[:-2]) / span
-    out[0] = (z[2] - z[0]) / span[0]
-    out[-1] = (z[-1] - z[-3]) / span[-1]
-    return out
+    span = grid[2:] - grid[:-2]
+    wider = torch.cat([(grid[4] - grid[0]).reshape(1), grid[4:] - grid[:-4], (grid[-1] - grid[-5]).reshape(1)])
+    if G < 5 or bool((span >= CLUSTER_RATIO * wider).all()):  # no cluster: over two intervals each
+        out = torch.empty_like(z)
+        out[1:-1] = (z[2:] - z[:-2]) / span.unsqueeze(-1)
+        out[0] = (z[2] - z[0]) / span[0]
+        out[-1] = (z[-1] - z[-3]) / span[-1]
+        return out
+    node = torch.arange(G, device=grid.device)
+    left, right = [], []
+    for k in range(1, MAX_WIDENING + 2):  # the window of k neighbours on each side, shifted inside at the ends
+        lo = (node - k).clamp(min=0).clamp(max=max(G - 1 - 2 * k, 0))
+        left.append(lo)
+        right.append((lo + 2 * k).clamp(max=G - 1))
+    left, right = torch.stack(left), torch.stack(right)  # (K + 1, G)
+    span = grid[right] - grid[left]
+    wide = span[:-1] >= CLUSTER_RATIO * span[1:]
+    wide[-1] = True
+    k = wide.to(torch.int8).argmax(dim=0)  # the first wide enough
+    lo, hi = left.gather(0, k.unsqueeze(0))[0], right.gather(0, k.unsqueeze(0))[0]
+    return (z[hi] - z[lo]) / (grid[hi] - grid[lo]).unsqueeze(-1)
 
 
 def data_reference(system, grid: torch.Tensor, ends: list[int], t_obs: torch.Tensor, y: torch.Tensor,
