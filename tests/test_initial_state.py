@@ -129,10 +129,27 @@ def _raises(message):
     (dict(parameters={"beta": Parameter(expr=lambda v: v["gamma"])}), ValueError, r"which applies to initial states"),
     (dict(x0_expr=SUSCEPTIBLE, parameters={"S": Parameter(expr=lambda v: v["N"])}), ValueError,
      r"gives an expression that `x0_expr` gives too"),
+    # an expression reading a state that it or a later one sets would read that state's guess at every
+    # iterate (a cycle S = N - I, I = N - S held I at its guess), and its derivative would miss the chain
+    (dict(x0_expr={"S": lambda v: v["N"] - v["I"], "I": lambda v: v["N"] - v["S"]}, fixed_x0=["R"]), ValueError,
+     r"`x0_expr\['S'\]` reads 'I', which `x0_expr` sets after it"),
+    (dict(x0_expr={"S": lambda v: v["N"] - v["S"]}), ValueError, r"`x0_expr\['S'\]` reads 'S', which `x0_expr` sets by "
+     r"this same expression"),
 ])
 def test_bad_expressions_are_named(exact, kwargs, error, match):
     with pytest.raises(error, match=match):
         torchql.fit(SIR(2.0, 0.3), exact, GUESS_X0, **kwargs)
+
+
+def test_an_expression_read_before_it_is_set_is_named_in_every_experiment():
+    """With several experiments each expression sees its experiment's states by their own names: one
+    that reads a state set after it is named as in a single fit."""
+    data = [_data([760.0, 3.0, 0.0]), _data([755.0, 8.0, 0.0])]
+    backwards = {"S": lambda v: v["N"] - v["I"] - v["R"], "R": lambda v: torch.zeros_like(v["N"])}
+    with pytest.raises(ValueError, match=r"`x0_expr\['S\[0\]'\]` reads 'R\[0\]', which `x0_expr` sets after it"):
+        torchql.fit(SIR(2.0, 0.3), data, torch.stack([GUESS_X0, GUESS_X0]), x0_expr=backwards)
+    forwards = {"R": lambda v: torch.zeros_like(v["N"]), "S": lambda v: v["N"] - v["I"] - v["R"]}
+    assert torchql.fit(SIR(2.0, 0.3), data, torch.stack([GUESS_X0, GUESS_X0]), x0_expr=forwards).success
 
 
 def test_no_x0_is_needed_when_expressions_give_every_state(exact):

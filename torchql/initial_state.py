@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping, Sequence
 import torch
 from torch.func import jacrev, vmap
 
-__all__ = ["InitialStateExpressions", "check_expressions"]
+__all__ = ["InitialStateExpressions", "ReadValues", "check_expressions"]
 
 Expression = Callable[[dict], torch.Tensor]
 
@@ -91,18 +91,43 @@ class InitialStateExpressions:
 
     def check(self, z0: torch.Tensor) -> None:
         """Evaluate every expression on the first sample's ``z0 (S, M)``: a clear error for one that
-        fails, does not return a scalar tensor, or is not finite."""
+        fails, does not return a scalar tensor, or is not finite, and for one that reads a state set
+        by itself or by a later expression (whose value there would be its guess at every iterate:
+        ``{"a": tot - b, "b": tot - a}`` held ``b(t0)`` at its guess)."""
         z = z0[0]
-        for i, name, fn in self.items:
+        for k, (i, name, fn) in enumerate(self.items):
+            values = ReadValues(self._values(z))
             try:
-                value = fn(self._values(z))
+                value = fn(values)
             except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
                 raise ValueError(f"`x0_expr[{name!r}]` failed on the guesses: {type(exc).__name__}: {exc}") from exc
+            later = [other for _, other, _ in self.items[k:] if other in values.read]
+            if later:
+                raise ValueError(f"`x0_expr[{name!r}]` reads {later[0]!r}, which `x0_expr` sets "
+                                 f"{'by this same expression' if later[0] == name else 'after it'}: the expressions "
+                                 "are evaluated in the order given, each may read the states set by earlier ones "
+                                 "only; order them so, and give a cycle of them by one expression")
             value = _scalar(value, name, z)
             if not bool(torch.isfinite(value)):
                 raise ValueError(f"`x0_expr[{name!r}]` is {float(value)} at the guesses; it must be finite")
             z = z.clone()
             z[i] = value
+
+
+class ReadValues(dict):
+    """The values an expression receives, recording the names it reads (``read``)."""
+
+    def __init__(self, values: dict) -> None:
+        super().__init__(values)
+        self.read: set = set()
+
+    def __getitem__(self, key):
+        self.read.add(key)
+        return super().__getitem__(key)
+
+    def get(self, key, default=None):
+        self.read.add(key)
+        return super().get(key, default)
 
 
 def _scalar(value, name: str, like: torch.Tensor) -> torch.Tensor:

@@ -21,7 +21,7 @@ from torch import nn
 from torch.func import functional_call
 
 from . import _checks
-from .initial_state import check_expressions
+from .initial_state import ReadValues, check_expressions
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .noise import sigma_group_index
 from .observations import ObservationOperator, Observations
@@ -60,8 +60,13 @@ def experiment_expressions(expressions: dict, names: list[str], E: int, conditio
         def expression(values: dict) -> torch.Tensor:
             mine = {k: v for k, v in values.items() if "[" not in k or k.rsplit("[", 1)[0] not in names}
             mine = experiment_values(mine, conditions, e)
-            mine.update({s: values[experiment_state_name(s, e)] for s in names})
-            return fn(mine)
+            mine.update({s: dict.__getitem__(values, experiment_state_name(s, e)) for s in names})
+            if not isinstance(values, ReadValues):
+                return fn(mine)
+            mine = ReadValues(mine)  # the states the experiment's expression reads, by their stacked names
+            value = fn(mine)
+            values.read |= {experiment_state_name(s, e) for s in mine.read if s in names}
+            return value
         return expression
 
     return {experiment_state_name(state, e): own(fn, e) for e in range(E) for state, fn in expressions.items()}
