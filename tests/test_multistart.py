@@ -176,3 +176,22 @@ def test_bounds_given_in_a_parameter_specification_bound_the_draws_alike():
     assert torch.equal(by_specification.guesses, by_keywords.guesses)
     assert bool((by_specification.guesses[:, 1] > 0.5).all())
     torch.testing.assert_close(by_specification.best.estimates, by_keywords.best.estimates, rtol=1e-12, atol=0)
+
+
+def test_with_estimated_sigma_the_likelihood_ranks_the_optima():
+    """With ``sigma="estimate"`` each fit's ``sse`` is at its own sigmas, the number of values at every
+    optimum: ranked by it, a spurious optimum of the frequency (B = 0.64, NLL 43.1) came first and was
+    ``best``, where the true one (B = 3.0) has NLL -64.9. The negative log-likelihood, which the fits
+    minimize, ranks them now (:attr:`torchql.FitResult.objective`), and ``summary`` shows it."""
+    t = torch.linspace(0, 15, 40, dtype=DT)
+    truth = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([1.0, 0.0], dtype=DT), t)
+    y = truth[:, :1] + 0.05 * torch.randn(40, 1, generator=torch.Generator().manual_seed(0), dtype=DT)
+    data = torchql.Observations(t, y, observe=["y"], sigma="estimate")
+    ms = torchql.multistart(LinearOscillator(0.1, 1.0), data, torch.tensor([1.0, 0.0], dtype=DT), starts=8,
+                            spread=5.0, params=["B"], fixed_x0=["y", "v"])
+    converged = [r for r in ms.results if r.success]
+    assert len({round(float(r.params["B"]), 3) for r in converged}) > 1  # more than one optimum reached
+    assert ms.best.nll == min(r.nll for r in converged)
+    assert float(ms.best.params["B"]) == pytest.approx(3.0, rel=0.01)
+    assert [opt.nll for opt in ms.optima] == sorted(opt.nll for opt in ms.optima)
+    assert "NLL" in ms.summary().splitlines()[1]

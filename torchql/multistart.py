@@ -55,16 +55,21 @@ class Optimum:
     Attributes
     ----------
     sse : float
-        Its weighted sum of squares (the smallest among the fits that reached it).
+        Its weighted sum of squares (of the best fit that reached it).
     estimates : Tensor ``(m,)``
         The unknowns there (``unknown_names`` order of the fits).
     starts : list of int
         Indices of the starts that converged to it.
+    nll : float or None
+        Its negative log-likelihood, where the fits maximized one (estimated sigmas, a ``sigma(p)``
+        function, log-normal noise: :attr:`torchql.FitResult.likelihood`), which then ranks the
+        optima; ``None`` where the SSE does.
     """
 
     sse: float
     estimates: torch.Tensor
     starts: list[int]
+    nll: float | None = None
 
 
 @dataclass
@@ -74,8 +79,9 @@ class MultiStartResult:
     Attributes
     ----------
     best : FitResult
-        The successful fit with the smallest SSE (if none succeeded, the fit with the smallest
-        finite SSE, whose ``success`` is False).
+        The successful fit with the smallest objective (:attr:`torchql.FitResult.objective`: the
+        SSE, or the negative log-likelihood where the fits maximized one; if none succeeded, the
+        fit with the smallest finite one, whose ``success`` is False).
     results : list of FitResult
         Every start's fit, in the order of ``guesses``. Batched, each is one sample of the
         ``fit_many`` result (status, message, estimates, SSE, covariance, ...; no trajectory).
@@ -108,12 +114,13 @@ class MultiStartResult:
         return len(self.optima[0].starts) / len(self.results) if self.optima else 0.0
 
     def summary(self) -> str:
-        """A short table of the optima: SSE, how many starts reached each, and the estimates."""
+        """A short table of the optima: SSE (or NLL), how many starts reached each, and the estimates."""
         lines = [f"{len(self.results)} starts, {self.n_converged} converged, {len(self.optima)} distinct optima"]
         names = self.best.unknown_names
         for k, opt in enumerate(self.optima):
             values = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, opt.estimates.tolist()))
-            lines.append(f"  #{k}: SSE {opt.sse:.6g} reached by {len(opt.starts)} start(s): {values}")
+            value = f"SSE {opt.sse:.6g}" if opt.nll is None else f"NLL {opt.nll:.6g}"
+            lines.append(f"  #{k}: {value} reached by {len(opt.starts)} start(s): {values}")
         return "\n".join(lines)
 
     def __repr__(self) -> str:
@@ -225,10 +232,10 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
                 callback(k, results[-1])
     optima = _cluster(results, x_rtol, x_atol)
     if optima:
-        k_best = min((k for k, r in enumerate(results) if r.success), key=lambda k: results[k].sse)
+        k_best = optima[0].starts[0]
     else:
-        finite = [k for k, r in enumerate(results) if math.isfinite(r.sse)]
-        k_best = min(finite, key=lambda k: results[k].sse) if finite else 0
+        finite = [k for k, r in enumerate(results) if math.isfinite(r.objective)]
+        k_best = min(finite, key=lambda k: results[k].objective) if finite else 0
     best = fit_start(k_best) if batched else results[k_best]  # the full FitResult a loop gives that start
     return MultiStartResult(best=best, results=results, guesses=guesses, param_names=list(system.element_names),
                             optima=optima, batched=batched)
@@ -301,7 +308,8 @@ def _draw(center: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, spread
 
 def _cluster(results: list[FitResult], x_rtol: float, x_atol: float) -> list[Optimum]:
     """Group the successful fits into distinct optima, best first."""
-    ok = sorted((k for k, r in enumerate(results) if r.success and math.isfinite(r.sse)), key=lambda k: results[k].sse)
+    ok = sorted((k for k, r in enumerate(results) if r.success and math.isfinite(r.objective)),
+                key=lambda k: results[k].objective)
     optima: list[Optimum] = []
     if not ok:
         return optima
@@ -312,5 +320,6 @@ def _cluster(results: list[FitResult], x_rtol: float, x_atol: float) -> list[Opt
                 opt.starts.append(k)
                 break
         else:
-            optima.append(Optimum(sse=r.sse, estimates=r.estimates.clone(), starts=[k]))
+            optima.append(Optimum(sse=r.sse, estimates=r.estimates.clone(), starts=[k],
+                                  nll=r.nll if r.likelihood else None))
     return optima

@@ -254,6 +254,17 @@ class FitResult:
         return FitOptions.of(self.fit_kwargs)
 
     @property
+    def likelihood(self) -> bool:
+        """Whether the fit maximized a likelihood (estimated sigmas, a ``sigma(p)`` function or
+        log-normal noise): its objective is then ``nll``, and ``sse`` alone does not rank fits."""
+        return self.sigma is not None or self.noise != "normal" or self.sigma_function
+
+    @property
+    def objective(self) -> float:
+        """What the fit minimized: ``nll`` where it maximized a likelihood, else ``sse``."""
+        return self.nll if self.likelihood else self.sse
+
+    @property
     def stderr(self) -> dict[str, float]:
         """Standard error of every unknown, by name (initial states as ``"y(t0)"``).
 
