@@ -283,3 +283,40 @@ def test_a_profile_searches_within_the_fits_own_bounds(options):
     floor = options.get("bounds", {"k": (0.0, None)})["k"][0]
     assert float(profile.values.min()) >= floor and profile.closed == (False, True)
     assert floor < profile.interval[1] < 0.1
+
+
+class _Transfer(torchql.ODEModel):
+    """``a' = -k a``, ``b' = k a``."""
+
+    state_names = ("a", "b")
+
+    def __init__(self, k: float = 0.5) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+
+    def forward(self, t, x):
+        a, _ = x.unbind(-1)
+        return torch.stack((-self.k * a, self.k * a), dim=-1)
+
+
+def test_the_profile_of_a_single_unknown_follows_its_initial_state_expression():
+    """``a(t0) = 2 k`` (``x0_expr``) with ``k`` the only unknown: the profile evaluates the model
+    itself at each ``k`` and held ``a(t0)`` at its value at the estimate, so its SSE was not the
+    model's (0.00043 where the closed form ``2 k e^{-k t}`` gives 0.00094), it warned of a lower SSE
+    than the fit's and its interval was shifted. The expression now gives ``a(t0)`` at every ``k``."""
+    t = torch.linspace(0, 4, 15, dtype=DT)
+    noise = torch.randn(15, generator=torch.Generator().manual_seed(1), dtype=DT)
+    y = (2 * 0.5 * torch.exp(-0.5 * t) + 0.01 * noise).unsqueeze(-1)
+    fit = torchql.fit(_Transfer(0.4), torchql.Observations(t, y, observe=["a"]), torch.zeros(2, dtype=DT),
+                      fixed_x0=["b"], x0_expr={"a": lambda v: 2 * v["k"]})
+    assert fit.success and fit.unknown_names == ["k"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "lower SSE than the fit" warning
+        profile = torchql.profile(fit, "k")
+    for k, sse in zip(profile.values.tolist(), profile.sse.tolist()):
+        exact = float(((2 * k * torch.exp(-k * t) - y[:, 0]) ** 2).sum())
+        assert sse == pytest.approx(exact, rel=1e-6)
+    # a nearly linear problem: the likelihood interval is the Wald one to a few percent of its width
+    width = profile.wald[1] - profile.wald[0]
+    assert abs(profile.interval[0] - profile.wald[0]) < 0.05 * width
+    assert abs(profile.interval[1] - profile.wald[1]) < 0.05 * width

@@ -246,8 +246,8 @@ def _threshold(result: FitResult, level: float) -> _Threshold:
 
     (The profile likelihood: 2 (NLL - NLL_min) is chi-square with one degree of freedom.)
     """
-    likelihood = result.sigma is not None or result.noise != "normal" or result.sigma_function
     p = 0.5 + 0.5 * level
+    likelihood = result.likelihood
     if likelihood:
         s2, q2 = 1.0, normal_quantile(p) ** 2
     elif result.sigma_known:
@@ -304,6 +304,7 @@ class _Refitter:
         else:
             x0[self.state_index] = value
         if len(result.unknown_names) == 1:  # nothing left to fit: the SSE of the model itself
+            x0 = _expressions_applied(model, x0, self.options.get("x0_expr"))
             sse = _sse_of(model, x0, result.t0, self.data, self.options, self.likelihood)
             if not math.isfinite(sse):
                 self.failures.append((value, "INTEGRATION_FAILED"))
@@ -489,6 +490,20 @@ def _sse_noise(result: FitResult, data: Observations, options: dict) -> float:
     mask = data.mask
     yw = (data.y / data.sigma)[mask][~data.exact[mask]]
     return 100.0 * rtol**2 * float((yw.to(torch.float64) ** 2).sum())
+
+
+def _expressions_applied(model, x0: torch.Tensor, expressions: dict | None) -> torch.Tensor:
+    """``x0`` with the initial states that ``x0_expr`` gives evaluated at ``model``'s coefficients,
+    in the order given (as a fit completes its initial state)."""
+    if not expressions:
+        return x0
+    names = list(model.state_names)
+    x0 = x0.clone()
+    for key, fn in expressions.items():
+        values = dict(coefficients(model))
+        values.update({state: x0[i] for i, state in enumerate(names)})
+        x0[names.index(key.removesuffix("(t0)"))] = fn(values)
+    return x0
 
 
 def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dict, likelihood: bool = False) -> float:
