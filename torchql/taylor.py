@@ -127,6 +127,12 @@ def _monomials(data: torch.Tensor, M: int, n: int) -> torch.Tensor:
     return out
 
 
+def _active_block(mono: torch.Tensor, a: int, M: int, jacobian_degree: int) -> torch.Tensor:
+    """``|A_aa,k| (d + 1, a, a, J)``: the active-by-active block of ``h A``'s power-basis coefficients
+    ``k = 0 .. d`` (``d = jacobian_degree``), entry by entry in absolute value."""
+    return mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()
+
+
 def _norms(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_DEGREE,
            scale: torch.Tensor | None = None) -> torch.Tensor:
     """``||A_aa,k||_inf (d + 1, J)`` per interval-substep, from power-basis coefficients ``(D, Q, J)``
@@ -135,7 +141,7 @@ def _norms(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE_D
 
     Their sum ``rho`` bounds ``||h A_aa(s)||`` on the substep in that norm.
     """
-    A_aa = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs()  # (d + 1, a, a, J)
+    A_aa = _active_block(mono, a, M, jacobian_degree)
     if scale is not None:
         A_aa = A_aa * (scale.unsqueeze(0) / scale.unsqueeze(1))
     return A_aa[:, 0, 0] if a == 1 else A_aa.sum(dim=2).amax(dim=1)
@@ -153,7 +159,7 @@ def _balance(mono: torch.Tensor, a: int, M: int, jacobian_degree: int = _HERMITE
     thousands where ``h omega`` is a tenth) overstates the growth by orders of magnitude, and
     with it the substeps and the truncation bound. Powers of two scale without rounding.
     """
-    A = mono[:jacobian_degree + 1, M:].unflatten(1, (a, M + 1))[:, :, 1:1 + a].abs().sum(dim=0)  # (a, a, J)
+    A = _active_block(mono, a, M, jacobian_degree).sum(dim=0)  # (a, a, J)
     A = A * (1 - torch.eye(a, dtype=A.dtype, device=A.device)).unsqueeze(-1)  # the diagonal is invariant
     scale = torch.ones(a, A.shape[-1], dtype=A.dtype, device=A.device)
     for _ in range(sweeps):
