@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import torch
 
+from .initial_state import check_expressions
 from .model import _set_buffer, coefficients
 from .options import expand_options
 from .noise import estimate_sigma, negative_log_likelihood, sigma_group_index
@@ -499,10 +500,10 @@ def _expressions_applied(model, x0: torch.Tensor, expressions: dict | None) -> t
         return x0
     names = list(model.state_names)
     x0 = x0.clone()
-    for key, fn in expressions.items():
+    for state, fn in check_expressions(expressions, names, None).items():  # (names as the fit takes them)
         values = dict(coefficients(model))
-        values.update({state: x0[i] for i, state in enumerate(names)})
-        x0[names.index(key.removesuffix("(t0)"))] = fn(values)
+        values.update({name: x0[i] for i, name in enumerate(names)})
+        x0[names.index(state)] = fn(values)
     return x0
 
 
