@@ -457,3 +457,39 @@ def test_a_batch_integrated_one_sample_at_a_time_says_so():
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, linear_solver="rk4_doubling")
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, max_steps=500)
         torchql.fit(CoastingCar(AREA, MASS), data[0], x0[0], solver="dopri8")
+
+
+def test_throw_raises_once_every_sample_was_fitted_naming_the_failed_ones():
+    """``throw=True``: a batch with a failed sample raises :class:`torchql.BatchFitError` (a
+    ``FitError``) holding the whole result and the failed indices; one that converges returns."""
+    data, x0 = car_data(3)
+    area = torch.tensor([AREA, 0.0, AREA], dtype=DT)  # no frontal area: C_D undetermined
+    with pytest.raises(torchql.FitError) as info:
+        torchql.fit_many(CoastingCar(AREA, MASS), data, x0, guesses={"frontal_area": area}, grid=50, throw=True)
+    error = info.value
+    assert isinstance(error, torchql.BatchFitError)
+    assert error.failed == [1]
+    assert isinstance(error.result, torchql.BatchFitResult) and len(error.result) == 3
+    assert [s.name for s in error.result.status] == ["CONVERGED", "NOT_IDENTIFIABLE", "CONVERGED"]
+    assert str(error).startswith("1 of 3 samples did not converge (sample 1: ")
+    assert error.result.message[1] in str(error)
+    import pickle
+
+    again = pickle.loads(pickle.dumps(error))
+    assert again.failed == [1] and str(again) == str(error)
+    # without the failed sample it returns the batch, as without throw
+    kept = torchql.fit_many(CoastingCar(AREA, MASS), [data[0], data[2]], x0[[0, 2]], grid=50, throw=True)
+    plain = torchql.fit_many(CoastingCar(AREA, MASS), [data[0], data[2]], x0[[0, 2]], grid=50)
+    assert torch.equal(kept.estimates, plain.estimates)
+    # several experiments per sample take it too
+    with pytest.raises(torchql.BatchFitError):
+        torchql.fit_many(CoastingCar(AREA, MASS), [[data[0], data[1]]], max_iter=1, grid=50, throw=True)
+
+
+@pytest.mark.parametrize("value", [1, "yes", None])
+def test_throw_must_be_a_bool(value):
+    data, x0 = car_data(1)
+    for fitting in (lambda: torchql.fit_many(CoastingCar(AREA, MASS), data, x0, throw=value),
+                    lambda: torchql.fit(CoastingCar(AREA, MASS), data[0], x0[0], throw=value)):
+        with pytest.raises(TypeError, match=r"`throw` must be True or False; received"):
+            fitting()

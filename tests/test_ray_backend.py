@@ -42,6 +42,9 @@ def test_local_ray_run_equals_fit_many_in_input_order():
         remote_batch = torchql.fit_many_ray(model, batch, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate")
         own = torchql.Observations(times, batch.y, observe=["v"])  # per-sample times: each task gets its samples'
         remote_own = torchql.fit_many_ray(model, own, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate")
+        with pytest.raises(torchql.BatchFitError) as thrown:  # raised once, for the whole batch
+            torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2, grid=20,
+                                 initial_trajectory="integrate", throw=True)
     finally:
         ray.shutdown()
     local = torchql.fit_many(model, data, x0, guesses={"C_D": C_D}, grid=20, initial_trajectory="integrate")
@@ -57,6 +60,8 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     assert [s.name for s in remote_own.status] == [s.name for s in local_own.status]
     assert torch.allclose(remote_own.estimates, local_own.estimates, rtol=1e-12, atol=0)
     assert torch.equal(remote_own.t0, times[:, 0]) and torch.equal(local_own.t0, times[:, 0])
+    assert thrown.value.failed == [2] and len(thrown.value.result) == 5
+    assert torch.allclose(thrown.value.result.estimates, local.estimates, rtol=1e-12, atol=0)
 
 
 def test_parts_with_their_own_t0_concatenate_to_per_sample_t0():
@@ -77,6 +82,8 @@ def test_bad_arguments_fail_before_ray_is_used():
     data, x0 = fleet(2)
     with pytest.raises(ValueError, match="`batch_size`"):
         torchql.fit_many_ray(CoastingCar(17.3, 80.43), data, x0, batch_size=0)
+    with pytest.raises(TypeError, match="`throw` must be True or False"):
+        torchql.fit_many_ray(CoastingCar(17.3, 80.43), data, x0, throw="yes")
     with pytest.raises(ValueError, match=r"`x0` must have shape"):
         torchql.fit_many_ray(CoastingCar(17.3, 80.43), data, torch.zeros(2, 3))
     with pytest.raises(ValueError, match="empty list"):

@@ -2,7 +2,7 @@
 
 from . import baselines, damping, models, propagators, schemes
 from .batch import fit_many
-from .batch_result import BatchFitResult
+from .batch_result import BatchFitError, BatchFitResult
 from .fit import METHODS, fit
 from .compare import Comparison, compare
 from .inputs import Inputs
@@ -38,6 +38,7 @@ __all__ = [
     "ProfileResult",
     "FitResult",
     "FitError",
+    "BatchFitError",
     "IterationRecord",
     "Status",
     "METHODS",

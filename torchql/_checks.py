@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 import numbers
 
+import numpy
 import torch
 
-__all__ = ["positive_number", "finite_number", "positive_int", "model_class", "model_forward", "distinct_names",
+__all__ = ["positive_number", "finite_number", "positive_int", "flag", "model_class", "model_forward", "distinct_names",
            "coefficients_text", "single_observations"]
 
 #: Floating dtypes a model may compute in (half precisions cannot resolve a fit's tolerances,
@@ -43,6 +44,13 @@ def positive_int(name: str, value, minimum: int = 1) -> int:
         kind = {0: "a non-negative integer", 1: "a positive integer"}.get(minimum, f"an integer >= {minimum}")
         raise ValueError(f"`{name}` must be {kind}; received {value!r}")
     return int(value)
+
+
+def flag(name: str, value) -> bool:
+    """``value`` as a bool; ``TypeError`` naming ``name`` unless it is ``True`` or ``False``."""
+    if not isinstance(value, (bool, numpy.bool_)):
+        raise TypeError(f"`{name}` must be True or False; received {value!r}")
+    return bool(value)
 
 
 def model_class(model) -> None:

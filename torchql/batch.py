@@ -39,7 +39,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
-from .batch_result import BatchFitResult, concatenate
+from .batch_result import BatchFitError, BatchFitResult, concatenate
 from .damping import Damping
 from .schemes import Scheme
 from .engine import run_engine
@@ -56,7 +56,7 @@ from .propagators import PROPAGATORS, LinearPropagator
 from .result import IterationRecord
 from .engine_evaluate import BATCHED_SOLVERS
 
-__all__ = ["fit_many", "check_data"]
+__all__ = ["fit_many", "check_data", "raise_if_failed"]
 
 #: Samples fitted together by default (bounds the memory: a chunk holds ``(chunk, G, M, 1 + m)``
 #: solutions and ``(chunk, G, M, M)`` Jacobians).
@@ -98,6 +98,7 @@ def fit_many(
     chunk_size: int = DEFAULT_CHUNK,
     progress: bool | Callable[[int, int], None] = False,
     callback: Callable[[int, IterationRecord], None] | None = None,
+    throw: bool = False,
     conditions: Sequence[dict] | None = None,
     options: FitOptions | None = None,
 ) -> BatchFitResult:
@@ -196,6 +197,11 @@ def fit_many(
         Called as ``callback(sample, record)`` with each sample's :class:`IterationRecord` as it
         is completed (as :func:`torchql.fit`'s callback, with the sample's index). Every
         sample's iterates are then kept too (``batch[i].history`` holds them all).
+    throw : bool
+        ``True``: raise :class:`torchql.BatchFitError` (a :class:`torchql.FitError`) when some
+        sample does not converge, after every sample was fitted; its ``result`` holds them all,
+        its ``failed`` the failed samples' indices. Default ``False``: each sample's ``status``
+        and ``message`` say it.
 
     Returns
     -------
@@ -207,7 +213,10 @@ def fit_many(
     ------
     TypeError, ValueError
         For invalid arguments (naming the argument, the sample, what was expected and received).
+    BatchFitError
+        When ``throw=True`` and some sample does not converge.
     """
+    throw = _checks.flag("throw", throw)
     if parameters is not None:
         _checks.model_class(model)
         given = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
@@ -215,25 +224,25 @@ def fit_many(
         model, x0, params, fixed_x0, bounds, scale, x0_expr = (
             given[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
     if _experiments_per_sample(data):
-        return _fit_experiment_samples(
+        return raise_if_failed(throw, _fit_experiment_samples(
             model, data, x0, params=params, guesses=guesses, fixed_x0=fixed_x0, t0=t0, bounds=bounds, scale=scale,
             x0_expr=x0_expr, grid=grid, conditions=conditions, method=method,
             initial_trajectory=initial_trajectory, max_iter=max_iter, max_time=max_time, rtol=rtol, atol=atol,
             xtol=xtol, ftol=ftol, rcond=rcond, damping=damping, solver=solver, linear_solver=linear_solver,
-            max_steps=max_steps, chunk_size=chunk_size, progress=progress, callback=callback)
+            max_steps=max_steps, chunk_size=chunk_size, progress=progress, callback=callback))
     if conditions is not None:
         raise ValueError("`conditions` apply to several experiments per sample: give `data` as one list of "
                          "experiments (Observations) per sample")
     runs = _input_runs(data)
     if runs is not None:
-        return _fit_runs(runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress,
-                         callback=callback, params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds,
-                         scale=scale, x0_expr=x0_expr, initial_trajectory=initial_trajectory, max_iter=max_iter,
-                         rtol=rtol, atol=atol, xtol=xtol,
-                         ftol=ftol, rcond=rcond, grid=grid, damping=damping, solver=solver,
-                         linear_solver=linear_solver, max_steps=max_steps, chunk_size=chunk_size)
+        return raise_if_failed(throw, _fit_runs(
+            runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress, callback=callback,
+            params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds, scale=scale, x0_expr=x0_expr,
+            initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol,
+            rcond=rcond, grid=grid, damping=damping, solver=solver, linear_solver=linear_solver,
+            max_steps=max_steps, chunk_size=chunk_size))
     spec = Problem(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
-                 damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, scale=scale,
+                   damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, scale=scale,
                    x0_expr=x0_expr)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
@@ -249,6 +258,13 @@ def fit_many(
         solver=solver, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol, rcond=rcond, grid=grid,
         initial_trajectory=initial_trajectory, max_steps=max_steps, damping=damping, linear_solver=linear_solver,
         bounds=bounds, scale=scale, x0_expr=x0_expr)
+    return raise_if_failed(throw, result)
+
+
+def raise_if_failed(throw: bool, result: BatchFitResult) -> BatchFitResult:
+    """``result``, or :class:`BatchFitError` raised with it where ``throw`` and a sample failed."""
+    if throw and not bool(result.success.all()):
+        raise BatchFitError(result)
     return result
 
 

@@ -16,13 +16,13 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .result import FitResult, IterationRecord, Status
+from .result import FitError, FitResult, IterationRecord, Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import ODEModel
     from .options import FitOptions
 
-__all__ = ["BatchFitResult", "SampleResult", "concatenate"]
+__all__ = ["BatchFitError", "BatchFitResult", "SampleResult", "concatenate"]
 
 
 #: One sample of a :class:`BatchFitResult` is a :class:`torchql.FitResult` (the former name of its type).
@@ -323,6 +323,20 @@ class BatchFitResult:
     def __repr__(self) -> str:
         return (f"BatchFitResult(B={len(self)}, converged={int(self.success.sum())}, "
                 f"unknowns={self.unknown_names})")
+
+
+class BatchFitError(FitError):
+    """Raised by ``fit_many(..., throw=True)`` when some sample does not converge: ``.result``
+    holds the whole :class:`BatchFitResult`, ``.failed`` the indices of the samples that failed.
+    A :class:`torchql.FitError`, so that one ``except`` serves ``fit`` and ``fit_many``."""
+
+    def __init__(self, result: BatchFitResult) -> None:
+        failed = [i for i, ok in enumerate(result.success.tolist()) if not ok]
+        shown = "; ".join(f"sample {i}: {result.message[i]}" for i in failed[:3])
+        RuntimeError.__init__(self, f"{len(failed)} of {len(result)} samples did not converge ({shown}"
+                                    + ("; ...)" if len(failed) > 3 else ")"))
+        self.result = result
+        self.failed = failed
 
 
 def _initial_times(parts: Sequence[BatchFitResult]) -> float | torch.Tensor:

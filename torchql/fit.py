@@ -268,6 +268,7 @@ def fit(
     """
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
+    throw = _checks.flag("throw", throw)
     _checks.single_observations("data", data)
     if parameters is not None:
         _checks.model_class(model)

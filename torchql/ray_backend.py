@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
-from .batch import check_data, fit_many, sample_rows, sample_rows_dict
+from .batch import check_data, fit_many, raise_if_failed, sample_rows, sample_rows_dict
 from .batch_result import BatchFitResult, concatenate
 from .model import ODEModel
 from .observations import Observations
@@ -84,8 +84,11 @@ def fit_many_ray(
         When Ray is not installed (``pip install "torchql[ray]"``).
     TypeError, ValueError
         For invalid arguments, before any task is submitted.
+    BatchFitError
+        When ``throw=True`` and some dataset's fit does not converge (after all were fitted).
     """
     ray = _import_ray()
+    throw = _checks.flag("throw", options.pop("throw", False))  # raised once, for the whole batch
     batch_size = _checks.positive_int("batch_size", batch_size)
     torch_threads = _checks.positive_int("torch_threads", torch_threads)
     datasets = check_data(data)  # a batched Observations or a list: both are sliced into batches below
@@ -127,7 +130,7 @@ def fit_many_ray(
             ray.shutdown()
     result = concatenate([parts[k] for k in sorted(parts)])
     result.data = datasets
-    return result
+    return raise_if_failed(throw, result)
 
 
 def _fit_batch(model, datasets, x0, guesses, options, torch_threads) -> BatchFitResult:
