@@ -75,6 +75,11 @@ def test_several_experiments_share_a_state_specification(data):
     assert r.unknown_names == ["I[0](t0)", "I[1](t0)", "beta", "gamma"]
     assert torch.allclose(r.params["beta"], torch.tensor(1.66, dtype=DT), rtol=1e-8)
     assert torch.allclose(r.x0[:, 1], torch.ones(2, dtype=DT), rtol=1e-8)
+    # fit_many with several experiments per sample, and multistart, build x0 (E, n) as fit does
+    many = torchql.fit_many(SIR(), [[data, data]], parameters=SPEC)
+    assert many.status[0] is r.status and torch.allclose(many.estimates[0], r.estimates, rtol=1e-9, atol=0)
+    best = torchql.multistart(SIR(), [data, data], parameters=SPEC, starts=2).best
+    assert best.success and torch.allclose(best.params["beta"], torch.tensor(1.66, dtype=DT), rtol=1e-8)
 
 
 @pytest.mark.parametrize("parameters, kwargs, error, match", [

@@ -220,7 +220,8 @@ def fit_many(
     if parameters is not None:
         _checks.model_class(model)
         given = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
-                                 scale=scale, x0_expr=x0_expr)
+                                 scale=scale, x0_expr=x0_expr,  # several experiments: x0 (E, n) shared
+                                 rows=len(data[0]) if _experiments_per_sample(data) else None)
         model, x0, params, fixed_x0, bounds, scale, x0_expr = (
             given[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
     if _experiments_per_sample(data):

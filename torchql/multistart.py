@@ -196,7 +196,8 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     if fit_kwargs.get("parameters") is not None:  # the specification's bounds bound the draws too
         spec = apply_parameters(model, fit_kwargs.pop("parameters"), x0=x0, params=params,
                                 fixed_x0=fit_kwargs.get("fixed_x0"), bounds=bounds, scale=fit_kwargs.get("scale"),
-                                x0_expr=fit_kwargs.get("x0_expr"))
+                                x0_expr=fit_kwargs.get("x0_expr"),
+                                rows=len(data) if isinstance(data, (list, tuple)) else None)
         model, x0, params, bounds = spec["model"], spec["x0"], spec["params"], spec["bounds"]
         fit_kwargs.update({key: spec[key] for key in ("fixed_x0", "scale", "x0_expr") if spec[key] is not None})
     if params is None:
