@@ -97,6 +97,28 @@ def test_result_does_not_depend_on_which_intervals_are_summed_together():
     assert torch.equal(together.Y, torch.cat([alone[0].Y, alone[1].Y], dim=-1))
 
 
+def test_a_sample_with_an_interval_beyond_the_substeps_is_not_summed_further():
+    """Two samples' intervals in one call: the first has intervals that would need more substeps
+    than allowed, so it fails as a whole, and its other intervals that need substeps are left
+    unsummed (the work of a trial that is rejected anyway); the second's transfers are those it
+    gets alone, bit for bit."""
+    doomed, fine = _random_reference(G=5, scale=3.0, seed=4), _random_reference(G=5, scale=3.0, seed=10)
+    doomed.jac = doomed.jac.clone()
+    doomed.jac[2] *= 1e4  # the intervals on both sides of node 2
+    ca, cb = _Coefficients(IntervalSystem(doomed)), _Coefficients(IntervalSystem(fine))
+    data = torch.cat([ca.data, cb.data], dim=-1)
+    together = series_transfers(_Coefficients.of(data, ca.order, ca.a, ca.M, samples=2), rtol=1e-8, atol=1e-10,
+                                max_substeps=64)
+    alone = series_transfers(cb, rtol=1e-8, atol=1e-10, max_substeps=64)
+    assert together.failed.tolist() == [False, True, True, False] + [False] * 4
+    assert torch.equal(together.Y[..., 4:], alone.Y)
+    assert (together.substeps[[0, 3]] >= 4).all() and bool((together.Y[..., [0, 3]] == 0).all())
+    assert together.points == alone.points  # all the work is the second sample's
+    # the blocks are the samples: as one sample, the failure leaves every interval with substeps unsummed
+    as_one = series_transfers(_Coefficients.of(data, ca.order, ca.a, ca.M), rtol=1e-8, atol=1e-10, max_substeps=64)
+    assert as_one.failed.tolist() == together.failed.tolist() and as_one.points == 0
+
+
 def test_agrees_with_rk4_doubling():
     ref = _random_reference(G=41, seed=7, span=4.0)
     system = IntervalSystem(ref)

@@ -135,7 +135,7 @@ def _series_per_sample(coefficients: _Coefficients, counts: torch.Tensor, rtol: 
         samples = (counts == value).nonzero().flatten()
         columns = (samples.unsqueeze(1) * N + torch.arange(N, device=data.device)).flatten()
         part = _Coefficients.of(data[..., columns], coefficients.order, coefficients.a, coefficients.M,
-                                coefficients.jacobian_degree)
+                                coefficients.jacobian_degree, samples=samples.numel())
         rtol_j, atol_j = interval_tolerances(rtol, atol, value, dtype)
         Y_part, failed_part, work = series(part, rtol=rtol_j, atol=atol_j, max_substeps=max_substeps)
         Y[..., columns], failed[columns] = Y_part, failed_part

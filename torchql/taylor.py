@@ -293,6 +293,10 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
                      max_substeps: int = 1024) -> SeriesTransfers:
     """Transfers of all intervals within the tolerance, failures marked per interval (never raised).
 
+    A sample (``coefficients.samples`` contiguous blocks of intervals) with an interval that would
+    need more than ``max_substeps`` fails: its other intervals' series that need substeps are then
+    not summed (their ``Y`` is left zero), the work that a sample's failed trial step would waste.
+
     The error test is the one of an adaptive solver with max-norm, entry by entry on the rows
     of ``[Phi_j | c_j]``: truncation bound ``<= atol + rtol * max(|T(0)|, |T(1)|)``.
 
@@ -366,6 +370,7 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
         n = int(substeps[pending].min())
         if n > max_substeps:
             break
+        _skip_failed_samples(pending, substeps > max_substeps, coefficients.samples)
         group = (pending & (substeps == n)).nonzero().flatten()
         pending[group] = False
         per_chunk = max(1, _CHUNK // n)
@@ -374,6 +379,15 @@ def series_transfers(coefficients: _Coefficients, *, rtol: float, atol: float,
             integrate(_monomials(data[..., part], M, n), part, n)
     failed = pending | ~torch.isfinite(Y).flatten(0, 1).all(dim=0)
     return SeriesTransfers(Y, failed, substeps, counts[0], counts[1])
+
+
+def _skip_failed_samples(pending: torch.Tensor, beyond: torch.Tensor, samples: int) -> None:
+    """Leave out of ``pending (N,)`` (in place) the intervals of every sample (``samples``
+    contiguous blocks) that has an interval ``beyond`` the substeps allowed: that sample's
+    transfer fails whatever the others give (its intervals ``beyond`` stay pending: failed)."""
+    doomed = (pending & beyond).unflatten(0, (samples, -1)).any(dim=1, keepdim=True)
+    if bool(doomed.any()):
+        pending.unflatten(0, (samples, -1)).logical_and_(~doomed | beyond.unflatten(0, (samples, -1)))
 
 
 def taylor_transfers(system: IntervalSystem, *, rtol: float, atol: float, max_substeps: int = 1024,

@@ -345,7 +345,7 @@ def interval_coefficients(t: torch.Tensor, z: torch.Tensor, z_dot: torch.Tensor,
         if isinstance(lin, SecondLinearization):
             _quintic_jacobian_rows(data, h, lin.jac_ddot, perm, a, S)
             jacobian_degree = 5
-    return _Coefficients.of(data, order, a, M, jacobian_degree)
+    return _Coefficients.of(data, order, a, M, jacobian_degree, samples=S)
 
 
 def _quintic_rows(out: torch.Tensor, h: torch.Tensor, z_dot: torch.Tensor, lin, perm: torch.Tensor, a: int) -> None:
@@ -418,15 +418,19 @@ class _Coefficients:
         lin = (Linearization if second is None else SecondLinearization)(*(v.unsqueeze(0) for v in fields))
         built = interval_coefficients(ref.t, ref.z.unsqueeze(0), ref.z_dot.unsqueeze(0), lin, degree)
         self.data, self.order, self.a, self.M = built.data, built.order, built.a, built.M
-        self.jacobian_degree = built.jacobian_degree
+        self.jacobian_degree, self.samples = built.jacobian_degree, 1
 
     @classmethod
-    def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int, jacobian_degree: int = 3) -> "_Coefficients":
+    def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int, jacobian_degree: int = 3,
+           samples: int = 1) -> "_Coefficients":
         """Coefficients already in stored form: power-basis ``data (D, Q, N)``, ``order (M+1,)``,
-        ``a`` active components of ``M``, the rows of ``h A`` of degree ``jacobian_degree``."""
+        ``a`` active components of ``M``, the rows of ``h A`` of degree ``jacobian_degree``; the
+        ``N`` intervals are ``samples`` contiguous blocks of equal length, one per sample (a sample
+        with an interval that cannot be integrated fails as a whole, and the series of its other
+        intervals are not summed: :func:`torchql.taylor.series_transfers`)."""
         coefficients = object.__new__(cls)
         coefficients.data, coefficients.order, coefficients.a, coefficients.M = data, order, a, M
-        coefficients.jacobian_degree = jacobian_degree
+        coefficients.jacobian_degree, coefficients.samples = jacobian_degree, samples
         return coefficients
 
     @property
