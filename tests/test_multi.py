@@ -202,6 +202,14 @@ def test_fit_many_with_several_experiments_names_bad_samples():
     later = [datasets[0], torchql.Observations(datasets[1].t + 0.1, datasets[1].y, observe=["a", "b"]), datasets[2]]
     with pytest.raises(ValueError, match="`data\\[1\\]\\[1\\]` has other times than `data\\[0\\]\\[1\\]`"):
         torchql.fit_many(_Chain(), [datasets, later], x0=x0, conditions=conditions)
+    # each experiment observes the same states, with the same noise model, in every sample
+    d1 = datasets[1]
+    for other, match in ((torchql.Observations(d1.t, d1.y.flip(-1), observe=["b", "a"]), "observes something else"),
+                         (torchql.Observations(d1.t, d1.y, observe=["a", "b"], sigma=0.1), "gives `sigma` but"),
+                         (torchql.Observations(d1.t, d1.y, observe=["a", "b"], noise="lognormal"),
+                          "has another noise model")):
+        with pytest.raises(ValueError, match=f"`data\\[1\\]\\[1\\]` {match}.*`data\\[0\\]\\[1\\]`"):
+            torchql.fit_many(_Chain(), [datasets, [datasets[0], other, datasets[2]]], x0=x0, conditions=conditions)
     with pytest.raises(ValueError, match="`conditions` apply to several experiments per sample"):
         torchql.fit_many(_Chain(), datasets, x0=x0, conditions=conditions)
     with pytest.raises(ValueError, match="\\(B, E, n_states\\) with B = 2"):

@@ -50,7 +50,7 @@ from .multi import experiment_result, stack_experiments, stack_observations
 from .observations import Observations
 from .options import FitOptions, Limits, accepts_options, recorded_options
 from .parameters import apply_parameters
-from .datasets import check_data, inputs_all_or_none
+from .datasets import check_alike, check_data, inputs_all_or_none
 from .problem import Problem
 from .propagators import PROPAGATORS, LinearPropagator
 from .result import IterationRecord
@@ -405,6 +405,7 @@ def _check_experiment_samples(data, x0) -> tuple[int, bool]:
             if d.t.shape != ref.t.shape or not torch.equal(d.t, ref.t):
                 raise ValueError(f"`data[{b}][{e}]` has other times than `data[0][{e}]`: with several experiments "
                                  "per sample, each experiment's times must be the same in every sample")
+            check_alike(d, ref, f"data[{b}][{e}]", f"data[0][{e}]")
             if (d.inputs is None) != (ref.inputs is None) or (d.inputs is not None and not d.inputs.same_as(ref.inputs)):
                 raise ValueError(f"`data[{b}][{e}]` has other inputs than `data[0][{e}]`: with several experiments "
                                  "per sample, each experiment's inputs must be the same in every sample")

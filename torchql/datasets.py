@@ -7,7 +7,7 @@ import torch
 
 from .observations import Observations
 
-__all__ = ["check_data", "inputs_all_or_none", "shared_inputs"]
+__all__ = ["check_data", "check_alike", "inputs_all_or_none", "shared_inputs"]
 
 
 def check_data(data) -> Observations | list[Observations]:
@@ -42,18 +42,25 @@ def check_data(data) -> Observations | list[Observations]:
             raise ValueError(f"`data[{i}]` has T = {d.n_times} observation times but `data[0]` has "
                              f"{first.n_times}: fit_many needs the same number of times in every dataset (each "
                              "may have its own times); fit datasets with other numbers of times in another batch")
-        if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
-            raise ValueError(f"`data[{i}]` observes something else than `data[0]` (its `observe` differs); "
-                             "fit_many needs one observation operator for all datasets (the same names, matrix "
-                             "or callable object)")
-        if ((d.noise, d.sigma_estimated, d.sigma_groups) != (first.noise, first.sigma_estimated, first.sigma_groups)
-                or d.sigma_function is not first.sigma_function):
-            raise ValueError(f"`data[{i}]` has another noise model than `data[0]` (`noise`, sigma='estimate', "
-                             "`sigma_groups` or the sigma(p) function object differ): one batch has one noise model")
-        if d.sigma_given != first.sigma_given:
-            raise ValueError(f"`data[{i}]` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
-                             f"`data[0]` {'does' if first.sigma_given else 'does not'}: give it for all or none")
+        check_alike(d, first, f"data[{i}]", "data[0]")
     return items
+
+
+def check_alike(d: Observations, first: Observations, name: str, first_name: str) -> None:
+    """An error naming ``name`` unless the dataset ``d`` observes what ``first`` (named ``first_name``)
+    does, with the same noise model, and gives ``sigma`` where ``first`` does: the samples of one
+    batch share one observation operator and one noise model."""
+    if not _same_observe(d.observe, first.observe) or d.n_outputs != first.n_outputs:
+        raise ValueError(f"`{name}` observes something else than `{first_name}` (its `observe` differs); "
+                         "fit_many needs one observation operator for all datasets (the same names, matrix "
+                         "or callable object)")
+    if ((d.noise, d.sigma_estimated, d.sigma_groups) != (first.noise, first.sigma_estimated, first.sigma_groups)
+            or d.sigma_function is not first.sigma_function):
+        raise ValueError(f"`{name}` has another noise model than `{first_name}` (`noise`, sigma='estimate', "
+                         "`sigma_groups` or the sigma(p) function object differ): one batch has one noise model")
+    if d.sigma_given != first.sigma_given:
+        raise ValueError(f"`{name}` {'gives' if d.sigma_given else 'does not give'} `sigma` but "
+                         f"`{first_name}` {'does' if first.sigma_given else 'does not'}: give it for all or none")
 
 
 def inputs_all_or_none(inputs: list) -> None:
