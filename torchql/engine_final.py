@@ -91,9 +91,8 @@ class FinalPass:
             s = self._ssq(rows, resid, w)
             sse[rows] = s
             s = s + log_term  # the objective (with a sigma(p) function, not a sum of squares)
-            exact = self.exact[rows]
-            exact_residual[rows] = torch.where(exact, resid.abs(), torch.zeros_like(resid)).amax(dim=1)
-            self._note_unmet_exact(rows, exact_residual, codes, detail)
+            exact_residual[rows], unmet = self._exact_misfit(rows, resid)
+            self._note_unmet_exact(rows, exact_residual, unmet, codes, detail)
             if self.history is not None:
                 for k, r in enumerate(rows.tolist()):
                     self.history[r].append(self._record(r, int(iterations[r]), z0[r], float(s[k]), traj[k]))
@@ -133,14 +132,20 @@ class FinalPass:
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.first_sse, z0_start=self.first_z0)
 
-    def _note_unmet_exact(self, rows, exact_residual, codes, detail) -> None:
+    def _exact_misfit(self, rows, resid) -> tuple[torch.Tensor, torch.Tensor]:
+        """The largest absolute residual ``(R,)`` of the samples ``rows`` over their values marked
+        ``exact`` (residuals ``resid (R, K)``), and whether it is unmet: above ``rtol`` times their
+        largest magnitude (at least 1), the accuracy of the model's own solution."""
+        exact = self.exact[rows]
+        misfit = torch.where(exact, resid.abs(), torch.zeros_like(resid)).amax(dim=1)
+        y = torch.where(exact, self.y[rows].reshape(rows.numel(), -1).abs(), 0.0).amax(dim=1)
+        return misfit, misfit > self.spec.rtol * y.clamp(min=1.0)
+
+    def _note_unmet_exact(self, rows, exact_residual, unmet, codes, detail) -> None:
         """Say so in the detail of the samples ``rows`` that did not converge where their values marked
-        ``exact`` are not met: ``exact_residual (S,)`` above ``rtol`` times their largest magnitude (at
-        least 1), the accuracy of the model's own solution."""
+        ``exact`` are not met (``unmet``, :meth:`_exact_misfit`): the largest misfit ``exact_residual (S,)``."""
         if not self.spec.has_exact:
             return
-        y = torch.where(self.exact[rows], self.y[rows].reshape(rows.numel(), -1).abs(), 0.0).amax(dim=1)
-        unmet = exact_residual[rows] > self.spec.rtol * y.clamp(min=1.0)
         for k, r in enumerate(rows.tolist()):
             if bool(unmet[k]) and not codes[r].success:
                 detail[r] += (f" The values marked `exact` are not met: the largest misfit is "
@@ -335,6 +340,10 @@ class FinalPass:
         bound = torch.tensor([spec.xtol if codes[i] is Status.CONVERGED else math.sqrt(spec.xtol)
                               for i in r.tolist()], dtype=scaled.dtype, device=scaled.device)
         need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
+        if spec.has_exact:  # a step below the bound of the sum-of-squares test may leave them unmet
+            traj_obs = self._at_obs(traj, r)
+            resid = self._rows(r, traj_obs, traj_obs, self._at_obs(W, r)[..., 1:])[2]
+            need |= ~infeasible & self._exact_misfit(r, resid)[1]
         return here, alpha, infeasible, scaled, need
 
     def _jointly(self, rows, z0):
