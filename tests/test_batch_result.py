@@ -112,6 +112,47 @@ def test_callback_receives_each_samples_records_as_fit_hands_them():
         torchql.fit_many(CoastingCar(AREA, MASS), data, x0, callback=3)
 
 
+def test_a_batch_joined_from_parts_keeps_every_record_and_the_likelihoods_last_one():
+    """A batch whose samples carry their own inputs is fitted part by part and joined: with a
+    ``callback`` each sample keeps every record, as with shared inputs. With estimated sigmas the
+    last record holds the objective ``sse + 2 sum log sigma`` as the first does and as ``fit``'s."""
+    t = torch.linspace(0, 10, 21, dtype=DT)
+    times = torch.linspace(0, 10, 11, dtype=DT)
+    g = torch.Generator().manual_seed(0)
+    data = []
+    for _ in range(2):
+        force = torchql.Inputs(times, torch.rand(11, 1, generator=g, dtype=DT) * 2 - 1, names="force")
+        y = torchql.simulate(_Driven(0.3, 4.0), torch.tensor([0.1, 0.0], dtype=DT), t, inputs=force)[:, :1]
+        noisy = y + 0.01 * torch.randn(y.shape, generator=g, dtype=DT)
+        data.append(torchql.Observations(t, noisy, observe=["y"], inputs=force, sigma="estimate"))
+    seen: dict[int, int] = {0: 0, 1: 0}
+    batch = torchql.fit_many(_Driven(), data, torch.zeros(2, dtype=DT),
+                             callback=lambda b, record: seen.__setitem__(b, seen[b] + 1))
+    plain = torchql.fit_many(_Driven(), data, torch.zeros(2, dtype=DT))  # the guesses and the estimates only
+    for b in range(2):
+        alone = torchql.fit(_Driven(), data[b], torch.zeros(2, dtype=DT))
+        assert len(batch[b].history) == seen[b] == len(alone.history), b
+        assert alone.likelihood and alone.history[-1].sse < 0  # the objective, not the sum of squares
+        assert batch[b].history[0].sse == pytest.approx(alone.history[0].sse, rel=1e-8)
+        for kept in (batch[b].history, plain[b].history):
+            assert kept[-1].sse == pytest.approx(alone.history[-1].sse, rel=1e-8)
+
+
+class _Driven(torchql.ODEModel):
+    """A damped spring driven by a measured force: ``y'' = force - c y' - k y``."""
+
+    state_names, input_names = ("y", "v"), ("force",)
+
+    def __init__(self, c: float = 0.5, k: float = 2.0) -> None:
+        super().__init__()
+        self.register_buffer("c", torch.tensor(c, dtype=DT))
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+
+    def forward(self, t, x, u):
+        y, v = x.unbind(-1)
+        return torch.stack((v, u[..., 0] - self.c * v - self.k * y), dim=-1)
+
+
 def test_a_sample_is_indexed_by_any_integer_and_nothing_else(fleet):
     """``result[i]`` takes a NumPy integer or a one-element integer tensor (as ``(~result.success).nonzero()``
     gives) like an int; a float, a bool or a tensor of several indices is an error that says what it received."""

@@ -87,6 +87,10 @@ class BatchFitResult:
         squares ``(B,)``: the first record of ``batch[i].history``. Integrated from the guesses, the
         first iterate is the guesses; built from the data, its coefficients are those fitted to
         the data's slopes.
+    sse_end : Tensor ``(B,)`` or None
+        The value of each sample's last record (``batch[i].history[-1].sse``): ``sse``, and where
+        the fit maximized a likelihood, its objective ``sse + 2 sum log sigma``, as ``sse_start``
+        and :func:`torchql.fit`'s records have it (NaN where the final pass did not evaluate).
     solver_options : dict
         ``solver``, ``rtol``, ``atol`` of the fits (used by ``batch[i].predict``).
     data : Observations or list of Observations or None
@@ -150,6 +154,7 @@ class BatchFitResult:
     start_params: dict[str, torch.Tensor] | None = field(default=None, repr=False)
     start_x0: torch.Tensor | None = field(default=None, repr=False)
     sse_start: torch.Tensor | None = field(default=None, repr=False)
+    sse_end: torch.Tensor | None = field(default=None, repr=False)
     solver_options: dict = field(default_factory=dict, repr=False)
     data: object = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
@@ -224,8 +229,9 @@ class BatchFitResult:
                                            x0=self.start_x0[i].clone(), sse=float(self.sse_start[i])))
         iterations = int(self.iterations[i])
         if self.history is None:
+            last = self.sse if self.sse_end is None else self.sse_end
             history.append(IterationRecord(iteration=iterations, params={k: v.clone() for k, v in params.items()},
-                                           x0=self.x0[i].clone(), sse=float(self.sse[i])))
+                                           x0=self.x0[i].clone(), sse=float(last[i])))
         exact = (self.exact[i][self.used[i]].clone() if self.exact is not None and self.used is not None
                  else torch.zeros(residuals.shape[0], dtype=torch.bool, device=residuals.device))
         exact_residual = (float(self.exact_residual[i]) if self.exact_residual is not None
@@ -382,6 +388,9 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
                       else torch.cat([p.sigma_stderr for p in parts])),
         noise=first.noise,
         sigma_function=first.sigma_function,
+        history=None if any(p.history is None for p in parts) else [h for p in parts for h in p.history],
+        experiment_t0=first.experiment_t0,
+        conditions=first.conditions,
     )
 
 
@@ -397,7 +406,7 @@ def _joined_moves(parts: Sequence[BatchFitResult]) -> dict:
 def _joined_evaluations(parts: Sequence[BatchFitResult]) -> dict:
     """The parts' per-sample final evaluations and starts, joined (``None`` unless every part has them)."""
     out = {}
-    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start", "exact",
+    for key in ("residuals", "jacobian", "used", "singular_values", "start_x0", "sse_start", "sse_end", "exact",
                 "exact_residual"):
         values = [getattr(p, key) for p in parts]
         out[key] = torch.cat(values) if all(v is not None for v in values) else None

@@ -64,15 +64,10 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
     R = spec.weights.reshape(B, -1).shape[1]
-    out = dict(sse=torch.empty(B, dtype=spec.dtype, device=spec.device),
-               cov=torch.empty(B, m, m, dtype=spec.dtype, device=spec.device),
-               iterations=torch.empty(B, dtype=torch.long, device=spec.device),
-               residuals=torch.empty(B, R, dtype=spec.dtype, device=spec.device),
-               jacobian=torch.empty(B, R, m, dtype=spec.dtype, device=spec.device),
-               singular_values=torch.empty(B, m, dtype=spec.dtype, device=spec.device),
-               sse_start=torch.empty(B, dtype=spec.dtype, device=spec.device),
-               z0_start=torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device),
-               exact_residual=torch.empty(B, dtype=spec.dtype, device=spec.device))
+    shapes = dict(sse=(B,), cov=(B, m, m), residuals=(B, R), jacobian=(B, R, m), singular_values=(B, m),
+                  sse_start=(B,), sse_end=(B,), z0_start=(B, spec.system.M), exact_residual=(B,))
+    out = {key: torch.empty(shape, dtype=spec.dtype, device=spec.device) for key, shape in shapes.items()}
+    out["iterations"] = torch.empty(B, dtype=torch.long, device=spec.device)
     statuses: list[Status] = [Status.MAX_ITER] * B
     messages: list[str] = [""] * B
     histories: list[list[IterationRecord]] | None = [] if history else None

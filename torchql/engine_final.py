@@ -75,6 +75,7 @@ class FinalPass:
         jacobian = torch.full((S, R, m), float("nan"), dtype=dtype, device=dev)
         singular_values = torch.full((S, m), float("nan"), dtype=dtype, device=dev)
         exact_residual = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        objective = torch.full((S,), float("nan"), dtype=dtype, device=dev)  # the last record's value
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
         rows, traj, W = self._final_solutions(_evaluated(status), z0, final_guess, codes, detail)
@@ -91,6 +92,7 @@ class FinalPass:
             s = self._ssq(rows, resid, w)
             sse[rows] = s
             s = s + log_term  # the objective (with a sigma(p) function, not a sum of squares)
+            objective[rows] = s
             exact_residual[rows], unmet = self._exact_misfit(rows, resid)
             self._note_unmet_exact(rows, exact_residual, unmet, codes, detail)
             if self.history is not None:
@@ -123,14 +125,15 @@ class FinalPass:
                           "faithful too.")
         for k, r in enumerate(self.index.tolist()):
             if spec.bounds.active:
-                detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index]))
+                stderr = cov[k].diagonal().clamp_min(0).sqrt()  # (NaN where not converged: none named)
+                detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index], stderr=stderr))
             if r in spec.moved_guesses:
                 detail[k] += " " + moved_guesses_note(spec.moved_guesses[r])
         messages = [c.value + d for c, d in zip(codes, detail)]
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
-                    sse_start=self.first_sse, z0_start=self.first_z0)
+                    sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0)
 
     def _exact_misfit(self, rows, resid) -> tuple[torch.Tensor, torch.Tensor]:
         """The largest absolute residual ``(R,)`` of the samples ``rows`` over their values marked

@@ -531,7 +531,7 @@ class Problem:
             used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
             exact=self.exact.reshape(B, -1).clone(), exact_residual=out["exact_residual"],
             start_params=self._params_of(out["z0_start"]), start_x0=out["z0_start"][:, :n].clone(),
-            sse_start=out["sse_start"],
+            sse_start=out["sse_start"], sse_end=out["sse_end"],
             solver_options={"solver": self.solver, "rtol": self.rtol, "atol": self.atol},
             lower=self.bounds.lower.clone() if self._bounded else None,
             upper=self.bounds.upper.clone() if self._bounded else None,
