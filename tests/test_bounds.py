@@ -477,6 +477,22 @@ def test_log_scale_fit_recovers_the_truth_and_its_interval_is_of_the_logarithm(d
     assert (y_lo + y_hi) / 2 == pytest.approx(r.x0[0].item(), rel=1e-12)
 
 
+def test_an_estimate_at_the_edge_of_its_log_scale_is_named():
+    """Data of a growing oscillation (A = -0.05) fitted with A on a log scale: A runs to the edge 0
+    of its scale and the message says it lies at its bound, as with ``bounds={"A": (0, None)}``. A
+    log-scaled estimate that is small because the truth is (A = 1e-9, guessed 1e-9) is not named."""
+    t = torch.arange(14, dtype=DT) * 0.5
+    for truth, guess, named in ((-0.05, 0.5, True), (1e-9, 1e-9, False)):
+        y = torchql.simulate(LinearOscillator(truth, 3.0), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-13,
+                             atol=1e-15)[:, :1]
+        r = torchql.fit(LinearOscillator(guess, 2.9), torchql.Observations(t, y, observe=["y"]), x0=X0,
+                        scale={"A": "log"})
+        assert r.success, r.message
+        assert ("['A'] lie at their bounds" in r.message) is named, r.message
+        if named:
+            assert r.params["A"].item() < 1e-6 * guess
+
+
 @pytest.mark.parametrize("kwargs, error, match", [
     (dict(scale={"A": "ln"}), ValueError, r"`scale\['A'\]` must be one of \['lin', 'log', 'log10'\]; received 'ln'"),
     (dict(scale={"A": "log"}, bounds={"A": (-1.0, 1.0)}), ValueError, r"its bounds must lie in \[0, inf\)"),

@@ -298,11 +298,16 @@ class Bounds:
         rate = (self.derivative(u) / u).abs()  # ds/dq on the log scale
         return torch.where(self.log & (rate > 1), MAX_INTERNAL_STEP / rate, limit)
 
-    def at_bound(self, u: torch.Tensor, rel: float = 1e-6) -> list[str]:
-        """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound."""
+    def at_bound(self, u: torch.Tensor, rel: float = 1e-6, stderr: torch.Tensor | None = None) -> list[str]:
+        """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound, and,
+        given their standard errors ``stderr (m,)``, the log-scaled ones without a positive lower
+        bound below ``rel`` times theirs: at the edge 0 of the log scale, where data that want them
+        negative leave them (a small estimate that the data determine is not named)."""
         scale = torch.maximum(u.abs(), torch.ones_like(u))
         near_lo = self.has_lower & ((u - self.lower).abs() <= rel * torch.maximum(scale, self.lower.abs().nan_to_num(0)))
         near_hi = self.has_upper & ((self.upper - u).abs() <= rel * torch.maximum(scale, self.upper.abs().nan_to_num(0)))
+        if stderr is not None:
+            near_lo = near_lo | (self.log & ~(self.lower > 0) & (u <= rel * stderr))
         return [self.names[i] for i in torch.nonzero(near_lo | near_hi).flatten().tolist()]
 
 
