@@ -67,6 +67,22 @@ def test_derivatives_under_vmap_match_finite_differences(kind):
     torch.testing.assert_close(slopes, (inputs(tq + h) - inputs(tq - h)) / (2 * h), rtol=1e-6, atol=1e-8)
 
 
+def test_a_hold_converted_to_a_coarser_dtype_keeps_its_steps_smooth_there():
+    """Float64 samples of a zero-order hold converted to a float32 model's dtype: the step width is
+    the one samples given in float32 have (1e5 of its roundoffs, at most a hundredth of an interval) (the float64 width,
+    1e-8 here, is below float32's roundoff: true jumps, where the fit's solver failed)."""
+    t = torch.linspace(0.0, 10.0, 26, dtype=torch.float64)
+    u = torch.sin(t).unsqueeze(-1)
+    fine = Inputs(t, u, names="u", kind="zoh")
+    assert fine.ramp == pytest.approx(1e-8)
+    coarse = fine.to(torch.float32)
+    assert coarse.ramp == Inputs(t.float(), u.float(), names="u", kind="zoh").ramp
+    # 1e5 float32 roundoffs of t = 10, capped at a hundredth of the shortest interval 0.4
+    assert coarse.ramp == pytest.approx(min(1e5 * torch.finfo(torch.float32).eps * 10.0, 4e-3))
+    assert coarse.to(torch.float64).ramp == coarse.ramp  # back in float64: as wide as in float32
+    assert Inputs(t, u, names="u", kind="linear").to(torch.float32).ramp == 0.0
+
+
 def test_linear_slope_at_the_first_sample_is_the_first_segment():
     inputs, t, u = _signal("linear")
     slope = jvp(inputs, (t[0],), (torch.ones((), dtype=DT),))[1]

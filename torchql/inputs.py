@@ -126,11 +126,8 @@ class Inputs:
                              f"by t[{j + 1}] = {t[j + 1].item():g}")
         self.t, self.u, self.names, self.kind = t.clone(), u.clone(), names, kind
         self._slopes = self._knot_slopes() if kind == "cubic" else None
-        span = float(t[-1] - t[0])
-        floor = 1e5 * torch.finfo(t.dtype).eps * float(t.abs().max())
-        shortest = float((t[1:] - t[:-1]).min()) if t.shape[0] > 1 else 0.0
         #: width of a zero-order hold's smooth steps (the model's time unit; 0 for the other kinds)
-        self.ramp = min(max(RAMP * span, floor), 1e-2 * shortest) if kind == "zoh" and t.shape[0] > 1 else 0.0
+        self.ramp = _ramp(t, kind)
 
     def _knot_slopes(self) -> torch.Tensor:
         t = self.t.detach().cpu().double().numpy()
@@ -173,7 +170,8 @@ class Inputs:
         """A copy in ``dtype`` on ``device``."""
         out = Inputs.__new__(Inputs)
         out.t, out.u = self.t.to(dtype=dtype, device=device), self.u.to(dtype=dtype, device=device)
-        out.names, out.kind, out.ramp = self.names, self.kind, self.ramp
+        # in a coarser dtype, at least 1e5 of its roundoffs: a step narrower is a true jump there
+        out.names, out.kind, out.ramp = self.names, self.kind, max(self.ramp, _ramp(out.t, self.kind))
         out._slopes = None if self._slopes is None else self._slopes.to(dtype=dtype, device=device)
         out._tables = {}
         return out
@@ -275,3 +273,12 @@ class Inputs:
     def __repr__(self) -> str:
         return (f"Inputs(names={list(self.names)}, N={self.t.shape[0]}, t=[{self.t[0].item():g}, "
                 f"{self.t[-1].item():g}], kind={self.kind!r})")
+
+
+def _ramp(t: torch.Tensor, kind: str) -> float:
+    """:attr:`Inputs.ramp` of samples at times ``t (N,)``: :data:`RAMP` of their span, at most a
+    hundredth of the shortest interval, at least 1e5 roundoffs of the times in their dtype."""
+    if kind != "zoh" or t.shape[0] < 2:
+        return 0.0
+    floor = 1e5 * torch.finfo(t.dtype).eps * float(t.abs().max())
+    return min(max(RAMP * float(t[-1] - t[0]), floor), 1e-2 * float((t[1:] - t[:-1]).min()))
