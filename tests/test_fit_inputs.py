@@ -218,6 +218,8 @@ def test_inputs_that_do_not_fit_the_model_or_the_data_are_named():
         torchql.simulate(DrivenOscillator(), X0, data.t)
     with pytest.raises(ValueError, match="`inputs` must cover the simulated times \\[0, 12\\]"):
         torchql.simulate(DrivenOscillator(), X0, data.t, inputs=force(0, span=6.0))
+    with pytest.raises(ValueError, match="`inputs` must cover the simulated times \\[1, 8\\]"):  # t0 after t
+        torchql.simulate(DrivenOscillator(), X0, torch.tensor([1.0, 2.0], dtype=DT), t0=8.0, inputs=force(0, span=6.0))
 
 
 class _GainDriven(torchql.ODEModel):

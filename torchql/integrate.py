@@ -242,7 +242,7 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     rtol, atol = default_tolerances(dtype, rtol, atol)
     rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
     t0_ = t[0] if t0 is None else torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
-    func = _with_inputs(model, inputs, min(float(t0_), float(t[0])), float(t[-1]), dtype, device)
+    func = _with_inputs(model, inputs, min(float(t0_), float(t[0])), max(float(t0_), float(t[-1])), dtype, device)
     # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is the
     # solver's to report, as IntegrationError, like one met later on)
     _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
