@@ -60,6 +60,38 @@ def test_lbfgs_adjoint_recovers_linear_oscillator(lbfgs_run):
     assert torch.isfinite(result.covariance).all()
 
 
+@pytest.mark.parametrize("kind", ["h(x, p)", "lognormal"])
+def test_observations_that_fit_takes_are_fitted_alike(data, kind):
+    """An output ``s y + o`` with its scale and offset estimated (``observe=h(x, p)``), and values with
+    log-normal noise (residuals of logarithms): ``adjoint_fit`` minimizes the objective ``fit``
+    does (it called ``h(x)`` without the coefficients, and took no logarithms)."""
+    if kind == "lognormal":
+        noise = torch.randn(data.y.shape, generator=torch.Generator().manual_seed(2), dtype=DT)
+        y = (3.0 + data.y) * torch.exp(0.05 * noise)  # positive: the oscillation about 3
+        observations = torchql.Observations(data.t, y, observe=lambda x: x[..., :1] + 3.0, noise="lognormal")
+        model = guess_model()
+    else:
+        observations = torchql.Observations(data.t, 2.0 * data.y + 0.1,
+                                            observe=lambda x, p: p["s"] * x[..., :1] + p["o"])
+        model = _Scaled()
+    # (a scale of the output and the initial state are not separable: the latter is held, at the truth)
+    held = dict(x0=TRUTH[:2], fixed_x0=["y", "v"]) if kind == "h(x, p)" else dict(x0=GUESS_X0)
+    reference = torchql.fit(copy.deepcopy(model), observations, **held)
+    result = adjoint_fit(model, observations, optimizer="lbfgs", **held)
+    assert reference.success and result.success, result.message
+    assert rel_error(result.estimates, reference.estimates) < 1e-3
+    assert result.sse == pytest.approx(reference.sse, rel=1e-4, abs=1e-12)
+
+
+class _Scaled(LinearOscillator):
+    """The linear oscillator with an output scale ``s`` and offset ``o`` among its coefficients."""
+
+    def __init__(self) -> None:
+        super().__init__(A=0.12, B=2.4)
+        self.register_buffer("s", torch.tensor(1.5, dtype=DT))
+        self.register_buffer("o", torch.tensor(0.0, dtype=DT))
+
+
 def test_history_callback_and_counts(lbfgs_run):
     result, _, _, steps = lbfgs_run
     assert len(result.history) == result.iterations + 1

@@ -269,14 +269,19 @@ class _GradientRun:
         typical = torch.where(typical > 0, typical, torch.ones_like(typical))
         return typical[p.unknown_index]
 
-    def _observe(self, x: torch.Tensor) -> torch.Tensor:
+    def _observe(self, x: torch.Tensor, z0: torch.Tensor) -> torch.Tensor:
+        """The outputs ``(T, K)`` of the states ``x (T, n)``, as ``fit`` takes them: ``h(x)``, ``h(x, p)``
+        with the coefficients of the augmented ``z0 (M,)`` (differentiable in them), their
+        logarithms with log-normal noise."""
         op = self.problem.operator
-        return x @ op.matrix.T if op.matrix is not None else op.function(x)
+        params = self.problem.system.coefficient_values(z0) if op.takes_params else None
+        return op.values(x, params)
 
     def loss(self) -> torch.Tensor:
         """The weighted SSE at the current ``theta``, differentiable in it."""
         p, rhs = self.problem, self.rhs
-        x0 = rhs.bind()[: self.n]
+        z0 = rhs.bind()
+        x0 = z0[: self.n]
         kwargs = dict(rtol=p.rtol, atol=p.atol, method=p.solver)
         if self.adjoint:
             x = odeint_adjoint(rhs, x0, self.t_eval, adjoint_params=(rhs.theta,), **kwargs)
@@ -284,7 +289,7 @@ class _GradientRun:
             x = odeint(rhs, x0, self.t_eval, **kwargs)
         if self.prepend:
             x = x[1:]
-        r = (p.y - self._observe(x))[p.rows_mask] * p.weights
+        r = (p.y - self._observe(x, z0))[p.rows_mask] * p.weights
         return (r**2).sum()
 
     def evaluate(self) -> tuple[float, torch.Tensor]:
