@@ -146,3 +146,16 @@ def test_guess_meeting_ftol_takes_no_step():
     residual = lambda x: x**2 - 4.0
     result = torchql.newton_raphson(residual, torch.tensor([2.0], dtype=torch.float64), ftol=1e-12)
     assert result.success and result.iterations == 0 and len(result.history) == 1
+
+
+def test_a_float32_guess_converges_at_its_own_precision():
+    """In float32 the default step test is 100 of its roundoffs (a step of 1e-12 is below them):
+    the root of the float64 solve, to float32's precision, reported converged."""
+    def circle_and_hyperbola(x):
+        return torch.stack((x[0] ** 2 + x[1] ** 2 - 4.0, x[0] * x[1] - 1.0))
+
+    single = torchql.newton_raphson(circle_and_hyperbola, torch.tensor([2.0, 0.3]))
+    double = torchql.newton_raphson(circle_and_hyperbola, torch.tensor([2.0, 0.3], dtype=torch.float64))
+    assert single.success and double.success, single.message
+    assert single.x.dtype == torch.float32 and single.iterations <= double.iterations
+    torch.testing.assert_close(single.x.double(), double.x, rtol=1e-6, atol=0)

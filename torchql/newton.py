@@ -45,7 +45,7 @@ def newton_raphson(
     x0,
     *,
     max_iter: int = 50,
-    xtol: float = 1e-12,
+    xtol: float | None = None,
     ftol: float = 0.0,
     jacobian: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> NewtonResult:
@@ -59,8 +59,10 @@ def newton_raphson(
         Initial guess (float64 unless given otherwise).
     max_iter : int
         Maximum number of steps.
-    xtol : float
-        Stop when ``max |dx_i| <= xtol * max(|x_i|, 1)``.
+    xtol : float, optional
+        Stop when ``max |dx_i| <= xtol * max(|x_i|, 1)``. Default ``1e-12`` in float64, 100 roundoffs
+        in a lower precision (``1.2e-5`` in float32: a Newton step there is rounding once the
+        iterate is within a few roundoffs of the root).
     ftol : float
         Stop when ``max |R(x)| <= ftol``.
     jacobian : callable ``J(x) -> (m, m)``, optional
@@ -79,6 +81,8 @@ def newton_raphson(
         raise ValueError(f"`x0` must be one-dimensional, shape (m,); received shape {tuple(x.shape)}")
     if not torch.isfinite(x).all():
         raise ValueError("`x0` must be finite")
+    if xtol is None:
+        xtol = 1e-12 if x.dtype == torch.float64 else 100 * torch.finfo(x.dtype).eps
     if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
         raise ValueError(f"`max_iter` must be a non-negative integer; received {max_iter!r}")
     jac_fn = jacobian if jacobian is not None else jacrev(residual)
