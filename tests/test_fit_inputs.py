@@ -258,3 +258,32 @@ def test_a_held_step_at_an_observation_time_keeps_the_data_start():
     for name, value in truth.items():
         assert float(records[0].params[name]) == pytest.approx(value, rel=0.1)
         assert float(result.params[name]) == pytest.approx(value, rel=1e-8)
+
+
+class _Lag(torchql.ODEModel):
+    """``y' = -k y + u``."""
+
+    state_names, input_names = ("y",), ("u",)
+
+    def __init__(self, k: float = 0.5) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+
+    def forward(self, t, x, u):
+        return -self.k * x + u[..., :1]
+
+
+def test_a_one_sample_hold_is_a_constant_input_from_its_time_on():
+    """``Inputs([0], [2], kind="zoh")``: u = 2 at every time from 0, in ``simulate`` and ``fit``
+    (they asked its one sample to span the times). Closed form ``y = (2 / k)(1 - e^{-k t})``."""
+    constant = torchql.Inputs(torch.tensor([0.0], dtype=DT), torch.tensor([2.0], dtype=DT), names="u", kind="zoh")
+    t = torch.linspace(0.0, 3.0, 7, dtype=DT)
+    exact = (2.0 / 1.3) * (1 - torch.exp(-1.3 * t)).unsqueeze(-1)
+    torch.testing.assert_close(torchql.simulate(_Lag(1.3), torch.zeros(1, dtype=DT), t, inputs=constant,
+                                                rtol=1e-12, atol=1e-14), exact, rtol=0, atol=1e-10)
+    result = torchql.fit(_Lag(), torchql.Observations(t, exact, observe=["y"], inputs=constant),
+                         x0=torch.zeros(1, dtype=DT), fixed_x0=["y"])
+    assert result.success and result.params["k"].item() == pytest.approx(1.3, rel=1e-8), result.message
+    late = torchql.Inputs(torch.tensor([1.0], dtype=DT), torch.tensor([2.0], dtype=DT), names="u", kind="zoh")
+    with pytest.raises(ValueError, match=r"`inputs` must cover the simulated times \[0, 3\]"):
+        torchql.simulate(_Lag(), torch.zeros(1, dtype=DT), t, inputs=late)  # from its time on only

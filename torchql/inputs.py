@@ -68,7 +68,8 @@ class Inputs:
     ----------
     t : Tensor or array ``(N,)``
         Sample times, finite and strictly increasing (the model's time unit); ``N >= 1`` for
-        ``"zoh"``, ``N >= 2`` otherwise.
+        ``"zoh"`` (one sample: a constant input, which covers any times from its own on),
+        ``N >= 2`` otherwise.
     u : Tensor or array ``(N, m)``, or ``(N,)`` for one input
         The inputs' values at those times (finite). Copied.
     names : str or sequence of str
@@ -163,8 +164,9 @@ class Inputs:
         return self.t if self.kind == "linear" else None
 
     def covers(self, start: float, end: float) -> bool:
-        """Whether the samples span ``[start, end]``."""
-        return float(self.t[0]) <= start and float(self.t[-1]) >= end
+        """Whether the samples span ``[start, end]`` (a one-sample hold, a constant, from its time on)."""
+        held = self.kind == "zoh" and self.t.shape[0] == 1
+        return float(self.t[0]) <= start and (held or float(self.t[-1]) >= end)
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | None = None) -> "Inputs":
         """A copy in ``dtype`` on ``device``."""
