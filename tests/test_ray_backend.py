@@ -42,6 +42,10 @@ def test_local_ray_run_equals_fit_many_in_input_order():
         remote_batch = torchql.fit_many_ray(model, batch, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate")
         own = torchql.Observations(times, batch.y, observe=["v"])  # per-sample times: each task gets its samples'
         remote_own = torchql.fit_many_ray(model, own, x0, guesses={"C_D": C_D}, batch_size=2, grid=20, initial_trajectory="integrate")
+        # samples of two experiments each (two logs of one car), their initial speeds per sample (B, E, n)
+        pairs = [[data[0], data[1]], [data[2], data[3]], [data[4], data[0]]]
+        starts = torch.stack([x0[[0, 1]], x0[[2, 3]], x0[[4, 0]]])
+        remote_pairs = torchql.fit_many_ray(model, pairs, starts, batch_size=2, grid=20)
         with pytest.raises(torchql.BatchFitError) as thrown:  # raised once, for the whole batch
             torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2, grid=20,
                                  initial_trajectory="integrate", throw=True)
@@ -60,6 +64,10 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     assert [s.name for s in remote_own.status] == [s.name for s in local_own.status]
     assert torch.allclose(remote_own.estimates, local_own.estimates, rtol=1e-12, atol=0)
     assert torch.equal(remote_own.t0, times[:, 0]) and torch.equal(local_own.t0, times[:, 0])
+    local_pairs = torchql.fit_many(model, pairs, starts, grid=20)
+    assert [s.name for s in remote_pairs.status] == [s.name for s in local_pairs.status]
+    assert torch.allclose(remote_pairs.estimates, local_pairs.estimates, rtol=1e-12, atol=0)
+    assert remote_pairs.x0.shape == (3, 2, 1) and remote_pairs.experiment_t0 == local_pairs.experiment_t0
     assert thrown.value.failed == [2] and len(thrown.value.result) == 5
     assert torch.allclose(thrown.value.result.estimates, local.estimates, rtol=1e-12, atol=0)
 

@@ -56,7 +56,7 @@ from .propagators import PROPAGATORS, LinearPropagator
 from .result import IterationRecord
 from .engine_evaluate import BATCHED_SOLVERS
 
-__all__ = ["fit_many", "check_data", "raise_if_failed"]
+__all__ = ["fit_many", "check_data", "check_experiment_samples", "experiments_per_sample", "raise_if_failed"]
 
 #: Samples fitted together by default (bounds the memory: a chunk holds ``(chunk, G, M, 1 + m)``
 #: solutions and ``(chunk, G, M, M)`` Jacobians).
@@ -221,10 +221,10 @@ def fit_many(
         _checks.model_class(model)
         given = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
                                  scale=scale, x0_expr=x0_expr,  # several experiments: x0 (E, n) shared
-                                 rows=len(data[0]) if _experiments_per_sample(data) else None)
+                                 rows=len(data[0]) if experiments_per_sample(data) else None)
         model, x0, params, fixed_x0, bounds, scale, x0_expr = (
             given[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
-    if _experiments_per_sample(data):
+    if experiments_per_sample(data):
         return raise_if_failed(throw, _fit_experiment_samples(
             model, data, x0, params=params, guesses=guesses, fixed_x0=fixed_x0, t0=t0, bounds=bounds, scale=scale,
             x0_expr=x0_expr, grid=grid, conditions=conditions, method=method,
@@ -384,12 +384,12 @@ def sample_rows_dict(guesses, B: int, start: int, stop: int):
     return out
 
 
-def _experiments_per_sample(data) -> bool:
+def experiments_per_sample(data) -> bool:
     """Whether ``data`` gives several experiments per sample: a list of lists of Observations."""
     return isinstance(data, (list, tuple)) and bool(data) and all(isinstance(d, (list, tuple)) for d in data)
 
 
-def _check_experiment_samples(data, x0) -> tuple[int, bool]:
+def check_experiment_samples(data, x0) -> tuple[int, bool]:
     """``(B, per_sample)`` of ``fit_many``'s samples of several experiments: each a list of ``E``
     Observations, experiment ``e`` at the same times (and with the same inputs) in every sample;
     ``x0`` ``None``, shared ``(E, n)`` or per sample ``(B, E, n)`` (``per_sample``)."""
@@ -421,7 +421,7 @@ def _fit_experiment_samples(model, data, x0, *, params, guesses, fixed_x0, t0, b
                             conditions, **options) -> BatchFitResult:
     """``fit_many`` over samples of several experiments each: every sample's experiments stacked as
     :func:`torchql.fit` stacks them (:func:`torchql.multi.stack_experiments`), one batched problem."""
-    B, per_sample = _check_experiment_samples(data, x0)
+    B, per_sample = check_experiment_samples(data, x0)
     st = stack_experiments(model, list(data[0]), x0[0] if per_sample else x0, t0=t0, fixed_x0=fixed_x0,
                            bounds=bounds, scale=scale, x0_expr=x0_expr, grid=grid, conditions=conditions)
     names = list(model.state_names)

@@ -15,7 +15,8 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import _checks
-from .batch import check_data, fit_many, raise_if_failed, sample_rows, sample_rows_dict
+from .batch import (check_data, check_experiment_samples, experiments_per_sample, fit_many, raise_if_failed,
+                    sample_rows, sample_rows_dict)
 from .batch_result import BatchFitResult, concatenate
 from .model import ODEModel
 from .observations import Observations
@@ -52,8 +53,9 @@ def fit_many_ray(
     model, data, x0, guesses
         As in :func:`torchql.fit_many` (``data`` one Observations holding a batch, values
         ``(B, T, K)`` with times ``(T,)`` or per sample ``(B, T)``, sliced into batches that keep
-        their samples' times, or a list of ``B`` Observations; ``x0``
-        ``(B, n_states)`` or ``(n_states,)``; ``guesses`` values ``(B, ...)`` or shared).
+        their samples' times, a list of ``B`` Observations, or a list of ``B`` lists of experiments;
+        ``x0`` ``(B, n_states)`` or ``(n_states,)``, with experiments ``(B, E, n_states)`` or
+        ``(E, n_states)``; ``guesses`` values ``(B, ...)`` or shared).
     batch_size : int
         Datasets per Ray task (default 1024). Larger batches vectorize better; more batches
         than workers keep every worker busy.
@@ -91,11 +93,19 @@ def fit_many_ray(
     throw = _checks.flag("throw", options.pop("throw", False))  # raised once, for the whole batch
     batch_size = _checks.positive_int("batch_size", batch_size)
     torch_threads = _checks.positive_int("torch_threads", torch_threads)
-    datasets = check_data(data)  # a batched Observations or a list: both are sliced into batches below
+    if experiments_per_sample(data):  # B lists of experiments: x0 shared (E, n) or per sample (B, E, n)
+        datasets = list(data)
+        if check_experiment_samples(datasets, x0)[1]:
+            x0 = torch.as_tensor(x0)
+            rows = (lambda start, stop: x0[start:stop])
+        else:
+            rows = (lambda start, stop: x0)
+    else:
+        datasets = check_data(data)  # a batched Observations or a list: both are sliced into batches below
+        rows = (lambda start, stop: sample_rows(x0, len(datasets), start, stop))
     B = len(datasets)
     # validate the other arguments once, here, so that a bad one fails before the cluster is used
-    fit_many(model, datasets[:1], sample_rows(x0, B, 0, 1), guesses=sample_rows_dict(guesses, B, 0, 1),
-             **{**options, "max_iter": 0})
+    fit_many(model, datasets[:1], rows(0, 1), guesses=sample_rows_dict(guesses, B, 0, 1), **{**options, "max_iter": 0})
 
     started = False
     if not ray.is_initialized():
@@ -110,7 +120,7 @@ def fit_many_ray(
         pending = {}
         for start in range(0, B, batch_size):
             stop = min(B, start + batch_size)
-            ref = task.remote(model_ref, datasets[start:stop], sample_rows(x0, B, start, stop),
+            ref = task.remote(model_ref, datasets[start:stop], rows(start, stop),
                               sample_rows_dict(guesses, B, start, stop), options, torch_threads)
             pending[ref] = (start, stop)
         report = _reporter(progress, B)
