@@ -406,6 +406,13 @@ class FinalPass:
         step, deficient, sv = solve_update_batch(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond,
                                                  None)
         deficient |= L < m
+        # a fit that did not converge, tested at the accuracy of the storage grid's sensitivities
+        # (sqrt(rtol)): an exactly undetermined direction measures about that, above `rcond`, and its
+        # iteration wanders along it until max_iter
+        loose = max(spec.rcond, math.sqrt(spec.rtol))
+        failed = torch.tensor([codes[r] in (Status.MAX_ITER, Status.STALLED) for r in rows.tolist()], device=dev)
+        barely = failed & ~deficient & (sv.amin(dim=1) <= loose * sv.amax(dim=1))
+        deficient |= barely
         estimates = z0[rows][:, spec.unknown_index]
         scales = self._typical(rows)
         sse_list = sse.tolist()
@@ -419,7 +426,8 @@ class FinalPass:
                 n_used = int(used[k].sum())
                 sol = solve_update(J[k][used[k]], torch.zeros(n_used, dtype=dtype, device=dev),
                                    torch.ones(n_used, dtype=dtype, device=dev),
-                                   torch.zeros(n_used, dtype=torch.bool, device=dev), spec.rcond)
+                                   torch.zeros(n_used, dtype=torch.bool, device=dev),
+                                   loose if bool(barely[k]) else spec.rcond)
                 null_text = null_detail(sol.null_vectors, spec.unknown_names)
             codes[r], more = final_status(
                 code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
