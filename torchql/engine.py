@@ -536,6 +536,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         cur["anchored"][candidates] = True  # tried once
         keep = (~anchored["failed"]).nonzero().flatten()
         put_samples(cur, rows := rows[keep], anchored, keep)
+        first = rows[st.iterations[rows] == 0]  # the first record's value, kept without a history too
+        self.first_sse[first] = cur["sse"][first]
         if self.history is not None:
             for r in rows.tolist():
                 record = self.history[r][-1]
