@@ -205,11 +205,29 @@ def test_where_neither_start_has_a_sum_of_squares_the_one_cut_short_by_max_time_
     from torchql.status import Status
 
     nan = float("nan")
+    none = torch.tensor([nan, nan], dtype=torch.float64)
     chunk = dict(status=[Status.INTEGRATION_FAILED, Status.INTEGRATION_FAILED], message=["a.", "b."],
-                 sse=torch.tensor([nan, nan], dtype=torch.float64), z0=torch.zeros(2, 3, dtype=torch.float64))
+                 sse=none.clone(), sse_end=none.clone(), z0=torch.zeros(2, 3, dtype=torch.float64))
     other = dict(status=[Status.MAX_TIME, Status.DIVERGED], message=["c.", "d."],
-                 sse=torch.tensor([nan, nan], dtype=torch.float64), z0=torch.ones(2, 3, dtype=torch.float64))
+                 sse=none.clone(), sse_end=none.clone(), z0=torch.ones(2, 3, dtype=torch.float64))
     keep_the_better_fit(chunk, [0, 1], other)
     assert chunk["status"] == [Status.MAX_TIME, Status.INTEGRATION_FAILED]
     assert "INTEGRATION_FAILED" in chunk["message"][0] and chunk["z0"][0].eq(1).all() and chunk["z0"][1].eq(0).all()
     assert "DIVERGED" in chunk["message"][1]
+
+
+def test_of_two_failed_fits_with_estimated_sigmas_the_lower_objective_is_kept():
+    """Each fit's own estimated sigmas make its sum of squares the number of values: two failed
+    fits are ranked by their objectives ``sse + 2 sum log sigma`` (``sse_end``), not by it."""
+    from torchql.data_start import keep_the_better_fit
+    from torchql.status import Status
+
+    def fitted(sse, objective, value):
+        return dict(status=[Status.MAX_ITER], message=["."], sse=torch.tensor([sse], dtype=torch.float64),
+                    sse_end=torch.tensor([objective], dtype=torch.float64), z0=torch.full((1, 3), value))
+
+    chunk = fitted(40.0, -60.0, 0.0)
+    keep_the_better_fit(chunk, [0], fitted(39.0, -20.0, 1.0))  # a lower SSE, a higher objective
+    assert chunk["z0"].eq(0).all() and float(chunk["sse_end"][0]) == -60.0
+    keep_the_better_fit(chunk, [0], fitted(41.0, -70.0, 2.0))
+    assert chunk["z0"].eq(2).all() and float(chunk["sse_end"][0]) == -70.0

@@ -128,13 +128,16 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start:
     ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s
     from the other one): each keeps the better fit (a success over a failure, else the lower sum of
     squares, a finite one over NaN; where neither has a sum of squares, one cut short by ``max_time``:
-    the fit did not finish), its message saying what the other start gave. Updates ``chunk`` in place."""
+    the fit did not finish), its message saying what the other start gave. With a likelihood
+    (estimated sigmas), the sums of squares compared are its objectives (``sse_end``): each
+    fit's own sigmas make its sum of squares the number of values. Updates ``chunk`` in place."""
     S = len(chunk["status"])
     for j, k in enumerate(rows):
         first, second = chunk["status"][k], other["status"][j]
         sse_first, sse_second = float(chunk["sse"][k]), float(other["sse"][j])
+        lower = float(other["sse_end"][j]) < float(chunk["sse_end"][k])
         unknown = sse_first != sse_first and sse_second != sse_second
-        wins = not first.success and (second.success or sse_second < sse_first
+        wins = not first.success and (second.success or lower
                                       or (sse_first != sse_first and sse_second == sse_second)
                                       or (unknown and second is Status.MAX_TIME))
         if wins:
