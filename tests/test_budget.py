@@ -58,6 +58,23 @@ def test_fit_stops_at_max_time_with_its_own_status():
     assert elapsed < 10.0
 
 
+def test_a_fit_without_a_budget_inside_one_with_it_stops_at_the_enclosing_one():
+    """A fit run from another's callback (a diagnostic re-fit of each iterate), with no ``max_time``
+    of its own: the enclosing fit's deadline stops it, MAX_TIME, saying whose budget (its message
+    formatted ``max_time = None`` and raised a TypeError)."""
+    data = torchql.Observations(T, Y, observe=["y"])
+    inner = []
+
+    def refit(record):
+        inner.append(torchql.fit(SlowDecay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), **INTEGRATE))
+
+    outer = torchql.fit(Decay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), max_time=1.0, callback=refit,
+                        **INTEGRATE)
+    assert outer.status is torchql.Status.MAX_TIME and inner
+    assert inner[-1].status is torchql.Status.MAX_TIME
+    assert "max_time = an enclosing fit's" in inner[-1].message
+
+
 def test_fit_within_its_budget_is_unchanged():
     data = torchql.Observations(T, Y, observe=["y"])
     x0 = torch.tensor([1.0], dtype=DT)

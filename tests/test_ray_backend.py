@@ -46,6 +46,10 @@ def test_local_ray_run_equals_fit_many_in_input_order():
         pairs = [[data[0], data[1]], [data[2], data[3]], [data[4], data[0]]]
         starts = torch.stack([x0[[0, 1]], x0[[2, 3]], x0[[4, 0]]])
         remote_pairs = torchql.fit_many_ray(model, pairs, starts, batch_size=2, grid=20)
+        # options= (its max_iter was given twice by the check that runs before the tasks)
+        by_options = torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2,
+                                          options=torchql.FitOptions(grid=20, initial_trajectory="integrate",
+                                                                     max_iter=30))
         with pytest.raises(torchql.BatchFitError) as thrown:  # raised once, for the whole batch
             torchql.fit_many_ray(model, data, x0, guesses={"C_D": C_D}, batch_size=2, grid=20,
                                  initial_trajectory="integrate", throw=True)
@@ -64,6 +68,7 @@ def test_local_ray_run_equals_fit_many_in_input_order():
     assert [s.name for s in remote_own.status] == [s.name for s in local_own.status]
     assert torch.allclose(remote_own.estimates, local_own.estimates, rtol=1e-12, atol=0)
     assert torch.equal(remote_own.t0, times[:, 0]) and torch.equal(local_own.t0, times[:, 0])
+    assert torch.equal(by_options.estimates, remote.estimates)
     local_pairs = torchql.fit_many(model, pairs, starts, grid=20)
     assert [s.name for s in remote_pairs.status] == [s.name for s in local_pairs.status]
     assert torch.allclose(remote_pairs.estimates, local_pairs.estimates, rtol=1e-12, atol=0)

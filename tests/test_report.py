@@ -183,6 +183,24 @@ def test_plot_fit_writes_a_figure(car, agg, tmp_path):
     assert none is None
 
 
+def test_plot_fit_bars_of_log_normal_data_span_y_times_e_to_the_sigma(agg):
+    """With ``noise="lognormal"`` a value's sigma is that of ``log y``: its bar runs from
+    ``y e^-sigma`` to ``y e^sigma`` (it was +/- sigma in y's units)."""
+    from testmodels import Decay
+
+    t = torch.linspace(0.0, 5.0, 12, dtype=torch.float64)
+    noise = torch.randn(12, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    y = 100.0 * torch.exp(-0.6 * t).unsqueeze(-1) * torch.exp(0.2 * noise)
+    result = torchql.fit(Decay(0.5), torchql.Observations(t, y, observe=["y"], sigma=0.2, noise="lognormal"),
+                         x0=torch.tensor([90.0], dtype=torch.float64))
+    assert result.success, result.message
+    _, (ax_fit, _) = result.plot_fit()
+    segments = ax_fit.containers[0].lines[2][0].get_segments()
+    low, high = (torch.tensor([seg[i][1] for seg in segments], dtype=torch.float64) for i in (0, 1))
+    torch.testing.assert_close(low, y[:, 0] * math.exp(-0.2), rtol=1e-12, atol=0)
+    torch.testing.assert_close(high, y[:, 0] * math.exp(0.2), rtol=1e-12, atol=0)
+
+
 def test_plot_fit_of_several_experiments_draws_the_one_named(agg):
     """A fit of two experiments: each drawn with its own data, initial state and curve; without
     ``experiment`` a clear error (it was an AttributeError of the list of datasets)."""

@@ -228,8 +228,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
             st.stop((st.status == RUNNING).nonzero().flatten(), Status.MAX_TIME)
         for r, c in enumerate(st.status.tolist()):
             if c == _STATUSES.index(Status.MAX_TIME):
-                st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {self.max_time:g} "
-                                "s)." + st.detail[r])
+                budget = "an enclosing fit's" if self.max_time is None else f"{self.max_time:g} s"
+                st.detail[r] = f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget})." + st.detail[r]
         st.polish = st.undamped_stop & (time_left() > 0)  # polishing steps only within the time budget
         return st
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -109,8 +110,10 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
         yk = y[ok, k].cpu().numpy()
         tk = to[ok.cpu().numpy()]
         if data.sigma_given:
-            ax_fit.errorbar(tk, yk, yerr=sigma[:, k][ok.cpu()].cpu().numpy(), fmt="o", color=color, ms=4,
-                            label=f"{labels[k]} data")
+            s = sigma[:, k][ok.cpu()].cpu().numpy()
+            # log-normal noise: sigma is that of log y, the bars y e^(-/+ sigma)
+            bars = [yk * (1 - np.exp(-s)), yk * (np.exp(s) - 1)] if data.noise == "lognormal" else s
+            ax_fit.errorbar(tk, yk, yerr=bars, fmt="o", color=color, ms=4, label=f"{labels[k]} data")
         else:
             ax_fit.plot(tk, yk, "o", color=color, ms=4, label=f"{labels[k]} data")
         ex = (data.exact[:, k].to(ok.device) & ok)

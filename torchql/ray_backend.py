@@ -10,6 +10,7 @@ Ray is an optional dependency: ``pip install "torchql[ray]"``.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 
 import torch
@@ -20,6 +21,7 @@ from .batch import (check_data, check_experiment_samples, experiments_per_sample
 from .batch_result import BatchFitResult, concatenate
 from .model import ODEModel
 from .observations import Observations
+from .options import FitOptions
 
 __all__ = ["fit_many_ray"]
 
@@ -105,7 +107,10 @@ def fit_many_ray(
         rows = (lambda start, stop: sample_rows(x0, len(datasets), start, stop))
     B = len(datasets)
     # validate the other arguments once, here, so that a bad one fails before the cluster is used
-    fit_many(model, datasets[:1], rows(0, 1), guesses=sample_rows_dict(guesses, B, 0, 1), **{**options, "max_iter": 0})
+    given = options.get("options")  # a FitOptions' max_iter is the one replaced (a keyword would clash)
+    probe = ({**options, "options": dataclasses.replace(given, max_iter=0)} if isinstance(given, FitOptions)
+             else {**options, "max_iter": 0})
+    fit_many(model, datasets[:1], rows(0, 1), guesses=sample_rows_dict(guesses, B, 0, 1), **probe)
 
     started = False
     if not ray.is_initialized():
