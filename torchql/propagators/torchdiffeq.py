@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..integrate import CountedField, solve
+from ..solvers import MAX_COMPONENTS, STIFF_SOLVERS
 from ..transfer import Transfers
 from ._base import LinearPropagator
 
@@ -24,6 +25,12 @@ class Torchdiffeq(LinearPropagator):
     def transfers(self, system, *, rtol, atol, solver, max_steps):
         Y0 = system.initial()
         intervals, M = Y0.shape[0], Y0.shape[1]
+        if solver in STIFF_SOLVERS and Y0.numel() > MAX_COMPONENTS:
+            raise ValueError(
+                f"`linear_solver='torchdiffeq'` integrates the {intervals} grid intervals' transfers as one system of "
+                f"{Y0.numel()} components with the fit's solver {solver!r}, an implicit solver that factorises it "
+                f"densely and takes at most {MAX_COMPONENTS}: for a stiff model use the default `linear_solver` "
+                "(\"radau\"), or a `grid` of fewer intervals")
         s = torch.tensor([0.0, 1.0], dtype=Y0.dtype, device=Y0.device)
         Y = solve(CountedField(system), Y0, s, solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
                   norm=_max_norm, first_step=1.0)[-1]
