@@ -202,9 +202,10 @@ class BatchFitResult:
         """Sample ``i``'s :class:`torchql.FitResult` (negative indices count from the end).
 
         As a result of :func:`torchql.fit` on that dataset alone, except: ``history`` holds two
-        records, the guesses (with the model's sum of squares there) and the estimates
-        (``fit_many`` keeps no iterates in between); ``nfev`` counts the whole batch's
-        evaluations; ``index`` is ``i``.
+        records (without a ``callback``: ``fit_many`` keeps no iterates in between), the first
+        iterate as ``fit``'s first record has it (``start_params``: the guesses integrated, or
+        built from the data) and the estimates; ``nfev`` counts the whole batch's evaluations;
+        ``index`` is ``i``.
         """
         i = self._index(i)
         nan = float("nan")
