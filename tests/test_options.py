@@ -34,6 +34,11 @@ def test_a_loose_rtol_keeps_the_rank_threshold_below_one():
     assert Tolerances.resolve(torch.float64, rtol=1e-4).rcond == pytest.approx(1e-2)
     with pytest.raises(ValueError, match=r"`rtol` must be below 1 \(a relative tolerance\); received 2"):
         Tolerances.resolve(torch.float64, rtol=2.0)
+    for name in ("rtol", "rcond"):  # FitOptions checks them where it is written (rcond = 1: every fit deficient)
+        with pytest.raises(ValueError, match=rf"`{name}` must be below 1 \(a relative tolerance\); received 1"):
+            torchql.FitOptions(**{name: 1.0})
+    with pytest.raises(ValueError, match=r"`rcond` must be below 1"):
+        Tolerances.resolve(torch.float64, rcond=1.5)
     from torchql.models import LinearOscillator
     t = torch.arange(14, dtype=torch.float64) * 0.5
     y = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=torch.float64), t)[:, :1]

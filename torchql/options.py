@@ -64,17 +64,23 @@ class Tolerances:
         """The given tolerances, validated (positive numbers), and the defaults of ``dtype`` for the rest."""
         rtol, atol = default_tolerances(dtype, rtol, atol)
         rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
-        if rtol >= 1:
-            raise ValueError(f"`rtol` must be below 1 (a relative tolerance); received {rtol:g}")
+        _below_one("rtol", rtol)
         double = dtype == torch.float64
         eps = torch.finfo(dtype).eps
         return cls(
             rtol=rtol, atol=atol,
             xtol=_checks.positive_number("xtol", xtol) if xtol is not None else max(1e-8 if double else 1e-4, 100 * rtol),
             ftol=_checks.positive_number("ftol", ftol) if ftol is not None else max(1e-12 if double else 1e-6, rtol),
-            rcond=(_checks.positive_number("rcond", rcond) if rcond is not None
+            rcond=(_below_one("rcond", _checks.positive_number("rcond", rcond)) if rcond is not None
                    else max(min(1e3 * rtol, math.sqrt(rtol)), 1e3 * eps)),
         )
+
+
+def _below_one(name: str, value: float) -> float:
+    """``value``; ``ValueError`` naming ``name`` unless it is below 1 (a relative tolerance)."""
+    if value >= 1:
+        raise ValueError(f"`{name}` must be below 1 (a relative tolerance); received {value:g}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -167,6 +173,9 @@ class FitOptions:
         for name in ("rtol", "atol", "xtol", "ftol", "rcond"):
             if getattr(self, name) is not None:
                 _checks.positive_number(name, getattr(self, name))
+        for name in ("rtol", "rcond"):  # relative: 1 or more would accept anything
+            if getattr(self, name) is not None:
+                _below_one(name, getattr(self, name))
         grid = self.grid
         if isinstance(grid, str) and grid not in ("auto", "smooth"):
             raise ValueError(f'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; '
