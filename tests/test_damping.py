@@ -104,3 +104,19 @@ def test_a_registered_strategy_is_taken_by_name(table_4_5_two_digit, monkeypatch
                          max_steps=200, damping="gentle")
     assert result.success, result.message
     assert isinstance(damping_strategy("gentle"), Damping)
+
+
+def test_levenberg_marquardt_objects_with_equal_settings_are_equal_and_say_them():
+    """A ``FitOptions`` field and a keyword giving the same settings agree (they were "given twice",
+    with two printed values alike: equality was identity, and the repr hid the settings)."""
+    a, b = LevenbergMarquardt(start=1e-2), LevenbergMarquardt(start=1e-2)
+    assert a == b and hash(a) == hash(b) and a != LevenbergMarquardt(start=1e-1)
+    assert repr(a) == "LevenbergMarquardt(start=0.01, minimum=1e-10, maximum=1e+12)"
+    from torchql.options import FitOptions, with_options
+
+    merged = with_options(FitOptions(damping=b), {"damping": a}, {"damping"})
+    assert merged["damping"] == a
+    import pickle
+
+    options = FitOptions(method="shooting", damping=a)  # its scheme and strategy survive a round trip
+    assert pickle.loads(pickle.dumps(options)) == options

@@ -99,6 +99,20 @@ class LevenbergMarquardt(Damping):
                              f"minimum={minimum!r}, start={start!r}, maximum={maximum!r}")
         self.start, self.minimum, self.maximum = float(start), float(minimum), float(maximum)
 
+    def _settings(self) -> tuple[float, float, float]:
+        return self.start, self.minimum, self.maximum
+
+    def __eq__(self, other) -> bool:
+        """Equal settings are one strategy (a ``FitOptions`` field and a keyword that give them agree)."""
+        return type(other) is type(self) and other._settings() == self._settings()
+
+    def __hash__(self) -> int:
+        return hash((type(self), self._settings()))
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(start={self.start:g}, minimum={self.minimum:g}, "
+                f"maximum={self.maximum:g})")
+
     def raised(self, damping: torch.Tensor, last: torch.Tensor) -> torch.Tensor:
         first = torch.where(last > 0, torch.clamp(last / 10, min=self.minimum), self.start)
         return torch.where(damping == 0, first, 10 * damping)

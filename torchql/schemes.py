@@ -62,6 +62,13 @@ class Scheme:
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
 
+    def __eq__(self, other) -> bool:
+        """Schemes of one class and name are one scheme (a copy, unpickled, equals the registered one)."""
+        return type(other) is type(self) and other.name == self.name
+
+    def __hash__(self) -> int:
+        return hash((type(self), self.name))
+
 
 def _usable(trial: dict, *more: torch.Tensor) -> torch.Tensor:
     """Samples whose trial propagated and has a finite merit and matrix (and each of ``more``)."""
