@@ -418,7 +418,7 @@ class _Coefficients:
         lin = (Linearization if second is None else SecondLinearization)(*(v.unsqueeze(0) for v in fields))
         built = interval_coefficients(ref.t, ref.z.unsqueeze(0), ref.z_dot.unsqueeze(0), lin, degree)
         self.data, self.order, self.a, self.M = built.data, built.order, built.a, built.M
-        self.jacobian_degree, self.samples = built.jacobian_degree, 1
+        self.jacobian_degree, self.samples = built.jacobian_degree, built.samples
 
     @classmethod
     def of(cls, data: torch.Tensor, order: torch.Tensor, a: int, M: int, jacobian_degree: int = 3,
