@@ -84,8 +84,8 @@ def adjoint_fit(
     Parameters
     ----------
     model, data, x0, params, fixed_x0, t0
-        As in :func:`torchql.fit` (validated by the same checks). The model is never modified.
-        Values marked ``exact`` in ``data`` are not supported (a gradient method has no
+        As in :func:`torchql.fit` (validated by the same checks), for one experiment: ``data`` is
+        one :class:`torchql.Observations`, not a list. The model is never modified. Values marked ``exact`` in ``data`` are not supported (a gradient method has no
         equality constraints): ``ValueError``.
     optimizer : {"adam", "lbfgs"}
         ``"adam"``: :class:`torch.optim.Adam`, one step per gradient. ``"lbfgs"``:

@@ -325,6 +325,9 @@ class _Problem:
 
     def __init__(self, model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol, xtol,
                  ftol, rcond, grid, initial_trajectory, max_steps, damping="lm", linear_solver=None) -> None:
+        if isinstance(data, (list, tuple)):
+            raise TypeError(f"`data` must be one torchql.Observations: gradient fitting takes one experiment; received "
+                            f"a {type(data).__name__} of {len(data)} (fit several experiments with torchql.fit)")
         spec = _single_spec(model, data, x0, params, fixed_x0, t0, method, bounds, max_iter, solver, rtol, atol,
                             xtol, ftol, rcond, grid, initial_trajectory, max_steps, damping, linear_solver)
         if spec.sigma_estimated:

@@ -24,8 +24,8 @@ import math
 
 import torch
 
-__all__ = ["make_grid", "make_grids", "interval_counts", "last_nodes", "refine", "needed_intervals", "auto_counts",
-           "uniform_nodes", "nearest_nodes", "geometric_nodes", "coarse_index", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
+__all__ = ["make_grid", "make_grids", "check_grid_times", "interval_counts", "last_nodes", "refine",
+           "needed_intervals", "auto_counts", "uniform_nodes", "nearest_nodes", "geometric_nodes", "coarse_index", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
            "EARLIEST", "SMOOTH_SAFETY", "SMOOTH_SAMPLES", "SMOOTH_RTOL"]
 
 #: Uniform intervals of the default grid.
@@ -70,6 +70,15 @@ NODES_PER_DECADE = 10
 EARLIEST = 1e-13
 
 
+def check_grid_times(grid: torch.Tensor) -> None:
+    """A ``grid`` of extra times: a one-dimensional tensor of finite real times."""
+    if grid.dim() != 1 or grid.is_complex() or grid.dtype == torch.bool:
+        raise ValueError(f"`grid` given as times must be a one-dimensional tensor of real times; received shape "
+                         f"{tuple(grid.shape)}, dtype {grid.dtype}")
+    if not bool(torch.isfinite(grid).all()):
+        raise ValueError("`grid` times must be finite; received NaN or inf")
+
+
 def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = False,
               breakpoints: torch.Tensor | None = None) -> torch.Tensor:
     """The storage grid ``(G,)``: sorted, distinct, from ``t0`` to the last observation time.
@@ -95,9 +104,8 @@ def make_grid(grid, t0: torch.Tensor, t_obs: torch.Tensor, *, stiff: bool = Fals
     extra = torch.zeros(0, dtype=dtype, device=device)
     intervals = DEFAULT_INTERVALS
     if isinstance(grid, torch.Tensor):
-        extra = grid.detach().to(dtype=dtype, device=device).reshape(-1)
-        if not torch.isfinite(extra).all():
-            raise ValueError("`grid` times must be finite")
+        check_grid_times(grid)
+        extra = grid.detach().to(dtype=dtype, device=device)
         extra = extra[(extra > t0) & (extra < t_end)]
     elif grid is not None:
         if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:

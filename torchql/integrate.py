@@ -8,6 +8,7 @@ from torchdiffeq import odeint
 from torchdiffeq._impl.odeint import SOLVERS
 
 from . import _checks
+from ._arrays import float_tensor
 from .budget import check_time
 from .inputs import Inputs
 from .dopri import dopri_batch
@@ -226,9 +227,9 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     _checks.model_class(model)
     check_solver(solver)
     dtype, device = model_dtype_device(model)
-    t = torch.as_tensor(t, dtype=dtype, device=device).detach()
-    x0 = torch.as_tensor(x0, dtype=dtype, device=device).detach()
     n = len(model.state_names)
+    t = float_tensor(t, "t", dtype, device, expected="a one-dimensional tensor of times")
+    x0 = float_tensor(x0, "x0", dtype, device, expected=f"a tensor of shape (n_states,) = ({n},)")
     if t.dim() != 1 or t.numel() == 0:
         raise ValueError(f"`t` must be a non-empty one-dimensional tensor; received shape {tuple(t.shape)}")
     if not torch.isfinite(t).all():

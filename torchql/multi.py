@@ -21,6 +21,7 @@ from torch import nn
 from torch.func import functional_call
 
 from . import _checks
+from ._arrays import float_tensor
 from .initial_state import ReadValues, check_expressions
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .noise import sigma_group_index
@@ -175,11 +176,9 @@ def check_conditions(model: ODEModel, conditions, E: int) -> list[dict] | None:
                                      f", {key!r} has {tuple(target.shape)}")
                 own[key] = value
                 continue
-            try:
-                tensor = torch.as_tensor(value, dtype=target.dtype, device=target.device).detach().clone()
-            except (TypeError, ValueError, RuntimeError) as exc:
-                raise TypeError(f"`conditions[{e}][{key!r}]` must be a number, a tensor of shape "
-                                f"{tuple(target.shape)} or a coefficient's name; received {type(value).__name__}") from exc
+            tensor = float_tensor(value, f"conditions[{e}][{key!r}]", target.dtype, target.device,
+                                  expected=f"a number, a tensor of shape {tuple(target.shape)} or a coefficient's "
+                                           "name").clone()
             if tensor.shape != target.shape:
                 tensor = tensor.expand(target.shape).clone() if tensor.dim() == 0 else tensor
             if tensor.shape != target.shape or not bool(torch.isfinite(tensor).all()):
@@ -348,10 +347,7 @@ def stack_experiments(model, datasets: list, x0, *, t0, fixed_x0, bounds, scale,
     span = last - t0s
     span = torch.where(span > 0, span, torch.ones_like(span))
     if x0 is not None:
-        try:
-            x0_t = torch.as_tensor(x0, dtype=dtype, device=device).detach()
-        except (TypeError, ValueError) as exc:
-            raise TypeError(f"`x0` must be a tensor of shape (E, n_states) = ({E}, {n}); received {type(x0).__name__}") from exc
+        x0_t = float_tensor(x0, "x0", dtype, device, expected=f"a tensor of shape (E, n_states) = ({E}, {n})")
         if x0_t.shape != (E, n):
             raise ValueError(f"`x0` must have shape (E, n_states) = ({E}, {n}) with {E} experiments; "
                              f"received shape {tuple(x0_t.shape)}")

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 import torch
 from torch.func import jacrev
 
+from ._arrays import float_tensor
+
 __all__ = ["newton_raphson", "NewtonResult"]
 
 
@@ -73,10 +75,7 @@ def newton_raphson(
     -------
     NewtonResult
     """
-    x = torch.as_tensor(x0)
-    if not x.is_floating_point():
-        x = x.to(torch.float64)
-    x = x.clone()
+    x = float_tensor(x0, "x0", expected="a one-dimensional tensor (m,)").clone()
     if x.dim() != 1:
         raise ValueError(f"`x0` must be one-dimensional, shape (m,); received shape {tuple(x.shape)}")
     if not torch.isfinite(x).all():

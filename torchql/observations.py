@@ -14,88 +14,11 @@ from torch.func import jacrev, vmap
 from ._arrays import float_tensor
 from .inputs import Inputs
 from .noise import NOISE_MODELS, sigma_group_index
+from .observation_checks import BATCH_DIMS, check_shapes, check_times, exact_mask, fits
 
 __all__ = ["Observations", "ObservationOperator", "LogObservation", "takes_params"]
 
 ObserveSpec = Union[Sequence[str], torch.Tensor, np.ndarray, Callable[[torch.Tensor], torch.Tensor]]
-
-
-#: Dimensions of the values of a batch of datasets, ``(B, T, K)``.
-_BATCH_DIMS = 3
-
-
-def _fits(shape: tuple[int, ...], target: tuple[int, ...], shared: tuple[tuple[int, ...], ...]) -> bool:
-    """Whether ``sigma`` or ``exact`` of ``shape`` suits values of shape ``target``.
-
-    Accepted: one of the ``shared`` shapes (those of one dataset), or, for a batch
-    ``target = (B, T, K)``, any shape that broadcasts to it.
-    """
-    if shape in shared:
-        return True
-    if len(target) != _BATCH_DIMS:
-        return False
-    try:
-        return tuple(torch.broadcast_shapes(shape, target)) == target
-    except RuntimeError:
-        return False
-
-
-#: Array-likes as floating tensors (one conversion for every entry point).
-_as_float_tensor = float_tensor
-
-
-def _check_shapes(t: torch.Tensor, y: torch.Tensor) -> None:
-    """Shapes of the times and values: ``t (T,)`` with ``y (T, K)`` or ``(B, T, K)``, or ``t (B, T)`` with ``y (B, T, K)``."""
-    if t.dim() == 2 and y.dim() != _BATCH_DIMS:
-        raise ValueError("`t` must be one-dimensional, shape (T,), for one dataset; per-sample times (B, T) need "
-                         f"values `y` of shape (B, T, K); received `t` of shape {tuple(t.shape)} and `y` of shape "
-                         f"{tuple(y.shape)}")
-    if t.dim() not in (1, 2):
-        raise ValueError("`t` must be one-dimensional, shape (T,), or for a batch two-dimensional, shape (B, T) "
-                         f"(each sample's own times); received shape {tuple(t.shape)}")
-    T = t.shape[-1]
-    if T == 0:
-        raise ValueError("`t` must contain at least one observation time; received an empty tensor")
-    if y.dim() not in (2, _BATCH_DIMS) or y.shape[-2] != T:
-        raise ValueError(
-            f"`y` must have shape (T, K) = ({T}, K) to match `t`, or (B, T, K) = (B, {T}, K) for a batch of "
-            f"B datasets; received shape {tuple(y.shape)}"
-        )
-    if y.dim() == _BATCH_DIMS and y.shape[0] == 0:
-        raise ValueError(f"`y` must hold at least one dataset: shape (B, T, K) with B >= 1; received shape "
-                         f"{tuple(y.shape)}")
-    if t.dim() == 2 and t.shape[0] != y.shape[0]:
-        raise ValueError(f"`t` of shape (B, T) must give the times of each of the B = {y.shape[0]} samples of `y` "
-                         f"{tuple(y.shape)}: expected shape ({y.shape[0]}, {T}) or ({T},) (shared); received shape "
-                         f"{tuple(t.shape)}")
-
-
-def _check_times(t: torch.Tensor) -> None:
-    """Times ``t (T,)`` or each row of ``t (B, T)``: finite and strictly increasing (vectorized over rows)."""
-    rows = t.reshape(-1, t.shape[-1])
-    per_sample = t.dim() == 2
-    finite = torch.isfinite(rows).all(dim=1)
-    if not bool(finite.all()):
-        if not per_sample:
-            raise ValueError("`t` must be finite; received NaN or inf times")
-        b = int((~finite).nonzero()[0, 0])
-        raise ValueError(f"`t` must be finite in every row; received NaN or inf times in row t[{b}] (the times of "
-                         f"sample {b})")
-    if rows.shape[1] < 2:
-        return
-    step = rows[:, 1:] > rows[:, :-1]
-    if bool(step.all()):
-        return
-    b, j = (int(v) for v in (~step).nonzero()[0])
-    if not per_sample:
-        raise ValueError(
-            "`t` must be strictly increasing (no duplicates); received "
-            f"t[{j}] = {t[j].item():g} followed by t[{j + 1}] = {t[j + 1].item():g}"
-        )
-    raise ValueError(
-        f"`t` must be strictly increasing (no duplicates) in every row; received t[{b}, {j}] = {t[b, j].item():g} "
-        f"followed by t[{b}, {j + 1}] = {t[b, j + 1].item():g} (the times of sample {b})"
-    )
 
 
 class Observations:
@@ -139,8 +62,9 @@ class Observations:
         shape that broadcasts to ``(B, T, K)``, such as ``(B, 1, K)`` or ``(B, T, K)``.
     exact : bool Tensor, optional
         Values to be met exactly (equality-constrained least squares) rather than in the
-        least-squares sense. One dataset: shape ``(T, K)``, or ``(T,)`` marking every value at
-        those times. A batch: those shapes (shared) or any shape that broadcasts to ``(B, T, K)``.
+        least-squares sense. One dataset: shape ``(T, K)``, or ``(T,)`` marking every present value
+        at those times. A batch: those shapes (shared) or any shape that broadcasts to ``(B, T, K)``.
+        A value marked must be present (not NaN), and a time marked must hold one.
     noise : {"normal", "lognormal"}
         The values' noise: additive Gaussian (default), or log-normal (``log y`` Gaussian about
         ``log h(x)``; every present value must be positive).
@@ -181,14 +105,14 @@ class Observations:
         noise: str = "normal",
         sigma_groups=None,
     ) -> None:
-        t = _as_float_tensor(t, "t")
-        y = _as_float_tensor(y, "y")
+        t = float_tensor(t, "t")
+        y = float_tensor(y, "y")
         if y.dim() == 1:
             y = y.unsqueeze(-1)
-        _check_shapes(t, y)
-        batched = y.dim() == _BATCH_DIMS
+        check_shapes(t, y)
+        batched = y.dim() == BATCH_DIMS
         T = t.shape[-1]
-        _check_times(t)
+        check_times(t)
         infinite = torch.isinf(y)
         if infinite.any():
             where = f" (y[{int(infinite.flatten(1).any(dim=1).nonzero()[0, 0])}] does)" if batched else ""
@@ -216,25 +140,7 @@ class Observations:
         self.noise = noise
         self._set_sigma(sigma, sigma_groups, shape, batched)
 
-        if exact is None:
-            ex = torch.zeros(shape, dtype=torch.bool)
-        else:
-            try:
-                ex = torch.as_tensor(exact)
-            except (TypeError, ValueError, RuntimeError) as exc:
-                raise TypeError(
-                    f"`exact` must be a boolean mask of shape (T,) or (T, K); received {type(exact).__name__}") from exc
-            if ex.dtype != torch.bool:
-                raise TypeError(f"`exact` must be a boolean mask; received dtype {ex.dtype}")
-            if not _fits(tuple(ex.shape), shape, ((T,), (T, K))):
-                raise ValueError(
-                    f"`exact` must have shape (T,) = ({T},) or (T, K) = ({T}, {K})"
-                    + (f", or broadcast to (B, T, K) = {shape}" if batched else "")
-                    + f"; received shape {tuple(ex.shape)}"
-                )
-            if ex.shape == (T,):  # every value at those times
-                ex = ex.unsqueeze(-1)
-        self.exact = ex.expand(shape).clone(memory_format=torch.contiguous_format)
+        self.exact = exact_mask(exact, shape, self.y)
         self.inputs = _check_inputs(inputs, shape[0] if batched else None)
 
     def _set_sigma(self, sigma, sigma_groups, shape: tuple, batched: bool) -> None:
@@ -257,9 +163,9 @@ class Observations:
         if sigma is None:
             sig = torch.ones(shape, dtype=self.y.dtype)
         else:
-            sig = _as_float_tensor(sigma, "sigma", self.y.dtype)
+            sig = float_tensor(sigma, "sigma", self.y.dtype)
             per_time = ((T,),) if K == 1 else ()  # one output: (T,) is (T, 1)
-            if not _fits(tuple(sig.shape), shape, ((), (K,), (T, K)) + per_time):
+            if not fits(tuple(sig.shape), shape, ((), (K,), (T, K)) + per_time):
                 raise ValueError(
                     f"`sigma` must be a scalar, shape (K,) = ({K},) or shape (T, K) = ({T}, {K})"
                     + (f", or broadcast to (B, T, K) = {shape}" if batched else "")
@@ -341,7 +247,7 @@ class Observations:
     @property
     def batch_size(self) -> int | None:
         """Number of datasets ``B`` of a batch (values ``(B, T, K)``); ``None`` for one dataset."""
-        return self.y.shape[0] if self.y.dim() == _BATCH_DIMS else None
+        return self.y.shape[0] if self.y.dim() == BATCH_DIMS else None
 
     @property
     def mask(self) -> torch.Tensor:
@@ -469,7 +375,7 @@ class ObservationOperator:
         #: bound to a system (the augmented state).
         self.width = n
         if isinstance(observe, (torch.Tensor, np.ndarray)):
-            Q = _as_float_tensor(observe, "observe", dtype).to(device)
+            Q = float_tensor(observe, "observe", dtype).to(device)
             if Q.shape != (K, n):
                 raise ValueError(
                     f"`observe` matrix must have shape (K, n_states) = ({K}, {n}); received shape {tuple(Q.shape)}"

@@ -16,6 +16,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from . import _checks
+from .grid import check_grid_times
 from .damping import DAMPING_MAX, DAMPING_MIN, DAMPING_START, DAMPINGS, damping_strategy
 from .integrate import default_tolerances
 from .schemes import METHODS, Scheme, scheme_strategy
@@ -180,7 +181,9 @@ class FitOptions:
         if isinstance(grid, str) and grid not in ("auto", "smooth"):
             raise ValueError(f'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; '
                              f'received {grid!r}')
-        if grid is not None and not isinstance(grid, (torch.Tensor, str)):
+        if isinstance(grid, torch.Tensor):
+            check_grid_times(grid)
+        elif grid is not None and not isinstance(grid, str):
             _checks.positive_int("grid", grid)
 
     def replace(self, **changes) -> "FitOptions":

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 
 from . import _checks
+from ._arrays import float_tensor
 from .bounds import SCALES
 from .model import _set_buffer, coefficient_names, model_dtype_device
 
@@ -198,11 +199,7 @@ def _as_parameter(name, spec) -> Parameter:
 def _set_coefficient(model, name: str, value, dtype, device) -> None:
     """Buffer ``name`` of ``model`` set to ``value`` (a number fills a vector or matrix)."""
     current = dict(model.named_buffers())[name]
-    try:
-        tensor = torch.as_tensor(value, dtype=dtype, device=device).detach().clone()
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"`parameters[{name!r}].value` must be a number or a tensor; received "
-                        f"{type(value).__name__}") from exc
+    tensor = float_tensor(value, f"parameters[{name!r}].value", dtype, device, expected="a number or a tensor").clone()
     if tensor.shape != current.shape:
         if tensor.dim() != 0:
             raise ValueError(f"`parameters[{name!r}].value` must be a number or of the coefficient's shape "
@@ -240,7 +237,7 @@ def _with_states(x0, values: dict[int, float], states: list[str], rows: int | No
                              "`x0`")
         base = torch.zeros(n if rows is None else (rows, n), dtype=dtype, device=device)
     else:
-        base = torch.as_tensor(x0, dtype=dtype, device=device).detach().clone()
+        base = float_tensor(x0, "x0", dtype, device).clone()
     for i, v in values.items():
         base[..., i] = v
     return base

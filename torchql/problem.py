@@ -13,6 +13,7 @@ import torch
 from torch.func import vmap
 
 from . import _checks
+from ._arrays import float_tensor
 from .batch_result import BatchFitResult
 from .bounds import Bounds, moved_record
 from .data_start import derivation_uses_unknowns, first_reference
@@ -186,11 +187,8 @@ class Problem:
         """Coefficient ``name``'s value per sample, flattened ``(B, size)``: ``guesses[name]`` or the buffer's."""
         B = self.B
         value = guesses.get(name, buffers[name])
-        try:
-            value = torch.as_tensor(value, dtype=self.dtype, device=self.device).detach()
-        except (TypeError, ValueError) as exc:
-            raise TypeError(f"`guesses[{name!r}]` must be a tensor of shape (B, *{tuple(shape)}) = "
-                            f"{(B, *shape)}; received {type(value).__name__}") from exc
+        value = float_tensor(value, f"guesses[{name!r}]", self.dtype, self.device,
+                             expected=f"a tensor of shape (B, *{tuple(shape)}) = {(B, *shape)}")
         if value.shape == shape:
             value = value.expand(B, *shape)
         elif value.shape != (B, *shape):
@@ -207,14 +205,8 @@ class Problem:
     def _given_x0(self, x0, n: int) -> torch.Tensor:
         """The given ``x0`` validated, per sample ``(B, n)``."""
         B, single = self.B, self.single
-        try:
-            x0 = torch.as_tensor(x0, dtype=self.dtype, device=self.device).detach()
-        except (TypeError, ValueError) as exc:
-            if single:
-                raise TypeError(f"`x0` must be a tensor of shape (n_states,) = ({n},); "
-                                f"received {type(x0).__name__}") from exc
-            raise TypeError(f"`x0` must be a tensor of shape (B, n_states) = ({B}, {n}) or (n_states,) = "
-                            f"({n},); received {type(x0).__name__}") from exc
+        shapes = f"(n_states,) = ({n},)" if single else f"(B, n_states) = ({B}, {n}) or (n_states,) = ({n},)"
+        x0 = float_tensor(x0, "x0", self.dtype, self.device, expected=f"a tensor of shape {shapes}")
         if single and x0.shape != (n,):
             raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
         if single and not bool(torch.isfinite(x0).all()):
