@@ -34,7 +34,8 @@ class FitError(RuntimeError):
 
 @dataclass
 class IterationRecord:
-    """One iterate of the fit (iteration 0 is the initial guess).
+    """One iterate of the fit (iteration 0: the guesses, with the coefficients matched to the data where
+    the first reference is built from them).
 
     Attributes
     ----------
@@ -43,7 +44,10 @@ class IterationRecord:
     params : dict of str to Tensor
         Estimated buffers at this iterate (each of its buffer's shape).
     x0 : Tensor ``(n_states,)``
-        Initial-state estimate at this iterate.
+        Initial-state estimate at this iterate: where its linear problem starts, from which the
+        update ``alpha`` is measured. It is ``trajectory[0]`` but at iteration 0 of a Kantorovich first
+        reference built from the data, which starts at the data's values while ``x0`` holds
+        the guesses.
     sse : float
         Weighted sum of squared residuals (values marked exact left out) of this iterate's
         stored trajectory ``trajectory``. Shooting: the model's own solution from this
