@@ -161,3 +161,25 @@ def test_a_fit_that_wanders_along_an_exactly_undetermined_direction_says_so():
     assert result.status is torchql.Status.NOT_IDENTIFIABLE, result.message
     assert "{x(t0), d}" in result.message and "(MAX_ITER)" in result.message
     assert float(result.x0[0] * result.params["d"]) == pytest.approx(0.6, rel=1e-5)
+
+
+def test_a_fit_that_stalls_at_the_exact_truth_from_rates_guessed_near_zero_is_converged():
+    """Shooting from rates 1e-10 (2e6 times below the truth, inside (0, None) bounds) reaches exact
+    data to an SSE of 1e-24, where rounding decides every trial step and the damping runs out
+    (STALLED). The Gauss–Newton step on the model there is 1e-15 of the estimates: converged. It
+    was reported DIVERGED, its rates having "run away" from the tiny guesses."""
+    from torchql.models import FirstOrderReactions
+
+    truth = dict(k1=5e-5, k2=2e-4)
+    x0 = torch.tensor([100.0, 0.0, 0.0], dtype=DT)
+    t = torch.arange(21, dtype=DT) * 500.0
+    data = torchql.Observations(t, torchql.simulate(FirstOrderReactions(**truth), x0, t, rtol=1e-13, atol=1e-15),
+                                observe=["A", "B", "C"])
+    result = torchql.fit(FirstOrderReactions(k1=1e-10, k2=1e-10), data, x0, method="shooting",
+                         bounds={"k1": (0.0, None), "k2": (0.0, None)})
+    assert result.status is torchql.Status.CONVERGED and result.success, result.message
+    assert "Found on the model itself" in result.message
+    for name, value in truth.items():  # exact data: the truth to the integration's accuracy
+        assert float(result.params[name]) == pytest.approx(value, rel=1e-10)
+    assert result.sse < 1e-20
+    assert bool(torch.isfinite(result.covariance).all())  # a converged fit's error bars

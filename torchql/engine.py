@@ -32,24 +32,21 @@ from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget,
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation
 from .engine_final import FinalPass
+from .engine_steps import FLAT_DAMPING, StepTests  # noqa: F401 (FLAT_DAMPING: where it was defined)
 from .engine_records import Records
 from .engine_grid import AutoGrid
-from .engine_state import RUNNING, LoopState, _pick, by_level, not_above, put_samples, shifted_report
+from .engine_state import RUNNING, LoopState, _pick, by_level, put_samples, shifted_report
 from .grid import last_nodes
 from .linearize import map_fields
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
 from .noise import non_finite_residuals
 from .problem import Problem
 from .result import IterationRecord, Status
-from .trajectory import DEFECT_TRUST
 
 __all__ = ["Engine", "run_engine"]
 
 _STATUSES = list(Status)
-#: The most damping (relative to the largest squared singular value) of a step that may end a fit
-#: by :meth:`Engine._flat`'s test: larger damping shortens every step, and a short step's small
-#: predicted decrease says little about the minimum.
-FLAT_DAMPING = 1e-3
+
 
 
 def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | str | None], None],
@@ -102,7 +99,7 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
     return result
 
 
-class Engine(Evaluation, FinalPass, AutoGrid, Records):
+class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
     """The iteration of one chunk of samples (indices ``index`` of the problem's batch)."""
 
     def __init__(self, spec: Problem, index: torch.Tensor, max_time: float | None = None, history: bool = False,
@@ -230,7 +227,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
             if c == _STATUSES.index(Status.MAX_TIME):
                 budget = "an enclosing fit's" if self.max_time is None else f"{self.max_time:g} s"
                 st.detail[r] = f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget})." + st.detail[r]
-        st.polish = st.undamped_stop & (time_left() > 0)  # polishing steps only within the time budget
+        stalled = st.status == _STATUSES.index(Status.STALLED)  # the final pass tries steps on the model itself
+        st.polish = (st.undamped_stop | stalled) & (time_left() > 0)  # polishing steps only within the time budget
         return st
 
     def _conclude(self, st: LoopState) -> dict:
@@ -318,9 +316,13 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
         trial, ok = self._propose(act, st.cur, alpha)
         accept = self._accepted(st, act, trial, ok, capped)
         flat = self._flat(st, act, trial, accept, alpha)
+        creeping = self._creeping(st, act, trial, accept & ~flat)
         self._take(st, act, trial, accept)
         if bool(flat.any()):
             st.stop(act[flat], Status.CONVERGED_SSE)
+        if bool(creeping.any()):  # the final pass goes on from here by steps on the model itself
+            st.stop(act[creeping], Status.STALLED, " The steps that lowered the sum of squares were damped, and moved "
+                    "the estimates by less than `xtol` or lowered it by less than `ftol`.")
         rejected = act[~accept]
         if rejected.numel():
             self._reject(st, rejected, alpha[~accept])
@@ -415,45 +417,8 @@ class Engine(Evaluation, FinalPass, AutoGrid, Records):
                 st.stop(act[conv], Status.CONVERGED)
             if bool(conv_sse.any()):
                 st.stop(act[conv_sse], Status.CONVERGED_SSE)
+        st.scaled = scaled[~done]
         return act[~done], alpha[~done], capped[~done]
-
-    def _flat(self, st: LoopState, act, trial, accept, alpha) -> torch.Tensor:
-        """Which accepted damped steps end their fits at a flat minimum (CONVERGED_SSE): as MINPACK's
-        ``ftol`` test, both the merit's actual change and the linear model's predicted decrease
-        ``|w d|^2 - |w (d - C alpha)|^2`` at most ``ftol`` relative, with damping at most
-        :data:`FLAT_DAMPING`. Undamped steps have :meth:`_converged`'s tests; this one serves a fit
-        whose Gauss–Newton steps along directions the data barely determine are too long to be
-        accepted undamped, so that no undamped step ever comes to be tested."""
-        spec, cur = self.spec, st.cur
-        damping = st.damping[act]
-        flat = accept & (damping > 0) & (damping <= FLAT_DAMPING)
-        if not spec.damping.filters or spec.has_exact or not bool(flat.any()):
-            return torch.zeros_like(accept)
-        C, d, w = _pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act)
-        left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
-        predicted = ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
-        new = trial["merit"]
-        tol = spec.ftol * new.abs()
-        return flat & (predicted <= tol) & ((cur["merit"][act] - new).abs() <= tol)
-
-    def _accepted(self, st: LoopState, act, trial, ok, capped) -> torch.Tensor:
-        """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
-        solutions' sums of squares) for trials near solving the model whose step was not capped
-        at a bound's largest internal move; otherwise the model's own sums of squares, integrated
-        from both estimates (:meth:`~torchql.engine_evaluate.Evaluation._model_not_above`). A
-        damping that does not filter (``damping=None``): every integrable trial."""
-        spec, cur = self.spec, st.cur
-        if not spec.damping.filters:
-            return ok
-        lower = not_above(trial["merit"], cur["merit"][act])
-        if spec.scheme.integrates_model:  # the merit is the model's own sum of squares
-            return ok & lower
-        better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped
-        check = ok & ~better
-        if bool(check.any()):
-            rows = check.nonzero().flatten()
-            better[rows] = self._model_not_above(st.all_idx, cur, act, trial, rows)
-        return ok & better
 
     def _take(self, st: LoopState, act, trial, accept) -> None:
         """The accepted trials become their samples' iterates (damping back to 0)."""

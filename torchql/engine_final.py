@@ -105,11 +105,13 @@ class FinalPass:
                 codes[r] = Status.DIVERGED
                 detail[r] = " The fitted trajectory is non-finite."
             keep = ~nonfinite
+            magnitudes = self._magnitudes(traj)[keep]
             rows, J, s, rw, J_info = rows[keep], J[keep], s[keep], rw[keep], J_info[keep]
         if rows.numel():
             used = self._used(rows)
             J, J_info = self._without_negligible(rows, z0, J, J_info)
-            deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail, used)
+            deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail, used, magnitudes)
+            converged |= torch.tensor([c is Status.CONVERGED for c in codes], dtype=torch.bool, device=dev)
             exact = torch.cat([self.exact[rows], torch.zeros_like(used[:, self.exact.shape[1]:])], dim=1)
             cov[rows] = _covariance(J_info, used, s, self.L[rows], spec, deficient | exact.any(dim=1), exact)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
@@ -282,7 +284,8 @@ class FinalPass:
         accurate[list(self.storage_missed)] = True
         for step in range(POLISH_STEPS + 1 if POLISH_STEPS else 0):  # the last pass only checks
             take = polish[rows].clone()
-            take &= torch.tensor([codes[r].success for r in rows.tolist()], dtype=torch.bool, device=take.device)
+            take &= torch.tensor([codes[r].success or codes[r] is Status.STALLED for r in rows.tolist()],
+                                 dtype=torch.bool, device=take.device)
             if not bool(take.any()):
                 break
             k = take.nonzero().flatten()
@@ -339,8 +342,8 @@ class FinalPass:
         here = self._evaluate(r, z0[r], traj, None, None, solution=True, W=W)
         alpha, _, infeasible, _ = self._solve(r, here, torch.zeros_like(here["sse"]))
         u = z0[r][:, spec.unknown_index]
-        scaled = (alpha.abs() / torch.maximum(u.abs(), self.scale[r])).amax(dim=1)
-        bound = torch.tensor([spec.xtol if codes[i] is Status.CONVERGED else math.sqrt(spec.xtol)
+        scaled = (alpha.abs() / torch.maximum(u.abs(), torch.maximum(self.scale[r], self._magnitudes(traj)))).amax(dim=1)
+        bound = torch.tensor([math.sqrt(spec.xtol) if codes[i] is Status.CONVERGED_SSE else spec.xtol
                               for i in r.tolist()], dtype=scaled.dtype, device=scaled.device)
         need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
         if spec.has_exact:  # a step below the bound of the sum-of-squares test may leave them unmet
@@ -394,11 +397,12 @@ class FinalPass:
         used = self.mask[rows].reshape(rows.numel(), -1)
         return used if self.spec.sigma_function is None else torch.cat([used, used], dim=1)
 
-    def _diagnose(self, rows, J, rw, sse, z0, codes, detail, used):
+    def _diagnose(self, rows, J, rw, sse, z0, codes, detail, used, magnitudes):
         """The final statuses of samples ``rows`` from their weighted Jacobians ``J (S, R, m)`` and
         residuals ``rw`` at the estimates (rows ``used (S, R)``): the Gauss–Newton step there
-        (stationarity) and the Jacobian's rank (:func:`torchql.diagnosis.final_status`), for
-        samples that converged or ran out of iterations or stalled. Updates ``codes`` and
+        (stationarity, :meth:`_stationary_on_the_model`, with the unknowns' ``magnitudes (S, m)``
+        on the fitted solution) and the Jacobian's rank (:func:`torchql.diagnosis.final_status`),
+        for samples that converged or ran out of iterations or stalled. Updates ``codes`` and
         ``detail``; returns ``deficient (S,)`` and the singular values ``(S, m)``."""
         spec = self.spec
         dtype, dev, m = spec.dtype, spec.device, spec.m
@@ -415,11 +419,14 @@ class FinalPass:
         deficient |= barely
         estimates = z0[rows][:, spec.unknown_index]
         scales = self._typical(rows)
+        stalled = torch.tensor([codes[r] is Status.STALLED for r in rows.tolist()], dtype=torch.bool, device=dev)
+        stationary = self._stationary_on_the_model(rows, step, estimates, torch.maximum(scales, magnitudes),
+                                                   stalled & ~deficient, codes, detail)
         sse_list = sse.tolist()
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
         for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
             code = codes[r]
-            if not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
+            if stationary[k] or not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
                 continue
             null_text = ""
             if short:
@@ -435,6 +442,36 @@ class FinalPass:
                 sse_start=first_sse[k], step=step[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
+
+    def _stationary_on_the_model(self, rows, step, estimates, scales, candidates, codes, detail) -> list[bool]:
+        """Samples ``rows`` that stalled (``candidates (S,)``, with a Jacobian of full rank) whose
+        Gauss–Newton step on the model at the estimates, ``step (S, m)``, is at most ``xtol`` of the
+        unknowns' magnitudes ``max(|estimate|, scales)`` (the convergence test's bound) are
+        converged: the iteration stopped at the model's optimum, where rounding or the
+        integration's error, not the distance to it, decided its last trials (a fit that reaches
+        exact data to 1e-24). Their ``codes`` become ``CONVERGED``, with a note; returns which
+        samples did. A fit that ran out of ``max_iter`` keeps saying so."""
+        if self.spec.has_exact or not bool(candidates.any()):  # the step above does not meet exact values
+            return [False] * rows.numel()
+        size = (step.abs() / torch.maximum(estimates.abs(), scales)).amax(dim=1)
+        stationary = candidates & (size <= self.spec.xtol)
+        for k in stationary.nonzero().flatten().tolist():
+            r = int(rows[k])
+            detail[r] = (" Found on the model itself: the iteration stalled (no step it tried lowered the sum of "
+                         f"squares enough), but at the estimates the Gauss-Newton step on the model is "
+                         f"{float(size[k]):.2g} of their magnitudes, below `xtol`.")
+            codes[r] = Status.CONVERGED
+        return stationary.tolist()
+
+    def _magnitudes(self, traj: torch.Tensor) -> torch.Tensor:
+        """The unknowns' magnitudes ``(R, m)`` on solutions ``traj (R, G, M)``: an initial state's, its
+        trajectory's largest; 0 for a coefficient. With the iteration's typical magnitudes they scale
+        the final pass's steps: a state guessed at 0, whose first reference stayed near 0, is
+        measured on the solution fitted (a product that reaches 100 from 0)."""
+        n = self.system.n
+        magnitudes = torch.zeros(traj.shape[0], traj.shape[-1], dtype=traj.dtype, device=traj.device)
+        magnitudes[:, :n] = traj[..., :n].abs().amax(dim=1)
+        return magnitudes[:, self.spec.unknown_index]
 
     def _typical(self, rows) -> torch.Tensor:
         """The typical magnitudes ``(S, m)`` of the unknowns of samples ``rows``

@@ -1,0 +1,72 @@
+"""Which trial steps the engine takes, and which end a fit: the acceptance test (the merits, or the
+model's own sums of squares), a flat minimum reached by damped steps (``CONVERGED_SSE``), and
+damped steps that creep (``STALLED``, for the final pass to go on by steps on the model)."""
+
+from __future__ import annotations
+
+import torch
+
+from .engine_state import LoopState, _pick, not_above
+from .trajectory import DEFECT_TRUST
+
+__all__ = ["StepTests", "FLAT_DAMPING"]
+
+#: The most damping (relative to the largest squared singular value) of a step that may end a fit
+#: by :meth:`Engine._flat`'s test: larger damping shortens every step, and a short step's small
+#: predicted decrease says little about the minimum.
+FLAT_DAMPING = 1e-3
+
+
+class StepTests:
+    """The step tests (mixed into :class:`torchql.engine.Engine`, whose ``spec`` and evaluation they use)."""
+
+    def _flat(self, st: LoopState, act, trial, accept, alpha) -> torch.Tensor:
+        """Which accepted damped steps end their fits at a flat minimum (CONVERGED_SSE): as MINPACK's
+        ``ftol`` test, both the merit's actual change and the linear model's predicted decrease
+        ``|w d|^2 - |w (d - C alpha)|^2`` at most ``ftol`` relative, with damping at most
+        :data:`FLAT_DAMPING`. Undamped steps have :meth:`torchql.engine.Engine._converged`'s tests; this one serves a fit
+        whose Gauss–Newton steps along directions the data barely determine are too long to be
+        accepted undamped, so that no undamped step ever comes to be tested."""
+        spec, cur = self.spec, st.cur
+        damping = st.damping[act]
+        flat = accept & (damping > 0) & (damping <= FLAT_DAMPING)
+        if not spec.damping.filters or spec.has_exact or not bool(flat.any()):
+            return torch.zeros_like(accept)
+        C, d, w = _pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act)
+        left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
+        predicted = ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
+        new = trial["merit"]
+        tol = spec.ftol * new.abs()
+        return flat & (predicted <= tol) & ((cur["merit"][act] - new).abs() <= tol)
+
+    def _creeping(self, st: LoopState, act, trial, accept) -> torch.Tensor:
+        """Which accepted damped steps (not :meth:`_flat`'s) end their fits as ``STALLED``: the
+        step's scaled size at most ``xtol``, or the merit lowered by at most ``ftol`` of it. Where
+        the iteration's linear problems and the model disagree at the last digits (a measured
+        input's step inside a stiff model's fast layer), the undamped steps are rejected and damped
+        ones creep; the final pass takes Gauss–Newton steps on the model itself from there."""
+        damped = accept & (st.damping[act] > 0)
+        if not bool(damped.any()):
+            return damped
+        new, old = trial["merit"], st.cur["merit"][act]
+        small = (st.scaled <= self.spec.xtol) | ((old - new).abs() <= self.spec.ftol * new.abs())
+        return damped & small
+
+    def _accepted(self, st: LoopState, act, trial, ok, capped) -> torch.Tensor:
+        """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
+        solutions' sums of squares) for trials near solving the model whose step was not capped
+        at a bound's largest internal move; otherwise the model's own sums of squares, integrated
+        from both estimates (:meth:`~torchql.engine_evaluate.Evaluation._model_not_above`). A
+        damping that does not filter (``damping=None``): every integrable trial."""
+        spec, cur = self.spec, st.cur
+        if not spec.damping.filters:
+            return ok
+        lower = not_above(trial["merit"], cur["merit"][act])
+        if spec.scheme.integrates_model:  # the merit is the model's own sum of squares
+            return ok & lower
+        better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped
+        check = ok & ~better
+        if bool(check.any()):
+            rows = check.nonzero().flatten()
+            better[rows] = self._model_not_above(st.all_idx, cur, act, trial, rows)
+        return ok & better
