@@ -34,7 +34,8 @@ class Status(enum.Enum):
     )
     STALLED = (
         "The iteration stalled: no damped step lowered the sum of squares (the Levenberg-Marquardt "
-        "damping reached its limit). Start from guesses closer to the solution, use `bounds` to keep "
+        "damping reached its limit), or only damped steps too short to matter did, and Gauss-Newton steps "
+        "on the model itself did not reach its optimum. Start from guesses closer to the solution, use `bounds` to keep "
         "the unknowns in a sensible range, or try several starts (torchql.multistart)."
     )
     NOT_IDENTIFIABLE = (
