@@ -293,3 +293,21 @@ def test_max_steps_counts_the_stiff_solvers_steps_per_grid_interval(linear_solve
     starved = torchql.fit(Relaxation(k=80.0), data, guess, max_steps=1, **options)
     assert starved.status is torchql.Status.INTEGRATION_FAILED
     assert "max_steps = 1 steps between two grid nodes ran out" in starved.message, starved.message
+
+
+@pytest.mark.parametrize("linear_solver", ["taylor", "radau"])
+def test_a_stiff_fit_that_fails_with_an_explicit_propagator_names_it(linear_solver):
+    """A fit of a stiff model (``solver="rodas5p"``) that does not succeed (here ``max_iter=1``)
+    with an explicit ``linear_solver`` names it and the stiff default in its message: on Robertson
+    kinetics from guesses twice off, ``"taylor"`` and ``"rk4_doubling"`` stalled at rates 1e4
+    times off, and the message spoke only of guesses, where ``"radau"`` converges in 2 s. A
+    stable propagator's failure does not name it."""
+    t = torch.logspace(-2, 0, 8, dtype=DT)
+    data = torchql.Observations(t, relaxation_solution(t, torch.tensor(2.0, dtype=DT), torch.tensor(50.0, dtype=DT))
+                                .unsqueeze(-1), observe=["x"])
+    result = torchql.fit(Relaxation(k=80.0), data, torch.tensor([1.5], dtype=DT), t0=0.0, solver="rodas5p",
+                         linear_solver=linear_solver, max_iter=1)
+    assert result.status is torchql.Status.MAX_ITER
+    named = f"linear_solver='{linear_solver}' propagates explicitly" in result.message
+    assert named == (linear_solver == "taylor"), result.message
+    assert ("linear_solver='radau', suits them" in result.message) == named

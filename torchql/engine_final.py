@@ -39,6 +39,7 @@ from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
 from .solvers import STIFF_SOLVERS
+from .stiffness import STIFF_LINEAR_SOLVER
 from .storage_check import interpolation_misfit, storage_misses
 from .transfer import interval_coefficients
 from .uncertainty import covariance
@@ -131,6 +132,10 @@ class FinalPass:
                 detail[k] += at_bound_note(spec.bounds.at_bound(z0[k, spec.unknown_index], stderr=stderr))
             if r in spec.moved_guesses:
                 detail[k] += " " + moved_guesses_note(spec.moved_guesses[r])
+            if spec.stiff and not spec.linear_solver.stiff_stable and not codes[k].success:
+                detail[k] += (f" The model is stiff on the data's span (solver {spec.solver!r}), and linear_solver="
+                              f"{spec.linear_solver.name!r} propagates explicitly: its transfers crawl or fail there; "
+                              f"the default for stiff models, linear_solver={STIFF_LINEAR_SOLVER!r}, suits them.")
         messages = [c.value + d for c, d in zip(codes, detail)]
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,

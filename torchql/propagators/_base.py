@@ -20,6 +20,9 @@ class LinearPropagator:
         Whether ``fit`` may also solve the nonlinear model on the grid (multiple shooting from a
         predicted trajectory, :mod:`torchql.grid_solve`) wherever a prediction is at hand; if
         not, every nonlinear pass is integrated by the adaptive ``solver``.
+    stiff_stable : bool
+        Whether its transfers stay stable on a stiff model's linearizations (implicit or
+        exponential, as ``"radau"``); an explicit one's need ever more substeps there, or fail.
     with_solution : bool
         Whether, where the reference is the model's own solution (shooting's iterates, every
         fit's final pass), the homogeneous solutions are integrated together with that solution
@@ -37,6 +40,7 @@ class LinearPropagator:
 
     name: str = ""
     grid_solver: bool = True
+    stiff_stable: bool = False
     with_solution: bool = False
     hermite_degree: int = 3
     jacobian_degree: int = 3

@@ -210,6 +210,7 @@ class ExponentialRadau(LinearPropagator):
 
     name = "exponential"
     grid_solver = False
+    stiff_stable = True
     #: Whether the coefficients are frozen at each step's start and exponentiated.
     freeze = True
 
