@@ -614,7 +614,8 @@ def write_markdown(path: Path, settings, rows, refs, cfg, bounds, quick: bool, t
         f"coefficients) lies within {SE_TOL:g} standard errors of a global optimum: a best estimate, or another "
         "with the same SSE (to that tolerance) where the data cannot tell several apart.", "",
         "Budgets: torchql `max_iter={}`, `max_steps={}` (solver steps per integration), kantorovich storage grid = "
-        "the observation times for FitzHugh-Nagumo (400 intervals), default (1000) for the oscillator; scipy "
+        "the observation times for FitzHugh-Nagumo (400 intervals), the default for the oscillator (`grid=\"auto\"`: "
+        "each fit's uniform intervals chosen from its first reference); scipy "
         "`max_nfev=200`; every torchql and scipy fit is stopped after {:g} s of wall time (`TIME_BUDGET`), "
         "checked between iterations. Adam: `adjoint_fit(optimizer=\"adam\")`, default learning rate, at most {} "
         "steps or {:g} s, on the first {} starts. The limit is hard: each fit runs in a worker process, killed "
