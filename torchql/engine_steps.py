@@ -40,12 +40,14 @@ class StepTests:
         return flat & (predicted <= tol) & ((cur["merit"][act] - new).abs() <= tol)
 
     def _creeping(self, st: LoopState, act, trial, accept) -> torch.Tensor:
-        """Which accepted damped steps (not :meth:`_flat`'s) end their fits as ``STALLED``: the
-        step's scaled size at most ``xtol``, or the merit lowered by at most ``ftol`` of it. Where
-        the iteration's linear problems and the model disagree at the last digits (a measured
-        input's step inside a stiff model's fast layer), the undamped steps are rejected and damped
-        ones creep; the final pass takes Gauss–Newton steps on the model itself from there."""
-        damped = accept & (st.damping[act] > 0)
+        """Which accepted steps damped more than :data:`FLAT_DAMPING` (those :meth:`_flat` does not
+        judge) end their fits as ``STALLED``: the step's scaled size at most ``xtol``, or the merit
+        lowered by at most ``ftol`` of it. Where the iteration's linear problems and the model
+        disagree at the last digits (a measured input's step inside a stiff model's fast layer),
+        the undamped steps are rejected and heavily damped ones creep; the final pass takes
+        Gauss–Newton steps on the model itself from there. A lightly damped step that lowers the
+        merit little is progress along a curved valley, not a creep."""
+        damped = accept & (st.damping[act] > FLAT_DAMPING)
         if self.spec.has_exact or not bool(damped.any()):  # (exact values: the final pass would not judge it)
             return torch.zeros_like(damped)
         new, old = trial["merit"], st.cur["merit"][act]

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import torch
 
+import torchql
+
 pytest.importorskip("scipy")
 
 SCRIPT_DIR = Path(__file__).resolve().parents[2] / "experiments"
@@ -112,3 +114,17 @@ def test_torchql_reaches_the_best_sse(rp, case):
     assert tq["reached"], (tq["status"], tq["sse_eval"], record["best"], tq["message"])
     assert tq["success"], tq["message"]
     assert record["wrong"] is None, record["wrong"]
+
+
+def test_lightly_damped_progress_along_a_curved_valley_is_not_taken_for_a_creep(rp):
+    """Linear seed 105 (noise 1e-3) crosses a curved valley: every iteration's undamped step is
+    rejected and one damped 1e-5 is taken, lowering the sum of squares by about 4e-6 of it. With
+    ``ftol=1e-5`` those steps are below ``ftol``, but lightly damped: progress, not a creep (which
+    would stop the fit STALLED 1.2e-4 above the optimum). The fit ends as the ``ftol`` test says,
+    CONVERGED_SSE (measured: 35 iterations, 1.0e-4 relative above scipy's optimum; the default
+    ``ftol`` reaches the optimum in 104)."""
+    problem = rp.make_problem("linear", 105, 1e-3)
+    result = torchql.fit(problem.make_model(problem.guess_p), problem.data(),
+                         x0=torch.tensor(problem.guess_x0, dtype=torch.float64), ftol=1e-5)
+    assert result.status is torchql.Status.CONVERGED_SSE, result.message
+    assert max(record.damping for record in result.history) <= 1e-3
