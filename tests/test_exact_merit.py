@@ -186,3 +186,36 @@ def test_a_damped_step_meets_its_fraction_of_the_exact_misfit(damping):
     if damping == 1e6:
         full = solve_update(C, d, w, exact, rcond=1e-12).alpha
         assert torch.linalg.vector_norm(step) < 1e-5 * torch.linalg.vector_norm(full)
+
+
+class _Pendulum(torchql.ODEModel):
+    """``theta'' = -c theta' - g sin theta``."""
+
+    state_names = ("theta", "omega")
+
+    def __init__(self, g=9.81, c=0.3):
+        super().__init__()
+        self.register_buffer("g", torch.tensor(g, dtype=DT))
+        self.register_buffer("c", torch.tensor(c, dtype=DT))
+
+    def forward(self, t, x):
+        theta, omega = x.unbind(-1)
+        return torch.stack((omega, -self.c * omega - self.g * torch.sin(theta)), dim=-1)
+
+
+def test_exact_values_that_a_later_iterate_cannot_meet_are_no_contradiction_of_the_data():
+    """A pendulum's angle, exact data, three values marked exact (t = 0, 1.75, 5) and four unknowns:
+    the truth meets them, and Kantorovich from guesses three times off converges meeting them.
+    Shooting from those guesses wanders to g = 47, c = 8, where the pendulum has come to rest
+    before t = 1.75: there no step can meet the marked values. That fit stalled; it said
+    EXACT_INFEASIBLE, "they are linearly dependent or contradictory. Mark fewer values exact"."""
+    t = torch.linspace(0, 10, 41, dtype=DT)
+    x0 = torch.tensor([1.0, 0.0], dtype=DT)
+    exact = torch.zeros(41, 1, dtype=torch.bool)
+    exact[[0, 7, 20], 0] = True
+    data = torchql.Observations(t, torchql.simulate(_Pendulum(), x0, t)[:, :1], observe=["theta"], exact=exact)
+    kantorovich = torchql.fit(_Pendulum(g=29.43, c=0.9), data, x0=x0)
+    assert kantorovich.success and kantorovich.exact_residual < 1e-10, kantorovich.message
+    shooting = torchql.fit(_Pendulum(g=29.43, c=0.9), data, x0=x0, method="shooting")
+    assert shooting.status is torchql.Status.STALLED, shooting.message
+    assert "the data need not contradict them" in shooting.message

@@ -362,7 +362,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             undamped = (st.damping[act] == 0) & ~infeasible
             self._weigh_exact(st, act[undamped], nu[undamped])
         if bool(infeasible.any()):
-            st.stop(act[infeasible], Status.EXACT_INFEASIBLE)
+            self._stop_infeasible(st, act[infeasible])
             act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
         scaled = self._scaled(act, cur, alpha)
         bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
@@ -372,6 +372,19 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self._annotate(act, alpha=alpha, alpha_norm=scaled, damping=st.damping[act], rejected=st.rejected[act])
         st.scaled = scaled
         return act, alpha, capped
+
+    def _stop_infeasible(self, st: LoopState, rows: torch.Tensor) -> None:
+        """Samples ``rows`` whose exact rows no step from the current iterate can meet: at their first
+        iterate the values marked exact are dependent or contradictory (``EXACT_INFEASIBLE``); at a
+        later one the iteration has moved where their sensitivities are (a pendulum damped to rest
+        before the times marked), which says nothing of the data (``STALLED``)."""
+        first = st.iterations[rows] == 0
+        if bool(first.any()):
+            st.stop(rows[first], Status.EXACT_INFEASIBLE)
+        if not bool(first.all()):
+            st.stop(rows[~first], Status.STALLED, " At the iterate reached, no step can meet the values marked "
+                    "`exact`: their sensitivities there are linearly dependent, though they were not at the start. "
+                    "The iteration moved where the model barely responds to them; the data need not contradict them.")
 
     def _weigh_exact(self, st: LoopState, rows: torch.Tensor, nu: torch.Tensor) -> None:
         """After undamped solves of samples ``rows`` whose exact rows' largest multiplier is ``nu
