@@ -42,7 +42,9 @@ class StepTests:
     def _creeping(self, st: LoopState, act, trial, accept) -> torch.Tensor:
         """Which accepted steps damped more than :data:`FLAT_DAMPING` (those :meth:`_flat` does not
         judge) end their fits as ``STALLED``: the step's scaled size at most ``xtol``, or the merit
-        lowered by at most ``ftol`` of it. Where the iteration's linear problems and the model
+        (the model's own sum of squares where both are known: what accepted the step) lowered by at
+        most ``ftol`` of it or than the integration's error can tell (:meth:`_integration_error`),
+        or raised within the acceptance's slack. Where the iteration's linear problems and the model
         disagree at the last digits (a measured input's step inside a stiff model's fast layer),
         the undamped steps are rejected and heavily damped ones creep; the final pass takes
         Gauss–Newton steps on the model itself from there. A lightly damped step that lowers the
@@ -51,8 +53,21 @@ class StepTests:
         if self.spec.has_exact or not bool(damped.any()):  # (exact values: the final pass would not judge it)
             return torch.zeros_like(damped)
         new, old = trial["merit"], st.cur["merit"][act]
-        small = (st.scaled <= self.spec.xtol) | ((old - new).abs() <= self.spec.ftol * new.abs())
+        model_new, model_old = trial["nl_sse"], st.cur["nl_sse"][act]
+        known = torch.isfinite(model_new) & torch.isfinite(model_old)  # the model's own decided: it is the measure
+        new, old = torch.where(known, model_new, new), torch.where(known, model_old, old)
+        floor = 2 * st.cur["sse"][act].abs().sqrt() * self._integration_error(act, st.cur["w"][act])
+        small = (st.scaled <= self.spec.xtol) | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor))
         return damped & small
+
+    def _integration_error(self, rows, w) -> torch.Tensor:
+        """``|w (atol + rtol |y|)|`` over the values used of samples ``rows`` ``(R,)``: the size of the
+        weighted residuals' integration error; times ``2 sqrt(SSE)`` it bounds the sum of squares'
+        own, to first order (a decrease below it is the integration's noise, not progress)."""
+        spec = self.spec
+        y, used = self.y[rows].reshape(rows.numel(), -1), self.mask[rows].reshape(rows.numel(), -1)
+        scale = w[:, :y.shape[1]] * (spec.atol + spec.rtol * y.abs())
+        return torch.where(used, scale, torch.zeros_like(scale)).square().sum(dim=1).sqrt()
 
     def _accepted(self, st: LoopState, act, trial, ok, capped) -> torch.Tensor:
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
