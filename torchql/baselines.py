@@ -85,8 +85,9 @@ def adjoint_fit(
     ----------
     model, data, x0, params, fixed_x0, t0
         As in :func:`torchql.fit` (validated by the same checks), for one experiment: ``data`` is
-        one :class:`torchql.Observations`, not a list. The model is never modified. Values marked ``exact`` in ``data`` are not supported (a gradient method has no
-        equality constraints): ``ValueError``.
+        one :class:`torchql.Observations`, not a list. The model is never modified. Values marked
+        ``exact`` in ``data`` are not supported (a gradient method has no equality constraints):
+        ``ValueError``.
     optimizer : {"adam", "lbfgs"}
         ``"adam"``: :class:`torch.optim.Adam`, one step per gradient. ``"lbfgs"``:
         :class:`torch.optim.LBFGS` with the strong-Wolfe line search (history 20); one step

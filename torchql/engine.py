@@ -48,7 +48,6 @@ __all__ = ["Engine", "run_engine"]
 _STATUSES = list(Status)
 
 
-
 def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | str | None], None],
                history: bool = False, callback: Callable[[int, IterationRecord], None] | None = None
                ) -> BatchFitResult:
@@ -226,7 +225,8 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         for r, c in enumerate(st.status.tolist()):
             if c == _STATUSES.index(Status.MAX_TIME):
                 budget = "an enclosing fit's" if self.max_time is None else f"{self.max_time:g} s"
-                st.detail[r] = f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget})." + st.detail[r]
+                st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget})."
+                                + st.detail[r])
         stalled = st.status == _STATUSES.index(Status.STALLED)  # the final pass tries steps on the model itself
         st.polish = (st.undamped_stop | stalled) & (time_left() > 0)  # polishing steps only within the time budget
         return st
@@ -322,7 +322,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             st.stop(act[flat], Status.CONVERGED_SSE)
         if bool(creeping.any()):  # the final pass goes on from here by steps on the model itself
             st.stop(act[creeping], Status.STALLED, " The steps that lowered the sum of squares were damped, and moved "
-                    "the estimates by less than `xtol` or lowered it by less than `ftol`.")
+                    "the estimates by less than `xtol` or lowered it by less than `ftol` or the integration's error.")
         rejected = act[~accept]
         if rejected.numel():
             self._reject(st, rejected, alpha[~accept])

@@ -35,6 +35,7 @@ from .diagnosis import final_status, negligible_columns, null_detail, typical_ma
 from .budget import no_time_budget
 from .dopri import dopri_batch
 from .engine_state import not_above
+from .engine_steps import predicted_decrease
 from .engine_grid import pad_nodes
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
@@ -347,7 +348,8 @@ class FinalPass:
         here = self._evaluate(r, z0[r], traj, None, None, solution=True, W=W)
         alpha, _, infeasible, _ = self._solve(r, here, torch.zeros_like(here["sse"]))
         u = z0[r][:, spec.unknown_index]
-        scaled = (alpha.abs() / torch.maximum(u.abs(), torch.maximum(self.scale[r], self._magnitudes(traj)))).amax(dim=1)
+        magnitude = torch.maximum(u.abs(), torch.maximum(self.scale[r], self._magnitudes(traj)))
+        scaled = (alpha.abs() / magnitude).amax(dim=1)
         bound = torch.tensor([math.sqrt(spec.xtol) if codes[i] is Status.CONVERGED_SSE else spec.xtol
                               for i in r.tolist()], dtype=scaled.dtype, device=scaled.device)
         need = ~infeasible & torch.isfinite(scaled) & ((scaled > bound) | self._not_minimal(r, here, alpha))
@@ -387,14 +389,9 @@ class FinalPass:
         over the values used: a storage grid's fixed point whose step is small in the unknowns'
         scale (an initial state far below its trajectory's magnitude) but whose residuals are not
         yet the model's least."""
-        spec = self.spec
-        C, d, w = here["C"], here["d"], here["w"]
-        left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
-        predicted = ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
-        y, used = self.y[rows].reshape(rows.numel(), -1), self.mask[rows].reshape(rows.numel(), -1)
-        scale = w[:, :y.shape[1]] * (spec.atol + spec.rtol * y.abs())
-        floor = torch.where(used, scale, torch.zeros_like(scale)).square().sum(dim=1)
-        return predicted > spec.ftol * here["sse"].abs() + floor
+        predicted = predicted_decrease(here["C"], here["d"], here["w"], alpha)
+        floor = self._integration_floor(rows, here["w"])  # (StepTests')
+        return predicted > self.spec.ftol * here["sse"].abs() + floor
 
     def _used(self, rows) -> torch.Tensor:
         """The rows in use of samples ``rows``: the values present ``(S, R)``, and with a ``sigma(p)``

@@ -9,12 +9,20 @@ import torch
 from .engine_state import LoopState, _pick, not_above
 from .trajectory import DEFECT_TRUST
 
-__all__ = ["StepTests", "FLAT_DAMPING"]
+__all__ = ["StepTests", "FLAT_DAMPING", "predicted_decrease"]
 
 #: The most damping (relative to the largest squared singular value) of a step that may end a fit
 #: by :meth:`Engine._flat`'s test: larger damping shortens every step, and a short step's small
 #: predicted decrease says little about the minimum.
 FLAT_DAMPING = 1e-3
+
+
+def predicted_decrease(C: torch.Tensor, d: torch.Tensor, w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """The linear model's predicted decrease of the weighted sum of squares by steps ``alpha (S, m)``:
+    ``|w d|^2 - |w (d - C alpha)|^2``, ``(S,)``, for matrices ``C (S, L, m)``, misfits ``d`` and
+    weights ``w (S, L)``."""
+    left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
+    return ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
 
 
 class StepTests:
@@ -24,17 +32,15 @@ class StepTests:
         """Which accepted damped steps end their fits at a flat minimum (CONVERGED_SSE): as MINPACK's
         ``ftol`` test, both the merit's actual change and the linear model's predicted decrease
         ``|w d|^2 - |w (d - C alpha)|^2`` at most ``ftol`` relative, with damping at most
-        :data:`FLAT_DAMPING`. Undamped steps have :meth:`torchql.engine.Engine._converged`'s tests; this one serves a fit
-        whose Gauss–Newton steps along directions the data barely determine are too long to be
+        :data:`FLAT_DAMPING`. Undamped steps have :meth:`torchql.engine.Engine._converged`'s tests;
+        this one serves a fit whose Gauss–Newton steps along directions the data barely determine are too long to be
         accepted undamped, so that no undamped step ever comes to be tested."""
         spec, cur = self.spec, st.cur
         damping = st.damping[act]
         flat = accept & (damping > 0) & (damping <= FLAT_DAMPING)
         if not spec.damping.filters or spec.has_exact or not bool(flat.any()):
             return torch.zeros_like(accept)
-        C, d, w = _pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act)
-        left = d - (C @ alpha.unsqueeze(-1)).squeeze(-1)
-        predicted = ((d * w) ** 2).sum(dim=1) - ((left * w) ** 2).sum(dim=1)
+        predicted = predicted_decrease(_pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act), alpha)
         new = trial["merit"]
         tol = spec.ftol * new.abs()
         return flat & (predicted <= tol) & ((cur["merit"][act] - new).abs() <= tol)
@@ -43,7 +49,8 @@ class StepTests:
         """Which accepted steps damped more than :data:`FLAT_DAMPING` (those :meth:`_flat` does not
         judge) end their fits as ``STALLED``: the step's scaled size at most ``xtol``, or the merit
         (the model's own sum of squares where both are known: what accepted the step) lowered by at
-        most ``ftol`` of it or than the integration's error can tell (:meth:`_integration_error`),
+        most ``ftol`` of it or than the integration's error can tell (``2 sqrt(SSE)`` times the root of
+        :meth:`_integration_floor`: the sum of squares' own error, to first order),
         or raised within the acceptance's slack. Where the iteration's linear problems and the model
         disagree at the last digits (a measured input's step inside a stiff model's fast layer),
         the undamped steps are rejected and heavily damped ones creep; the final pass takes
@@ -56,18 +63,18 @@ class StepTests:
         model_new, model_old = trial["nl_sse"], st.cur["nl_sse"][act]
         known = torch.isfinite(model_new) & torch.isfinite(model_old)  # the model's own decided: it is the measure
         new, old = torch.where(known, model_new, new), torch.where(known, model_old, old)
-        floor = 2 * st.cur["sse"][act].abs().sqrt() * self._integration_error(act, st.cur["w"][act])
+        floor = 2 * st.cur["sse"][act].abs().sqrt() * self._integration_floor(act, st.cur["w"][act]).sqrt()
         small = (st.scaled <= self.spec.xtol) | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor))
         return damped & small
 
-    def _integration_error(self, rows, w) -> torch.Tensor:
-        """``|w (atol + rtol |y|)|`` over the values used of samples ``rows`` ``(R,)``: the size of the
-        weighted residuals' integration error; times ``2 sqrt(SSE)`` it bounds the sum of squares'
-        own, to first order (a decrease below it is the integration's noise, not progress)."""
+    def _integration_floor(self, rows, w) -> torch.Tensor:
+        """``sum (w (atol + rtol |y|))^2`` over the values used of samples ``rows``, weights ``w (R, L)``:
+        ``(R,)``, the squared size of the weighted residuals' integration error (used by
+        :meth:`_creeping` and by the final pass's :meth:`~torchql.engine_final.FinalPass._not_minimal`)."""
         spec = self.spec
         y, used = self.y[rows].reshape(rows.numel(), -1), self.mask[rows].reshape(rows.numel(), -1)
         scale = w[:, :y.shape[1]] * (spec.atol + spec.rtol * y.abs())
-        return torch.where(used, scale, torch.zeros_like(scale)).square().sum(dim=1).sqrt()
+        return torch.where(used, scale, torch.zeros_like(scale)).square().sum(dim=1)
 
     def _accepted(self, st: LoopState, act, trial, ok, capped) -> torch.Tensor:
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular

@@ -25,8 +25,9 @@ import math
 import torch
 
 __all__ = ["make_grid", "make_grids", "check_grid_times", "interval_counts", "last_nodes", "refine",
-           "needed_intervals", "auto_counts", "uniform_nodes", "nearest_nodes", "geometric_nodes", "coarse_index", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "smooth_intervals", "DEFAULT_INTERVALS", "MIN_INTERVALS", "NODES_PER_DECADE",
-           "EARLIEST", "SMOOTH_SAFETY", "SMOOTH_SAMPLES", "SMOOTH_RTOL"]
+           "needed_intervals", "auto_counts", "uniform_nodes", "nearest_nodes", "geometric_nodes", "coarse_index",
+           "smooth_intervals", "AUTO_PROBE", "AUTO_COUNTS", "AUTO_SAFETY", "DEFAULT_INTERVALS", "MIN_INTERVALS",
+           "NODES_PER_DECADE", "EARLIEST", "SMOOTH_SAFETY", "SMOOTH_SAMPLES", "SMOOTH_RTOL"]
 
 #: Uniform intervals of the default grid.
 DEFAULT_INTERVALS = 1000

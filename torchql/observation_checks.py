@@ -29,7 +29,8 @@ def fits(shape: tuple[int, ...], target: tuple[int, ...], shared: tuple[tuple[in
 
 
 def check_shapes(t: torch.Tensor, y: torch.Tensor) -> None:
-    """Shapes of the times and values: ``t (T,)`` with ``y (T, K)`` or ``(B, T, K)``, or ``t (B, T)`` with ``y (B, T, K)``."""
+    """Shapes of the times and values: ``t (T,)`` with ``y (T, K)`` or ``(B, T, K)``, or ``t (B, T)``
+    with ``y (B, T, K)``."""
     if t.dim() == 2 and y.dim() != BATCH_DIMS:
         raise ValueError("`t` must be one-dimensional, shape (T,), for one dataset; per-sample times (B, T) need "
                          f"values `y` of shape (B, T, K); received `t` of shape {tuple(t.shape)} and `y` of shape "
@@ -93,7 +94,8 @@ def exact_mask(exact, shape: tuple[int, ...], y: torch.Tensor) -> torch.Tensor:
     try:
         ex = torch.as_tensor(exact)
     except (TypeError, ValueError, RuntimeError) as exc:
-        raise TypeError(f"`exact` must be a boolean mask of shape (T,) or (T, K); received {type(exact).__name__}") from exc
+        raise TypeError(f"`exact` must be a boolean mask of shape (T,) or (T, K); received "
+                        f"{type(exact).__name__}") from exc
     if ex.dtype != torch.bool:
         raise TypeError(f"`exact` must be a boolean mask; received dtype {ex.dtype}")
     batched = len(shape) == BATCH_DIMS
