@@ -284,6 +284,22 @@ class Bounds:
         ``u``: the linearization then asked for a move beyond where it can be trusted."""
         return self.active and bool(self._capped(alpha_q, u).any())
 
+    def leaving(self, u: torch.Tensor, change: torch.Tensor, capped: torch.Tensor) -> torch.Tensor:
+        """Bool ``(S,)``: the samples some of whose unknowns at ``u (S, m)`` take a ``capped (S, m)``
+        step ``change (S, m)`` away from their nearer bound (or from the edge 0 of an open log
+        scale). The linearization asked to leave the bound by more than a factor 1000 in distance:
+        the data pull the unknown inside, however small its move in ``u`` (a guess one rounding
+        inside a bound climbs out by capped steps, each far below ``xtol``), so no such step is
+        converged. A capped step toward the bound is the approach to an estimate on it."""
+        return (capped & self.away(u, change)).any(dim=1)
+
+    def away(self, u: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
+        """Bool ``(S, m)``: the transformed unknowns at ``u (S, m)`` that ``direction (S, m)`` moves
+        away from their nearer bound (from the edge 0 of a log scale without a lower bound)."""
+        both = self.has_lower & self.has_upper
+        near_lo = torch.where(both, (u - self.lower) <= (self.upper - u), ~self.has_upper)
+        return self.transformed & torch.where(near_lo, direction > 0, direction < 0)
+
     def _capped(self, alpha_q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Transformed unknowns whose internal step exceeds its limit (NaN counts as capped)."""
         return self.transformed & ~(alpha_q.abs() <= self._limit(u))

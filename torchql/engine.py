@@ -27,6 +27,7 @@ from contextlib import contextmanager
 
 import torch
 
+from .active_set import bounded_update
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
@@ -166,35 +167,24 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
 
     def _solve(self, idx, cur, damping):
         """The damped updates of the samples ``idx``: ``alpha (S, m)``, the change of the unknowns,
-        ``capped (S,)``, whether a bounded unknown's step was capped (as ``torchql.fit``),
+        ``capped (S, m)``, the bounded unknowns whose step was capped,
         ``infeasible (S,)``, samples whose exact values cannot all be met, and ``nu (S,)``, their
         exact rows' largest multiplier (:meth:`_lstsq`).
 
         With bounds, solved for the internal variables (columns times ``du/dq``) and mapped back;
         the unknowns that the step pushes onto a bound or whose step is capped are held at their
-        move while the others are re-solved, as ``fit`` does.
+        move while the others are re-solved, and those held on a bound that the data pull inside are
+        let go (:func:`torchql.active_set.bounded_update`).
         """
         spec = self.spec
         C, d, w = _pick(cur["C"], idx), _pick(cur["d"], idx), _pick(cur["w"], idx)
         bounds = spec.bounds
         if not bounds.active:
             alpha, infeasible, nu = self._lstsq(idx, C, d, w, damping)
-            return alpha, torch.zeros_like(infeasible), infeasible, nu
+            return alpha, torch.zeros_like(alpha, dtype=torch.bool), infeasible, nu
         u = _pick(cur["z0"], idx)[:, spec.unknown_index]
-        Cq = bounds.internal_columns(C, u)
-        alpha_q, infeasible, nu = self._lstsq(idx, Cq, d, w, damping)
-        capped = bounds._capped(alpha_q, u).any(dim=1)
-        alpha, blocked = bounds.step(u, alpha_q)
-        rows = (blocked.any(dim=1) & ~infeasible).nonzero().flatten()
-        if rows.numel():  # moved onto their bounds (or capped) and held; the others re-solved
-            held = blocked[rows]
-            move = alpha[rows].masked_fill(~held, 0.0)
-            rhs = d[rows] - (C[rows] @ move.unsqueeze(-1)).squeeze(-1)
-            rest_q, stuck, _ = self._lstsq(idx[rows], Cq[rows].masked_fill(held.unsqueeze(1), 0.0), rhs, w[rows],
-                                           damping[rows])
-            rest, _ = bounds.step(u[rows], rest_q.masked_fill(held, 0.0))
-            alpha[rows] = torch.where(held, move, rest)
-            infeasible[rows] |= stuck
+        alpha, capped, infeasible, nu = bounded_update(
+            bounds, lambda rows, C_, d_, w_: self._lstsq(idx[rows], C_, d_, w_, damping[rows]), C, d, w, u)
         return alpha, capped, infeasible, nu
 
     def _model_merit(self, rows: torch.Tensor, cur: dict) -> torch.Tensor:
@@ -357,20 +347,22 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         samples whose exact rows cannot be met, or whose update is not finite, stop. Also their
         scaled sizes ``st.scaled``, recorded."""
         spec, cur = self.spec, st.cur
-        alpha, capped, infeasible, nu = self._solve(act, cur, st.damping[act])
+        alpha, capped_at, infeasible, nu = self._solve(act, cur, st.damping[act])
+        capped = capped_at.any(dim=1)
+        leaving = spec.bounds.leaving(_pick(cur["z0"], act)[:, spec.unknown_index], alpha, capped_at)
         if spec.has_exact:
             undamped = (st.damping[act] == 0) & ~infeasible
             self._weigh_exact(st, act[undamped], nu[undamped])
         if bool(infeasible.any()):
             self._stop_infeasible(st, act[infeasible])
-            act, alpha, capped = act[~infeasible], alpha[~infeasible], capped[~infeasible]
+            act, alpha, capped, leaving = act[~infeasible], alpha[~infeasible], capped[~infeasible], leaving[~infeasible]
         scaled = self._scaled(act, cur, alpha)
         bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
         if bool(bad.any()):
             st.stop(act[bad], Status.DIVERGED, " The update alpha became non-finite.")
-            act, alpha, scaled, capped = act[~bad], alpha[~bad], scaled[~bad], capped[~bad]
+            act, alpha, scaled, capped, leaving = act[~bad], alpha[~bad], scaled[~bad], capped[~bad], leaving[~bad]
         self._annotate(act, alpha=alpha, alpha_norm=scaled, damping=st.damping[act], rejected=st.rejected[act])
-        st.scaled = scaled
+        st.scaled, st.leaving = scaled, leaving
         return act, alpha, capped
 
     def _stop_infeasible(self, st: LoopState, rows: torch.Tensor) -> None:
@@ -411,6 +403,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         # an iterate whose transfers were integrated loosely (INEXACT_FACTOR) takes its step first
         tight = zero & (cur["rtol"][act] <= spec.rtol)
         sse = cur["sse"][act]
+        tight &= ~st.leaving  # a capped step out of a bound is far from converged, however small
         conv = tight & (scaled <= spec.xtol)
         conv_sse = (tight & ~conv & torch.isfinite(st.sse_prev[act]) & (sse != 0)
                     & ((sse - st.sse_prev[act]).abs() <= spec.ftol * sse.abs()) & (scaled <= math.sqrt(spec.xtol)))
@@ -430,7 +423,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
                 st.stop(act[conv], Status.CONVERGED)
             if bool(conv_sse.any()):
                 st.stop(act[conv_sse], Status.CONVERGED_SSE)
-        st.scaled = scaled[~done]
+        st.scaled, st.leaving = scaled[~done], st.leaving[~done]
         return act[~done], alpha[~done], capped[~done]
 
     def _take(self, st: LoopState, act, trial, accept) -> None:

@@ -30,6 +30,7 @@ import math
 
 import torch
 
+from .active_set import bounded_update
 from .bounds import at_bound_note, moved_guesses_note
 from .diagnosis import final_status, negligible_columns, null_detail, typical_magnitudes
 from .budget import no_time_budget
@@ -422,7 +423,8 @@ class FinalPass:
         estimates = z0[rows][:, spec.unknown_index]
         scales = self._typical(rows)
         stalled = torch.tensor([codes[r] is Status.STALLED for r in rows.tolist()], dtype=torch.bool, device=dev)
-        stationary = self._stationary_on_the_model(rows, step, estimates, torch.maximum(scales, magnitudes),
+        stationary = self._stationary_on_the_model(rows, self._bounded(J, rw, estimates, step), estimates,
+                                                   torch.maximum(scales, magnitudes),
                                                    stalled & ~deficient, codes, detail)
         sse_list = sse.tolist()
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
@@ -444,6 +446,22 @@ class FinalPass:
                 sse_start=first_sse[k], step=step[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
+
+    def _bounded(self, J, rw, estimates, step):
+        """The Gauss–Newton step ``step (S, m)`` on the model at ``estimates (S, m)`` (weighted
+        Jacobians ``J (S, R, m)``, residuals ``rw (S, R)``) as the bounds let it be taken
+        (:func:`torchql.active_set.bounded_update`): an estimate on a bound that the data pull
+        outside stays there. NaN where the data pull one inside from its bound."""
+        bounds = self.spec.bounds
+        if not bounds.active:
+            return step
+
+        def solve(rows, C, d, w):
+            alpha = solve_update_batch(C, d, w, self.spec.rcond, None)[0]
+            return alpha, torch.zeros_like(alpha[:, 0], dtype=torch.bool), torch.zeros_like(alpha[:, 0])
+
+        alpha, capped, _, _ = bounded_update(bounds, solve, J, rw, torch.ones_like(rw), estimates)
+        return alpha.masked_fill(bounds.leaving(estimates, alpha, capped).unsqueeze(-1), float("nan"))
 
     def _stationary_on_the_model(self, rows, step, estimates, scales, candidates, codes, detail) -> list[bool]:
         """Samples ``rows`` that stalled (``candidates (S,)``, with a Jacobian of full rank) whose

@@ -108,6 +108,8 @@ class LoopState:
         self.cur: dict = {}
         self.final_guess: torch.Tensor | None = None
         self.scaled: torch.Tensor | None = None
+        #: of the samples stepping, those whose step leaves a bound by a capped move (Bounds.leaving)
+        self.leaving: torch.Tensor | None = None
         #: samples stopped by a convergence test on an undamped step (their estimates may be polished)
         self.undamped_stop = torch.zeros(S, dtype=torch.bool, device=dev)
         #: those of them that stopped within the time budget (set when the iteration ends)
