@@ -495,9 +495,16 @@ class FinalPass:
 
     def _typical(self, rows) -> torch.Tensor:
         """The typical magnitudes ``(S, m)`` of the unknowns of samples ``rows``
-        (:func:`torchql.diagnosis.typical_magnitudes`)."""
+        (:func:`torchql.diagnosis.typical_magnitudes`). A coefficient guessed nonzero is measured
+        by its guess, also from a data-built start, whose matched coefficients may themselves
+        have run away (Michaelis–Menten matched to slopes of its linear regime: V and Km 1e8
+        times their guesses, as the model's fit from the guesses runs away too)."""
         idx = self.spec.unknown_index
-        return typical_magnitudes(self.z0_guess[rows][:, idx], None if self.scale is None else self.scale[rows])
+        guess = self.z0_guess[rows][:, idx]
+        first = None if self.scale is None else self.scale[rows]
+        if first is not None and self.start == "data":
+            first = torch.where((idx >= self.system.n) & (guess != 0), guess.abs(), first)
+        return typical_magnitudes(guess, first)
 
     def _without_negligible(self, rows, z0, *jacobians):
         """The weighted Jacobians ``(S, R, m)`` of samples ``rows`` at the estimates ``z0`` with
