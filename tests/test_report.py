@@ -284,3 +284,20 @@ def test_iteration_sse_is_the_stored_trajectory_and_acceptance_lowers_a_recorded
     for a, b in zip(steps, steps[1:]):  # the acceptance test, as recorded
         assert b.merit <= a.merit * (1 + 1e-10) or b.model_merit <= a.model_merit * (1 + 1e-10)
     assert "not the model's solution: it need not fall" in result.report()
+
+
+def test_iteration_table_of_several_experiments_shows_each_experiments_initial_state():
+    """A fit of two experiments names its initial states ``"y[e](t0)"``: the iteration table showed
+    NaN for them in every row (only ``"y(t0)"`` was looked up); it shows each iterate's values."""
+    from testmodels import Decay
+    from torchql.report import unknown_values
+
+    t = torch.linspace(0, 3, 10, dtype=torch.float64)
+    experiments = [torchql.Observations(t, torchql.simulate(Decay(0.7), torch.tensor([y0], dtype=torch.float64), t),
+                                        observe=["y"]) for y0 in (2.0, 1.0)]
+    result = torchql.fit(Decay(0.3), experiments, x0=torch.tensor([[1.5], [0.5]], dtype=torch.float64))
+    assert result.success and result.unknown_names == ["y[0](t0)", "y[1](t0)", "k"]
+    assert unknown_values(result, result.history[0])[:2] == [1.5, 0.5]
+    assert unknown_values(result, result.history[-1]) == pytest.approx(result.estimates.tolist(), rel=1e-12)
+    table = result.report().split("[[Iterations]]")[1]
+    assert "nan" not in table

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .model import _element_names
+from .multi import experiment_state_name
 from .status import Status
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -79,8 +80,11 @@ def information_criteria(result: "FitResult") -> tuple[float, float]:
 
 
 def unknown_values(result: "FitResult", record: "IterationRecord") -> list[float]:
-    """The unknowns of one iterate, in ``result.unknown_names`` order."""
+    """The unknowns of one iterate, in ``result.unknown_names`` order. With several experiments the
+    iterate's ``x0`` holds every experiment's initial state in turn, named ``"y[e](t0)"``."""
     states = list(result.model.state_names)
+    if record.x0.numel() > len(states):  # several experiments, stacked
+        states = [experiment_state_name(s, e) for e in range(record.x0.numel() // len(states)) for s in states]
     elements = {}
     for name, value in record.params.items():
         flat = value.reshape(-1)
@@ -91,7 +95,7 @@ def unknown_values(result: "FitResult", record: "IterationRecord") -> list[float
         if name in elements:
             out.append(float(elements[name]))
         elif name.endswith("(t0)") and name[:-4] in states:
-            out.append(float(record.x0[states.index(name[:-4])]))
+            out.append(float(record.x0.reshape(-1)[states.index(name[:-4])]))
         else:  # pragma: no cover - every unknown is a state or a coefficient element
             out.append(math.nan)
     return out
