@@ -197,6 +197,22 @@ RAISES = [
     ("unknown name in params of a model with a Parameter",
      lambda: torchql.fit(ParameterDecay(), data(), X0, params=["kk"]), ValueError,
      r"`params` names unknown buffer 'kk'; .* float parameters \('k',\)"),
+    ("multistart: unknown name in params", lambda: torchql.multistart(Decay(0.3), data(), X0, params=["q"], starts=2),
+     ValueError, r"`params` names unknown buffer 'q'; the model's float buffers are \('k',\)"),
+    ("multistart: seed as a string", lambda: torchql.multistart(Decay(0.3), data(), X0, seed="a", starts=2),
+     ValueError, r"`seed` must be a non-negative integer; received 'a'"),
+    ("multistart: negative x_rtol", lambda: torchql.multistart(Decay(0.3), data(), X0, x_rtol=-1.0, starts=2),
+     ValueError, r"`x_rtol` must be a non-negative finite number; received -1.0"),
+    ("multistart: x0 of the wrong shape",
+     lambda: torchql.multistart(Decay(0.3), data(), torch.zeros(3, dtype=DT), starts=2), ValueError,
+     r"`x0` must have shape \(n_states,\) = \(1,\); received shape \(3,\)"),
+    ("several experiments: the stacking's buffer in params",
+     lambda: torchql.fit(Decay(0.3), [data(), data()], torch.stack([X0, X0]), params=["k", "_span"]), ValueError,
+     r"`params` names unknown buffer '_span'; the model's float buffers are \('k',\)$"),
+    ("fit_many of several experiments: per-sample x0 of the wrong number of experiments",
+     lambda: torchql.fit_many(Decay(0.3), [[data(), data()]] * 2, torch.ones(2, 3, 1, dtype=DT)), ValueError,
+     r"`x0` must have shape \(E, n_states\) \(shared\) or \(B, E, n_states\) with B = 2 samples of E = 2 "
+     r"experiments and n_states = 1; received shape \(2, 3, 1\)"),
 ]
 
 

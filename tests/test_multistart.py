@@ -195,3 +195,4 @@ def test_with_estimated_sigma_the_likelihood_ranks_the_optima():
     assert float(ms.best.params["B"]) == pytest.approx(3.0, rel=0.01)
     assert [opt.nll for opt in ms.optima] == sorted(opt.nll for opt in ms.optima)
     assert "NLL" in ms.summary().splitlines()[1]
+    assert f"best_nll={ms.best.nll:.6g})" in repr(ms)  # (its sse is the number of values, 40)

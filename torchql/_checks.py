@@ -140,7 +140,8 @@ def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> l
 def coefficients_text(model) -> str:
     """What an error about an unknown coefficient name lists: the model's float buffers, and its
     float parameters when it has any."""
-    buffers = tuple(name for name, b in model.named_buffers() if b.is_floating_point())
+    internal = getattr(model, "internal_buffers", ())
+    buffers = tuple(name for name, b in model.named_buffers() if b.is_floating_point() and name not in internal)
     parameters = tuple(name for name, p in model.named_parameters() if p.is_floating_point())
     return f"the model's float buffers are {buffers}" + (f" and its float parameters {parameters}" if parameters else "")
 

@@ -389,10 +389,11 @@ def experiments_per_sample(data) -> bool:
     return isinstance(data, (list, tuple)) and bool(data) and all(isinstance(d, (list, tuple)) for d in data)
 
 
-def check_experiment_samples(data, x0) -> tuple[int, bool]:
+def check_experiment_samples(data, x0, n: int | None = None) -> tuple[int, bool]:
     """``(B, per_sample)`` of ``fit_many``'s samples of several experiments: each a list of ``E``
     Observations, experiment ``e`` at the same times (and with the same inputs) in every sample;
-    ``x0`` ``None``, shared ``(E, n)`` or per sample ``(B, E, n)`` (``per_sample``)."""
+    ``x0`` ``None``, shared ``(E, n)`` or per sample ``(B, E, n)`` (``per_sample``; ``n``, the
+    model's number of states, checked where given)."""
     B, E = len(data), len(data[0])
     for b, sample in enumerate(data):
         if len(sample) != E:
@@ -411,9 +412,10 @@ def check_experiment_samples(data, x0) -> tuple[int, bool]:
                                  "per sample, each experiment's inputs must be the same in every sample")
     shape = None if x0 is None else tuple(torch.as_tensor(x0).shape)
     per_sample = shape is not None and len(shape) == 3
-    if per_sample and shape[0] != B:
-        raise ValueError(f"`x0` must have shape (E, n_states) (shared) or (B, E, n_states) with B = {B}; received "
-                         f"shape {shape}")
+    if per_sample and (shape[0] != B or shape[1] != E or n is not None and shape[2] != n):
+        states = "n_states" if n is None else f"n_states = {n}"
+        raise ValueError(f"`x0` must have shape (E, n_states) (shared) or (B, E, n_states) with B = {B} samples of "
+                         f"E = {E} experiments and {states}; received shape {shape}")
     return B, per_sample
 
 
@@ -421,7 +423,7 @@ def _fit_experiment_samples(model, data, x0, *, params, guesses, fixed_x0, t0, b
                             conditions, **options) -> BatchFitResult:
     """``fit_many`` over samples of several experiments each: every sample's experiments stacked as
     :func:`torchql.fit` stacks them (:func:`torchql.multi.stack_experiments`), one batched problem."""
-    B, per_sample = check_experiment_samples(data, x0)
+    B, per_sample = check_experiment_samples(data, x0, len(model.state_names))
     st = stack_experiments(model, list(data[0]), x0[0] if per_sample else x0, t0=t0, fixed_x0=fixed_x0,
                            bounds=bounds, scale=scale, x0_expr=x0_expr, grid=grid, conditions=conditions)
     names = list(model.state_names)

@@ -92,6 +92,10 @@ class StackedModel(ODEModel):
         value from ``conditions[e][k]``, a constant tensor or the name of another coefficient.
     """
 
+    #: the stacking's own buffers (each experiment's initial time and span), none of the user's
+    #: coefficients: no argument names them, and errors do not list them
+    internal_buffers = ("_t0", "_span")
+
     def __init__(self, model: ODEModel, t0: torch.Tensor, span: torch.Tensor, inputs: list | None = None,
                  conditions: list | None = None) -> None:
         super().__init__()
@@ -108,7 +112,7 @@ class StackedModel(ODEModel):
         self.E = int(t0.shape[0])
         self.n = len(model.state_names)
         self.state_names = [experiment_state_name(s, e) for e in range(self.E) for s in model.state_names]
-        self.constants = tuple(getattr(model, "constants", ())) + ("_t0", "_span")
+        self.constants = tuple(getattr(model, "constants", ())) + self.internal_buffers
         self.register_buffer("_t0", t0.clone(), persistent=False)
         self.register_buffer("_span", span.clone(), persistent=False)
         self._signals = inputs

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import torch
 
 from . import _checks
+from ._arrays import float_tensor
 from .batch import fit_many
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
@@ -125,7 +126,8 @@ class MultiStartResult:
 
     def __repr__(self) -> str:
         return (f"MultiStartResult(starts={len(self.results)}, converged={self.n_converged}, "
-                f"optima={len(self.optima)}, best_sse={self.best.sse:.6g})")
+                f"optima={len(self.optima)}, " + (f"best_nll={self.best.nll:.6g})" if self.best.likelihood
+                                                  else f"best_sse={self.best.sse:.6g})"))
 
 
 def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, bounds: dict | None = None,
@@ -181,6 +183,10 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     spread = _checks.positive_number("spread", spread)
     if spread < 1:
         raise ValueError(f"`spread` must be >= 1 (a factor around the guesses); received {spread:g}")
+    seed = _checks.positive_int("seed", seed, minimum=0)
+    for name, value in (("x_rtol", x_rtol), ("x_atol", x_atol)):
+        if _checks.finite_number(name, value) < 0:
+            raise ValueError(f"`{name}` must be a non-negative finite number; received {value!r}")
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable as callback(k, result); received {callback!r}")
     unknown = sorted(set(fit_kwargs) - _FIT_KEYWORDS)
@@ -202,10 +208,17 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         fit_kwargs.update({key: spec[key] for key in ("fixed_x0", "scale", "x0_expr") if spec[key] is not None})
     if params is None:
         params = [name for name in coefficient_names(model) if name not in tuple(model.constants)]
+    params = _checks.distinct_names("params", params, coefficient_names(model), "buffer",
+                                    _checks.coefficients_text(model))
+    if isinstance(data, Observations) and x0 is not None:  # (a batch of starts must not show in its shape)
+        n = len(model.state_names)
+        shape = tuple(float_tensor(x0, "x0", *model_dtype_device(model), expected=f"a tensor of shape ({n},)").shape)
+        if shape != (n,):
+            raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {shape}")
     system = AugmentedSystem(model, list(params), *model_dtype_device(model))
     center = system.pack_params()
     lower, upper = _element_bounds(bounds, system)
-    gen = torch.Generator().manual_seed(int(seed))
+    gen = torch.Generator().manual_seed(seed)
     guesses = torch.stack([_draw(center, lower, upper, spread, gen) for _ in range(starts)])
     if include_guess:
         guesses[0] = center

@@ -160,7 +160,7 @@ class Problem:
         coefficients given per sample (``guesses``); returns the per-sample names and their values
         ``(B, P)`` (the guesses of the estimated ones first)."""
         B, dtype, device = self.B, self.dtype, self.device
-        available = coefficient_names(model)
+        available = [name for name in coefficient_names(model) if name not in getattr(model, "internal_buffers", ())]
         if params is None:
             params = [name for name in available if name not in tuple(model.constants)]
         else:
