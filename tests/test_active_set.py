@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import torchql
-from testmodels import Decay
+from testmodels import Decay, LotkaVolterra, MichaelisMenten
 from torchql.active_set import bounded_update
 from torchql.bounds import Bounds
 from torchql.lstsq import solve_update_batch
@@ -24,35 +24,6 @@ scipy_optimize = pytest.importorskip("scipy.optimize")
 solve_ivp = pytest.importorskip("scipy.integrate").solve_ivp
 
 DT = torch.float64
-
-
-class LotkaVolterra(torchql.ODEModel):
-    """``x' = a x - b x y``, ``y' = -c y + d x y``."""
-
-    state_names = ("x", "y")
-
-    def __init__(self, a=1.0, b=0.5, c=1.0, d=0.3):
-        super().__init__()
-        for name, value in zip("abcd", (a, b, c, d)):
-            self.register_buffer(name, torch.tensor(value, dtype=DT))
-
-    def forward(self, t, z):
-        x, y = z.unbind(-1)
-        return torch.stack((self.a * x - self.b * x * y, -self.c * y + self.d * x * y), dim=-1)
-
-
-class MichaelisMenten(torchql.ODEModel):
-    """``S' = -V S / (Km + S)``."""
-
-    state_names = ("S",)
-
-    def __init__(self, V=1.0, Km=2.0):
-        super().__init__()
-        self.register_buffer("V", torch.tensor(V, dtype=DT))
-        self.register_buffer("Km", torch.tensor(Km, dtype=DT))
-
-    def forward(self, t, x):
-        return -self.V * x / (self.Km + x)
 
 
 def _solve(rows, C, d, w):
@@ -144,7 +115,7 @@ def test_an_optimum_on_two_bounds_is_converged_with_its_standard_errors():
     (scipy's active mask): the estimates equal scipy's, and the fit, STALLED with NaN standard
     errors before, is CONVERGED with finite ones and names both unknowns at their bounds."""
     t = torch.linspace(0, 6, 25, dtype=DT)
-    x = torchql.simulate(MichaelisMenten(), torch.tensor([5.0], dtype=DT), t)
+    x = torchql.simulate(MichaelisMenten(1.0, 2.0), torch.tensor([5.0], dtype=DT), t)
     data = torchql.Observations(t, x + 0.02 * torch.randn(x.shape, dtype=DT, generator=torch.Generator().manual_seed(3)),
                                 observe=["S"])
     ref, sse = _scipy_bounded(lambda _, s, p: [-p[0] * s[0] / (p[1] + s[0])], t.numpy(), data.y.numpy(),

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import torchql
+from testmodels import MichaelisMenten
 from torchql.data_start import MIN_POINTS, first_reference
 from torchql.models import CoastingCar, LinearOscillator, NonlinearOscillator
 
@@ -234,20 +235,6 @@ def test_of_two_failed_fits_with_estimated_sigmas_the_lower_objective_is_kept():
     assert chunk["z0"].eq(2).all() and float(chunk["sse_end"][0]) == -70.0
 
 
-class _MichaelisMenten(torchql.ODEModel):
-    """``s' = -V s / (Km + s)``."""
-
-    state_names = ("s",)
-
-    def __init__(self, V=1.0, Km=2.0):
-        super().__init__()
-        self.register_buffer("V", torch.tensor(V, dtype=torch.float64))
-        self.register_buffer("Km", torch.tensor(Km, dtype=torch.float64))
-
-    def forward(self, t, x):
-        return -self.V * x / (self.Km + x)
-
-
 def test_coefficients_matched_far_beyond_their_guesses_are_measured_by_the_guesses():
     """Michaelis–Menten in its linear regime (s << Km): the slopes matched from the data put V and Km
     1e8 times their guesses (only V / Km shows), and the fit from there, and from the integrated
@@ -255,9 +242,9 @@ def test_coefficients_matched_far_beyond_their_guesses_are_measured_by_the_guess
     unknowns' typical magnitudes; measured by the guesses, as the fit from the integrated guesses is,
     they ran away: DIVERGED, naming V and Km, as the README describes."""
     t = torch.linspace(0, 5, 15, dtype=torch.float64)
-    y = torchql.simulate(_MichaelisMenten(2.0, 5.0), torch.tensor([0.1], dtype=torch.float64), t)
+    y = torchql.simulate(MichaelisMenten(2.0, 5.0), torch.tensor([0.1], dtype=torch.float64), t)
     y = y + 0.002 * torch.tensor(np.random.default_rng(5).standard_normal(y.shape))
-    result = torchql.fit(_MichaelisMenten(1.0, 0.5), torchql.Observations(t, y, observe=["s"]),
+    result = torchql.fit(MichaelisMenten(1.0, 0.5), torchql.Observations(t, y, observe=["S"]),
                          torch.tensor([0.1], dtype=torch.float64))
     assert float(result.history[0].params["V"]) > 1e6  # the matched start ran away already
     assert result.status is torchql.Status.DIVERGED, result.message

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import torchql
+from testmodels import MichaelisMenten
 from torchql.diagnosis import (RUNAWAY_FACTOR, SSE_GROWTH, WEAK_RUNAWAY_FACTOR, final_status, negligible_columns,
                                null_detail, ran_away)
 from torchql.status import Status
@@ -74,20 +75,6 @@ def test_unconverged(status):
                                     Status.MAX_TIME])
 def test_other_statuses_stand(status):
     assert rules(status, deficient=True, growth=STRONG, sse=1e9) == (status, "")
-
-
-class MichaelisMenten(torchql.ODEModel):
-    """``S' = -V S / (Km + S)``: identifiable from its full decay, linear (``-(V/Km) S``) as ``Km -> inf``."""
-
-    state_names = ("S",)
-
-    def __init__(self, V=1.0, Km=0.5):
-        super().__init__()
-        self.register_buffer("V", torch.tensor(V, dtype=DT))
-        self.register_buffer("Km", torch.tensor(Km, dtype=DT))
-
-    def forward(self, t, x):
-        return -self.V * x / (self.Km + x)
 
 
 T = torch.linspace(0, 10, 21, dtype=DT)

@@ -14,6 +14,7 @@ import torch
 
 import torchql
 import torchql.engine_final as engine_final
+from testmodels import LotkaVolterra
 from torchql.models import NonlinearOscillator
 from torchql.options import Tolerances
 
@@ -132,21 +133,6 @@ def test_where_the_storage_misses_the_model_shooting_on_either_storage_reaches_t
         assert float(((result.estimates - optimum.estimates) / se).abs().max()) < 1e-4
 
 
-class _LotkaVolterra(torchql.ODEModel):
-    """Prey ``x`` and predators ``y``: ``x' = a x - b x y``, ``y' = -c y + d x y``."""
-
-    state_names = ("x", "y")
-
-    def __init__(self, a: float, b: float, c: float, d: float) -> None:
-        super().__init__()
-        for name, value in dict(a=a, b=b, c=c, d=d).items():
-            self.register_buffer(name, torch.tensor(value, dtype=DT))
-
-    def forward(self, t, z):
-        x, y = z.unbind(-1)
-        return torch.stack((self.a * x - self.b * x * y, -self.c * y + self.d * x * y), dim=-1)
-
-
 def test_a_fit_that_wanders_along_an_exactly_undetermined_direction_says_so():
     """Predators alone observed: ``(x(t0), d) -> (s x(t0), d / s)`` leaves them unchanged, exactly.
     The storage grid's sensitivities measure that direction's singular value at 1.8e-7 of the
@@ -154,9 +140,9 @@ def test_a_fit_that_wanders_along_an_exactly_undetermined_direction_says_so():
     until ``max_iter``. A fit that does not converge is tested at the sensitivities' accuracy
     (``sqrt(rtol)``): NOT_IDENTIFIABLE, naming the pair, the product ``x(t0) d`` at the truth's."""
     t = torch.linspace(0.0, 8.0, 40, dtype=DT)
-    y = torchql.simulate(_LotkaVolterra(1.0, 0.4, 1.2, 0.3), torch.tensor([2.0, 1.0], dtype=DT), t,
+    y = torchql.simulate(LotkaVolterra(1.0, 0.4, 1.2, 0.3), torch.tensor([2.0, 1.0], dtype=DT), t,
                          rtol=1e-12, atol=1e-14)[:, 1:]
-    result = torchql.fit(_LotkaVolterra(0.8, 0.5, 1.0, 0.25), torchql.Observations(t, y, observe=["y"]),
+    result = torchql.fit(LotkaVolterra(0.8, 0.5, 1.0, 0.25), torchql.Observations(t, y, observe=["y"]),
                          x0=torch.tensor([1.5, 1.0], dtype=DT), max_iter=15)
     assert result.status is torchql.Status.NOT_IDENTIFIABLE, result.message
     assert "{x(t0), d}" in result.message and "(MAX_ITER)" in result.message

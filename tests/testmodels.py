@@ -67,3 +67,32 @@ def relaxation_solution(t, x0, k):
     """``x(t) = (x0 - x_p(0)) e^{-k t} + x_p(t)``, ``x_p = k (k cos t + sin t) / (k^2 + 1)``."""
     particular = k * (k * torch.cos(t) + torch.sin(t)) / (k**2 + 1)
     return (x0 - k**2 / (k**2 + 1)) * torch.exp(-k * t) + particular
+
+
+class MichaelisMenten(torchql.ODEModel):
+    """``S' = -V S / (Km + S)``: identifiable from its full decay, linear (``-(V/Km) S``) as ``Km -> inf``."""
+
+    state_names = ("S",)
+
+    def __init__(self, V=1.0, Km=0.5):
+        super().__init__()
+        self.register_buffer("V", torch.tensor(V, dtype=torch.float64))
+        self.register_buffer("Km", torch.tensor(Km, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return -self.V * x / (self.Km + x)
+
+
+class LotkaVolterra(torchql.ODEModel):
+    """Prey ``x`` and predators ``y``: ``x' = a x - b x y``, ``y' = -c y + d x y``."""
+
+    state_names = ("x", "y")
+
+    def __init__(self, a=1.0, b=0.5, c=1.0, d=0.3):
+        super().__init__()
+        for name, value in dict(a=a, b=b, c=c, d=d).items():
+            self.register_buffer(name, torch.tensor(value, dtype=torch.float64))
+
+    def forward(self, t, z):
+        x, y = z.unbind(-1)
+        return torch.stack((self.a * x - self.b * x * y, -self.c * y + self.d * x * y), dim=-1)
