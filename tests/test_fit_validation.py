@@ -118,6 +118,27 @@ def test_observe_callable_wrong_output_shape():
         torchql.fit(Decay(), data, torch.tensor([2.0]))
 
 
+def test_observe_callable_of_one_output_may_return_a_scalar():
+    """With one output, ``h(x, p) = p["scale"] * x[1] + p["offset"]`` (the README's example, a
+    scalar) is that output: a two-state oscillator's velocity measured with a gain and an offset
+    gives back the truth (the scalar was refused: the callable had to return shape (1,))."""
+
+    class Measured(LinearOscillator):
+        def __init__(self, A=0.1, B=3.0, scale=1.0, offset=0.0):
+            super().__init__(A, B)
+            self.register_buffer("scale", torch.tensor(scale, dtype=torch.float64))
+            self.register_buffer("offset", torch.tensor(offset, dtype=torch.float64))
+
+    t = torch.linspace(0, 6.5, 14, dtype=torch.float64)
+    x = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=torch.float64), t)
+    data = torchql.Observations(t, 2.0 * x[:, 1:2] + 0.3, observe=lambda x, p: p["scale"] * x[1] + p["offset"])
+    result = torchql.fit(Measured(0.5, 1.0, 1.5, 0.0), data, torch.tensor([0.0, 1.0], dtype=torch.float64),
+                         fixed_x0=["y", "v"])
+    assert result.success, result.message
+    for name, truth in dict(A=0.1, B=3.0, scale=2.0, offset=0.3).items():
+        assert float(result.params[name]) == pytest.approx(truth, rel=1e-7, abs=1e-9)
+
+
 @pytest.mark.parametrize("x0", [torch.tensor([1.0, 0.0]), torch.tensor(1.0), torch.ones(1, 1)])
 def test_x0_wrong_shape(x0):
     with pytest.raises(ValueError, match=r"`x0` must have shape \(n_states,\) = \(1,\)"):

@@ -45,7 +45,8 @@ class Observations:
     observe : sequence of str, Tensor of shape ``(K, n_states)``, or callable
         What each of the ``K`` columns of ``y`` measures: state names; a matrix ``Q`` so that
         ``y = Q x``; or a differentiable function ``h(x) -> (..., K)`` of the state
-        ``x (..., n_states)``, linearized like the right-hand side; or ``h(x, p)``, which also reads
+        ``x (..., n_states)``, linearized like the right-hand side (with one output, ``K == 1``, it
+        may return a scalar); or ``h(x, p)``, which also reads
         the model's coefficients ``p`` by name (``p["scale"] * x[1] + p["offset"]``): observation
         parameters are coefficients of the model (buffers its ``forward`` need not use), estimated
         with the rest. The same for every sample.
@@ -328,6 +329,14 @@ def _check_inputs(inputs, B: int | None) -> Inputs | tuple[Inputs, ...] | None:
     raise TypeError(f"`inputs` must be {expected}; received {type(inputs).__name__}")
 
 
+def _one_output(observe):
+    """``observe`` for one output (``K == 1``): a scalar it returns (``p["s"] * x[1]``) becomes shape ``(1,)``."""
+    def h(*args):
+        out = observe(*args)
+        return out.unsqueeze(0) if isinstance(out, torch.Tensor) and out.dim() == 0 else out
+    return h
+
+
 def takes_params(observe) -> bool:
     """Whether a callable ``observe`` is ``h(x, p)``, taking the coefficients as well as the state (two
     positional parameters, or a ``takes_params`` attribute saying so)."""
@@ -384,8 +393,8 @@ class ObservationOperator:
                 raise ValueError("`observe` matrix must be finite")
             self.matrix = Q
         elif callable(observe):
-            self.function = observe
             self.takes_params = takes_params(observe)
+            self.function = _one_output(observe) if K == 1 else observe
         else:
             Q = torch.zeros(K, n, dtype=dtype, device=device)
             for k, name in enumerate(observe):
@@ -438,7 +447,9 @@ class ObservationOperator:
                              f"{type(exc).__name__}: {exc}") from exc
         if not isinstance(out, torch.Tensor) or out.shape != (self.K,):
             shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-            raise ValueError(f"`observe` callable must return shape (K,) = ({self.K},) for x of shape ({self.n},); received {shape}")
+            one = " (or a scalar)" if self.K == 1 else ""
+            raise ValueError(f"`observe` callable must return shape (K,) = ({self.K},){one} for x of shape ({self.n},); "
+                             f"received {shape}")
         if out.dtype != x.dtype:
             raise TypeError(f"`observe` callable must return dtype {x.dtype}; received {out.dtype}")
 
