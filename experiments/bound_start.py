@@ -22,7 +22,7 @@ Problems (float64):
 Columns: start, the guesses' distance from the bound (``on`` = on it, moved by the fit), method,
 status, iterations, the largest relative error of the estimates against the truth, SSE.
 
-Run (from the repository root; a few minutes, prints only, writes nothing)::
+Run (from the repository root; about 10 s, prints only, writes nothing)::
 
     PYTHONPATH=. python experiments/bound_start.py
 """

@@ -2,7 +2,7 @@
 Boehm_JProteomeRes2014, from its nominal parameters (the published best fit), and from starts perturbed
 by a factor 1.2 up or down (random signs, i.e. +-20 % on the log scale) in every one of its estimated
 parameters (13, 22 and 9).
-Prints and writes ``experiments/output/petab_fit.md`` (Bruno with the defaults; otherwise a name with
+Prints and writes ``experiments/output/petab_fit.md`` (``--out`` another folder; Bruno with the defaults; otherwise a name with
 the problem and options): status, iterations, the negative log-likelihood against the reference, the
 largest relative difference of the estimates from the nominal fit's, and the time.
 
@@ -57,6 +57,8 @@ def main() -> None:
                              "Bruno, log10 for Fiedler)")
     parser.add_argument("--max-time", type=float, default=None, help="wall-clock budget of each fit, s (default none)")
     parser.add_argument("--max-iter", type=int, default=None, help="iterations of each fit (default torchql's)")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output",
+                        help="folder of the table (default experiments/output)")
     args = parser.parse_args()
     name, fit, default_scale = FITS[args.problem]
     scale = args.scale or default_scale
@@ -96,7 +98,8 @@ def main() -> None:
               f"Unknowns iterated on the {scale} scale. Command: `python experiments/petab_fit.py{flags}`"]
     prefix = "petab_fit" if args.problem == "Bruno" else f"petab_fit_{args.problem.lower()}"
     out_name = "petab_fit.md" if not flags else f"{prefix}_{scale}_{label}.md"
-    out = Path(__file__).resolve().parent / "output" / out_name
+    args.out.mkdir(parents=True, exist_ok=True)
+    out = args.out / out_name
     out.write_text("\n".join(lines) + "\n")
     print(lines[-3])
     print(f"wrote {out}")
