@@ -31,7 +31,7 @@ from .damping import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_STAR
 from .smoothing import interpolate, interpolate_each, smooth, smooth_each
 from .status import Status
 
-__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "keep_the_better_fit",
+__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "sse_at_guesses", "keep_the_better_fit",
            "slopes", "MIN_POINTS", "FALLBACK_STATUSES"]
 
 #: Accepted Gauss–Newton steps of the gradient matching that gives the first coefficients.
@@ -108,6 +108,21 @@ def derivation_uses_unknowns(system, measured: list[int], unknown_index: torch.T
 #: nor a success.
 FALLBACK_STATUSES = (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.STALLED, Status.NOT_IDENTIFIABLE)
 
+#: A fit from the data that succeeded above the model's sum of squares at the guesses by more than
+#: this fraction of its own is fitted again from the integrated guesses (:func:`fallback_rows`;
+#: the guesses' is integrated loosely).
+GUESSES_MARGIN = 1e-3
+
+#: A data-started fit whose weighted residuals' lag-one autocorrelation (neighbours in time, each
+#: output's) exceeds this in magnitude, and three times white noise's (``1 / sqrt(L)`` of ``L``
+#: values), misfits the data systematically; with a sum of squares above :data:`MISFIT_FLOOR`
+#: times the integration's own error, its sum of squares is compared with the model's at the
+#: guesses (:func:`sse_at_guesses`).
+MISFIT_CORRELATION = 0.5
+MISFIT_FLOOR = 100.0
+#: ... and so is one that took at least this many iterations.
+LONG_PATH = 10
+
 #: What :func:`keep_the_better_fit` appends to a message, by the second first reference: where its
 #: fit won (before and after the first fit's end), and where it did not (before its own end).
 _WON = {"integrate": (" From the first reference built from the data the fit ended ",
@@ -117,20 +132,67 @@ _LOST = {"integrate": " Integrated from the guesses instead of starting from the
          "data": " From a first reference built from the data instead, the fit ended "}
 
 
-def fallback_rows(statuses: list) -> list[int]:
-    """The rows of a chunk's ``statuses`` to fit again from the other first reference
-    (:data:`FALLBACK_STATUSES`)."""
-    return [k for k, code in enumerate(statuses) if code in FALLBACK_STATUSES]
+def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int]]:
+    """The rows of an engine's ``chunk`` to fit again from the other first reference ``fallback``
+    (None: none): those that ended in :data:`FALLBACK_STATUSES`, and those whose fit from the data
+    succeeded above the model's own sum of squares at the guesses (``chunk["sse_guesses"]``, by
+    more than :data:`GUESSES_MARGIN` of it: the data's reference led it to a worse optimum than
+    where the guesses lay). Returns ``(rows, above)``, ``above`` the latter."""
+    if not fallback:
+        return [], set()
+    failed = {k for k, code in enumerate(chunk["status"]) if code in FALLBACK_STATUSES}
+    at_guesses = chunk.get("sse_guesses")
+    above = set() if at_guesses is None else set(
+        (at_guesses < (1 - GUESSES_MARGIN) * chunk["sse_end"]).nonzero().flatten().tolist())
+    return sorted(failed | above), above
 
 
-def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start: str = "integrate") -> None:
+def sse_at_guesses(engine, codes: list, sse: torch.Tensor, residuals: torch.Tensor,
+                   iterations: torch.Tensor) -> torch.Tensor:
+    """The model's own sums of squares ``(S,)`` at the guesses (integrated loosely) of the
+    ``engine``'s samples whose fit from a data-built first reference succeeded with a systematic misfit (weighted
+    residuals ``residuals (S, T K)`` whose neighbours in time correlate, :data:`MISFIT_CORRELATION`,
+    above the integration's error) or after a long path (``iterations (S,)`` at least
+    :data:`LONG_PATH`: the matched start lay far from where it ended), where ``"auto"`` may fit
+    them again from the integrated guesses; NaN elsewhere. (Integrating every fit's guesses cost
+    a quarter of a small fit's time.) A fit that ends above it ended worse than where it could have
+    started: the data's reference misled it (a spline across a gap of several periods of an
+    oscillation, or through an oscillation sampled below its frequency), and
+    its fallback (:func:`fallback_rows`) fits it again from the integrated guesses."""
+    spec = engine.spec
+    out = torch.full_like(sse, float("nan"))
+    if engine.start != "data" or spec.start_fallback != "integrate" or spec.sigma_function is not None:
+        return out
+    S = sse.shape[0]
+    success = torch.tensor([c.success for c in codes], dtype=torch.bool, device=sse.device)
+    e = residuals.nan_to_num(0.0).reshape(engine.y.shape)  # (S, T, K), zero where missing
+    lag = (e[:, 1:] * e[:, :-1]).sum(dim=(1, 2)) / e.square().sum(dim=(1, 2)).clamp_min(torch.finfo(e.dtype).tiny)
+    floor = engine._integration_floor(torch.arange(S, device=sse.device), engine.w.reshape(S, -1))
+    white = 3 / engine.L.to(lag.dtype).clamp_min(1).sqrt()  # three standard deviations of white noise's
+    correlated = lag.abs() > torch.clamp(white, min=MISFIT_CORRELATION)
+    suspect = (correlated & (sse > MISFIT_FLOOR * floor)) | (iterations >= LONG_PATH)
+    rows = (success & suspect).nonzero().flatten()
+    if not rows.numel():
+        return out
+    z0 = engine.z0_guess[rows]
+    traj, errors = engine._nonlinear(rows, z0, loose=True, guess=z0.unsqueeze(1).expand(rows.numel(), engine.G, -1))
+    value = engine._objective(rows, traj, engine.w[rows].reshape(rows.numel(), -1), torch.zeros_like(sse[rows]))
+    failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=sse.device)
+    out[rows] = torch.where(failed, torch.full_like(value, float("nan")), value)
+    return out
+
+
+def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start: str = "integrate",
+                        above: set[int] = frozenset()) -> None:
     """Rows ``rows`` of the engine's ``chunk`` against ``other`` (the same samples fitted from the
     ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s
     from the other one): each keeps the better fit (a success over a failure, else the lower sum of
     squares, a finite one over NaN; where neither has a sum of squares, one cut short by ``max_time``:
     the fit did not finish), its message saying what the other start gave. With a likelihood
     (estimated sigmas), the sums of squares compared are its objectives (``sse_end``): each
-    fit's own sigmas make its sum of squares the number of values. Updates ``chunk`` in place."""
+    fit's own sigmas make its sum of squares the number of values. The rows in ``above``
+    (:func:`fallback_rows`) succeeded above the sum of squares at their guesses: there a success of
+    the other start with a lower one wins. Updates ``chunk`` in place."""
     S = len(chunk["status"])
     for j, k in enumerate(rows):
         first, second = chunk["status"][k], other["status"][j]
@@ -140,12 +202,15 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start:
         wins = not first.success and (second.success or lower
                                       or (sse_first != sse_first and sse_second == sse_second)
                                       or (unknown and second is Status.MAX_TIME))
+        wins = wins or (k in above and second.success and lower)
+        worse = (f", above the model's own at the guesses ({float(chunk['sse_guesses'][k]):.6g})"
+                 if k in above else "")
         if wins:
             for key, value in chunk.items():
                 if isinstance(value, list) or (isinstance(value, torch.Tensor) and value.shape[:1] == (S,)):
                     value[k] = other[key][j]
             said = _WON[second_start]
-            chunk["message"][k] += said[0] + f"{first.name} (SSE {sse_first:.6g}); " + said[1]
+            chunk["message"][k] += said[0] + f"{first.name} (SSE {sse_first:.6g}{worse}); " + said[1]
         else:
             chunk["message"][k] += _LOST[second_start] + f"{second.name} (SSE {sse_second:.6g})."
 

@@ -77,11 +77,11 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
                 engine = Engine(spec, index, max_time, history=history, callback=callback)
                 chunk = engine.run(shifted_report(report, finished))
                 nfev += engine.nfev
-                retry = fallback_rows(chunk["status"]) if spec.start_fallback else []
-                if retry:  # "auto": where the first reference failed, the fit from the other one
+                retry, above = fallback_rows(chunk, spec.start_fallback)
+                if retry:  # "auto": where the first reference failed or misled, the fit from the other one
                     again = Engine(spec, index[retry], max_time, history=history, callback=callback,
                                    start=spec.start_fallback)
-                    keep_the_better_fit(chunk, retry, again.run(lambda count: None), spec.start_fallback)
+                    keep_the_better_fit(chunk, retry, again.run(lambda count: None), spec.start_fallback, above)
                     nfev += again.nfev
                 out_z0[index] = chunk["z0"]
                 for key in out:

@@ -32,6 +32,7 @@ import torch
 
 from .active_set import bounded_update
 from .bounds import at_bound_note, moved_guesses_note
+from .data_start import sse_at_guesses
 from .diagnosis import final_status, negligible_columns, null_detail, typical_magnitudes
 from .budget import no_time_budget
 from .dopri import dopri_batch
@@ -142,7 +143,8 @@ class FinalPass:
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
-                    sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0)
+                    sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0,
+                    sse_guesses=sse_at_guesses(self, codes, sse, residuals, iterations))
 
     def _exact_misfit(self, rows, resid) -> tuple[torch.Tensor, torch.Tensor]:
         """The largest absolute residual ``(R,)`` of the samples ``rows`` over their values marked
