@@ -89,6 +89,7 @@ def _resolve(bounds, solve, Cq, C, d, w, u, alpha, held, rows):
     rest, pinned, capped = _mapped(bounds, u[rows], rest_q.masked_fill(hold, 0.0))
     return rest, pinned & ~hold, capped & ~hold, stuck
 
+
 def _pulled_inside(bounds: Bounds, C, d, w, u, alpha) -> torch.Tensor:
     """Bool ``(R, m)``: the unknowns whose descent direction of the linear problem's weighted sum of
     squares ``|w (C alpha - d)|^2`` at the step ``alpha`` points away from their nearer bound."""
