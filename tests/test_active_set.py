@@ -129,3 +129,26 @@ def test_an_optimum_on_two_bounds_is_converged_with_its_standard_errors():
     assert float(result.params["Km"]) < 1e-10
     assert all(math.isfinite(v) for v in result.stderr.values())
     assert "['V', 'Km']" in result.message
+
+
+def test_the_final_pass_measures_stationarity_by_the_bounded_step():
+    """At estimates on a bound the unconstrained Gauss–Newton step points outside, and a stalled
+    fit there was never found stationary (NaN errors at a bounded optimum). The final pass's step
+    is the bounded one: zero for an unknown the data pull outside its bound, with the others
+    re-solved; NaN where the data pull one inside (no optimum)."""
+    from types import SimpleNamespace
+
+    from torchql.engine_final import FinalPass
+
+    names = ["p", "q"]
+    bounds = Bounds({"p": (0.0, 1.0)}, names, {}, names, DT, torch.device("cpu"))
+    final = SimpleNamespace(spec=SimpleNamespace(bounds=bounds, rcond=1e-12))
+    J = torch.tensor([[[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]]], dtype=DT)  # orthogonal columns
+    u = torch.tensor([[math.nextafter(1.0, 0.0), 0.3]], dtype=DT)  # p on its upper bound
+    for pull, expected in ((1.0, "held"), (-1.0, "left")):
+        rw = J @ torch.tensor([pull, 0.0], dtype=DT)  # the unconstrained step: p by `pull`, q by 0
+        step = FinalPass._bounded(final, J, rw[0][None], u, None)
+        if expected == "held":  # pulled outside: p stays, q re-solved with p held (still 0)
+            assert float(step[0, 0]) == 0.0 and abs(float(step[0, 1])) < 1e-15
+        else:  # pulled inside: the bound is no optimum
+            assert bool(torch.isnan(step).all())
