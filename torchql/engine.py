@@ -305,6 +305,8 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             return True
         trial, ok = self._propose(act, st.cur, alpha)
         accept = self._accepted(st, act, trial, ok, capped)
+        lost = self._lost(st, act)
+        accept &= ~lost
         flat = self._flat(st, act, trial, accept, alpha)
         creeping = self._creeping(st, act, trial, accept & ~flat)
         self._take(st, act, trial, accept)
@@ -313,9 +315,11 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         if bool(creeping.any()):  # the final pass goes on from here by steps on the model itself
             st.stop(act[creeping], Status.STALLED, " The steps that lowered the sum of squares were damped, and moved "
                     "the estimates by less than `xtol` or lowered it by less than `ftol` or the integration's error.")
-        rejected = act[~accept]
+        rejected = act[~accept & ~lost]
         if rejected.numel():
-            self._reject(st, rejected, alpha[~accept])
+            self._reject(st, rejected, alpha[~accept & ~lost])
+        if bool(lost.any()):
+            self._restore_lost(st, act[lost], alpha[lost])
         return True
 
     def _begin(self, st: LoopState) -> torch.Tensor:
@@ -434,6 +438,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         target = act[rows]
         self._annotate(target, model_merit=self._model_merit(target, st.cur))
         self._notify(target)
+        st.prev_z0[target], st.distrust[target] = st.cur["z0"][target], False
         put_samples(st.cur, target, trial, rows)
         st.last_damping[target] = st.damping[target]
         st.damping[target] = 0.0

@@ -104,6 +104,12 @@ class LoopState:
         self.rejected = torch.zeros(S, dtype=torch.long, device=dev)
         self.sse_prev = torch.full((S,), float("nan"), dtype=dtype, device=dev)
         self.z0 = engine.z0_guess.clone()
+        #: the estimates of each sample's previous iterate (restored where the current one's model
+        #: turns out not to integrate: :meth:`~torchql.engine_steps.StepTests._restore_lost`)
+        self.prev_z0 = engine.z0_guess.clone()
+        #: samples whose next trial is judged by the model's own sum of squares, not its merit (their
+        #: iterate was lost and restored)
+        self.distrust = torch.zeros(S, dtype=torch.bool, device=dev)
         self.all_idx = torch.arange(S, device=dev)
         self.cur: dict = {}
         self.final_guess: torch.Tensor | None = None

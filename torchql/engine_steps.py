@@ -4,6 +4,8 @@ damped steps that creep (``STALLED``, for the final pass to go on by steps on th
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .engine_state import LoopState, _pick, not_above
@@ -67,6 +69,46 @@ class StepTests:
         small = ((st.scaled <= self.spec.xtol) & ~st.leaving) | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor))
         return damped & small
 
+    def _lost(self, st: LoopState, act) -> torch.Tensor:
+        """Bool ``(A,)``: Kantorovich iterates of samples ``act``, taken on their linear merit, from
+        whose estimates the model itself turned out not to integrate (its sum of squares, found
+        while judging their trials, is inf): an SIR iterate whose infected fraction crossed zero,
+        from where the model blows up in finite time while the linear trajectory stayed smooth.
+        Any finite trial would beat it; the previous iterate is restored instead
+        (:meth:`_restore_lost`)."""
+        if self.spec.scheme.integrates_model or not self.spec.damping.filters:
+            return torch.zeros_like(act, dtype=torch.bool)
+        return torch.isposinf(st.cur["nl_sse"][act]) & (st.iterations[act] > 0)
+
+    def _restore_lost(self, st: LoopState, rows, alpha) -> None:
+        """The samples ``rows`` whose iterate was lost (:meth:`_lost`) go back to their previous
+        estimates, re-linearized about the model's own solution there, and retry with damping
+        (the undamped step led where the model does not integrate). Where that solution does not
+        integrate either, the samples are rejected as usual."""
+        cur = st.cur
+        lost = {key: cur[key][rows].clone() for key in ("z0", "anchored", "nl_sse", "nl_traj")}
+        lost_damping = st.damping[rows].clone()
+        records = {} if self.history is None else {r: self.history[r][-1] for r in rows.tolist()}
+        said = {r: (h.sse, h.merit, h.trajectory) for r, h in records.items()}
+        cur["z0"][rows], cur["anchored"][rows] = st.prev_z0[rows], False
+        traj, errors = self._nonlinear(st.all_idx[rows], st.prev_z0[rows], loose=True)  # (not from the lost one's)
+        self._keep_model_sse(st.all_idx, cur, rows, traj, errors)
+        st.damping[rows] = 0.0
+        back = torch.isin(rows, self._reanchor(st, rows))
+        for r, (sse, merit, trajectory) in said.items():  # the lost iterate's record keeps its values
+            records[r].sse, records[r].merit, records[r].trajectory = sse, merit, trajectory
+            records[r].model_merit = math.inf
+        if not bool(back.all()):  # no restoring: the lost iterate stays, its trial rejected as usual
+            stay = rows[~back]
+            for key, value in lost.items():
+                cur[key][stay] = value[~back]
+            st.damping[stay] = lost_damping[~back]
+            self._reject(st, stay, alpha[~back])
+        rows = rows[back]
+        if rows.numel():  # the restored iterate gets a record of its own, and its next trial is damped
+            st.z0[rows], st.fresh[rows], st.distrust[rows] = cur["z0"][rows], True, True
+            st.damping[rows] = self.spec.damping.raised(torch.zeros_like(st.damping[rows]), st.last_damping[rows])
+
     def _integration_floor(self, rows, w) -> torch.Tensor:
         """``sum (w (atol + rtol |y|))^2`` over the values used of samples ``rows``, weights ``w (R, L)``:
         ``(R,)``, the squared size of the weighted residuals' integration error (used by
@@ -88,7 +130,7 @@ class StepTests:
         lower = not_above(trial["merit"], cur["merit"][act])
         if spec.scheme.integrates_model:  # the merit is the model's own sum of squares
             return ok & lower
-        better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped
+        better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped & ~st.distrust[act]
         check = ok & ~better
         if bool(check.any()):
             rows = check.nonzero().flatten()
