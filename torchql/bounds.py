@@ -291,6 +291,8 @@ class Bounds:
         the data pull the unknown inside, however small its move in ``u`` (a guess one rounding
         inside a bound climbs out by capped steps, each far below ``xtol``), so no such step is
         converged. A capped step toward the bound is the approach to an estimate on it."""
+        if not self.active:  # (every step of an unbounded fit asks)
+            return torch.zeros(u.shape[0], dtype=torch.bool, device=u.device)
         return (capped & self.away(u, change)).any(dim=1)
 
     def away(self, u: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:

@@ -425,8 +425,7 @@ class FinalPass:
         estimates = z0[rows][:, spec.unknown_index]
         scales = self._typical(rows)
         stalled = torch.tensor([codes[r] is Status.STALLED for r in rows.tolist()], dtype=torch.bool, device=dev)
-        stationary = self._stationary_on_the_model(rows, self._bounded(J, rw, estimates, step), estimates,
-                                                   torch.maximum(scales, magnitudes),
+        stationary = self._stationary_on_the_model(rows, J, rw, step, estimates, torch.maximum(scales, magnitudes),
                                                    stalled & ~deficient, codes, detail)
         sse_list = sse.tolist()
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
@@ -465,9 +464,10 @@ class FinalPass:
         alpha, capped, _, _ = bounded_update(bounds, solve, J, rw, torch.ones_like(rw), estimates)
         return alpha.masked_fill(bounds.leaving(estimates, alpha, capped).unsqueeze(-1), float("nan"))
 
-    def _stationary_on_the_model(self, rows, step, estimates, scales, candidates, codes, detail) -> list[bool]:
+    def _stationary_on_the_model(self, rows, J, rw, step, estimates, scales, candidates, codes, detail) -> list[bool]:
         """Samples ``rows`` that stalled (``candidates (S,)``, with a Jacobian of full rank) whose
-        Gauss–Newton step on the model at the estimates, ``step (S, m)``, is at most ``xtol`` of the
+        Gauss–Newton step on the model at the estimates, ``step (S, m)`` as the bounds let it be taken
+        (:meth:`_bounded`, from ``J`` and ``rw``), is at most ``xtol`` of the
         unknowns' magnitudes ``max(|estimate|, scales)`` (the convergence test's bound) are
         converged: the iteration stopped at the model's optimum, where rounding or the
         integration's error, not the distance to it, decided its last trials (a fit that reaches
@@ -475,7 +475,10 @@ class FinalPass:
         samples did. A fit that ran out of ``max_iter`` keeps saying so."""
         if self.spec.has_exact or not bool(candidates.any()):  # the step above does not meet exact values
             return [False] * rows.numel()
-        size = (step.abs() / torch.maximum(estimates.abs(), scales)).amax(dim=1)
+        k = candidates.nonzero().flatten()
+        bounded = self._bounded(J[k], rw[k], estimates[k], step[k])
+        size = torch.full_like(candidates, math.nan, dtype=step.dtype)
+        size[k] = (bounded.abs() / torch.maximum(estimates[k].abs(), scales[k])).amax(dim=1)
         stationary = candidates & (size <= self.spec.xtol)
         for k in stationary.nonzero().flatten().tolist():
             r = int(rows[k])
