@@ -8,7 +8,7 @@ import torch
 
 import torchql
 from testmodels import Decay
-from torchql.budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
+from torchql.budget import TimeBudgetExceeded, check_time, deadline, no_time_budget, time_budget, time_left, until
 
 DT = torch.float64
 T = torch.linspace(0, 2, 11, dtype=DT)
@@ -40,7 +40,12 @@ def test_budget_context_nests_to_the_earlier_deadline_and_can_be_lifted():
                 check_time()
                 assert time_left() == math.inf
         assert time_left() > 99.0
-    assert time_left() == math.inf
+        moment = deadline()
+        with no_time_budget(), until(moment):  # an optional phase keeps the lifted deadline
+            assert deadline() == moment and 99.0 < time_left() <= 100.0
+        with until(None):
+            assert time_left() == math.inf
+    assert time_left() == math.inf and deadline() is None
 
 
 def test_fit_stops_at_max_time_with_its_own_status():

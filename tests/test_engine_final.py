@@ -13,6 +13,7 @@ import pytest
 import torch
 
 import torchql
+import torchql.budget as budget
 import torchql.engine_final as engine_final
 from testmodels import LotkaVolterra
 from torchql.models import NonlinearOscillator
@@ -169,3 +170,44 @@ def test_a_fit_that_stalls_at_the_exact_truth_from_rates_guessed_near_zero_is_co
         assert float(result.params[name]) == pytest.approx(value, rel=1e-10)
     assert result.sse < 1e-20
     assert bool(torch.isfinite(result.covariance).all())  # a converged fit's error bars
+
+
+def test_the_steps_on_the_model_keep_to_the_time_budget(monkeypatch):
+    """The polishing steps are optional, so they run under the fit's own deadline (the rest of the
+    final pass runs without one: every sample that finished in time gets its evaluation). A stalled
+    SIR fit with ``max_time=20`` spent 48 s there integrating one trial. Here each trial integration
+    of the steps finds its deadline spent: the fit keeps the iteration's fixed point, evaluated on
+    the model, and says MAX_TIME without error bars; without a budget nothing changes."""
+    seen = []
+    original = engine_final.FinalPass._model_at
+
+    def spent(self, *args, **kwargs):
+        seen.append(budget.deadline())
+        if budget.deadline() is not None:  # a polishing trial, under the fit's deadline: spent by now
+            raise budget.TimeBudgetExceeded
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(engine_final.FinalPass, "_model_at", spent)
+    free = _exact_fit(grid=50)
+    assert free.success and seen and all(d is None for d in seen)
+    seen.clear()
+    cut = _exact_fit(grid=50, max_time=600.0)
+    assert any(d is not None for d in seen), "a polishing trial ran under the budget"
+    assert cut.status is torchql.Status.MAX_TIME and not cut.success
+    assert "stopped by the time budget (max_time = 600 s)" in cut.message and "had converged" in cut.message
+    assert cut.iterations < free.iterations
+    assert float((cut.estimates - TRUTH).abs().max()) > 1e-6  # the grid's fixed point, not polished
+    assert torch.isfinite(torch.tensor(cut.sse)) and torch.isnan(cut.covariance).all()
+
+
+def test_a_long_polishing_step_is_shortened_to_the_unknowns_scale(monkeypatch):
+    """A Gauss–Newton step on the model longer than ``POLISH_MAX_STEP`` of the unknowns' scale is taken
+    that long, along its direction (a stalled fit's rank-deficient step reached 1e15 of the scale,
+    whose model took 10^5 explicit steps to fail). With the bound far below the grid's error the
+    steps are each that long, and run out before reaching the optimum: MAX_ITER, saying so."""
+    monkeypatch.setattr(engine_final, "POLISH_MAX_STEP", 1e-9)
+    short = _exact_fit(grid=50)
+    polishing = short.history[-4:-1]  # (the last record is the final evaluation's)
+    assert all(r.alpha_norm == pytest.approx(1e-9, rel=1e-12) for r in polishing)
+    assert all(b.sse < a.sse for a, b in zip(polishing, polishing[1:]))  # each kept, lowering the SSE
+    assert short.status is torchql.Status.MAX_ITER and "stopped before converging" in short.message

@@ -19,7 +19,7 @@ import math
 import time
 from collections.abc import Iterator
 
-__all__ = ["TimeBudgetExceeded", "time_budget", "no_time_budget", "check_time", "time_left"]
+__all__ = ["TimeBudgetExceeded", "time_budget", "no_time_budget", "check_time", "time_left", "deadline", "until"]
 
 _DEADLINE: contextvars.ContextVar[float | None] = contextvars.ContextVar("torchql_deadline", default=None)
 
@@ -50,6 +50,23 @@ def time_budget(seconds: float | None) -> Iterator[None]:
 def no_time_budget() -> Iterator[None]:
     """Run the body without a deadline (a batch's final evaluation of the samples that finished in time)."""
     token = _DEADLINE.set(None)
+    try:
+        yield
+    finally:
+        _DEADLINE.reset(token)
+
+
+def deadline() -> float | None:
+    """The current budget's deadline, in ``time.monotonic()`` seconds (None without a budget)."""
+    return _DEADLINE.get()
+
+
+@contextlib.contextmanager
+def until(moment: float | None) -> Iterator[None]:
+    """Run the body under the deadline ``moment`` (a value of :func:`deadline`; None: no budget),
+    whatever the enclosing one: a phase inside :func:`no_time_budget` that is optional (the final
+    pass's polishing steps) keeps the fit's own deadline this way."""
+    token = _DEADLINE.set(moment)
     try:
         yield
     finally:

@@ -29,7 +29,7 @@ import torch
 
 from .active_set import bounded_update
 from .batch_result import BatchFitResult
-from .budget import TimeBudgetExceeded, check_time, no_time_budget, time_budget, time_left
+from .budget import TimeBudgetExceeded, check_time, deadline, no_time_budget, time_budget, time_left
 from .data_start import data_reference, fallback_rows, keep_the_better_fit
 from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation
 from .engine_final import FinalPass
@@ -215,8 +215,8 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         for r, c in enumerate(st.status.tolist()):
             if c == _STATUSES.index(Status.MAX_TIME):
                 budget = "an enclosing fit's" if self.max_time is None else f"{self.max_time:g} s"
-                st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget})."
-                                + st.detail[r])
+                st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget}), not "
+                                "evaluated further." + st.detail[r])
         stalled = st.status == _STATUSES.index(Status.STALLED)  # the final pass tries steps on the model itself
         st.polish = (st.undamped_stop | stalled) & (time_left() > 0)  # polishing steps only within the time budget
         return st
@@ -224,6 +224,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
     def _conclude(self, st: LoopState) -> dict:
         """:meth:`run`'s final pass of the iteration state ``st``."""
         st.report("final pass")
+        self.deadline = deadline()  # the polishing steps, optional, keep to it (FinalPass._polish)
         with no_time_budget():  # the samples that finished in time get their final evaluation
             return self._finish(st.z0, st.status, st.detail, st.iterations, st.final_guess, st.polish)
 

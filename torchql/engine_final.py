@@ -34,7 +34,7 @@ from .active_set import bounded_update
 from .bounds import at_bound_note, moved_guesses_note
 from .data_start import sse_at_guesses
 from .diagnosis import final_status, negligible_columns, null_detail, typical_magnitudes
-from .budget import no_time_budget
+from .budget import TimeBudgetExceeded, no_time_budget, until
 from .dopri import dopri_batch
 from .engine_state import not_above
 from .engine_steps import predicted_decrease
@@ -61,6 +61,9 @@ POLISH_STEPS = 20
 #: integration: the second-order remainder, the step's square times the trajectory's relative
 #: curvature in the unknowns, stays below ``rtol`` where that curvature is below 100.
 LINEAR_STEP = 0.1
+#: The longest polishing step, in the unknowns' scale: a longer Gauss–Newton step on the model is
+#: shortened to it along its direction (the linearization is not trusted further from a fixed point).
+POLISH_MAX_STEP = 1.0
 
 
 class FinalPass:
@@ -85,6 +88,7 @@ class FinalPass:
         rows, traj, W = self._final_solutions(_evaluated(status), z0, final_guess, codes, detail)
         if rows.numel():
             traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish, detail)
+            converged &= torch.tensor([c is not Status.MAX_TIME for c in codes], dtype=torch.bool, device=dev)
         if rows.numel():
             traj_obs = self._at_obs(traj, rows)
             C_mean, _, resid = self._rows(rows, traj_obs, traj_obs, self._at_obs(W, rows)[..., 1:])
@@ -287,60 +291,98 @@ class FinalPass:
         samples among ``rows`` that ``polish (S,)`` allows, with their solutions ``traj (R, G, M)``
         and ``W (R, G, M, 1 + m)`` (see the module's description). A step is taken where its scaled
         size exceeds ``xtol`` and kept where it lowers the merit; ``z0``, ``iterations`` and the
-        samples' records follow. Returns the solutions at the estimates kept."""
-        spec = self.spec
+        samples' records follow. The steps are optional, so they keep to the fit's time budget
+        (``self.deadline``); those it stops end as :meth:`_out_of_time` says. Returns the solutions
+        at the estimates kept."""
         accurate = torch.zeros_like(polish)  # samples whose sensitivities are integrated with their solutions
         accurate[list(self.storage_missed)] = True
-        for step in range(POLISH_STEPS + 1 if POLISH_STEPS else 0):  # the last pass only checks
-            take = polish[rows].clone()
-            take &= torch.tensor([codes[r].success or codes[r] is Status.STALLED for r in rows.tolist()],
-                                 dtype=torch.bool, device=take.device)
-            if not bool(take.any()):
-                break
-            k = take.nonzero().flatten()
-            r = rows[k]
-            here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
-            again = need & ~accurate[r] if step >= 1 and not self._joint_sensitivities else torch.zeros_like(need)
-            if bool(again.any()):  # a second step: the grid's sensitivities did not land the first
-                j = again.nonzero().flatten()
-                fresh, traj_j, W_j, _ = self._jointly(r[j], z0[r[j]])
-                traj[k[j[fresh]]], W[k[j[fresh]]] = traj_j[fresh], W_j[fresh]
-                accurate[r[j]] = True
-                if bool(fresh.any()):
-                    here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
-            polish[r[~need]] = False
-            need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS)
-            if not bool(need.any()):
-                break
-            k, r, alpha, scaled = k[need], r[need], alpha[need], scaled[need]
-            z0_new = spec.shifted(z0[r], alpha)
-            guess = traj[k] + torch.einsum("sgmk,sk->sgm", W[k][..., 1:], alpha)
-            # a step this short is the linear prediction's: its second-order remainder is below the tolerance
-            linear = scaled <= LINEAR_STEP * math.sqrt(spec.rtol)
-            good, traj_new, W_new = torch.ones_like(linear), guess, W[k].clone()
-            W_new[..., 0] = guess
-            far = (~linear).nonzero().flatten()
-            if far.numel():
-                good[far], traj_new[far], W_new[far], _ = self._model_at(r[far], z0_new[far], guess[far],
-                                                                         joint=accurate[r[far]])
-            merit = torch.full_like(scaled, float("inf"))
-            g = good.nonzero().flatten()
-            if g.numel():
-                merit[g] = self._evaluate(r[g], z0_new[g], traj_new[g], None, None, solution=True, W=W_new[g])["merit"]
-            accept = good & not_above(merit, here["merit"][need])
-            polish[r[~accept]] = False
-            a = accept.nonzero().flatten()
-            if self.history is not None:
-                sse = here["sse"][need]
-                for j in a.tolist():
-                    record = self._record(int(r[j]), int(iterations[r[j]]), z0[r[j]], float(sse[j]), traj[k[j]])
-                    record.alpha, record.alpha_norm = alpha[j].detach().clone(), float(scaled[j])
-                    record.merit = record.model_merit = float(here["merit"][need][j])
-                    self.history[int(r[j])].append(record)
-                    self._notify(int(r[j]))
-            z0[r[a]], traj[k[a]], W[k[a]] = z0_new[a], traj_new[a], W_new[a]
-            iterations[r[a]] += 1
+        trying: dict[int, float] = {}  # the samples whose needed step is being taken: its scaled size
+        try:
+            with until(getattr(self, "deadline", None)):
+                for step in range(POLISH_STEPS + 1 if POLISH_STEPS else 0):  # the last pass only checks
+                    if not self._polish_round(step, rows, traj, W, z0, iterations, codes, polish, detail, accurate,
+                                              trying):
+                        break
+        except TimeBudgetExceeded:
+            self._out_of_time(trying, codes, detail)
         return traj, W
+
+    def _polish_round(self, step, rows, traj, W, z0, iterations, codes, polish, detail, accurate, trying) -> bool:
+        """Polishing step number ``step`` of :meth:`_polish` (its arguments, changed in place; ``trying``
+        gets the samples whose step is needed). Returns whether a sample may take another."""
+        spec = self.spec
+        take = polish[rows].clone()
+        take &= torch.tensor([codes[r].success or codes[r] is Status.STALLED for r in rows.tolist()],
+                             dtype=torch.bool, device=take.device)
+        if not bool(take.any()):
+            return False
+        k = take.nonzero().flatten()
+        r = rows[k]
+        here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
+        trying.clear()
+        trying.update(zip(r[need].tolist(), scaled[need].tolist()))
+        again = need & ~accurate[r] if step >= 1 and not self._joint_sensitivities else torch.zeros_like(need)
+        if bool(again.any()):  # a second step: the grid's sensitivities did not land the first
+            j = again.nonzero().flatten()
+            fresh, traj_j, W_j, _ = self._jointly(r[j], z0[r[j]])
+            traj[k[j[fresh]]], W[k[j[fresh]]] = traj_j[fresh], W_j[fresh]
+            accurate[r[j]] = True
+            if bool(fresh.any()):
+                here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
+        polish[r[~need]] = False
+        need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS)
+        if not bool(need.any()):
+            return False
+        k, r, alpha, scaled = k[need], r[need], alpha[need], scaled[need]
+        # a longer step is no polish of a fixed point: its direction, as far as the linearization is
+        # trusted (a stalled fit's rank-deficient step reached 1e15 of the scale, whose model took
+        # 10^5 explicit steps to fail)
+        alpha = alpha * (POLISH_MAX_STEP / scaled).clamp(max=1.0).unsqueeze(-1)
+        scaled = scaled.clamp(max=POLISH_MAX_STEP)
+        z0_new = spec.shifted(z0[r], alpha)
+        guess = traj[k] + torch.einsum("sgmk,sk->sgm", W[k][..., 1:], alpha)
+        # a step this short is the linear prediction's: its second-order remainder is below the tolerance
+        linear = scaled <= LINEAR_STEP * math.sqrt(spec.rtol)
+        good, traj_new, W_new = torch.ones_like(linear), guess, W[k].clone()
+        W_new[..., 0] = guess
+        far = (~linear).nonzero().flatten()
+        if far.numel():
+            good[far], traj_new[far], W_new[far], _ = self._model_at(r[far], z0_new[far], guess[far],
+                                                                     joint=accurate[r[far]])
+        merit = torch.full_like(scaled, float("inf"))
+        g = good.nonzero().flatten()
+        if g.numel():
+            merit[g] = self._evaluate(r[g], z0_new[g], traj_new[g], None, None, solution=True, W=W_new[g])["merit"]
+        accept = good & not_above(merit, here["merit"][need])
+        polish[r[~accept]] = False
+        a = accept.nonzero().flatten()
+        if self.history is not None:
+            sse = here["sse"][need]
+            for j in a.tolist():
+                record = self._record(int(r[j]), int(iterations[r[j]]), z0[r[j]], float(sse[j]), traj[k[j]])
+                record.alpha, record.alpha_norm = alpha[j].detach().clone(), float(scaled[j])
+                record.merit = record.model_merit = float(here["merit"][need][j])
+                self.history[int(r[j])].append(record)
+                self._notify(int(r[j]))
+        z0[r[a]], traj[k[a]], W[k[a]] = z0_new[a], traj_new[a], W_new[a]
+        iterations[r[a]] += 1
+        trying.clear()
+        return True
+
+    def _out_of_time(self, trying: dict, codes, detail) -> None:
+        """The samples ``trying`` (sample: the scaled size of its needed step) whose polishing steps the
+        time budget stopped keep their estimates, evaluated: a converged one is not confirmed on the
+        model (``MAX_TIME``, without a covariance), a stalled one says so."""
+        budget = "an enclosing fit's" if self.max_time is None else f"{self.max_time:g} s"
+        for r, size in trying.items():
+            text = (f"the final pass's Gauss–Newton steps on the model were stopped by the time budget (max_time = "
+                    f"{budget}): the next would move the unknowns by {size:.2g} of their scale.")
+            if codes[r].success:
+                codes[r] = Status.MAX_TIME
+                detail[r] = (" The iteration had converged, and the sum of squares and residuals are the model's at "
+                             "these estimates, but " + text + detail[r])
+            else:
+                detail[r] += " " + text[0].upper() + text[1:]
 
     def _polish_step(self, r, z0, traj, W, codes):
         """The Gauss–Newton step on the model of samples ``r`` from ``z0[r]`` with their solutions

@@ -21,7 +21,7 @@ class Status(enum.Enum):
     )
     MAX_TIME = (
         "The time budget `max_time` ran out before convergence; the estimates are the last accepted "
-        "iterate's, not evaluated further. Increase `max_time`, or start from guesses closer to the solution."
+        "iterate's. Increase `max_time`, or start from guesses closer to the solution."
     )
     DIVERGED = (
         "The iteration diverged: the estimates ran away, or the update, the trajectory or the sum of squares "
