@@ -275,6 +275,35 @@ def test_auto_refits_from_the_data_where_the_integrated_start_of_a_stiff_model_f
                                rtol=1e-8, atol=0)
 
 
+class _BlowUp(torchql.ODEModel):
+    """``x' = p x^2``: from ``x(0) = 1`` with ``p = 1`` it blows up at ``t = 1``."""
+
+    state_names = ("x",)
+
+    def __init__(self, p: float) -> None:
+        super().__init__()
+        self.register_buffer("p", torch.tensor(p, dtype=DT))
+
+    def forward(self, t, x):
+        return self.p * x**2
+
+
+def test_a_stiff_solvers_start_that_blows_up_from_every_guess_is_refitted_from_the_data():
+    """With ``solver="rodas5p"`` the integrated start of ``x' = p x^2`` from ``p = 1`` fails for every
+    sample (it blows up at t = 1, inside the data's span): INTEGRATION_FAILED, and the fit from the
+    data reaches the truth ``p = -1`` (data ``1 / (1 + t)``). Keeping the model's solution of no
+    sample raised a reshape error."""
+    t = torch.linspace(0, 10, 50, dtype=DT)
+    data = torchql.Observations(t, (1 / (1 + t)).unsqueeze(1), observe=["x"])
+    x0 = torch.tensor([1.0], dtype=DT)
+    result = torchql.fit(_BlowUp(1.0), data, x0, solver="rodas5p")
+    assert result.success, result.message
+    assert "Integrated from the guesses the fit ended INTEGRATION_FAILED" in result.message
+    assert float(result.params["p"]) == pytest.approx(-1.0, rel=1e-9)
+    integrated = torchql.fit(_BlowUp(1.0), data, x0, solver="rodas5p", initial_trajectory="integrate")
+    assert integrated.status is torchql.Status.INTEGRATION_FAILED and "t = 1" in integrated.message
+
+
 @pytest.mark.parametrize("linear_solver", ["radau", "rodas5p"])
 def test_max_steps_counts_the_stiff_solvers_steps_per_grid_interval(linear_solver):
     """``max_steps`` is a budget per grid interval on the stiff path too, as ``fit`` documents it

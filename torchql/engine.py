@@ -265,8 +265,9 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             # guesses on this grid, at the fit's tolerance: the second opinion on the first iterate,
             # and its re-anchoring, would integrate it once more
             good = (~bad).nonzero().flatten()
-            self._keep_model_sse(all_idx, st.cur, good, traj[good], [None] * good.numel())
-            st.cur["anchored"][good] = True
+            if good.numel():  # (none where the model blows up from every guess)
+                self._keep_model_sse(all_idx, st.cur, good, traj[good], [None] * good.numel())
+                st.cur["anchored"][good] = True
         st.final_guess = st.cur["W"][:, :, :, 0].clone()
         typical = torch.cat([traj[:, :, :n].abs().amax(dim=1), st.z0[:, n:].abs()], dim=1)
         typical = torch.where(typical > 0, typical, torch.ones_like(typical))
