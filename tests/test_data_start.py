@@ -274,6 +274,47 @@ def test_a_data_start_misled_across_a_gap_is_fitted_again_from_the_integrated_gu
     assert "this fit integrated the model from the guesses" in result.message
 
 
+class _Duffing(torchql.ODEModel):
+    """A hardening spring: data a linear oscillator misfits systematically."""
+
+    state_names = ("y", "v")
+
+    def forward(self, t, x):
+        y, v = x.unbind(-1)
+        return torch.stack((v, -0.1 * v - 3.0 * y - 1.5 * y**3), dim=-1)
+
+
+def test_the_check_at_the_guesses_is_bounded_and_keeps_to_the_time_budget(monkeypatch):
+    """A linear oscillator fitted to a hardening spring's data (a systematic misfit, so the fit from
+    the data is checked against the model at the guesses) from ``B = 3e6`` (truth about 3): the
+    model there oscillates 11,000 times over the data, and its check took 45 s of the adaptive
+    solver's 100,000 steps, for a fit of 0.04 s, past ``max_time=1``. The check is insurance: it gets
+    at most ``GUESSES_STEPS`` steps per interval of the storage grid, under the fit's deadline."""
+    import torchql.budget as budget
+    import torchql.data_start as data_start
+    from torchql.engine_evaluate import Evaluation
+
+    t = torch.linspace(0, 40, 201, dtype=torch.float64)
+    x0 = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    data = torchql.Observations(t, torchql.simulate(_Duffing(), x0, t)[:, :1], observe=["y"])
+    calls = []
+    original = Evaluation._nonlinear
+
+    def spy(self, idx, z0, loose, **kwargs):
+        out = original(self, idx, z0, loose, **kwargs)
+        if kwargs.get("max_steps") is not None:
+            calls.append((kwargs["max_steps"], self.G, budget.deadline(), out[1]))
+        return out
+
+    monkeypatch.setattr(Evaluation, "_nonlinear", spy)
+    result = torchql.fit(LinearOscillator(0.1, 3e6), data, x0, max_time=600.0)
+    assert result.success, result.message
+    assert "at the guesses" not in result.message  # no fit again: the check was not made
+    (steps, G, deadline, errors), = calls
+    assert steps == data_start.GUESSES_STEPS * (G - 1) and deadline is not None
+    assert errors[0] is not None and "steps" in errors[0]  # it gave up at that bound
+
+
 def test_a_success_above_the_guesses_sum_of_squares_loses_to_a_lower_success_only():
     from torchql.data_start import fallback_rows, keep_the_better_fit
     from torchql.status import Status

@@ -208,7 +208,7 @@ class Evaluation:
         return W, failed
 
     def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False, reference=None,
-                   stop=None):
+                   stop=None, max_steps: int | None = None):
         """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
         and error messages (None: ok).
 
@@ -233,6 +233,7 @@ class Evaluation:
         stiff ``solver``), or each alone by torchdiffeq (another ``solver``). ``stop``: the adaptive solvers' test of
         a sample (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next
         node) that ends it early, as a failure (:meth:`_nonlinear_sse`, a shooting trial).
+        ``max_steps``: the batched Dormand–Prince solver's limit on a sample's steps (default its own).
         """
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
@@ -254,7 +255,7 @@ class Evaluation:
                 if bool(coarse.any()):
                     guess = torch.where(coarse.reshape(-1, 1, 1), torch.full_like(guess, float("nan")), guess)
                 self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference)
-            self._adaptive(idx, z0, rtol, atol, traj, ok, errors, stop)
+            self._adaptive(idx, z0, rtol, atol, traj, ok, errors, stop, max_steps)
         return traj, errors
 
     def _on_grid(self, idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors,
@@ -341,10 +342,11 @@ class Evaluation:
         curvatures[..., :n] = rates.reshape(S, G, n)
         return slopes.reshape(z.shape), curvatures
 
-    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None) -> None:
+    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None, max_steps: int | None = None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
-        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dop853"``, ``"dopri5"``), or torchdiffeq per
-        sample; fills ``traj``, ``ok`` and ``errors`` in place."""
+        Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dop853"``, ``"dopri5"``, at most
+        ``max_steps`` steps a sample if given), or torchdiffeq per sample; fills ``traj``, ``ok`` and
+        ``errors`` in place."""
         spec = self.spec
         grid = self._grid_of(idx)
         shared = grid.dim() == 1
@@ -369,7 +371,8 @@ class Evaluation:
             messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
                                           land=self._landing(idx[sub]), messages=messages,
-                                          interval_steps=spec.max_steps, stop=asked(sub), method=spec.solver)
+                                          interval_steps=spec.max_steps, stop=asked(sub), method=spec.solver,
+                                          **({} if max_steps is None else {"max_steps": max_steps}))
             self.nfev += evals
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):
