@@ -28,6 +28,7 @@ from torch import nn
 from torchdiffeq import odeint, odeint_adjoint
 
 from . import _checks
+from .budget import TimeBudgetExceeded, check_time, time_budget
 from .diagnosis import null_detail
 from .fit import _Problem, fit
 from .integrate import IntegrationError, solve
@@ -99,8 +100,11 @@ def adjoint_fit(
         Budget of optimizer steps (not of solver steps, unlike ``fit(max_steps=)``). Default
         20000 for Adam, 500 for L-BFGS. ``0`` evaluates the guess only.
     max_time : float, optional
-        Wall-time budget in seconds (checked after each step); ``Status.MAX_ITER`` with a
-        message naming ``max_time`` when it runs out first. Default: none.
+        Wall-time budget in seconds, checked after each step and at every evaluation of the
+        model inside one (a step cut short is given up for the last iterate evaluated);
+        ``Status.MAX_ITER`` with a message naming ``max_time`` when it runs out first. The
+        evaluation at the final estimates gets what is left of it, at least a quarter (where
+        that runs out too, ``sse`` is NaN). Default: none.
     tol : float, optional
         Convergence when, over the last ``window`` steps, every relative change of the SSE
         and every scaled change of the estimates ``max_i |du_i| / max(|u_i|, s_i)`` is at most
@@ -233,6 +237,7 @@ class _RHS(nn.Module):
             _set_buffer(self.model, name, value.detach().clone())
 
     def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        check_time()  # (the run's max_time, inside a solve or its adjoint too)
         self.n_evals += 1
         return self.model(t, x)
 
@@ -324,42 +329,21 @@ class _GradientRun:
         return float(((u_new - u_old).abs() / torch.maximum(u_new.abs(), self.typical)).max())
 
     def optimize(self):
-        """Run the optimizer; returns ``(status, message, iterations, history)``."""
+        """Run the optimizer; returns ``(status, message, iterations, history)``. The time budget
+        ``max_time`` is checked after each step and at every evaluation of the model inside one."""
         lbfgs = self.optimizer_name == "lbfgs"
         opt = self._optimizer(lbfgs)
         closure = self._closure()
         bar = _progress_bar(self.max_steps) if self.progress else None
         history: list[IterationRecord] = []
-        status, message = Status.MAX_ITER, ""
-        u_prev, sse_prev, g0 = None, None, None
-        quiet = 0  # consecutive steps passing the tol test
         step = 0
-        started = time.perf_counter()
         try:
-            while True:
-                sse, grad = self._evaluate_iterate(lbfgs, closure)
-                u = self.estimates()
-                self._log_iterate(step, sse, u, u_prev, history, bar)
-                if not (math.isfinite(sse) and bool(torch.isfinite(grad).all())):
-                    status = Status.DIVERGED
-                    message = Status.DIVERGED.value + f" (the SSE or its gradient became non-finite at step {step})."
-                    break
-                gmax = float(grad.abs().max())
-                if g0 is None:
-                    g0 = gmax
-                if u_prev is not None:
-                    quiet = quiet + 1 if self._small_change(sse, sse_prev, u, u_prev) else 0
-                stop = self._stop(step, sse, gmax, g0, quiet, started)
-                if stop is not None:
-                    status, message = stop
-                    break
-                u_prev, sse_prev = u, sse
-                if lbfgs:
-                    opt.step(closure)
-                else:
-                    self.rhs.theta.grad = grad
-                    opt.step()
-                step += 1
+            with time_budget(self.max_time):
+                status, message, step = self._loop(opt, closure, lbfgs, history, bar)
+        except TimeBudgetExceeded:  # inside a step: the last iterate evaluated
+            if history:
+                step = self._restore(history[-1])
+            status, message = self._out_of_time(step)
         except IntegrationError as exc:
             if history:  # return the last iterate that could be evaluated
                 step = self._restore(history[-1])
@@ -369,6 +353,36 @@ class _GradientRun:
             if bar is not None:
                 bar.close()
         return status, message, step, history
+
+    def _loop(self, opt, closure, lbfgs: bool, history: list, bar) -> tuple[Status, str, int]:
+        """:meth:`optimize`'s steps until a stopping test: ``(status, message, step)``; each iterate's
+        record in ``history``."""
+        u_prev, sse_prev, g0 = None, None, None
+        quiet = 0  # consecutive steps passing the tol test
+        step = 0
+        started = time.perf_counter()
+        while True:
+            sse, grad = self._evaluate_iterate(lbfgs, closure)
+            u = self.estimates()
+            self._log_iterate(step, sse, u, u_prev, history, bar)
+            if not (math.isfinite(sse) and bool(torch.isfinite(grad).all())):
+                return (Status.DIVERGED, Status.DIVERGED.value
+                        + f" (the SSE or its gradient became non-finite at step {step}).", step)
+            gmax = float(grad.abs().max())
+            if g0 is None:
+                g0 = gmax
+            if u_prev is not None:
+                quiet = quiet + 1 if self._small_change(sse, sse_prev, u, u_prev) else 0
+            stop = self._stop(step, sse, gmax, g0, quiet, started)
+            if stop is not None:
+                return (*stop, step)
+            u_prev, sse_prev = u, sse
+            if lbfgs:
+                opt.step(closure)
+            else:
+                self.rhs.theta.grad = grad
+                opt.step()
+            step += 1
 
     def _optimizer(self, lbfgs: bool) -> torch.optim.Optimizer:
         """The torch optimizer of ``theta``: L-BFGS (one quasi-Newton iteration per step) or Adam."""
@@ -447,11 +461,15 @@ class _GradientRun:
                 "optimizer was reached before convergence. Increase `max_steps` (or `lr`), "
                 "or start from guesses closer to the solution.")
         if self.max_time is not None and time.perf_counter() - started >= self.max_time:
-            return Status.MAX_ITER, (
-                f"The wall-time budget `max_time` = {self.max_time:g} s was used up after {step} "
-                f"{self.optimizer_name} steps, before convergence (`max_steps` = {self.max_steps}). "
-                "Increase `max_time`, or start from guesses closer to the solution.")
+            return self._out_of_time(step)
         return None
+
+    def _out_of_time(self, step: int) -> tuple[Status, str]:
+        """The status and message of a run whose ``max_time`` ran out after ``step`` steps."""
+        return Status.MAX_ITER, (
+            f"The wall-time budget `max_time` = {self.max_time:g} s was used up after {step} "
+            f"{self.optimizer_name} steps, before convergence (`max_steps` = {self.max_steps}). "
+            "Increase `max_time`, or start from guesses closer to the solution.")
 
     def _restore(self, last: IterationRecord) -> int:
         """Sets ``theta`` to the iterate of record ``last``; returns its step."""
@@ -472,8 +490,11 @@ class _GradientRun:
             z = self.rhs.z0().detach().clone()
         n = self.n
         fixed = [s for i, s in enumerate(p.system.state_names) if i not in p.unknown_index.tolist()]
+        # the evaluation at the estimates within what is left of the budget, at least a quarter of it
+        left = None if self.max_time is None else max(self.max_time - elapsed, self.max_time / 4)
         final = fit(p.system.model_with(z[n:]), data, x0=z[:n], params=list(p.system.param_names),
-                    fixed_x0=fixed, t0=float(p.t0), max_iter=0, solver=p.solver, rtol=p.rtol, atol=p.atol)
+                    fixed_x0=fixed, t0=float(p.t0), max_iter=0, solver=p.solver, rtol=p.rtol, atol=p.atol,
+                    max_time=left)
         if final.status in (Status.INTEGRATION_FAILED, Status.DIVERGED):
             status = final.status
             message = final.message + " (at the final estimates)"
