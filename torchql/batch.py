@@ -216,6 +216,7 @@ def fit_many(
     BatchFitError
         When ``throw=True`` and some sample does not converge.
     """
+    started = time.monotonic()  # max_time counts from here: the problem's set-up (stiffness test) too
     throw = _checks.flag("throw", throw)
     if parameters is not None:
         _checks.model_class(model)
@@ -252,7 +253,8 @@ def fit_many(
         raise TypeError("`callback` must be callable (it receives each sample's index and IterationRecord); "
                         f"received {callback!r}")
     result = run_with_noise(spec, lambda problem: run_engine(
-        problem, chunk_size, max_time, _progress(progress, spec.B), history=callback is not None, callback=callback))
+        problem, chunk_size, max_time, _progress(progress, spec.B), history=callback is not None, callback=callback,
+        started=started))
     result.data = data
     result.fit_kwargs = recorded_options(
         params=params, fixed_x0=fixed_x0, t0=t0, method=method, max_iter=max_iter, max_time=max_time,

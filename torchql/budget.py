@@ -29,15 +29,17 @@ class TimeBudgetExceeded(Exception):
 
 
 @contextlib.contextmanager
-def time_budget(seconds: float | None) -> Iterator[None]:
-    """Run the body under a deadline ``seconds`` from now (``None``: no budget, or the enclosing one).
+def time_budget(seconds: float | None, since: float | None = None) -> Iterator[None]:
+    """Run the body under a deadline ``seconds`` from now, or from the moment ``since`` (a
+    ``time.monotonic()`` value: a fit's call, whose checks and set-up count too) (``None``: no
+    budget, or the enclosing one).
 
     A budget inside another never extends it: the earlier deadline wins.
     """
     if seconds is None:
         yield
         return
-    deadline = time.monotonic() + seconds
+    deadline = (time.monotonic() if since is None else since) + seconds
     outer = _DEADLINE.get()
     token = _DEADLINE.set(deadline if outer is None else min(deadline, outer))
     try:

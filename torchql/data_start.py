@@ -24,7 +24,7 @@ from typing import Callable
 import torch
 from torch.func import jacrev
 
-from .budget import TimeBudgetExceeded, until
+from .budget import TimeBudgetExceeded, check_time, until
 from .linearize import node_jacobian
 from .lstsq import solve_update_batch
 from .schemes import scheme_strategy
@@ -438,6 +438,7 @@ def _match_slopes(system, grid, live, z_ref, z_dot, z0, unknown_index, bounds, r
         damping = torch.zeros(S, dtype=p.dtype, device=p.device)
         kept = torch.zeros(S, dtype=torch.long, device=p.device)
         while bool(running.any()):
+            check_time()
             Jq = J * bounds.derivative(u)[:, m_states:].unsqueeze(1) if bounds.active else J
             alpha, _, _ = solve_update_batch(Jq, -r, torch.ones_like(r), rcond, damping)
             step = torch.cat([torch.zeros(S, m_states, dtype=u.dtype, device=u.device), alpha.nan_to_num(0.0)], dim=1)
@@ -489,6 +490,7 @@ def _derive_hidden(system, grid, z_ref, z_dot, observed: list[int], hidden: list
         J, r = residuals_and_jacobian(xh, times, z, zd)
         best = r.square().sum(-1)
         for _ in range(DERIVE_STEPS):
+            check_time()
             trial = xh - _least_squares_step(J, r)
             J_trial, r_trial = residuals_and_jacobian(trial, times, z, zd)
             norm = r_trial.square().sum(-1)

@@ -50,13 +50,14 @@ _STATUSES = list(Status)
 
 
 def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | str | None], None],
-               history: bool = False, callback: Callable[[int, IterationRecord], None] | None = None
-               ) -> BatchFitResult:
+               history: bool = False, callback: Callable[[int, IterationRecord], None] | None = None,
+               started: float | None = None) -> BatchFitResult:
     """Fit the validated problem ``spec``, chunk after chunk of samples: the iteration of
     :func:`torchql.fit` (one sample) and :func:`fit_many` alike.
 
     ``report`` receives the number of samples finished (``None``: done; a string: the phase begun);
     ``history`` keeps every iterate's record; ``callback(sample, record)`` receives each record.
+    ``max_time`` counts from ``started`` (``time.monotonic()`` at the fit's call; default now).
     """
     B, m = spec.B, spec.m
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
@@ -71,7 +72,7 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
     nfev = 0
     finished = 0
     try:
-        with time_budget(max_time):
+        with time_budget(max_time, since=started):
             for start in range(0, B, chunk_size):
                 index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
                 engine = Engine(spec, index, max_time, history=history, callback=callback)

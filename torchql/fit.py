@@ -18,6 +18,7 @@ reported SSE, residuals and Jacobian are those of the fitted model itself.
 from __future__ import annotations
 
 import copy
+import time
 from collections.abc import Callable, Sequence
 
 import torch
@@ -266,6 +267,7 @@ def fit(
     FitError
         When ``throw=True`` and the fit does not converge.
     """
+    started = time.monotonic()  # max_time counts from here: the problem's set-up (stiffness test) too
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable (it receives each IterationRecord); received {callback!r}")
     throw = _checks.flag("throw", throw)
@@ -291,7 +293,7 @@ def fit(
     max_time = Limits.resolve(max_time=max_time).max_time
     batch = run_with_noise(spec, lambda problem: run_engine(
         problem, 1, max_time, lambda done: None, history=True,
-        callback=None if callback is None else lambda sample, record: callback(record)))
+        callback=None if callback is None else lambda sample, record: callback(record), started=started))
     result = batch.sample(0)
     result.index, result.method, result.data = None, spec.method, data
     result.fit_kwargs = recorded_options(
