@@ -331,6 +331,8 @@ class FinalPass:
                 here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
         polish[r[~need]] = False
         need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS)
+        trying.clear()
+        trying.update(zip(r[need].tolist(), scaled[need].tolist()))
         if not bool(need.any()):
             return False
         k, r, alpha, scaled = k[need], r[need], alpha[need], scaled[need]
