@@ -219,3 +219,25 @@ def test_exact_values_that_a_later_iterate_cannot_meet_are_no_contradiction_of_t
     shooting = torchql.fit(_Pendulum(g=29.43, c=0.9), data, x0=x0, method="shooting")
     assert shooting.status is torchql.Status.STALLED, shooting.message
     assert "the data need not contradict them" in shooting.message
+
+
+def test_an_exact_value_on_an_initial_state_held_fixed_at_it_is_no_contradiction():
+    """``y(0) = 1`` measured exactly and given as known (``fixed_x0=["y"]``): the exact row has no
+    unknown to move and is met, and the fit is the one with ``y(t0)`` free (which the exact value
+    pins at 1). It ended EXACT_INFEASIBLE at the guesses; ``profile`` of the free fit's ``y(t0)``
+    raised, where its interval is the estimate itself."""
+    t = torch.linspace(0, 10, 41, dtype=DT)
+    y = torchql.simulate(LinearOscillator(0.3, 2.0), torch.tensor([1.0, 0.0], dtype=DT), t)[:, :1]
+    y = y + 0.05 * torch.randn(y.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+    y[0, 0] = 1.0
+    exact = torch.zeros(41, 1, dtype=torch.bool)
+    exact[0] = True
+    data = torchql.Observations(t, y, observe=["y"], exact=exact)
+    known = torchql.fit(LinearOscillator(0.5, 1.5), data, x0=torch.tensor([1.0, 0.1], dtype=DT), fixed_x0=["y"])
+    free = torchql.fit(LinearOscillator(0.5, 1.5), data, x0=torch.tensor([0.8, 0.1], dtype=DT))
+    assert known.status is free.status is torchql.Status.CONVERGED, known.message
+    assert float(free.x0[0]) == 1.0
+    torch.testing.assert_close(known.estimates, free.estimates[1:], rtol=1e-8, atol=1e-10)
+    assert known.sse == pytest.approx(free.sse, rel=1e-10)
+    pinned = torchql.profile(free, "y(t0)")
+    assert pinned.interval == (1.0, 1.0) and pinned.closed == (True, True)

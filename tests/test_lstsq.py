@@ -64,6 +64,31 @@ def test_dependent_exact_rows_raise():
         solve_update(C, d, w, exact, rcond=1e-10)
 
 
+def test_dependent_exact_rows_that_agree_are_met_as_one():
+    """A value marked twice (a row and twice that row, their values alike), or an exact value no
+    unknown moves and that is met already (a zero row: an initial state held fixed at its measured
+    value), constrain nothing more: the step is the one with that row left out; they were called
+    contradictory, the fit EXACT_INFEASIBLE."""
+    C, d, w = _problem()
+    C[1], d[1] = 2 * C[0], 2 * d[0]
+    C[3], d[3] = 0.0, 0.0
+    exact = torch.zeros(20, dtype=torch.bool)
+    exact[[0, 1, 3]] = True
+    sol = solve_update(C, d, w, exact, rcond=1e-10)
+    kept = torch.ones(20, dtype=torch.bool)
+    kept[[1, 3]] = False
+    alone = solve_update(C[kept], d[kept], w[kept], exact[kept], rcond=1e-10)
+    torch.testing.assert_close(sol.alpha, alone.alpha, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(C[exact] @ sol.alpha, d[exact], rtol=0, atol=1e-12)
+    assert sol.multipliers.shape == (3,) and bool(torch.isfinite(sol.multipliers).all())
+    zero = solve_update(C, d, w, torch.arange(20) == 3, rcond=1e-10)  # the zero row alone: no constraint
+    torch.testing.assert_close(zero.alpha, solve_update(C, d, w, torch.zeros(20, dtype=torch.bool), 1e-10).alpha)
+    assert zero.multipliers.shape == (1,) and float(zero.multipliers[0]) == 0.0
+    d[3] = 1e-3  # a zero row whose value is not met: no step meets it
+    with pytest.raises(ExactRowsError, match="exact"):
+        solve_update(C, d, w, exact, rcond=1e-10)
+
+
 def test_rank_deficiency_is_detected_with_its_null_direction():
     C, d, w = _problem()
     C[:, 3] = C[:, 1] * 2.0  # unknowns 1 and 3 only appear as u1 + 2 u3

@@ -22,6 +22,7 @@ scaled steepest descent.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -100,19 +101,15 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     alpha_s = torch.zeros(m, dtype=C.dtype, device=C.device)
 
     A, b = Cs[~exact], dw[~exact]
-    A0, b0, R1, Q1 = A, b, None, None
+    A0, b0, R1, Q1, P = A, b, None, None, None
     basis = torch.eye(m, dtype=C.dtype, device=C.device)
+    E = Cs[:0]
     if bool(exact.any()):
-        E, e = Cs[exact], dw[exact]
+        E, e, P = _independent_exact_rows(Cs[exact], dw[exact], dw, rcond)
+    if E.shape[0]:
         Q, R = torch.linalg.qr(E.T, mode="complete")
         k = E.shape[0]
         R1 = R[:k, :k]
-        diag = torch.diagonal(R1).abs()
-        if k > m or bool((diag <= rcond * max(diag.max().item(), 1.0)).any()):
-            raise ExactRowsError(
-                "the observations marked `exact` are linearly dependent or contradictory at the current "
-                "iterate: they cannot all be met exactly; mark fewer values exact"
-            )
         y1 = torch.linalg.solve_triangular(R1.T, e.unsqueeze(-1), upper=False).squeeze(-1)
         Q1 = Q[:, :k]
         alpha_s = Q1 @ y1 / (1.0 + damping)
@@ -125,7 +122,7 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
         deficient = A.shape[1] > 0
         null = basis / scale.unsqueeze(-1) if deficient else torch.zeros(m, 0, dtype=C.dtype, device=C.device)
         return LstsqSolution(alpha_s / scale, sv, deficient or bool(zero_cols.any()), _normalize(null),
-                             exact_multipliers(A0, b0, alpha_s, Q1, R1))
+                             _per_row(exact_multipliers(A0, b0, alpha_s, Q1, R1), P, int(exact.sum())))
     U, S, Vh = torch.linalg.svd(A, full_matrices=True)
     r = S.shape[0]
     keep = S > rcond * S[0] if r else S > 0
@@ -138,7 +135,43 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     deficient = bool((~keep).any()) or A.shape[0] < A.shape[1] or bool(zero_cols.any())
     dropped = torch.cat([Vh[:r][~keep], Vh[r:]], dim=0).T  # (cols of A, k)
     null = basis @ dropped / scale.unsqueeze(-1)
-    return LstsqSolution(alpha_s / scale, S, deficient, _normalize(null), exact_multipliers(A0, b0, alpha_s, Q1, R1))
+    return LstsqSolution(alpha_s / scale, S, deficient, _normalize(null),
+                         _per_row(exact_multipliers(A0, b0, alpha_s, Q1, R1), P, int(exact.sum())))
+
+
+def _independent_exact_rows(E: torch.Tensor, e: torch.Tensor, dw: torch.Tensor, rcond: float
+                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Exact rows ``E (k, m)`` (scaled) with values ``e (k,)`` as independent constraints ``P^T E
+    (r, m)``, ``P^T e (r,)`` meeting the same values: ``E`` itself (``P`` None, the identity) where
+    its rows are independent; where they are dependent but consistent (``e`` in ``E``'s range to
+    ``sqrt(eps)`` of the largest weighted value ``dw``: an exact value on an initial state held
+    fixed at it, whose row is zero, or one value marked twice), the combinations of its rows along
+    its ``r`` principal directions, ``P (k, r)`` (multipliers ``nu`` of the combinations are ``P nu``
+    of the rows). Raises :class:`ExactRowsError` where they contradict each other."""
+    k, m = E.shape
+    if k <= m:
+        diag = torch.diagonal(torch.linalg.qr(E.T, mode="r")[1]).abs()
+        if not bool((diag <= rcond * max(diag.max().item(), 1.0)).any()):
+            return E, e, None
+    U, S, _ = torch.linalg.svd(E, full_matrices=False)
+    r = int((S > rcond * max(S.max().item() if S.numel() else 0.0, 1.0)).sum())
+    misfit = torch.linalg.vector_norm(e - U[:, :r] @ (U[:, :r].T @ e))
+    scale = max(float(dw.abs().max()) if dw.numel() else 0.0, torch.finfo(E.dtype).tiny)
+    if r > m or float(misfit) > math.sqrt(torch.finfo(E.dtype).eps) * scale:
+        raise ExactRowsError(
+            "the observations marked `exact` are linearly dependent or contradictory at the current "
+            "iterate: they cannot all be met exactly; mark fewer values exact"
+        )
+    P = U[:, :r]
+    return P.T @ E, P.T @ e, P
+
+
+def _per_row(nu: torch.Tensor, P: torch.Tensor | None, k: int) -> torch.Tensor:
+    """The multipliers ``(k,)`` of the ``k`` exact rows from ``nu`` of their independent combinations
+    (:func:`_independent_exact_rows`' ``P``; zero where no combination remained)."""
+    if P is None:
+        return nu if nu.numel() == k else nu.new_zeros(k)
+    return P @ nu if nu.numel() else nu.new_zeros(k)
 
 
 def exact_multipliers(A: torch.Tensor, b: torch.Tensor, alpha: torch.Tensor, Q1: torch.Tensor | None,

@@ -347,6 +347,10 @@ def _search_side(refit: _Refitter, center: _Point, direction: float, limit: floa
             target = limit
         point, halved = _step_out(refit, prev, target, direction)
         at_limit = at_limit and not halved
+        if point is None and refit.failures[-1][1] == Status.EXACT_INFEASIBLE.name:
+            # past here no value of the others meets the values marked exact: the profile is infinite
+            # (an initial state measured exactly: its interval is the estimate itself)
+            return prev.value, None, points
         if point is None:
             return None, (f"the re-fits failed {side} {name} = {prev.value:.6g} "
                           f"({refit.failures[-1][1]}; the profile stays below the threshold up to there)"), points
