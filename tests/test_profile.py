@@ -7,6 +7,7 @@ are checked against it, not only against the Wald intervals.
 
 import dataclasses
 import math
+import re
 import warnings
 
 import pytest
@@ -320,3 +321,40 @@ def test_the_profile_of_a_single_unknown_follows_its_initial_state_expression():
     width = profile.wald[1] - profile.wald[0]
     assert abs(profile.interval[0] - profile.wald[0]) < 0.05 * width
     assert abs(profile.interval[1] - profile.wald[1]) < 0.05 * width
+
+
+class _DecayToLevel(torchql.ODEModel):
+    """``y' = -k y + c``."""
+
+    state_names = ("y",)
+
+    def __init__(self, k: float, c: float) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+        self.register_buffer("c", torch.tensor(c, dtype=DT))
+
+    def forward(self, t, x):
+        return -self.k * x + self.c
+
+
+def test_an_estimate_on_its_bound_gets_intervals_inside_its_range():
+    """Data that pull ``c >= 0`` below its bound: ``c`` ends at 4e-36 with standard error 0.0047. Its
+    Wald interval, from the internal variable ``log c`` whose standard error is unbounded there,
+    was (0, inf): it is now ``c -/+ z se`` clipped to the bound. Its profile stops at the bound
+    below without crossing and gave -inf there: the end of ``c``'s range, 0, not closed. The
+    report printed the relative error with 36 digits."""
+    t = torch.linspace(0, 4, 25, dtype=DT)
+    noise = 0.01 * torch.randn(25, generator=torch.Generator().manual_seed(3), dtype=DT)
+    data = torchql.Observations(t, (torch.exp(-t) - 0.03 + noise)[:, None], observe=["y"], sigma=0.01)
+    fit = torchql.fit(_DecayToLevel(0.8, 0.1), data, x0=torch.tensor([1.0], dtype=DT), bounds={"c": (0.0, None)})
+    assert fit.success and float(fit.params["c"]) < 1e-20 and "['c'] lie at their bounds" in fit.message
+    se, z = fit.stderr["c"], normal_quantile(0.975)
+    lo, hi = fit.confidence_intervals()["c"]
+    assert lo == 0.0 and hi == pytest.approx(float(fit.params["c"]) + z * se, rel=1e-12)
+    prof = torchql.profile(fit, "c")
+    assert prof.interval[0] == 0.0 and prof.closed == (False, True)
+    assert 0.0 < prof.interval[1] < hi
+    line = next(row for row in fit.report(iterations=False).splitlines() if row.strip().startswith("c "))
+    assert re.search(r"\(\d\.?\d*e\+\d+%\)", line), line
+    searched = torchql.profile(fit, "c", bounds=(0.0, None))  # a search bound of one's own: open, -inf
+    assert searched.interval[0] == -math.inf and searched.interval[1] == pytest.approx(prof.interval[1], rel=1e-9)

@@ -100,8 +100,10 @@ def profile(
         Confidence level, strictly between 0 and 1.
     bounds : (float or None, float or None), optional
         Limits of the search for ``name``'s value (e.g. ``(0, None)`` for a rate that must stay
-        positive). A side that reaches its limit without crossing is reported open. Default: the
-        fit's own bounds on it (``0`` below for an unknown on a logarithmic scale), else none.
+        positive). A side that reaches its limit without crossing is reported open (``-inf`` or
+        ``inf``). Default: the fit's own bounds on it (``0`` below for an unknown on a logarithmic
+        scale), else none; a side open up to one of those ends at it, the end of the unknown's range
+        (still not ``closed``).
     step : float, optional
         Scale of the first step out from the estimate, in the unknown's units. Default: its
         standard error (or 10% of its magnitude when that is not available); the first step is
@@ -136,6 +138,7 @@ def profile(
     threshold = _threshold(result, level)
     h = _first_step(result, name, theta_hat, step)
     lower_bound, upper_bound = _check_bounds(_fit_bounds(result, name) if bounds is None else bounds, theta_hat)
+    own = bounds is None  # the fit's own bounds end the unknown's range: an open side ends there
 
     refit = _Refitter(result, name, data, options, params, fixed_x0, state_index, buffers, threshold.likelihood)
     center = refit(theta_hat, result)
@@ -149,7 +152,8 @@ def profile(
                                        first=0.5 * math.sqrt(threshold.q2) * h, growth=growth,
                                        max_points=max_points, tol=xtol * h)
         points.extend(found)
-        ends.append(direction * math.inf if end is None else end)
+        reached = own and limit is not None and end is None and found and found[-1].value == limit
+        ends.append(limit if reached else direction * math.inf if end is None else end)
         closed.append(end is not None)
         if end is None:
             notes.append(f"open {'below' if direction < 0 else 'above'}: {why}")

@@ -28,7 +28,8 @@ class ProfileResult:
         ``sse_min + z^2`` (known ``sigma``).
     interval : tuple of float
         ``(lower, upper)``; ``-inf``/``inf`` on a side where the profile did not cross the
-        threshold within the search (see :attr:`closed` and :attr:`message`).
+        threshold within the search, or the fit's own bound where it reached that (see
+        :attr:`closed` and :attr:`message`).
     closed : tuple of bool
         Whether each side's end was found.
     wald : tuple of float

@@ -249,12 +249,18 @@ def _unknowns_section(result: "FitResult", level: float) -> tuple[list[str], lis
             missing.append(name)
             lines.append(f"    {name:<{width}} = {_g(value)} +/- nan (no error bar)")
             continue
-        rel = f"{100 * s / abs(value):.2f}%" if value != 0 else "n/a"
+        rel = "n/a" if value == 0 else _percent(100 * s / abs(value))
         lo, hi = cis[name]
         lines.append(f"    {name:<{width}} = {_g(value)} +/- {_g(s, 4)} ({rel})   {pct} CI [{_g(lo)}, {_g(hi)}]")
     if missing:
         lines += ["[[Unknowns without error bars]]", f"    {', '.join(missing)}: {_no_errorbar_reason(result)}"]
     return lines, missing
+
+
+def _percent(value: float) -> str:
+    """A relative error in percent: two decimals, or two digits where it is huge (an estimate on a
+    bound at 0, whose standard error is 1e35 times it, printed 36 digits)."""
+    return f"{value:.2f}%" if value < 1e4 else f"{value:.2g}%"
 
 
 def _correlations_section(result: "FitResult", min_correlation: float) -> list[str]:

@@ -178,7 +178,9 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     :class:`torchql.bounds.Bounds` (``log(u - lo)``, ``log(hi - u)`` or ``logit((u - lo) / (hi - lo))``),
     ``q_hat -/+ q * stderr / |du/dq|``, mapped back to ``u``: it lies inside the bounds and is
     asymmetric about the estimate (the delta method's standard error of ``q``). So does an
-    unknown on a log scale (``log (m,)`` bool, ``None``: none), whose ``q`` is in ``log u``.
+    unknown on a log scale (``log (m,)`` bool, ``None``: none), whose ``q`` is in ``log u``. An
+    estimate on its bound (:meth:`~torchql.bounds.Bounds.at_bound`), where ``du/dq`` vanishes,
+    gets ``estimate -/+ q * stderr`` clipped to the bounds.
 
     ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual variance
     was estimated (NaN without degrees of freedom), the normal quantile when ``sigma`` was
@@ -216,4 +218,11 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
             ends = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])  # u falls with q below an upper bound only
             for i in bounded.nonzero().flatten().tolist():
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
+            # on its bound the internal variable's standard error is unbounded (``du/dq`` -> 0): the
+            # interval about the estimate, clipped to the bounds (a c >= 0 at 4e-36 with standard
+            # error 0.0047 had (0, inf))
+            for name in bounds.at_bound(u, stderr=se):
+                i = names.index(name)
+                lo, hi = float(bounds.lower[i]), float(bounds.upper[i])
+                out[name] = (max(lo, float(u[i]) - q * ses[i]), min(hi, float(u[i]) + q * ses[i]))
     return {name: ends if math.isfinite(s) else (nan, nan) for (name, ends), s in zip(out.items(), ses)}
