@@ -196,3 +196,35 @@ def test_with_estimated_sigma_the_likelihood_ranks_the_optima():
     assert [opt.nll for opt in ms.optima] == sorted(opt.nll for opt in ms.optima)
     assert "NLL" in ms.summary().splitlines()[1]
     assert f"best_nll={ms.best.nll:.6g})" in repr(ms)  # (its sse is the number of values, 40)
+
+
+def test_the_summary_names_starts_that_did_not_converge_below_the_best_optimum():
+    """A harmonic oscillator (xi = 9) whose sum of squares has a local minimum every few units of xi,
+    with large residuals there: Gauss–Newton steps there overshoot, the damped ones are too short to
+    matter, and most starts end STALLED near a minimum. The summary counted only the converged
+    ones, and said nothing of stalled starts at a lower sum of squares (39.7 beside a converged
+    41.6); it now names the lowest of them, with or without a converged optimum."""
+    from dataclasses import replace
+
+    from torchql.multistart import MultiStartResult, _cluster
+
+    t = torch.linspace(0, 20, 81, dtype=torch.float64)
+    y = torchql.simulate(HarmonicOscillator(9.0), torch.tensor([1.0, 0.0], dtype=torch.float64), t)[:, 0]
+    y = y + 0.05 * torch.randn(81, generator=torch.Generator().manual_seed(11), dtype=torch.float64)
+    data = torchql.Observations(t, y[:, None], observe=["x"])
+    ms = torchql.multistart(HarmonicOscillator(3.0), data, x0=torch.tensor([0.5, 0.5], dtype=torch.float64),
+                            starts=5, seed=1)
+    assert not ms.optima and all(r.status is torchql.Status.STALLED for r in ms.results)
+    lowest = min(ms.results, key=lambda r: r.sse)
+    assert f"No start converged; the lowest ({lowest.status.name}) ended at SSE {lowest.sse:.6g}" in ms.summary()
+    highest = max(range(5), key=lambda k: ms.results[k].sse)  # pretend the highest converged
+    results = list(ms.results)
+    results[highest] = replace(results[highest], status=torchql.Status.CONVERGED, success=True)
+    pretended = MultiStartResult(best=results[highest], results=results, guesses=ms.guesses,
+                                 param_names=ms.param_names, optima=_cluster(results, 1e-4, 1e-8), batched=ms.batched)
+    below = sum(r.sse < results[highest].sse for r in results)
+    assert f"{below} start(s) that did not converge (STALLED) ended below the best optimum, the lowest at SSE " \
+           f"{lowest.sse:.6g}" in pretended.summary()
+    assert "below" not in torchql.multistart(Decay(k=0.5), torchql.Observations(
+        t[:20], torch.exp(-0.7 * t[:20])[:, None], observe=["y"]), x0=torch.tensor([1.0], dtype=torch.float64),
+        starts=3).summary()
