@@ -229,7 +229,10 @@ def in_chunks(pair, coefficients: "_Coefficients", index: torch.Tensor | None, p
         return None
     if index is None:
         index = torch.arange(count, device=coefficients.data.device)
-    parts = [pair(coefficients, index[k:k + per_chunk], *args) for k in range(0, count, per_chunk)]
+    parts = []
+    for k in range(0, count, per_chunk):
+        check_time()  # (a chunk of matrix exponentials may take a tenth of a second)
+        parts.append(pair(coefficients, index[k:k + per_chunk], *args))
     return torch.cat([p[0] for p in parts], dim=-1), torch.cat([p[1] for p in parts]), parts[0][2]
 
 
