@@ -315,6 +315,26 @@ def test_the_check_at_the_guesses_is_bounded_and_keeps_to_the_time_budget(monkey
     assert errors[0] is not None and "steps" in errors[0]  # it gave up at that bound
 
 
+def test_a_data_start_that_runs_out_of_iterations_above_the_guesses_is_fitted_again_from_them():
+    """An oscillator measured on [0, 5] and [60, 65] only, fitted from its true coefficients: the
+    spline across the gap of 16 periods led the data-built start to A = 0.96, B = 0.058, still
+    moving after 50 iterations (MAX_ITER, SSE 3.99, 750 times the model's own at the guesses), and
+    MAX_ITER was not fitted again (the fit was taken to be on its way). It is fitted again from the
+    integrated guesses where it ended above their sum of squares, and reaches the optimum there."""
+    x0 = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    t = torch.cat([torch.linspace(0, 5, 21, dtype=torch.float64), torch.linspace(60, 65, 21, dtype=torch.float64)])
+    y = torchql.simulate(LinearOscillator(0.02, 3.0), x0, t)[:, :1]
+    y = y + 0.01 * torch.randn(y.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    data = torchql.Observations(t, y, observe=["y"])
+    integrated = torchql.fit(LinearOscillator(0.02, 3.0), data, x0, initial_trajectory="integrate")
+    result = torchql.fit(LinearOscillator(0.02, 3.0), data, x0)
+    assert result.status is integrated.status is torchql.Status.CONVERGED, result.message
+    torch.testing.assert_close(result.estimates, integrated.estimates, rtol=1e-9, atol=1e-12)
+    assert "the fit ended MAX_ITER" in result.message and "above the model's own at the guesses" in result.message
+    batch = torchql.fit_many(LinearOscillator(0.02, 3.0), [data, data], x0)
+    torch.testing.assert_close(batch.estimates, integrated.estimates.expand(2, -1), rtol=1e-9, atol=1e-12)
+
+
 def test_a_success_above_the_guesses_sum_of_squares_loses_to_a_lower_success_only():
     from torchql.data_start import fallback_rows, keep_the_better_fit
     from torchql.status import Status

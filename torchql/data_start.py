@@ -145,7 +145,8 @@ def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int
     (None: none): those that ended in :data:`FALLBACK_STATUSES`, and those whose fit from the data
     succeeded above the model's own sum of squares at the guesses (``chunk["sse_guesses"]``, by
     more than :data:`GUESSES_MARGIN` of it: the data's reference led it to a worse optimum than
-    where the guesses lay). Returns ``(rows, above)``, ``above`` the latter."""
+    where the guesses lay), or ran out of ``max_iter`` above it. Returns ``(rows, above)``, ``above``
+    the latter."""
     if not fallback:
         return [], set()
     failed = {k for k, code in enumerate(chunk["status"]) if code in FALLBACK_STATUSES}
@@ -158,7 +159,9 @@ def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int
 def sse_at_guesses(engine, codes: list, sse: torch.Tensor, residuals: torch.Tensor,
                    iterations: torch.Tensor) -> torch.Tensor:
     """The model's own sums of squares ``(S,)`` at the guesses (integrated loosely) of the
-    ``engine``'s samples whose fit from a data-built first reference succeeded with a systematic misfit (weighted
+    ``engine``'s samples whose fit from a data-built first reference succeeded, or ran out of
+    ``max_iter`` (a spline across a gap of 16 periods led an oscillator fitted from its true
+    coefficients to 750 times their sum of squares, still moving), with a systematic misfit (weighted
     residuals ``residuals (S, T K)`` whose neighbours in time correlate, :data:`MISFIT_CORRELATION`,
     above the integration's error) or after a long path (``iterations (S,)`` at least
     :data:`LONG_PATH`: the matched start lay far from where it ended), where ``"auto"`` may fit
@@ -172,14 +175,14 @@ def sse_at_guesses(engine, codes: list, sse: torch.Tensor, residuals: torch.Tens
     if engine.start != "data" or spec.start_fallback != "integrate" or spec.sigma_function is not None:
         return out
     S = sse.shape[0]
-    success = torch.tensor([c.success for c in codes], dtype=torch.bool, device=sse.device)
+    ended = torch.tensor([c.success or c is Status.MAX_ITER for c in codes], dtype=torch.bool, device=sse.device)
     e = residuals.nan_to_num(0.0).reshape(engine.y.shape)  # (S, T, K), zero where missing
     lag = (e[:, 1:] * e[:, :-1]).sum(dim=(1, 2)) / e.square().sum(dim=(1, 2)).clamp_min(torch.finfo(e.dtype).tiny)
     floor = engine._integration_floor(torch.arange(S, device=sse.device), engine.w.reshape(S, -1))
     white = 3 / engine.L.to(lag.dtype).clamp_min(1).sqrt()  # three standard deviations of white noise's
     correlated = lag.abs() > torch.clamp(white, min=MISFIT_CORRELATION)
     suspect = (correlated & (sse > MISFIT_FLOOR * floor)) | (iterations >= LONG_PATH)
-    rows = (success & suspect).nonzero().flatten()
+    rows = (ended & suspect).nonzero().flatten()
     if not rows.numel():
         return out
     z0 = engine.z0_guess[rows]
