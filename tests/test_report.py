@@ -301,3 +301,23 @@ def test_iteration_table_of_several_experiments_shows_each_experiments_initial_s
     assert unknown_values(result, result.history[-1]) == pytest.approx(result.estimates.tolist(), rel=1e-12)
     table = result.report().split("[[Iterations]]")[1]
     assert "nan" not in table
+
+
+def test_aic_bic_count_the_unknowns_the_exact_values_leave_free():
+    """A value marked exact fixes one unknown: the information criteria count ``m - 1`` free
+    unknowns over the ``N`` least-squares values, as the degrees of freedom do (they counted all
+    ``m``)."""
+    t = torch.linspace(0, 6, 25, dtype=torch.float64)
+    y = (torch.exp(-0.7 * t) + 0.01 * torch.randn(25, generator=torch.Generator().manual_seed(1),
+                                                   dtype=torch.float64)).unsqueeze(-1)
+    exact = torch.zeros(25, 1, dtype=torch.bool)
+    exact[0] = True
+    from testmodels import Decay
+
+    result = torchql.fit(Decay(k=0.5), torchql.Observations(t, y, observe=["y"], exact=exact),
+                         x0=torch.tensor([1.0], dtype=torch.float64))
+    assert result.success and result.dof == 23
+    n, m = 24, 1
+    aic, bic = information_criteria(result)
+    assert aic == pytest.approx(n * math.log(result.sse / n) + 2 * m, rel=1e-14)
+    assert bic == pytest.approx(n * math.log(result.sse / n) + math.log(n) * m, rel=1e-14)

@@ -57,14 +57,16 @@ def information_criteria(result: "FitResult") -> tuple[float, float]:
     """``(AIC, BIC)`` from the SSE, as lmfit computes them.
 
     ``N ln(SSE/N) + 2 m`` and ``N ln(SSE/N) + ln(N) m``, ``N`` the least-squares values (the
-    values marked exact are met exactly and do not count), ``m`` the number of unknowns.
+    values marked exact are met exactly and do not count), ``m`` the number of unknowns less
+    those the exact values fix, one each (``N - m`` is the fit's ``dof``).
     ``nan`` when the SSE is not finite, ``-inf`` when it is zero. With estimated sigmas or
     log-normal noise, from the negative log-likelihood instead: ``2 NLL + 2 k`` and
     ``2 NLL + ln(N) k``, ``k`` the unknowns and the estimated sigmas (:mod:`torchql.noise`); so
     too with a ``sigma(p)`` function (whose parameters are among the unknowns).
     """
-    n = result.n_observations - int(result.exact_mask.sum())
-    m = len(result.unknown_names)
+    n_exact = int(result.exact_mask.sum())
+    n = result.n_observations - n_exact
+    m = max(len(result.unknown_names) - n_exact, 0)  # (each exact value fixes one: the dof's count)
     if result.sigma is not None or result.noise != "normal" or result.sigma_function:  # 2 NLL + penalty
         k = m + (len(result.sigma) if result.sigma is not None else 0)
         if not math.isfinite(result.nll) or n <= 0:
