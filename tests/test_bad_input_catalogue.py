@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import torchql
-from testmodels import Decay
+from testmodels import Decay, Product
 from torchql.baselines import adjoint_fit
 
 DT = torch.float64
@@ -83,6 +83,15 @@ class ParameterDecay(torchql.ODEModel):
 
     def forward(self, t, x):
         return -self.k * x
+
+
+class _TwoStatesNamedByAString(torchql.ODEModel):
+    """Two states named ``"xv"``: a string, which would read as the states 'x' and 'v'."""
+
+    state_names = "xv"
+
+    def forward(self, t, x):
+        return -x
 
 
 def batch(samples=3):
@@ -213,6 +222,29 @@ RAISES = [
      lambda: torchql.fit_many(Decay(0.3), [[data(), data()]] * 2, torch.ones(2, 3, 1, dtype=DT)), ValueError,
      r"`x0` must have shape \(E, n_states\) \(shared\) or \(B, E, n_states\) with B = 2 samples of E = 2 "
      r"experiments and n_states = 1; received shape \(2, 3, 1\)"),
+    ("parameters varying a coefficient that params leaves out",
+     lambda: torchql.fit(Product(1.0, 1.0), data(), X0, params=["a"], parameters={"b": 1.0}), ValueError,
+     r"`parameters\['b'\]` varies \(vary=True, the default\), but `params` = \['a'\] does not list 'b'"),
+    ("multistart: bounds lower above upper", lambda: torchql.multistart(Decay(0.3), data(), X0, starts=2,
+                                                                      bounds={"k": (1.0, 0.0)}), ValueError,
+     r"`bounds\['k'\]` needs lower < upper; received \(1, 0\)"),
+    ("multistart: include_guess as a string",
+     lambda: torchql.multistart(Decay(0.3), data(), X0, starts=2, include_guess="no"), TypeError,
+     r"`include_guess` must be True or False; received 'no'"),
+    ("report: iterations as a string", lambda: torchql.fit(Decay(0.3), data(), X0).report(iterations="no"),
+     TypeError, r"`iterations` must be True or False; received 'no'"),
+    ("experiment_model of an experiment the fit does not have",
+     lambda: torchql.fit(Decay(0.3), data(), X0).experiment_model(5), ValueError,
+     r"`experiment` must be 0 for a fit of one experiment; received 5"),
+    ("experiment_model of several experiments, index out of range",
+     lambda: torchql.fit(Decay(0.3), [data(), data()], torch.stack([X0, X0])).experiment_model(-1), ValueError,
+     r"`experiment` must be an index 0..1 \(the fit has 2 experiments\); received -1"),
+    ("plot_fit: data not Observations", lambda: torchql.fit(Decay(0.3), data(), X0).plot_fit(data=5), TypeError,
+     r"`data` must be a torchql.Observations \(one experiment's\); received int"),
+    ("state_names as one string", lambda: torchql.simulate(_TwoStatesNamedByAString(), torch.ones(2, dtype=DT), T),
+     ValueError, r"`model.state_names` must be a non-empty tuple of distinct strings; received 'xv'"),
+    ("profile: an unknown keyword", lambda: torchql.profile(torchql.fit(Decay(0.3), data(), X0), "k", foo=1),
+     TypeError, r"profile\(\) got unexpected keyword argument\(s\) \['foo'\]"),
 ]
 
 

@@ -586,3 +586,16 @@ def test_observation_with_parameters_that_fails_is_named():
     data = torchql.Observations(T_DECAY, _decay_data().y, observe=lambda x, p: p["gain"] * x)
     with pytest.raises(ValueError, match=r"`observe` callable failed on a state of shape \(1,\): KeyError: 'gain'"):
         torchql.fit(_ScaledDecay(), data, ONE, fixed_x0=["x"], params=["k"])
+
+
+def test_an_observation_matrix_is_copied_as_the_values_are():
+    """``t``, ``y``, ``sigma`` and ``exact`` were copied, ``observe`` kept by reference: scaling the
+    user's matrix afterwards changed the data already built (a fit then found y(t0) = 0.75 for
+    data of 1.5)."""
+    import torchql
+
+    t = torch.linspace(0, 2, 11, dtype=torch.float64)
+    Q = torch.ones(1, 1, dtype=torch.float64)
+    by_matrix = torchql.Observations(t, torch.exp(-t)[:, None], observe=Q)
+    Q.mul_(2.0)
+    assert torch.equal(by_matrix.observe, torch.ones(1, 1, dtype=torch.float64))

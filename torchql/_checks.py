@@ -60,9 +60,10 @@ def model_class(model) -> None:
 
     if not isinstance(model, ODEModel):
         raise TypeError(f"`model` must be a torchql.ODEModel; received {type(model).__name__}")
-    names = tuple(model.state_names)
+    given = model.state_names
+    names = () if isinstance(given, (str, bytes)) else tuple(given)  # ("xv" would read as states 'x' and 'v')
     if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
-        raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {names!r}")
+        raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {given!r}")
     dtype, _ = model_dtype_device(model)
     if dtype not in _MODEL_DTYPES:
         which = [name for name, value in coefficients(model).items() if value.dtype not in _MODEL_DTYPES]

@@ -49,7 +49,8 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-__all__ = ["Bounds", "MAX_INTERNAL_STEP", "SCALES", "START_OFFSET", "at_bound_note", "moved_guesses_note", "moved_record"]
+__all__ = ["Bounds", "MAX_INTERNAL_STEP", "SCALES", "START_OFFSET", "at_bound_note", "bound_pair", "moved_guesses_note",
+           "moved_record"]
 
 #: Largest move of a bounded unknown's internal variable ``q`` in one step (a factor 1000 in
 #: its distance to a bound).
@@ -98,7 +99,7 @@ class Bounds:
                     f"`bounds` must be a dict {{name: (lower, upper)}}; received {type(bounds).__name__}")
             given: dict[int, str] = {}
             for name, pair in bounds.items():
-                lo, hi = _pair(name, pair)
+                lo, hi = bound_pair(name, pair)
                 for i in _named(index, "bounds", name, all_names, unknown_names):
                     _once("bounds", given, i, name, unknown_names)
                     lower[i], upper[i] = lo, hi
@@ -376,7 +377,7 @@ def _once(argument: str, given: dict, i: int, name, unknown_names: Sequence[str]
     given[i] = name
 
 
-def _pair(name: str, pair) -> tuple[float, float]:
+def bound_pair(name: str, pair) -> tuple[float, float]:
     """``(lower, upper)`` as floats (``None`` -> infinite), validated."""
     if isinstance(pair, (str, bytes)) or not isinstance(pair, (tuple, list)) or len(pair) != 2:
         raise TypeError(f"`bounds[{name!r}]` must be a pair (lower, upper); received {pair!r}")

@@ -32,6 +32,7 @@ from .batch import fit_many
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .observations import Observations
+from .bounds import bound_pair
 from .options import expand_options
 from .parameters import apply_parameters
 from .result import FitResult
@@ -202,6 +203,7 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     if spread < 1:
         raise ValueError(f"`spread` must be >= 1 (a factor around the guesses); received {spread:g}")
     seed = _checks.positive_int("seed", seed, minimum=0)
+    include_guess = _checks.flag("include_guess", include_guess)
     for name, value in (("x_rtol", x_rtol), ("x_atol", x_atol)):
         if _checks.finite_number(name, value) < 0:
             raise ValueError(f"`{name}` must be a non-negative finite number; received {value!r}")
@@ -299,12 +301,9 @@ def _element_bounds(bounds, system: AugmentedSystem) -> tuple[torch.Tensor, torc
         k = 0
         for name, size in zip(system.param_names, system.param_sizes):
             for j, element in enumerate(system.element_names[k:k + size]):
-                pair = bounds.get(element, bounds.get(name))
-                if isinstance(pair, (tuple, list)) and len(pair) == 2:
-                    if pair[0] is not None:
-                        lower[k + j] = float(pair[0])
-                    if pair[1] is not None:
-                        upper[k + j] = float(pair[1])
+                key = element if element in bounds else name
+                if key in bounds:  # validated as fit validates it, before any draw
+                    lower[k + j], upper[k + j] = bound_pair(key, bounds[key])
             k += size
     return lower, upper
 

@@ -82,7 +82,7 @@ class Observations:
     t : Tensor ``(T,)``, or ``(B, T)`` for a batch with per-sample times
     y, sigma : Tensor ``(T, K)``, or ``(B, T, K)`` for a batch (``y``'s dtype is ``t``'s)
     exact : bool Tensor of ``y``'s shape
-    observe : the ``observe`` argument as given.
+    observe : the ``observe`` argument as given (a matrix copied).
     sigma_given : bool
         Whether ``sigma`` was given (then it is taken as the known standard deviation of the
         values; otherwise the residual variance is estimated from the fit).
@@ -130,6 +130,8 @@ class Observations:
         shape = tuple(y.shape)
         self.t = t.clone()
         self.y = y.to(t.dtype) if y.dtype != t.dtype else y.clone()
+        # a matrix is copied, as t and y are: scaling it afterwards must not change these data
+        observe = observe.detach().clone() if isinstance(observe, torch.Tensor) else observe
         self.observe = observe
         self._check_observe_spec(observe, K)
 

@@ -142,6 +142,10 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
                 fitted = fitted if fitted is not None else copy.deepcopy(model)
                 _set_coefficient(fitted, key, spec.value, dtype, device)
             if spec.vary and name not in out_params:
+                if params is not None:
+                    raise ValueError(f"`parameters[{key!r}]` varies (vary=True, the default), but `params` = "
+                                     f"{list(params)} does not list {name!r}: give the unknowns in one place (add it to "
+                                     "`params`, or give it vary=False)")
                 out_params.append(name)
                 changed = True
             if not spec.vary and name in out_params:

@@ -72,7 +72,7 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     (Figure, (Axes, Axes or None))
     """
     from .model import coefficients
-    from .observations import ObservationOperator
+    from .observations import ObservationOperator, Observations
 
     several = result._experiment_index(experiment) is not None
     if several and data is None and isinstance(result.data, (list, tuple)):
@@ -81,6 +81,8 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
         data = result.data
     if data is None:
         raise ValueError("`data` is required: this FitResult does not hold the observations it was fitted to")
+    if not isinstance(data, Observations):
+        raise TypeError(f"`data` must be a torchql.Observations (one experiment's); received {type(data).__name__}")
     fig, (ax_fit, ax_res) = _two_axes(ax, sharex=True)
     dtype, device = result.x0.dtype, result.x0.device
     model = result.experiment_model(experiment) if several else result.model

@@ -20,6 +20,7 @@ For a model linear in its unknowns the two coincide.
 from __future__ import annotations
 
 import copy
+import inspect
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -204,6 +205,11 @@ def _check_arguments(result: FitResult, name: str, data: Observations | None, le
     for bad in ("params", "fixed_x0", "x0", "callback", "throw", "bounds", "scale"):
         if bad in fit_options:
             raise ValueError(f"`{bad}` cannot be overridden in a profile: it is set by the profile itself")
+    from .fit import fit
+
+    unknown = sorted(set(fit_options) - set(inspect.signature(fit).parameters) - {"options"})
+    if unknown:
+        raise TypeError(f"profile() got unexpected keyword argument(s) {unknown}: it takes its own and torchql.fit's")
     return data
 
 

@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from . import _checks
+
 from .model import _element_names
 from .multi import experiment_state_name
 from .status import Status
@@ -156,6 +158,7 @@ def fit_report(result: "FitResult", *, level: float = 0.95, min_correlation: flo
         raise ValueError(f"`level` must be a float strictly between 0 and 1; received {level!r}")
     if isinstance(min_correlation, bool) or not isinstance(min_correlation, (int, float)) or not 0 <= min_correlation < 1:
         raise ValueError(f"`min_correlation` must be a number in [0, 1); received {min_correlation!r}")
+    iterations, print = _checks.flag("iterations", iterations), _checks.flag("print", print)
     lines = _fit_section(result) + _statistics_section(result)
     unknowns, missing = _unknowns_section(result, level)
     lines += unknowns

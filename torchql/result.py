@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -370,19 +371,26 @@ class FitResult:
                                  "for a fit of one")
             return None
         E = len(self.experiment_t0)
-        if isinstance(experiment, bool) or not isinstance(experiment, int) or not 0 <= experiment < E:
+        try:
+            index = None if isinstance(experiment, bool) else operator.index(experiment)  # (numpy integers too)
+        except TypeError:
+            index = None
+        if index is None or not 0 <= index < E:
             raise ValueError(f"`experiment` must be an index 0..{E - 1} (the fit has {E} experiments){when}; "
                              f"received {experiment!r}")
-        return experiment
+        return index
 
     def experiment_model(self, experiment: int) -> "ODEModel":
         """The fitted model as experiment ``experiment`` sees it: :attr:`model` with that
         experiment's ``conditions`` applied (the model itself without conditions)."""
         from .multi import with_condition
 
-        if not self.conditions:
+        if self.experiment_t0 is None:  # one experiment: 0
+            if isinstance(experiment, bool) or experiment != 0:
+                raise ValueError(f"`experiment` must be 0 for a fit of one experiment; received {experiment!r}")
             return self.model
-        return with_condition(self.model, self.conditions[experiment])
+        e = self._experiment_index(experiment)
+        return with_condition(self.model, self.conditions[e]) if self.conditions else self.model
 
     def __repr__(self) -> str:
         est = ", ".join(f"{name}={value:.6g}" for name, value in zip(self.unknown_names, self.estimates.tolist()))
