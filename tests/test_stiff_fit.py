@@ -340,3 +340,30 @@ def test_a_stiff_fit_that_fails_with_an_explicit_propagator_names_it(linear_solv
     named = f"linear_solver='{linear_solver}' propagates explicitly" in result.message
     assert named == (linear_solver == "taylor"), result.message
     assert ("linear_solver='radau', suits them" in result.message) == named
+
+
+def test_a_batch_mixing_stiff_and_non_stiff_samples_fits_each_on_its_own_solver():
+    """``solver="auto"`` took the stiff solver for a whole batch where one sample was stiff: a van der
+    Pol sample of mu = 2 beside one of mu = 1000 was fitted by Rodas5P in 5 iterations, where its
+    own fit takes DOP853 and 13 (SSE 6e-8 apart). Samples alike in stiffness are fitted run by run,
+    each as its own fit, and each result names its solver."""
+    from torchql.models import VanDerPol
+
+    t = torch.linspace(1.0, 20.0, 20, dtype=DT)
+    x0 = torch.tensor([2.0, 0.0], dtype=DT)
+    sets = []
+    for s, mu in enumerate([2.0, 1000.0, 3.0]):
+        y = torchql.simulate(VanDerPol(mu), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                             rtol=1e-11, atol=1e-13)[1:, :1]
+        y = y + 0.01 * torch.randn(y.shape, generator=torch.Generator().manual_seed(s), dtype=DT)
+        sets.append(torchql.Observations(t, y, observe=["y"], sigma=0.01))
+    guess = torch.tensor([2.3, 1100.0, 2.8], dtype=DT)
+    options = dict(params=["mu"], fixed_x0=["y", "v"], t0=0.0, bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    batch = torchql.fit_many(VanDerPol(1000.0), sets, x0, guesses={"mu": guess}, **options)
+    for i, data in enumerate(sets):
+        alone = torchql.fit(VanDerPol(float(guess[i])), data, x0, **options)
+        assert batch[i].status is alone.status and batch[i].iterations == alone.iterations, i
+        assert batch[i].solver_options == alone.solver_options
+        torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)
+        assert float(batch[i].sse) == pytest.approx(alone.sse, rel=1e-10)
+    assert [batch[i].solver_options["solver"] for i in range(3)] == ["dop853", "rodas5p", "dop853"]

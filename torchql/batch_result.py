@@ -93,6 +93,10 @@ class BatchFitResult:
         and :func:`torchql.fit`'s records have it (NaN where the final pass did not evaluate).
     solver_options : dict
         ``solver``, ``rtol``, ``atol`` of the fits (used by ``batch[i].predict``).
+    sample_solver_options : list of dict or None
+        Each sample's, where they differ (``solver="auto"`` on a batch mixing stiff and non-stiff
+        samples: each on the solver its own fit takes); ``batch[i].solver_options`` is sample
+        ``i``'s. None where ``solver_options`` is every sample's.
     data : Observations or list of Observations or None
         The datasets fitted (``batch[i].data`` is sample ``i``'s).
     fit_kwargs : dict
@@ -156,6 +160,7 @@ class BatchFitResult:
     sse_start: torch.Tensor | None = field(default=None, repr=False)
     sse_end: torch.Tensor | None = field(default=None, repr=False)
     solver_options: dict = field(default_factory=dict, repr=False)
+    sample_solver_options: list | None = field(default=None, repr=False)
     data: object = field(default=None, repr=False)
     fit_kwargs: dict = field(default_factory=dict, repr=False)
     lower: torch.Tensor | None = field(default=None, repr=False)
@@ -250,7 +255,9 @@ class BatchFitResult:
             exact_mask=exact,
             n_observations=int(self.n_observations[i]), nfev=int(self.nfev),
             method=self._method_name(),
-            model=self.model_of(i), solver_options=dict(self.solver_options), data=data,
+            model=self.model_of(i), data=data,
+            solver_options=dict(self.solver_options if self.sample_solver_options is None
+                                else self.sample_solver_options[i]),
             fit_kwargs=dict(self.fit_kwargs), index=i,
             lower=None if self.lower is None else self.lower.clone(),
             upper=None if self.upper is None else self.upper.clone(),
@@ -377,6 +384,7 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         model=first.model,
         **_joined_evaluations(parts),
         solver_options=dict(first.solver_options),
+        sample_solver_options=_joined_solver_options(parts),
         fit_kwargs=dict(first.fit_kwargs),
         lower=first.lower,
         upper=first.upper,
@@ -393,6 +401,13 @@ def concatenate(parts: Sequence[BatchFitResult]) -> BatchFitResult:
         experiment_t0=first.experiment_t0,
         conditions=first.conditions,
     )
+
+
+def _joined_solver_options(parts: Sequence[BatchFitResult]) -> list | None:
+    """Each sample's solver options where the parts' differ (else None: the first part's are all's)."""
+    per_sample = [dict(p.solver_options if p.sample_solver_options is None else p.sample_solver_options[i])
+                  for p in parts for i in range(len(p.status))]
+    return None if all(options == per_sample[0] for options in per_sample) else per_sample
 
 
 def _joined_moves(parts: Sequence[BatchFitResult]) -> dict:

@@ -267,13 +267,16 @@ class Problem:
         self.z0[:, self.unknown_index] = used
 
     def _solver_and_grid(self, grid, linear_solver) -> None:
-        """The solver (``"auto"``: stiff if some sample's model is stiff along its data), the linear
+        """The solver (``"auto"``: stiff if some sample's model is stiff along its data; ``fit_many``
+        splits a batch that mixes them), the linear
         solver, and the grid: ``(G,)`` shared, or ``(B, G)`` per sample (padded by its last node)."""
         n = self.system.n
         given = None if linear_solver is None else check_linear_solver(linear_solver)
         measured, observed = self.operator.measured_states(self.y)  # log-normal data: exp(log y)
         try:  # "auto": the Jacobians along the data by jacrev under vmap
-            self.solver = choose_solver(self.solver, self.system, self.t_obs,
+            #: with solver="auto", the samples found stiff, bool (B,) (fit_many fits a batch that
+            #: mixes stiff and non-stiff samples run by run, each sample on the solver its own fit takes)
+            self.solver, self.stiff_samples = choose_solver(self.solver, self.system, self.t_obs,
                                         torch.where(self.mask, measured, torch.full_like(measured, float("nan"))),
                                         observed, self.z0[:, :n], self.z0[:, n:],
                                         (self.t_obs[..., -1] - self.t0).expand(self.B),

@@ -81,15 +81,17 @@ def stiffness_ratio(system, t: torch.Tensor, x: torch.Tensor, p: torch.Tensor, s
 
 
 def choose_solver(solver: str, system, t: torch.Tensor, y: torch.Tensor, observed: list, x0: torch.Tensor,
-                  p: torch.Tensor, span: torch.Tensor, explicit: str | None = None) -> str:
+                  p: torch.Tensor, span: torch.Tensor, explicit: str | None = None
+                  ) -> tuple[str, torch.Tensor | None]:
     """``solver`` itself, or for :data:`AUTO` the solver the data call for: :data:`STIFF_SOLVER` when
     some sample's :func:`stiffness_ratio` along its data exceeds :data:`STIFF_RATIO`, else
-    ``explicit`` (default :data:`EXPLICIT_SOLVER`). ``y (S, T, K)`` (NaN where missing), ``x0 (S,
-    n)`` and ``p (S, P)`` guesses, ``t`` and ``span`` as :func:`stiffness_ratio` takes them."""
+    ``explicit`` (default :data:`EXPLICIT_SOLVER`); with the samples found stiff, bool ``(S,)``
+    (None for a ``solver`` given). ``y (S, T, K)`` (NaN where missing), ``x0 (S, n)`` and ``p (S,
+    P)`` guesses, ``t`` and ``span`` as :func:`stiffness_ratio` takes them."""
     if solver != AUTO:
-        return solver
-    ratio = stiffness_ratio(system, t, states_from_data(y, observed, x0), p, span)
-    return STIFF_SOLVER if bool((ratio > STIFF_RATIO).any()) else explicit or EXPLICIT_SOLVER
+        return solver, None
+    stiff = stiffness_ratio(system, t, states_from_data(y, observed, x0), p, span) > STIFF_RATIO
+    return (STIFF_SOLVER if bool(stiff.any()) else explicit or EXPLICIT_SOLVER), stiff
 
 
 def linear_solver_for(solver: str, linear_solver, default: str):
