@@ -235,25 +235,23 @@ def fit_many(
     if conditions is not None:
         raise ValueError("`conditions` apply to several experiments per sample: give `data` as one list of "
                          "experiments (Observations) per sample")
-    runs = _input_runs(data)
-    if runs is not None:
+    def by_runs(runs):  # one problem per run of samples alike, joined in the samples' order
         return raise_if_failed(throw, _fit_runs(
             runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress, callback=callback,
             params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds, scale=scale, x0_expr=x0_expr,
             initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol,
             rcond=rcond, grid=grid, damping=damping, solver=solver, linear_solver=linear_solver,
             max_steps=max_steps, chunk_size=chunk_size))
+
+    runs = _input_runs(data)  # samples whose measured inputs differ
+    if runs is not None:
+        return by_runs(runs)
     spec = Problem(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
                    damping, solver, max_steps, bounds, linear_solver, method, initial_trajectory, scale=scale,
                    x0_expr=x0_expr)
     runs = _stiffness_runs(spec)
     if runs is not None:  # each sample on the solver its own fit takes ("auto": stiff or not)
-        return raise_if_failed(throw, _fit_runs(
-            runs, model, data, x0, guesses=guesses, max_time=max_time, progress=progress, callback=callback,
-            params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds, scale=scale, x0_expr=x0_expr,
-            initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol,
-            rcond=rcond, grid=grid, damping=damping, solver=solver, linear_solver=linear_solver,
-            max_steps=max_steps, chunk_size=chunk_size))
+        return by_runs(runs)
     chunk_size = _checks.positive_int("chunk_size", chunk_size)
     max_time = Limits.resolve(max_time=max_time).max_time
     _say_one_at_a_time(spec)
