@@ -243,6 +243,10 @@ RAISES = [
      r"`data` must be a torchql.Observations \(one experiment's\); received int"),
     ("state_names as one string", lambda: torchql.simulate(_TwoStatesNamedByAString(), torch.ones(2, dtype=DT), T),
      ValueError, r"`model.state_names` must be a non-empty tuple of distinct strings; received 'xv'"),
+    ("FitOptions: grid as a list", lambda: torchql.FitOptions(grid=[1, 2]), ValueError,
+     r'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; received \[1, 2\]'),
+    ("fit: x0 on the meta device", lambda: torchql.fit(Decay(0.3), data(), torch.ones(1, device="meta")), TypeError,
+     r"`x0` must be a tensor of shape \(n_states,\) = \(1,\) with values; received a tensor on the meta device"),
     ("profile: an unknown keyword", lambda: torchql.profile(torchql.fit(Decay(0.3), data(), X0), "k", foo=1),
      TypeError, r"profile\(\) got unexpected keyword argument\(s\) \['foo'\]"),
 ]

@@ -21,6 +21,8 @@ def float_tensor(value, name: str, dtype: torch.dtype | None = None, device: tor
     callers copy before writing.
     """
     if isinstance(value, torch.Tensor):
+        if value.is_meta:
+            raise TypeError(f"`{name}` must be {expected} with values; received a tensor on the meta device")
         tensor = value.detach()
     else:
         tensor = _from_array_like(value, name, expected)

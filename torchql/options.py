@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import inspect
 import math
+import numbers
 from dataclasses import dataclass, fields, replace
 
 import torch
@@ -178,7 +179,8 @@ class FitOptions:
             if getattr(self, name) is not None:
                 _below_one(name, getattr(self, name))
         grid = self.grid
-        if isinstance(grid, str) and grid not in ("auto", "smooth"):
+        if (isinstance(grid, str) and grid not in ("auto", "smooth")
+                or not isinstance(grid, (str, numbers.Integral, torch.Tensor, type(None))) or isinstance(grid, bool)):
             raise ValueError(f'`grid` must be a number of intervals, a tensor of times, "auto" or "smooth"; '
                              f'received {grid!r}')
         if isinstance(grid, torch.Tensor):
