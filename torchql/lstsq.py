@@ -122,7 +122,7 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
         deficient = A.shape[1] > 0
         null = basis / scale.unsqueeze(-1) if deficient else torch.zeros(m, 0, dtype=C.dtype, device=C.device)
         return LstsqSolution(alpha_s / scale, sv, deficient or bool(zero_cols.any()), _normalize(null),
-                             _per_row(exact_multipliers(A0, b0, alpha_s, Q1, R1), P, int(exact.sum())))
+                             _per_row(exact_multipliers(A0, b0, alpha_s, Q1, R1), P))
     U, S, Vh = torch.linalg.svd(A, full_matrices=True)
     r = S.shape[0]
     keep = S > rcond * S[0] if r else S > 0
@@ -136,7 +136,7 @@ def solve_update(C: torch.Tensor, d: torch.Tensor, weights: torch.Tensor, exact:
     dropped = torch.cat([Vh[:r][~keep], Vh[r:]], dim=0).T  # (cols of A, k)
     null = basis @ dropped / scale.unsqueeze(-1)
     return LstsqSolution(alpha_s / scale, S, deficient, _normalize(null),
-                         _per_row(exact_multipliers(A0, b0, alpha_s, Q1, R1), P, int(exact.sum())))
+                         _per_row(exact_multipliers(A0, b0, alpha_s, Q1, R1), P))
 
 
 def _independent_exact_rows(E: torch.Tensor, e: torch.Tensor, dw: torch.Tensor, rcond: float
@@ -166,12 +166,11 @@ def _independent_exact_rows(E: torch.Tensor, e: torch.Tensor, dw: torch.Tensor, 
     return P.T @ E, P.T @ e, P
 
 
-def _per_row(nu: torch.Tensor, P: torch.Tensor | None, k: int) -> torch.Tensor:
-    """The multipliers ``(k,)`` of the ``k`` exact rows from ``nu`` of their independent combinations
-    (:func:`_independent_exact_rows`' ``P``; zero where no combination remained)."""
-    if P is None:
-        return nu if nu.numel() == k else nu.new_zeros(k)
-    return P @ nu if nu.numel() else nu.new_zeros(k)
+def _per_row(nu: torch.Tensor, P: torch.Tensor | None) -> torch.Tensor:
+    """The multipliers ``(k,)`` of the ``k`` exact rows from ``nu (r,)`` of their independent
+    combinations (:func:`_independent_exact_rows`' ``P (k, r)``; None: the rows themselves). With
+    no combination left (``r = 0``), ``P @ nu`` is zero."""
+    return nu if P is None else P @ nu
 
 
 def exact_multipliers(A: torch.Tensor, b: torch.Tensor, alpha: torch.Tensor, Q1: torch.Tensor | None,
