@@ -154,3 +154,21 @@ def test_max_time_counts_from_the_call_the_problems_set_up_too(monkeypatch, batc
     assert run().status is torchql.Status.CONVERGED
     cut = run(max_time=0.2)
     assert cut.status is torchql.Status.MAX_TIME and "max_time = 0.2 s" in cut.message
+
+
+def test_runs_of_a_batch_share_the_budget_counted_from_the_call():
+    """``fit_many`` fits samples that differ in their inputs or stiffness run by run; the runs share
+    the budget counted from the ``fit_many`` call (the set-up that found the runs, a stiffness test
+    over every sample, is spent from it too): with the budget spent before the first run, every
+    sample ends MAX_TIME."""
+    from torchql.batch import _fit_runs
+
+    data = torchql.Observations(T, torch.stack([Y, 1.1 * Y, 0.9 * Y]), observe=["y"])
+    x0 = torch.tensor([1.0], dtype=DT)
+    runs = [(0, 1), (1, 3)]
+    fresh = _fit_runs(runs, Decay(k=0.2), data, x0, guesses=None, max_time=600.0, progress=False, callback=None,
+                      started=time.monotonic())
+    assert [s.name for s in fresh.status] == ["CONVERGED"] * 3
+    spent = _fit_runs(runs, Decay(k=0.2), data, x0, guesses=None, max_time=1.0, progress=False, callback=None,
+                      started=time.monotonic() - 2.0)
+    assert [s.name for s in spent.status] == ["MAX_TIME"] * 3

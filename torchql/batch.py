@@ -171,9 +171,9 @@ def fit_many(
         sample whose fit from the data failed.
         ``solver="auto"`` (default) decides as ``fit`` does, for each sample: ``"rodas5p"``
         where its model is stiff along its data (:mod:`torchql.stiffness`), else ``"dop853"``; a
-        batch that mixes the two is fitted run by run of consecutive samples alike. With ``"rodas5p"`` (stiff models) every nonlinear pass is the batched
-        implicit :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as
-        in ``fit``; ``"dop853"`` and ``"dopri5"`` are the batched Dormand–Prince pairs of eighth and
+        batch that mixes the two is fitted run by run of consecutive samples alike. With
+        ``"rodas5p"`` (stiff models) every nonlinear pass is the batched implicit
+        :func:`torchql.solvers.rodas5p_batch` and the grid gains early geometric nodes, as in ``fit``; ``"dop853"`` and ``"dopri5"`` are the batched Dormand–Prince pairs of eighth and
         fifth order (:func:`torchql.dopri.dopri_batch`; ``max_steps`` their trial steps per grid
         interval, as torchdiffeq counts them per output time). Another ``solver`` (``"dopri8"``,
         ``"rk4"``, ...) integrates each sample in turn by torchdiffeq, and ``fit_many`` warns so.
@@ -241,7 +241,7 @@ def fit_many(
             params=params, fixed_x0=fixed_x0, t0=t0, method=method, bounds=bounds, scale=scale, x0_expr=x0_expr,
             initial_trajectory=initial_trajectory, max_iter=max_iter, rtol=rtol, atol=atol, xtol=xtol, ftol=ftol,
             rcond=rcond, grid=grid, damping=damping, solver=solver, linear_solver=linear_solver,
-            max_steps=max_steps, chunk_size=chunk_size))
+            max_steps=max_steps, chunk_size=chunk_size, started=started))
 
     runs = _input_runs(data)  # samples whose measured inputs differ
     if runs is not None:
@@ -299,12 +299,10 @@ def _stiffness_runs(spec: Problem) -> list[tuple[int, int]] | None:
     some samples stiff and others not; ``None`` where one problem serves. The stiff solver takes a
     batch with one stiff sample, but each non-stiff sample's own fit takes the explicit one: a van
     der Pol sample of mu = 2 beside one of mu = 1000 took 5 iterations instead of its own 13."""
-    stiff = spec.stiff_samples
-    if stiff is None or spec.B < 2 or bool(stiff.all()) or not bool(stiff.any()):
+    if spec.stiff_samples is None:
         return None
-    flags = stiff.tolist()
-    starts = [0] + [b for b in range(1, len(flags)) if flags[b] != flags[b - 1]]
-    return list(zip(starts, starts[1:] + [len(flags)]))
+    flags = spec.stiff_samples.tolist()
+    return _runs(len(flags), lambda start, b: flags[b] == flags[start])
 
 
 def _input_runs(data) -> list[tuple[int, int]] | None:
@@ -319,22 +317,30 @@ def _input_runs(data) -> list[tuple[int, int]] | None:
     if inputs is None or all(item is None for item in inputs):
         return None
     inputs_all_or_none(inputs)
+    return _runs(len(inputs), lambda start, b: inputs[b].same_as(inputs[start]))
+
+
+def _runs(count: int, alike: Callable[[int, int], bool]) -> list[tuple[int, int]] | None:
+    """Runs ``[start, stop)`` of consecutive samples ``b`` of ``count`` that are ``alike(start, b)``
+    to their run's first; ``None`` when one run holds them all."""
     runs, start = [], 0
-    for b in range(1, len(inputs) + 1):
-        if b == len(inputs) or not inputs[b].same_as(inputs[start]):
+    for b in range(1, count + 1):
+        if b == count or not alike(start, b):
             runs.append((start, b))
             start = b
     return runs if len(runs) > 1 else None
 
 
-def _fit_runs(runs, model, data, x0, *, guesses, max_time, progress, callback, **options) -> BatchFitResult:
-    """``fit_many`` over samples whose inputs differ: one batched problem per run of samples sharing
-    their inputs, the results joined in the samples' order (each sample's fit is the one it gets
-    alone; the runs share the time budget, the progress count and the callback's indices)."""
+def _fit_runs(runs, model, data, x0, *, guesses, max_time, progress, callback, started: float,
+              **options) -> BatchFitResult:
+    """``fit_many`` over samples whose inputs or stiffness differ: one batched problem per run of
+    samples alike, the results joined in the samples' order (each sample's fit is the one it gets
+    alone; the runs share the time budget, counted from ``started``, the ``fit_many`` call, and the
+    progress count and the callback's indices)."""
     B = runs[-1][1]
     report = _progress(progress, B)
     limit = Limits.resolve(max_time=max_time).max_time
-    deadline = None if limit is None else time.monotonic() + limit
+    deadline = None if limit is None else started + limit
     parts = []
     for start, stop in runs:
         left = None if deadline is None else max(deadline - time.monotonic(), 1e-9)
