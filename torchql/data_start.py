@@ -32,8 +32,8 @@ from .damping import DAMPING_MAX as _DAMPING_MAX, DAMPING_START as _DAMPING_STAR
 from .smoothing import interpolate, interpolate_each, smooth, smooth_each
 from .status import Status
 
-__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "sse_at_guesses", "keep_the_better_fit",
-           "slopes", "MIN_POINTS", "FALLBACK_STATUSES"]
+__all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "sse_at_guesses",
+           "keep_the_better_fit", "slopes", "MIN_POINTS", "FALLBACK_STATUSES"]
 
 #: Accepted Gauss–Newton steps of the gradient matching that gives the first coefficients.
 MATCH_STEPS = 30

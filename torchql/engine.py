@@ -362,7 +362,8 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             self._weigh_exact(st, act[undamped], nu[undamped])
         if bool(infeasible.any()):
             self._stop_infeasible(st, act[infeasible])
-            act, alpha, capped, leaving = act[~infeasible], alpha[~infeasible], capped[~infeasible], leaving[~infeasible]
+            keep = ~infeasible
+            act, alpha, capped, leaving = act[keep], alpha[keep], capped[keep], leaving[keep]
         scaled = self._scaled(act, cur, alpha)
         bad = ~(torch.isfinite(alpha).all(dim=1) & torch.isfinite(scaled))
         if bool(bad.any()):

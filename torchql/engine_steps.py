@@ -66,7 +66,8 @@ class StepTests:
         known = torch.isfinite(model_new) & torch.isfinite(model_old)  # the model's own decided: it is the measure
         new, old = torch.where(known, model_new, new), torch.where(known, model_old, old)
         floor = 2 * st.cur["sse"][act].abs().sqrt() * self._integration_floor(act, st.cur["w"][act]).sqrt()
-        small = ((st.scaled <= self.spec.xtol) & ~st.leaving) | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor))
+        small = (((st.scaled <= self.spec.xtol) & ~st.leaving)
+                 | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor)))
         return damped & small
 
     def _lost(self, st: LoopState, act) -> torch.Tensor:

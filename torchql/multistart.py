@@ -29,10 +29,10 @@ import torch
 from . import _checks
 from ._arrays import float_tensor
 from .batch import fit_many
+from .bounds import bound_pair
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
 from .observations import Observations
-from .bounds import bound_pair
 from .options import expand_options
 from .parameters import apply_parameters
 from .result import FitResult

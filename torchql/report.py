@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING
 import torch
 
 from . import _checks
-
 from .model import _element_names
 from .multi import experiment_state_name
 from .status import Status
