@@ -129,3 +129,17 @@ def test_each_sample_on_its_own_padded_grid_equals_its_single_solve():
         assert torch.allclose(z1[0], z[s], rtol=1e-10, atol=1e-16)
         assert torch.allclose(V1[0], V[s], rtol=1e-8, atol=1e-14)
     assert torch.equal(z[1, 3:], z[1, 3:4].expand(3, -1)) and torch.equal(V[1, 3:], V[1, 3:4].expand(3, -1, -1))
+
+
+@pytest.mark.parametrize("samples", [1, 2])
+def test_samples_that_all_fail_at_once_get_their_first_columns_not_an_index_error(samples):
+    """A start where the model is not finite (a polishing step's far point): no sample takes a step.
+    The solution says each failed, and the columns are the first ones throughout (finite stand-ins,
+    as for one failed sample among others), where indexing the steps' maps raised ``IndexError``."""
+    system = AugmentedSystem(Relaxation(), ["k"], DT, torch.device("cpu"))
+    grid = torch.tensor([0.0, 0.5, 1.0], dtype=DT)
+    z0 = torch.tensor([[float("nan"), 1.0]], dtype=DT).expand(samples, -1)
+    columns = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]], dtype=DT).expand(samples, -1, -1)
+    sol, z, V = rodas5p_sensitivities(system, z0, columns, grid, rtol=RTOL, atol=ATOL)
+    assert not sol.ok.any()
+    assert V.shape == (samples, 3, 2, 2) and torch.equal(V, columns.unsqueeze(1).expand(-1, 3, -1, -1))

@@ -87,6 +87,8 @@ def step_sensitivities(system, steps: StepRecord, p: torch.Tensor, columns: torc
     S = columns.shape[0]
     grid = grid.expand(S, grid.shape[-1])
     counts, offsets = steps.counts(S)
+    if not steps.t.shape[0]:  # no sample took a step (each failed at once): their first columns throughout
+        return columns.unsqueeze(1).expand(S, grid.shape[-1], *columns.shape[1:]).clone()
     step, theta = steps.locate(grid)
     landed = theta >= 1
     dense = torch.zeros(steps.t.shape[0], dtype=torch.bool, device=grid.device)
