@@ -36,7 +36,8 @@ StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
                 max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None,
                 interval_steps: int | None = None, stop: StopTest | None = None, method: str = "dopri5",
-                norm=None, first_step: float | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+                norm=None, first_step: float | None = None, steps: list | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` by an embedded Runge–Kutta pair, each sample
     its own steps.
 
@@ -70,6 +71,10 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     node each is to reach; the values before it are filled): those it answers true end there,
     failed ("stopped"). A caller that needs a solution only while some measure of the values so
     far stays below a bound (a trial's sum of squares, below the current iterate's) saves the rest.
+
+    ``steps``, a list if given, gets each round's accepted steps, ``(sample, t, h, end, x, K)``
+    (:meth:`torchql.solvers.steps.StepRecord.join` takes them; ``K`` the pair's slopes), to
+    differentiate them (:mod:`torchql.dopri_sensitivity`).
     """
     S, M = z0.shape
     out = z0.new_full((S, grid.shape[-1], M), float("nan"))
@@ -79,6 +84,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         return out, ok, 0
     run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop, PAIRS[method],
                     norm, first_step)
+    run.kept = steps
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
@@ -108,6 +114,7 @@ class _DopriRun:
         self.S, self.G, self.n, self.grid, self.out, self.ok = S, grid.shape[-1], n, grid, out, ok
         self.rtol, self.atol, self.max_steps, self.interval_steps = rtol, atol, max_steps, interval_steps
         self.stop = stop
+        self.kept: list | None = None  # the accepted steps, where the caller keeps them
         self.per_sample = grid.dim() == 2
         self.fv = BatchedCall(system.f)  # one model call per stage where the model takes it
         self.x = x = z0.clone()
@@ -184,6 +191,8 @@ class _DopriRun:
         accept, h_next = self._control(xa, x_new, K, hc, he, ha, clipped)
         # accepted steps advance; those landing on a node record it
         t_new = torch.where(clipped, target, ta + he)
+        if self.kept is not None and bool(accept.any()):
+            self.kept.append((active[accept], ta[accept], he[accept], t_new[accept], xa[accept], K[:, accept]))
         take = accept.unsqueeze(-1)
         if everyone:
             self.x, self.t, self.k1, self.h = (torch.where(take, x_new, xa), torch.where(accept, t_new, ta),

@@ -14,6 +14,7 @@ import torch
 
 from .batch_integrate import integrate_each, propagate_linear_batch
 from .dopri import dopri_batch
+from .dopri_sensitivity import explicit_sensitivities
 from .engine_state import _pick, bound_of, not_above
 from .grid import DEFAULT_INTERVALS, refine
 from .grid_solve import solve_on_grid_batch
@@ -419,10 +420,12 @@ class Evaluation:
         return self.spec.linear_solver.with_solution
 
     def _solve_with_sensitivities(self, idx, z0) -> tuple[torch.Tensor, torch.Tensor, list]:
-        """The model integrated from ``z0 (S, M)`` by Rodas5P together with its sensitivities to the
-        unknowns, its steps differentiated (:mod:`torchql.solvers.sensitivity`), on the grid of
-        the chunk's samples ``idx`` (landing as :meth:`_landing` says): ``traj (S, G,
-        M)``, ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
+        """The model integrated from ``z0 (S, M)`` together with its sensitivities to the unknowns,
+        the solver's steps differentiated, on the grid of the chunk's samples ``idx``: by Rodas5P
+        (:mod:`torchql.solvers.sensitivity`, landing as :meth:`_landing` says) for a stiff model or
+        the ``"rodas5p"`` propagator, else by the batched explicit pair of ``solver``
+        (:mod:`torchql.dopri_sensitivity`, landing on every node). Returns ``traj (S, G, M)``,
+        ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
         :meth:`~torchql.problem.Problem.columns`) and error messages (None: ok). A sample that
         failed keeps its initial state and columns at every node: a finite stand-in, as a failed
         trial needs one.
@@ -430,14 +433,21 @@ class Evaluation:
         spec = self.spec
         first = spec.columns(z0)
         with torch.no_grad():
-            sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
-                                              atol=spec.atol, land=self._landing(idx), interval_steps=spec.max_steps)
-        self.nfev += sol.n_f
+            if self._joint_sensitivities or spec.solver in STIFF_SOLVERS or not self._batched_dopri():
+                sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
+                                                  atol=spec.atol, land=self._landing(idx),
+                                                  interval_steps=spec.max_steps)
+                self.nfev += sol.n_f
+                errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
+            else:
+                z, V, errors, evals = explicit_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx),
+                                                             rtol=spec.rtol, atol=spec.atol, method=spec.solver,
+                                                             interval_steps=spec.max_steps)
+                self.nfev += evals
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
-        failed = ~sol.ok
+        failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=z0.device)
         z = torch.where(failed.reshape(-1, 1, 1), z0.unsqueeze(1).expand_as(z), z)
         W = torch.where(failed.reshape(-1, 1, 1, 1), first.unsqueeze(1).expand_as(W), W)
-        errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
         return z, W, errors
 
     def _model_from_data(self, idx, z0, reference):

@@ -53,6 +53,7 @@ class DormandPrince5:
     def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
         # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
         self.rows_a = [torch.tensor(_DP_A[i], dtype=dtype, device=device) for i in range(7)]
+        self.nodes = _DP_C  # (the stages' times, as fractions of the step)
         self.row_e, self.row_mid = (torch.tensor(row, dtype=dtype, device=device) for row in (_DP_E, _DP_MID))
 
     def step(self, fv, xa: torch.Tensor, ta: torch.Tensor, ka: torch.Tensor,
@@ -149,6 +150,7 @@ class DOP853:
 
     def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
         self.rows_a = [torch.tensor(row, dtype=dtype, device=device) for row in _A8]
+        self.nodes = _C8
         self.row_e5, self.row_e3 = (torch.tensor(row, dtype=dtype, device=device) for row in (_E5, _E3))
         self.rows_d = torch.tensor([row + (0.0,) * (16 - len(row)) for row in _D8], dtype=dtype, device=device)
 

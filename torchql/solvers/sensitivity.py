@@ -42,7 +42,7 @@ from . import tableau
 from .rosenbrock import RosenbrockSolution, rodas5p_batch
 from .steps import StepRecord, dense_value
 
-__all__ = ["rodas5p_model", "rodas5p_sensitivities", "step_sensitivities"]
+__all__ = ["rodas5p_model", "rodas5p_sensitivities", "step_sensitivities", "compose_steps", "state_rows"]
 
 #: Steps whose maps are computed in one batched call (bounds the memory of the stages' Jacobians).
 STEP_CHUNK = 4096
@@ -83,24 +83,41 @@ def step_sensitivities(system, steps: StepRecord, p: torch.Tensor, columns: torc
     """The columns ``V (S, G, M, m)`` at the nodes of ``grid`` (``(G,)`` or ``(S, G)``) along the
     accepted Rodas5P ``steps`` of ``S`` samples (their states first in ``steps.y``), with
     coefficients ``p (S, P)`` and the columns' values ``columns (S, M, m)`` at the first node."""
-    n = system.n
     S = columns.shape[0]
     grid = grid.expand(S, grid.shape[-1])
-    counts, offsets = steps.counts(S)
     if not steps.t.shape[0]:  # no sample took a step (each failed at once): their first columns throughout
         return columns.unsqueeze(1).expand(S, grid.shape[-1], *columns.shape[1:]).clone()
     step, theta = steps.locate(grid)
-    landed = theta >= 1
     dense = torch.zeros(steps.t.shape[0], dtype=torch.bool, device=grid.device)
-    dense[step[~landed]] = True
+    dense[step[theta < 1]] = True
     change, dense_q = _step_maps(system, steps, p, dense, tableau.Tensors(columns.dtype, columns.device))
+    return compose_steps(steps, change, columns, grid, (dense, dense_q))
+
+
+def compose_steps(steps: StepRecord, change: torch.Tensor, columns: torch.Tensor, grid: torch.Tensor,
+                  dense: tuple | None = None) -> torch.Tensor:
+    """The columns ``V (S, G, M, m)`` at the nodes of ``grid (S, G)`` from each step's map of them,
+    ``change (N, n, M)`` (a step takes ``V`` to ``V + [change @ V; 0]``), composed along each
+    sample's ``steps`` from ``columns (S, M, m)`` at the first node. A node inside a step (not
+    landed on, nor its start) takes the step's dense output, ``dense = (which steps (N,) bool, q (3, D, n, M))``
+    (Rodas5P's, :func:`dense_value`); without it every node must be landed on."""
+    n, S = change.shape[1], columns.shape[0]
+    counts, offsets = steps.counts(S)
+    step, theta = steps.locate(grid)
+    landed = theta >= 1
     V_start, _ = _compose(change, columns, counts, offsets)
     V0 = V_start[step]  # (S, G, M, m)
     Vx = V0[..., :n, :] + change[step] @ V0  # at the steps' ends
-    if dense_q.shape[1]:
-        q = dense_q[:, dense.cumsum(0).sub(1).clamp(min=0)[step]] @ V0  # (3, S, G, n, m); unused where landed
+    if dense is not None and dense[1].shape[1]:
+        which, dense_q = dense
+        q = dense_q[:, which.cumsum(0).sub(1).clamp(min=0)[step]] @ V0  # (3, S, G, n, m); unused where landed
         between = dense_value(V0[..., :n, :], Vx, q, theta[..., None, None])
         Vx = torch.where(landed[..., None, None], Vx, between)
+    else:  # every node at a step's end, or at its start (the first node)
+        start = theta <= 0
+        if not bool((landed | start).all()):
+            raise ValueError("compose_steps: a node inside a step needs the steps' dense output")
+        Vx = torch.where(start[..., None, None], V0[..., :n, :], Vx)
     V = torch.cat([Vx, V0[..., n:, :]], dim=-2)
     none = counts == 0  # a sample without steps (one node, or failed at once): its first columns throughout
     return torch.where(none[:, None, None, None], columns.unsqueeze(1), V)
@@ -140,7 +157,7 @@ def _column_increments(system, tab: tableau.Tensors, t, h, x0, k, p) -> torch.Te
     args = torch.stack([x0] + [x0 + (a[i] @ flat_k[:i]).view(N, n) for i in range(1, tableau.STAGES)])
     times = t + tab.nodes.unsqueeze(1) * h  # (8, N)
     z = torch.cat([args, p.expand(tableau.STAGES, N, -1)], dim=-1)
-    _, (A,) = node_jacobian(_state_rows(system), (times.reshape(-1), z.reshape(-1, M)), (1,), n)
+    _, (A,) = node_jacobian(state_rows(system), (times.reshape(-1), z.reshape(-1, M)), (1,), n)
     A = A.view(tableau.STAGES, N, n, M)
     A_t, A_z = vmap(jacrev(_jacobian(system), argnums=(0, 1)))(t, z[0])  # (N, n, M), (N, n, M, M)
     coupling = torch.einsum("nimj,snj->snim", A_z[..., :n], k)  # (dA/dx . k_i), (8, N, n, M)
@@ -176,7 +193,7 @@ def _compose(change: torch.Tensor, columns: torch.Tensor, counts: torch.Tensor, 
     return V_start, V
 
 
-def _state_rows(system):
+def state_rows(system):
     """One node's state rows of the augmented right-hand side, ``(t, z (M,)) -> (n,)``."""
     n = system.n
 
@@ -187,4 +204,4 @@ def _state_rows(system):
 
 def _jacobian(system):
     """One node's ``A = d(state rows)/dz``, ``(t, z) -> (n, M)``."""
-    return jacrev(_state_rows(system), argnums=1)
+    return jacrev(state_rows(system), argnums=1)
