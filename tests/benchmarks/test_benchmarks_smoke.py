@@ -173,3 +173,16 @@ def test_grid_tradeoff_quick_writes_one_table_per_family(tmp_path):
         assert rows["defaults"][2] == "1.00" and rows["grid=1000 (reference)"][3:5] == ["0.0e+00", "0.0e+00"]
         assert all(cells[5] == "8/8" for cells in rows.values())
         assert float(rows["defaults"][3]) < 1e-8 and float(rows["defaults"][4]) < 1e-5  # the defaults are accurate
+
+
+SENSITIVITIES_SCRIPT = SCRIPT.parent / "final_sensitivities.py"
+
+
+def test_final_sensitivities_quick_prints_both_cases_and_the_methods_agree():
+    run = subprocess.run([sys.executable, str(SENSITIVITIES_SCRIPT), "--quick"], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    rows = [line for line in run.stdout.splitlines() if line.startswith("| ") and "case" not in line]
+    assert len(rows) == 2
+    for row in rows:
+        assert float(row.split("|")[-2]) < 1e-6  # the two methods' columns, relative to their scale
