@@ -83,7 +83,8 @@ def test_the_final_pass_of_a_non_stiff_model_differentiates_the_explicit_steps(m
     """Where the storage grid misses a fast change of a model that is not stiff (friction with
     ``tanh(50 v)``), the final pass's sensitivities integrated with the solution come from the
     explicit pair's own steps, not from Rodas5P's (an implicit solver's short steps on a non-stiff
-    model: on an oscillation over 318 periods 77.5 s against 22.3 s for the whole fit, benchmarks/final_sensitivities.py --fit)."""
+    model: on an oscillation over 318 periods the whole fit took 77.5 s against 22.3 s,
+    ``benchmarks/final_sensitivities.py --fit``)."""
     from test_engine_final import _Friction
 
     def refuse(*args, **kwargs):
