@@ -123,3 +123,39 @@ def test_dop853s_error_is_hairers_damped_fifth_order_estimate():
     torch.testing.assert_close(ratio, hc.squeeze(1) * e5 ** 2 / torch.sqrt(e5 ** 2 + 0.01 * e3 ** 2), rtol=1e-14, atol=0)
     assert bool((ratio <= hc.squeeze(1) * e5).all())
     assert math.isclose(float(pair.error_ratio(torch.zeros_like(K), hc, sc, rms)[0]), 0.0)
+
+
+@pytest.mark.parametrize("method", ["dopri5", "dop853"])
+def test_a_stiff_sample_is_found_stiff_long_before_the_step_budget_and_the_others_go_on_as_alone(method):
+    """Robertson's kinetics at its standard rates (eigenvalues to -1e4) beside the same reactions
+    a million times slower in ``k2``, ``k3`` (not stiff): Hairer's test ends the stiff sample after
+    about a thousand steps (each pair's own ``h lambda`` bound), with words that say so, where the
+    explicit pair crawled until its 100,000-step budget ran out; the other is integrated as alone,
+    to the bit."""
+    from torchql.models import Robertson
+    system = AugmentedSystem(Robertson(), ["k1", "k2", "k3"], DT, torch.device("cpu"))
+    z0 = torch.tensor([[1.0, 0.0, 0.0, 0.04, 3e7, 1e4], [1.0, 0.0, 0.0, 0.04, 30.0, 0.01]], dtype=DT)
+    grid = torch.tensor([0.0, 1.0, 40.0], dtype=DT)
+    messages: list = []
+    out, ok, evals = dopri_batch(system, z0, grid, rtol=1e-10, atol=1e-12, method=method, messages=messages)
+    assert not ok[0] and "became stiff" in messages[0] and "rodas5p" in messages[0]
+    assert evals < 3000 * PAIRS[method].evals
+    assert ok[1] and messages[1] is None
+    alone, _, _ = dopri_batch(system, z0[1:], grid, rtol=1e-10, atol=1e-12, method=method)
+    assert torch.equal(out[1:], alone)
+
+
+@pytest.mark.parametrize("method, span", [("dopri5", 15.0), ("dop853", 60.0)])
+def test_an_oscillation_of_many_periods_is_not_found_stiff(method, span):
+    """A lightly damped oscillation over 48 or 190 periods at ``rtol=1e-10`` takes over a thousand steps,
+    so the test runs, but accuracy holds the steps (``h lambda`` well inside the stability bound):
+    it integrates to the end, as a stiff-looking count of steps alone would not tell."""
+    system = AugmentedSystem(LinearOscillator(A=0.01, B=400.0), [], DT, torch.device("cpu"))
+    grid = torch.linspace(0, span, 11, dtype=DT)
+    out, ok, evals = dopri_batch(system, torch.tensor([[1.0, 0.0]], dtype=DT), grid, rtol=1e-10, atol=1e-12,
+                                 method=method)
+    assert ok.all() and evals > 1000 * PAIRS[method].evals
+    t = grid[-1]
+    omega = math.sqrt(400.0 - 0.01**2 / 4)
+    exact = math.exp(-0.005 * t) * (math.cos(omega * t) + 0.005 / omega * math.sin(omega * t))
+    assert abs(float(out[0, -1, 0]) - exact) < 1e-6

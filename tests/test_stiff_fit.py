@@ -367,3 +367,17 @@ def test_a_batch_mixing_stiff_and_non_stiff_samples_fits_each_on_its_own_solver(
         torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)
         assert float(batch[i].sse) == pytest.approx(alone.sse, rel=1e-10)
     assert [batch[i].solver_options["solver"] for i in range(3)] == ["dop853", "rodas5p", "dop853"]
+
+
+def test_an_explicit_solver_asked_for_on_a_stiff_model_says_so_at_once():
+    """``solver="dop853"`` on Robertson's kinetics: the explicit pair's stiffness test ends the
+    integration after about a thousand steps (it ran 100,000, 54 s, to the step budget), and the
+    fit's message says the problem is stiff and which solver integrates it."""
+    t = torch.tensor([0.0, 0.4, 4.0, 40.0, 400.0], dtype=DT)
+    x = torchql.simulate(Robertson(), torch.tensor([1.0, 0.0, 0.0], dtype=DT), t, solver="rodas5p")
+    data = torchql.Observations(t, x[:, [0, 2]], observe=["y1", "y3"])
+    result = torchql.fit(Robertson(k1=0.05), data, torch.tensor([1.0, 0.0, 0.0], dtype=DT),
+                         params=["k1"], fixed_x0=["y1", "y2", "y3"], solver="dop853")
+    assert result.status is torchql.Status.INTEGRATION_FAILED
+    assert "became stiff" in result.message and 'solver="rodas5p"' in result.message
+    assert result.nfev < 100_000

@@ -20,7 +20,7 @@ from .grid import last_nodes
 from .model import AugmentedSystem, BatchedCall
 from .rk_pairs import PAIRS
 
-__all__ = ["dopri_batch"]
+__all__ = ["dopri_batch", "STIFF"]
 
 
 #: The words of a failed sample's last step (:meth:`_DopriRun.messages`), by code.
@@ -28,7 +28,15 @@ _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
              "the solution became non-finite (NaN or inf) after t = {t:.6g}; the step size underflowed to {h:.3g}",
              "the budget of {n} steps ran out at t = {t:.6g}",
              "max_steps = {k} steps between two grid nodes ran out at t = {t:.6g} (step size {h:.3g})",
-             "stopped at t = {t:.6g} by the caller's test on the values so far")
+             "stopped at t = {t:.6g} by the caller's test on the values so far",
+             "the problem became stiff at t = {t:.6g}: the step size ({h:.3g}) is held by the explicit "
+             "method's stability, not by its accuracy (an implicit solver, solver=\"rodas5p\", integrates it)")
+#: The code of :data:`_FAILURES` for a sample found stiff (:meth:`_DopriRun._stiff`).
+STIFF = 6
+#: Hairer's stiffness test (DOP853, DOPRI5): every this many accepted steps, and at every step once
+#: one has failed; a sample is stiff after :data:`STIFF_HITS` failures with fewer than
+#: :data:`STIFF_CALM` passes in a row between them.
+STIFF_EVERY, STIFF_HITS, STIFF_CALM = 1000, 15, 6
 #: A caller's test that ends samples at a node: ``(rows (L,), out (L, G, M), reached (L,)) -> bool (L,)``.
 StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -134,6 +142,8 @@ class _DopriRun:
         self.steps = torch.zeros(S, dtype=torch.long, device=device)
         self.since = torch.zeros(S, dtype=torch.long, device=device)
         self.failure = torch.zeros(S, dtype=torch.long, device=device)  # _FAILURES' index, 0: none
+        # the stiffness test's accepted steps, its failures and its passes since the last failure
+        self.accepted, self.hits, self.calm = (torch.zeros(S, dtype=torch.long, device=device) for _ in range(3))
         self.pair = pair(dtype, device)  # a pair of :data:`~torchql.rk_pairs.PAIRS`
         self.norm = _rms if norm is None else norm
         self._landing_tables(land, device)
@@ -220,16 +230,50 @@ class _DopriRun:
             self.since[active] = since
             stuck = (since >= self.interval_steps) & ~finished
         ended = None if self.stop is None else self._stopped(active, landed & ~finished)  # the caller's test
-        bad = (underflow & ~finished) | over | stuck
+        stiff = self._stiff(active, accept, xa, K, he, x_new) & ~finished
+        bad = (underflow & ~finished) | over | stuck | stiff
         if ended is not None:
             bad = bad | ended
         if bool(bad.any()):
             reason = torch.where(stuck, 4, torch.where(over, 3, torch.where(torch.isfinite(x_new).all(dim=1), 1, 2)))
+            reason = torch.where(stiff, STIFF, reason)
             if ended is not None:
                 reason = torch.where(ended, 5, reason)
             self.failure[active[bad]] = reason[bad]
             self.ok[active[bad]] = False
         return active[self.ok[active] & ~finished]
+
+    def _stiff(self, active: torch.Tensor, accept: torch.Tensor, xa: torch.Tensor, K: torch.Tensor,
+               he: torch.Tensor, x_new: torch.Tensor) -> torch.Tensor:
+        """``(A,)`` bool: the samples ``active`` found stiff by Hairer's test (DOP853's and DOPRI5's
+        ``nstiff``, E. Hairer, G. Wanner, *Solving ODEs II*, section IV.2) on their accepted steps:
+        ``h lambda ~ |h| |k_j - k_i| / |x_new - u_i|`` from two slopes at the step's end (stage ``i``'s
+        argument ``u_i`` and the new solution) beyond the bound of the pair's stability, tested every
+        :data:`STIFF_EVERY` accepted steps and at every step once it has failed, :data:`STIFF_HITS`
+        times with fewer than :data:`STIFF_CALM` passes in a row between. An explicit method then
+        takes steps its stability holds far below its accuracy's (Robertson's kinetics: 100,000
+        steps over ``t < 151``)."""
+        i, j, bound = self.pair.stiffness
+        n = self.n
+        count = self.accepted[active] + accept.long()
+        self.accepted[active] = count
+        check = accept & ((count % STIFF_EVERY == 0) | (self.hits[active] > 0))
+        found = torch.zeros_like(accept)
+        if not bool(check.any()):
+            return found
+        rows = check.nonzero().flatten()
+        a = active[rows]
+        u = torch.addcmul(xa[rows], he[rows].unsqueeze(-1), _weighted(self.pair.rows_a[i], K[:i, rows]))
+        slopes = (K[j, rows, :n] - K[i, rows, :n]).square().sum(dim=1)
+        states = (x_new[rows, :n] - u[:, :n]).square().sum(dim=1)
+        h_lambda = he[rows].abs() * (slopes / states).sqrt()
+        hit = (states > 0) & (h_lambda > bound)
+        self.hits[a] = torch.where(hit, self.hits[a] + 1, self.hits[a])
+        self.calm[a] = torch.where(hit, 0, self.calm[a] + 1)
+        calmed = self.calm[a] >= STIFF_CALM
+        self.hits[a] = torch.where(calmed, 0, self.hits[a])
+        found[rows] = self.hits[a] >= STIFF_HITS
+        return found
 
     def _stopped(self, active: torch.Tensor, ask: torch.Tensor) -> torch.Tensor:
         """``(A,)`` bool: the samples ``active[ask]`` (landed on a node before their last) that the
@@ -297,6 +341,11 @@ class _DopriRun:
         self.evals += self.pair.dense_evals * rows.numel()
         self.out[active[step_rows], nodes] = at(theta, which)
         self.node[active[rows]] += counts
+
+
+def _weighted(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """``sum_i weights[i] K[i]``, ``(A, M)``, from ``weights (i,)`` and slopes ``K (i, A, M)``."""
+    return (weights @ K.reshape(K.shape[0], -1)).reshape(K.shape[1:])
 
 
 def _rms(x: torch.Tensor) -> torch.Tensor:

@@ -49,6 +49,9 @@ class DormandPrince5:
 
     name = "dopri5"
     evals, exponent, dense_evals = 6, -1 / 5, 0
+    #: Hairer's stiffness test: the slopes of stage 5 and of the new solution (both at the step's
+    #: end) and the bound of ``h lambda``, near the boundary of the pair's stability region.
+    stiffness = (5, 6, 3.25)
 
     def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
         # the tableau's rows as tensors: each stage's combination of the slopes is one contraction
@@ -147,6 +150,7 @@ class DOP853:
 
     name = "dop853"
     evals, exponent, dense_evals = 12, -1 / 8, 3
+    stiffness = (11, 12, 6.1)  # (as :class:`DormandPrince5`'s)
 
     def __init__(self, dtype: torch.dtype, device: torch.device) -> None:
         self.rows_a = [torch.tensor(row, dtype=dtype, device=device) for row in _A8]
