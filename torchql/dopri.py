@@ -18,7 +18,7 @@ import torch
 from .budget import check_time
 from .grid import last_nodes
 from .model import AugmentedSystem, BatchedCall
-from .rk_pairs import PAIRS
+from .rk_pairs import PAIRS, combine
 
 __all__ = ["dopri_batch", "STIFF"]
 
@@ -263,7 +263,7 @@ class _DopriRun:
             return found
         rows = check.nonzero().flatten()
         a = active[rows]
-        u = torch.addcmul(xa[rows], he[rows].unsqueeze(-1), _weighted(self.pair.rows_a[i], K[:i, rows]))
+        u = torch.addcmul(xa[rows], he[rows].unsqueeze(-1), combine(self.pair.rows_a[i], K[:i, rows]))
         slopes = (K[j, rows, :n] - K[i, rows, :n]).square().sum(dim=1)
         states = (x_new[rows, :n] - u[:, :n]).square().sum(dim=1)
         h_lambda = he[rows].abs() * (slopes / states).sqrt()
@@ -341,11 +341,6 @@ class _DopriRun:
         self.evals += self.pair.dense_evals * rows.numel()
         self.out[active[step_rows], nodes] = at(theta, which)
         self.node[active[rows]] += counts
-
-
-def _weighted(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """``sum_i weights[i] K[i]``, ``(A, M)``, from ``weights (i,)`` and slopes ``K (i, A, M)``."""
-    return (weights @ K.reshape(K.shape[0], -1)).reshape(K.shape[1:])
 
 
 def _rms(x: torch.Tensor) -> torch.Tensor:

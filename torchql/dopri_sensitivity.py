@@ -22,7 +22,7 @@ import torch
 
 from .dopri import dopri_batch
 from .linearize import node_jacobian
-from .rk_pairs import PAIRS
+from .rk_pairs import PAIRS, combine
 from .solvers.sensitivity import STEP_CHUNK, compose_steps, state_rows
 from .solvers.steps import StepRecord
 
@@ -59,7 +59,7 @@ def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> torch.Te
     N, M = x.shape
     last = pair.evals  # the row of the solution's weights; the stages before it make the step
     hc = h.unsqueeze(-1)
-    args = [x] + [torch.addcmul(x, hc, _combine(pair.rows_a[i], K[:i])) for i in range(1, last)]
+    args = [x] + [torch.addcmul(x, hc, combine(pair.rows_a[i], K[:i])) for i in range(1, last)]
     times = torch.stack([t + pair.nodes[i] * h for i in range(last)])  # (L, N)
     _, (A,) = node_jacobian(state_rows(system), (times.reshape(-1), torch.stack(args).reshape(-1, M)), (1,), n)
     A = A.view(last, N, n, M)
@@ -67,11 +67,5 @@ def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> torch.Te
     for i in range(last):
         G[i] = A[i]
         if i:
-            G[i] += A[i, :, :, :n] @ (hc.unsqueeze(-1) * _combine(pair.rows_a[i], G[:i]))
-    return hc.unsqueeze(-1) * _combine(pair.rows_a[last], G)
-
-
-def _combine(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """``sum_i weights[i] values[i]`` over the leading dimension (``weights`` no longer than ``values``)."""
-    k = weights.shape[0]
-    return (weights @ values[:k].reshape(k, -1)).reshape(values.shape[1:])
+            G[i] += A[i, :, :, :n] @ (hc.unsqueeze(-1) * combine(pair.rows_a[i], G[:i]))
+    return hc.unsqueeze(-1) * combine(pair.rows_a[last], G)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["PAIRS", "DormandPrince5", "DOP853"]
+__all__ = ["PAIRS", "DormandPrince5", "DOP853", "combine"]
 
 #: Dormand–Prince 5(4): nodes and rows (the dopri5 of torchdiffeq and scipy's RK45).
 _DP_C = (0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0)
@@ -71,14 +71,14 @@ class DormandPrince5:
     def error_ratio(self, K: torch.Tensor, hc: torch.Tensor, sc: torch.Tensor, norm) -> torch.Tensor:
         """The local error over its tolerance ``sc (A, n)`` in the ``norm`` of the states (``(A, n)
         -> (A,)``), ``(A,)``."""
-        err = hc * _combine(self.row_e, K)
+        err = hc * combine(self.row_e, K)
         return norm(err[:, :sc.shape[1]] / sc)
 
     def dense(self, fv, xa, ta, x_new, K, hc):
         """The dense output of the steps ``hc (R, 1)`` from ``xa (R, M)`` to ``x_new`` with slopes
         ``K (7, R, M)``: a function of ``(theta (N, 1), which (N,))`` giving the values at the
         fractions ``theta`` of the steps ``which``, ``(N, M)``."""
-        y_mid = torch.addcmul(xa, hc, _combine(self.row_mid, K))
+        y_mid = torch.addcmul(xa, hc, combine(self.row_mid, K))
         quartic = _quartic(xa, x_new, y_mid, K[0], K[6], hc)
 
         def at(theta, which):
@@ -173,8 +173,8 @@ class DOP853:
         the fifth- and third-order estimates: the fifth-order one, damped where the third-order one
         is much larger."""
         n = sc.shape[1]
-        e5 = norm(_combine(self.row_e5, K[:len(self.row_e5)])[:, :n] / sc).square()
-        e3 = norm(_combine(self.row_e3, K[:len(self.row_e3)])[:, :n] / sc).square()
+        e5 = norm(combine(self.row_e5, K[:len(self.row_e5)])[:, :n] / sc).square()
+        e3 = norm(combine(self.row_e3, K[:len(self.row_e3)])[:, :n] / sc).square()
         denominator = e5 + 0.01 * e3
         ratio = hc.squeeze(-1).abs() * e5 / denominator.clamp(min=torch.finfo(e5.dtype).tiny).sqrt()
         return torch.where(denominator > 0, ratio, torch.zeros_like(ratio))
@@ -188,7 +188,7 @@ class DOP853:
         _stages(fv, self.rows_a, _C8, slopes, range(13, 16), xa, ta, hc)
         delta = x_new - xa
         F = [delta, hc * K[0] - delta, 2 * delta - hc * (K[12] + K[0])]
-        F += [hc * _combine(row, slopes) for row in self.rows_d]  # one product per row: a sample's
+        F += [hc * combine(row, slopes) for row in self.rows_d]  # one product per row: a sample's
         # values then do not depend on the other samples (a matrix-matrix product's blocking does)
 
         def at(theta, which):
@@ -207,13 +207,13 @@ def _stages(fv, rows: list, nodes: tuple, K: torch.Tensor, which: range, xa: tor
     for steps ``hc (A, 1)`` from ``xa (A, M)``; returns the last stage's state."""
     he = hc.squeeze(-1)
     for i in which:
-        xi = torch.addcmul(xa, hc, _combine(rows[i], K[:rows[i].shape[0]]))
+        xi = torch.addcmul(xa, hc, combine(rows[i], K[:rows[i].shape[0]]))
         K[i] = fv(ta + nodes[i] * he, xi)
     return xi
 
 
-def _combine(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """``sum_i weights[i] K[i]``: ``(A, M)`` from ``weights (i,)`` and slopes ``K (i, A, M)``, one
+def combine(weights: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """``sum_i weights[i] K[i]``: ``(A, ...)`` from ``weights (i,)`` and slopes ``K (i, A, ...)``, one
     matrix-vector product (``torch.tensordot``'s Python wrapper cost a fifth of a step on one sample)."""
     return (weights @ K.reshape(K.shape[0], -1)).reshape(K.shape[1:])
 
