@@ -4,6 +4,7 @@ import pytest
 import torch
 
 import torchql
+from torchql import Parameter
 from torchql.models import LinearOscillator
 
 DT = torch.float64
@@ -214,3 +215,24 @@ def test_fit_many_with_several_experiments_names_bad_samples():
         torchql.fit_many(_Chain(), datasets, x0=x0, conditions=conditions)
     with pytest.raises(ValueError, match="\\(B, E, n_states\\) with B = 2"):
         torchql.fit_many(_Chain(), [datasets, datasets], x0=torch.stack([x0] * 3), conditions=conditions)
+
+
+def test_parameters_keep_a_coefficient_replaced_in_every_experiment_out_of_the_unknowns():
+    """``parameters=`` gives the fit its keywords stand for: ``mult``, replaced in every experiment,
+    stays out of the unknowns as with the keywords (it was made an unknown that nothing reads, and
+    the fit, otherwise the same, said NOT_IDENTIFIABLE), in ``fit`` and in ``fit_many``."""
+    class Chain(_Chain):
+        constants = ()  # mult is held by the conditions alone
+
+    datasets, x0 = _chain_experiments()
+    conditions = [{"mult": 1.0}, {"mult": "s"}, {"mult": 0.0}]
+    keywords = torchql.fit(Chain(k2=0.3), datasets, x0=x0, conditions=conditions, fixed_x0=["a"], params=["k1", "s"])
+    given = torchql.fit(Chain(), datasets, x0=x0, conditions=conditions, fixed_x0=["a"],
+                        parameters={"k2": Parameter(0.3, vary=False)})
+    assert given.status is keywords.status is torchql.Status.CONVERGED, given.message
+    assert given.unknown_names == keywords.unknown_names and "mult" not in given.unknown_names
+    torch.testing.assert_close(given.estimates, keywords.estimates, rtol=1e-12, atol=0)
+    batch = torchql.fit_many(Chain(), [datasets, datasets], x0=x0, conditions=conditions, fixed_x0=["a"],
+                             parameters={"k2": Parameter(0.3, vary=False)})
+    assert all(batch[i].status is torchql.Status.CONVERGED and batch[i].unknown_names == keywords.unknown_names
+               for i in range(2))

@@ -222,7 +222,7 @@ def fit_many(
         _checks.model_class(model)
         given = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
                                  scale=scale, x0_expr=x0_expr,  # several experiments: x0 (E, n) shared
-                                 rows=len(data[0]) if experiments_per_sample(data) else None)
+                                 rows=len(data[0]) if experiments_per_sample(data) else None, conditions=conditions)
         model, x0, params, fixed_x0, bounds, scale, x0_expr = (
             given[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
     if experiments_per_sample(data):

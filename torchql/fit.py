@@ -276,7 +276,7 @@ def fit(
         _checks.model_class(model)
         rows = len(data) if isinstance(data, (list, tuple)) else None
         spec = apply_parameters(model, parameters, x0=x0, params=params, fixed_x0=fixed_x0, bounds=bounds,
-                                scale=scale, x0_expr=x0_expr, rows=rows)
+                                scale=scale, x0_expr=x0_expr, rows=rows, conditions=conditions)
         model, x0, params, fixed_x0, bounds, scale, x0_expr = (
             spec[k] for k in ("model", "x0", "params", "fixed_x0", "bounds", "scale", "x0_expr"))
     if isinstance(data, (list, tuple)):

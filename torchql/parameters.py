@@ -99,7 +99,7 @@ class Parameter:
 
 
 def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds, scale, x0_expr=None,
-                     rows: int | None = None) -> dict:
+                     rows: int | None = None, conditions=None) -> dict:
     """``parameters`` written into a fit's keywords.
 
     Parameters
@@ -113,6 +113,9 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
     rows : int, optional
         The rows of ``x0``: ``None`` for one initial state ``(n_states,)``; ``E`` for several
         experiments or ``B`` for a batch, ``(rows, n_states)``, a state's value set in every row.
+    conditions : list of dict, optional
+        The experiments' conditions: a coefficient that every experiment replaces is no unknown
+        by default (as with the keywords, :class:`torchql.multi.StackedModel`).
 
     Returns
     -------
@@ -126,7 +129,8 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
     dtype, device = model_dtype_device(model)
     specs = {name: _as_parameter(name, spec) for name, spec in parameters.items()}
     fitted, changed = None, params is not None
-    out_params = list(params) if params is not None else [c for c in coefficients if c not in tuple(model.constants)]
+    held = tuple(model.constants) + _replaced_everywhere(conditions)
+    out_params = list(params) if params is not None else [c for c in coefficients if c not in held]
     fixed, per_experiment = _fixed_lists(fixed_x0)
     state_values: dict[int, float] = {}
     out_bounds = dict(bounds) if bounds is not None else {}
@@ -189,6 +193,14 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
                 params=out_params if changed else None,
                 fixed_x0=fixed if per_experiment else (fixed[0] if fixed[0] or fixed_x0 is not None else None),
                 bounds=out_bounds or bounds, scale=out_scale or scale, x0_expr=out_expr or x0_expr)
+
+
+def _replaced_everywhere(conditions) -> tuple[str, ...]:
+    """The coefficients that every experiment's condition replaces (none where ``conditions`` is not a
+    list of dicts: the fit's own checks name what is wrong with it)."""
+    if not isinstance(conditions, (list, tuple)) or not conditions or not all(isinstance(c, Mapping) for c in conditions):
+        return ()
+    return tuple(sorted(set.intersection(*(set(c) for c in conditions))))
 
 
 def _as_parameter(name, spec) -> Parameter:
