@@ -535,3 +535,30 @@ def test_an_unknown_named_twice_in_bounds_or_scale_is_an_error(argument, given):
     data = torchql.Observations(t, y, observe=["y"])
     with pytest.raises(ValueError, match=rf"`{argument}` gives v\(t0\) twice, under '.*' and '.*': give it once"):
         torchql.fit(LinearOscillator(0.5, 1.0), data, torch.tensor([0.2, 0.8], dtype=DT), **{argument: given})
+
+
+def test_a_small_estimate_the_data_determine_is_not_at_its_bound_whatever_the_units():
+    """A decay rate bounded below by 0, fitted with time in seconds and in microseconds (the rate
+    0.5 and 5e-7, each about 100 standard errors inside the bound): neither is named at its bound,
+    and both intervals are the bound's log-variable ones, ``k exp(+-q se / k)``. The test of
+    :meth:`Bounds.at_bound` took distances below 1e-6 as at the bound for every estimate below 1."""
+    g = torch.Generator().manual_seed(0)
+    relative = []
+    for unit in (1.0, 1e6):
+        k_true = 0.5 / unit
+        t = torch.linspace(0, 4 * unit, 21, dtype=DT)
+        y = (torch.exp(-k_true * t) + 0.01 * torch.randn(21, generator=g, dtype=DT)).unsqueeze(-1)
+        data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
+        result = torchql.fit(Decay(k=2 * k_true), data, x0=torch.tensor([1.0], dtype=DT), bounds={"k": (0.0, None)})
+        assert result.success and "at their bounds" not in result.message, result.message
+        k, se = float(result.params["k"]), result.stderr["k"]
+        low, high = result.confidence_intervals()["k"]
+        q = 1.959963984540054
+        assert low == pytest.approx(k * math.exp(-q * se / k), rel=1e-6)
+        assert high == pytest.approx(k * math.exp(q * se / k), rel=1e-6)
+        relative.append(se / k)
+    assert relative[1] == pytest.approx(relative[0], rel=0.2)  # (different noise draws, the same problem)
+    b = Bounds({"k": (0.0, None)}, ["k"], {}, ["k"], DT, torch.device("cpu"))
+    u = torch.tensor([5e-7], dtype=DT)
+    assert b.at_bound(u) == ["k"] and b.at_bound(u, stderr=torch.tensor([5e-9], dtype=DT)) == []
+    assert b.at_bound(torch.tensor([1e-15], dtype=DT), stderr=torch.tensor([5e-9], dtype=DT)) == ["k"]

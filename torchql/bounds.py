@@ -318,11 +318,16 @@ class Bounds:
         return torch.where(self.log & (rate > 1), MAX_INTERNAL_STEP / rate, limit)
 
     def at_bound(self, u: torch.Tensor, rel: float = 1e-6, stderr: torch.Tensor | None = None) -> list[str]:
-        """Names of the unknowns within ``rel`` (relative to ``max(|u|, |bound|, 1)``) of a bound, and,
-        given their standard errors ``stderr (m,)``, the log-scaled ones without a positive lower
-        bound below ``rel`` times theirs: at the edge 0 of the log scale, where data that want them
-        negative leave them (a small estimate that the data determine is not named)."""
-        scale = torch.maximum(u.abs(), torch.ones_like(u))
+        """Names of the unknowns within ``rel`` of a bound, relative to ``max(|u|, |bound|, unit)``,
+        ``unit`` the smaller of 1 and the unknown's standard error where ``stderr (m,)`` gives a
+        finite one (an estimate of 5e-7 that the data determine to 5e-9 is 100 standard errors inside
+        a bound at 0, whatever the units), else 1; and, given ``stderr``, the log-scaled ones without
+        a positive lower bound below ``rel`` times theirs: at the edge 0 of the log scale, where data
+        that want them negative leave them (a small estimate that the data determine is not named)."""
+        unit = torch.ones_like(u)
+        if stderr is not None:
+            unit = torch.where(torch.isfinite(stderr) & (stderr > 0), torch.minimum(stderr, unit), unit)
+        scale = torch.maximum(u.abs(), unit)
         near_lo = self.has_lower & ((u - self.lower).abs() <= rel * torch.maximum(scale, self.lower.abs().nan_to_num(0)))
         near_hi = self.has_upper & ((self.upper - u).abs() <= rel * torch.maximum(scale, self.upper.abs().nan_to_num(0)))
         if stderr is not None:
