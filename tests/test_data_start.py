@@ -1,6 +1,8 @@
 """The first reference (``torchql.data_start``): the ``"auto"`` default's choice, the fallback to the
 integrated guesses where the data-built start fails, and the batched data start."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +10,7 @@ import torch
 import torchql
 from testmodels import MichaelisMenten
 from torchql.data_start import MIN_POINTS, first_reference
-from torchql.models import CoastingCar, LinearOscillator, NonlinearOscillator
+from torchql.models import CoastingCar, DrivenOscillator, LinearOscillator, NonlinearOscillator
 
 DT = torch.float64
 AREA, MASS = 17.3, 80.43
@@ -352,3 +354,31 @@ def test_a_success_above_the_guesses_sum_of_squares_loses_to_a_lower_success_onl
     assert chunk["z0"][0].eq(1).all() and float(chunk["sse"][0]) == 0.5  # a lower success wins
     assert chunk["z0"][1].eq(0).all() and chunk["status"][1] is ok  # a failure does not, however low
     assert "above the model's own at the guesses (1)" in chunk["message"][0]
+
+
+def test_a_data_start_that_runs_out_of_iterations_after_a_long_path_is_fitted_again_from_the_guesses():
+    """A driven oscillator (a linear input) at 15 irregular times with ``sigma="estimate"``: from the
+    data-built start the joint iteration on the coefficients and the sigma sent the initial state off
+    along a direction the data barely see (50 iterations to ``x0 = (-2.8e4, -1.5e5)``, ``c = 15``,
+    sigma 0.25), and ended MAX_ITER, which was never fitted again. A fit that runs out of ``max_iter``
+    after a long path is fitted again from the integrated guesses, which converges to the optimum
+    that ``sigma=None`` reaches (the same coefficients: one sigma group), and says what the data's
+    start gave. A small ``max_iter`` still ends MAX_ITER alone."""
+    g = torch.Generator().manual_seed(13)
+    for kind in ("zoh", "linear"):  # (the second draw is the problem)
+        t = torch.sort(1.0 + 9.0 * torch.rand(15, generator=g, dtype=DT)).values
+        u = torchql.Inputs(torch.linspace(0, 10, 11, dtype=DT), torch.randn(11, generator=g, dtype=DT), names="u",
+                           kind=kind)
+        x = torchql.simulate(DrivenOscillator(0.3, 4.0), torch.tensor([0.5, 0.0], dtype=DT), t, t0=0.0, inputs=u,
+                             rtol=1e-12, atol=1e-14)
+        y = x[:, :1] + 0.01 * torch.randn(15, 1, generator=g, dtype=DT)
+    plain = torchql.fit(DrivenOscillator(), torchql.Observations(t, y, observe=["y"], inputs=u), torch.zeros(2, dtype=DT),
+                        t0=0.0)
+    data = torchql.Observations(t, y, observe=["y"], sigma="estimate", inputs=u)
+    result = torchql.fit(DrivenOscillator(), data, torch.zeros(2, dtype=DT), t0=0.0)
+    assert plain.status is result.status is torchql.Status.CONVERGED, result.message
+    assert "From the first reference built from the data the fit ended MAX_ITER" in result.message
+    torch.testing.assert_close(result.estimates, plain.estimates, rtol=1e-7, atol=1e-9)
+    assert result.sigma["y"] == pytest.approx(math.sqrt(plain.sse / 15), rel=1e-6)
+    short = torchql.fit(DrivenOscillator(), data, torch.zeros(2, dtype=DT), t0=0.0, max_iter=5)
+    assert short.status is torchql.Status.MAX_ITER and "From the first reference" not in short.message

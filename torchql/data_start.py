@@ -104,9 +104,13 @@ def derivation_uses_unknowns(system, measured: list[int], unknown_index: torch.T
 
 
 #: The ends of a fit after which ``"auto"`` fits the sample again from its other first reference
-#: (:attr:`torchql.problem.Problem.start_fallback`): the start led nowhere. Not ``MAX_ITER`` or
-#: ``MAX_TIME`` (the fit was still on its way: it needs iterations or time, not another start),
-#: nor a success.
+#: (:attr:`torchql.problem.Problem.start_fallback`): the start led nowhere. Not ``MAX_TIME`` (the
+#: fit was still on its way: it needs time, not another start), nor ``MAX_ITER`` after fewer than
+#: :data:`LONG_PATH` iterations (a small ``max_iter``), nor a success. (After a long path
+#: ``MAX_ITER`` is fitted again too, :func:`fallback_rows`: a ``sigma="estimate"`` fit from the
+#: data whose initial state ran off along a direction the data barely see, 50 iterations to
+#: ``x0 = -1.5e5``, converged from the integrated guesses to the optimum that ``sigma=None`` and
+#: shooting reach.)
 FALLBACK_STATUSES = (Status.DIVERGED, Status.INTEGRATION_FAILED, Status.STALLED, Status.NOT_IDENTIFIABLE)
 
 #: A fit from the data that succeeded above the model's sum of squares at the guesses by more than
@@ -142,7 +146,8 @@ _LOST = {"integrate": " Integrated from the guesses instead of starting from the
 
 def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int]]:
     """The rows of an engine's ``chunk`` to fit again from the other first reference ``fallback``
-    (None: none): those that ended in :data:`FALLBACK_STATUSES`, and those whose fit from the data
+    (None: none): those that ended in :data:`FALLBACK_STATUSES` or ran out of ``max_iter`` after at
+    least :data:`LONG_PATH` iterations, and those whose fit from the data
     succeeded above the model's own sum of squares at the guesses (``chunk["sse_guesses"]``, by
     more than :data:`GUESSES_MARGIN` of it: the data's reference led it to a worse optimum than
     where the guesses lay), or ran out of ``max_iter`` above it. Returns ``(rows, above)``, ``above``
@@ -150,6 +155,10 @@ def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int
     if not fallback:
         return [], set()
     failed = {k for k, code in enumerate(chunk["status"]) if code in FALLBACK_STATUSES}
+    # out of max_iter after a long path: wandering, not on its way (a runaway of an initial state
+    # along a direction the data barely see, which another start avoids)
+    failed |= {k for k, code in enumerate(chunk["status"])
+               if code is Status.MAX_ITER and int(chunk["iterations"][k]) >= LONG_PATH}
     at_guesses = chunk.get("sse_guesses")
     above = set() if at_guesses is None else set(
         (at_guesses < (1 - GUESSES_MARGIN) * chunk["sse_end"]).nonzero().flatten().tolist())
