@@ -45,7 +45,7 @@ from .solvers import STIFF_SOLVERS
 from .stiffness import STIFF_LINEAR_SOLVER
 from .storage_check import interpolation_misfit, storage_misses
 from .transfer import interval_coefficients
-from .uncertainty import covariance
+from .uncertainty import covariance, residual_variance
 
 __all__ = ["FinalPass"]
 
@@ -577,9 +577,7 @@ def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:
     """Per-sample covariance ``(S, m, m)`` as :func:`torchql.uncertainty.covariance`: batched, and
     per sample (``deficient``) where a direction is undetermined or values are met ``exact (S, R)``."""
     S, _, m = J.shape
-    dof = (L - m).to(J.dtype)
-    s2 = (torch.ones_like(sse) if spec.sigma_known
-          else torch.where(dof > 0, sse / dof.clamp(min=1), torch.full_like(sse, float("nan"))))
+    s2 = residual_variance(sse, L - m, spec.sigma_known)
     scale = torch.linalg.vector_norm(J, dim=1)
     safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
     _, Sv, Vh = torch.linalg.svd(J / safe_scale.unsqueeze(1), full_matrices=False)

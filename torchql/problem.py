@@ -32,6 +32,7 @@ from .options import Limits, Tolerances, check_scheme
 from .solvers import STIFF_SOLVERS
 from .stiffness import choose_solver, linear_solver_for
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns
+from .uncertainty import residual_variance
 from .initial_state import InitialStateExpressions, check_expressions
 
 __all__ = ["Problem"]
@@ -510,11 +511,7 @@ class Problem:
         system, n, B = self.system, self.system.n, self.B
         params = self._params_of(z0)
         dof = self.L - self.m
-        if self.sigma_known:
-            variance = torch.ones(B, dtype=self.dtype, device=self.device)
-        else:
-            variance = torch.where(dof > 0, out["sse"] / dof.clamp(min=1).to(self.dtype),
-                                   torch.full_like(out["sse"], float("nan")))
+        variance = residual_variance(out["sse"], dof, self.sigma_known)
         return BatchFitResult(
             success=torch.tensor([s.success for s in statuses], dtype=torch.bool, device=self.device),
             status=statuses, message=messages, params=params, x0=z0[:, :n].clone(),

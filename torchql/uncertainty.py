@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["Covariance", "covariance", "normal_quantile", "student_t_quantile", "wald_intervals"]
+__all__ = ["Covariance", "covariance", "residual_variance", "normal_quantile", "student_t_quantile", "wald_intervals"]
 
 
 class Covariance(NamedTuple):
@@ -36,6 +36,16 @@ class Covariance(NamedTuple):
     matrix: torch.Tensor
     dof: int
     residual_variance: float
+
+
+def residual_variance(sse: torch.Tensor, dof: torch.Tensor, sigma_known: bool) -> torch.Tensor:
+    """The residual variance ``s^2 (S,)`` of fits with sums of squares ``sse (S,)`` and degrees of
+    freedom ``dof (S,)``: 1 where the data's sigma is known (the residuals are then in units of
+    their standard deviations), else ``SSE / dof``, NaN where no degree of freedom is left."""
+    if sigma_known:
+        return torch.ones_like(sse)
+    dof = dof.to(sse.dtype)
+    return torch.where(dof > 0, sse / dof.clamp(min=1), torch.full_like(sse, float("nan")))
 
 
 def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_known: bool,
@@ -61,10 +71,7 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     L, m = jacobian.shape
     nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
     dof = L - m
-    if sigma_known:
-        s2 = 1.0
-    else:
-        s2 = sse / dof if dof > 0 else float("nan")
+    s2 = float(residual_variance(torch.tensor([float(sse)], dtype=torch.float64), torch.tensor([dof]), sigma_known))
     if not torch.isfinite(jacobian).all():
         return Covariance(nan, dof, s2)
     free = torch.eye(m, dtype=jacobian.dtype, device=jacobian.device)
