@@ -210,9 +210,10 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     t0 : float, optional
         Time of ``x0``; default ``t[0]``.
     solver : str
-        As in :func:`torchql.fit` (default ``"dopri5"``); ``"rodas5p"`` for stiff models (fast
-        chemistry, relaxation oscillations), where explicit solvers crawl: an implicit Rosenbrock
-        method, see :mod:`torchql.solvers`.
+        Default ``"dopri5"``, torchdiffeq's (not ``fit``'s ``"auto"``); ``"dop853"`` is torchql's
+        own, which fails at once, saying so, where the solution becomes stiff; ``"rodas5p"`` for
+        stiff models (fast chemistry, relaxation oscillations), where explicit solvers crawl: an
+        implicit Rosenbrock method, see :mod:`torchql.solvers`.
     rtol, atol
         As in :func:`torchql.fit`.
     inputs : Inputs, optional
