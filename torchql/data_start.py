@@ -154,11 +154,10 @@ def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int
     the latter."""
     if not fallback:
         return [], set()
-    failed = {k for k, code in enumerate(chunk["status"]) if code in FALLBACK_STATUSES}
-    # out of max_iter after a long path: wandering, not on its way (a runaway of an initial state
+    # (out of max_iter after a long path: wandering, not on its way; a runaway of an initial state
     # along a direction the data barely see, which another start avoids)
-    failed |= {k for k, code in enumerate(chunk["status"])
-               if code is Status.MAX_ITER and int(chunk["iterations"][k]) >= LONG_PATH}
+    failed = {k for k, code in enumerate(chunk["status"]) if code in FALLBACK_STATUSES
+              or code is Status.MAX_ITER and int(chunk["iterations"][k]) >= LONG_PATH}
     at_guesses = chunk.get("sse_guesses")
     above = set() if at_guesses is None else set(
         (at_guesses < (1 - GUESSES_MARGIN) * chunk["sse_end"]).nonzero().flatten().tolist())

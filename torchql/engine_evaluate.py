@@ -433,7 +433,7 @@ class Evaluation:
         spec = self.spec
         first = spec.columns(z0)
         with torch.no_grad():
-            if self._joint_sensitivities or spec.solver in STIFF_SOLVERS or not self._batched_dopri():
+            if self._joint_sensitivities or not self._batched_dopri():  # (a stiff solver is not batched dopri)
                 sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
                                                   atol=spec.atol, land=self._landing(idx),
                                                   interval_steps=spec.max_steps)

@@ -28,7 +28,7 @@ from .noise import sigma_group_index
 from .observations import ObservationOperator, Observations
 
 __all__ = ["StackedModel", "StackedExperiments", "stack_experiments", "experiment_result", "stack_observations",
-           "experiment_state_name", "check_conditions", "with_condition"]
+           "experiment_state_name", "check_conditions", "with_condition", "replaced_everywhere"]
 
 
 def experiment_state_name(name: str, e: int) -> str:
@@ -117,9 +117,8 @@ class StackedModel(ODEModel):
         self.register_buffer("_span", span.clone(), persistent=False)
         self._signals = inputs
         self._conditions = conditions
-        if conditions:  # a coefficient that every experiment replaces is no unknown by default
-            replaced = set.intersection(*(set(c) for c in conditions))
-            self.constants = self.constants + tuple(sorted(replaced))
+        # a coefficient that every experiment replaces is no unknown by default
+        self.constants = self.constants + replaced_everywhere(conditions)
 
     def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         buffers = {name: getattr(self, name) for name in self._buffer_names}
@@ -144,6 +143,14 @@ class StackedModel(ODEModel):
         pieces = [(getattr(s, kind).to(self._t0) - self._t0[e]) / self._span[e]
                   for e, s in enumerate(self._signals or ()) if getattr(s, kind) is not None]
         return torch.cat(pieces) if pieces else None
+
+
+def replaced_everywhere(conditions) -> tuple[str, ...]:
+    """The coefficients that every experiment's condition replaces, sorted: no unknowns by default
+    (none where ``conditions`` is not a non-empty list of dicts, whose own checks name what is wrong)."""
+    if not isinstance(conditions, (list, tuple)) or not conditions or not all(isinstance(c, dict) for c in conditions):
+        return ()
+    return tuple(sorted(set.intersection(*(set(c) for c in conditions))))
 
 
 def check_conditions(model: ODEModel, conditions, E: int) -> list[dict] | None:

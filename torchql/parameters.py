@@ -34,6 +34,7 @@ from . import _checks
 from ._arrays import float_tensor
 from .bounds import SCALES
 from .model import _set_buffer, coefficient_names, model_dtype_device
+from .multi import replaced_everywhere
 
 __all__ = ["Parameter", "apply_parameters"]
 
@@ -129,7 +130,7 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
     dtype, device = model_dtype_device(model)
     specs = {name: _as_parameter(name, spec) for name, spec in parameters.items()}
     fitted, changed = None, params is not None
-    held = tuple(model.constants) + _replaced_everywhere(conditions)
+    held = tuple(model.constants) + replaced_everywhere(conditions)
     out_params = list(params) if params is not None else [c for c in coefficients if c not in held]
     fixed, per_experiment = _fixed_lists(fixed_x0)
     state_values: dict[int, float] = {}
@@ -193,14 +194,6 @@ def apply_parameters(model, parameters: Mapping, *, x0, params, fixed_x0, bounds
                 params=out_params if changed else None,
                 fixed_x0=fixed if per_experiment else (fixed[0] if fixed[0] or fixed_x0 is not None else None),
                 bounds=out_bounds or bounds, scale=out_scale or scale, x0_expr=out_expr or x0_expr)
-
-
-def _replaced_everywhere(conditions) -> tuple[str, ...]:
-    """The coefficients that every experiment's condition replaces (none where ``conditions`` is not a
-    list of dicts: the fit's own checks name what is wrong with it)."""
-    if not isinstance(conditions, (list, tuple)) or not conditions or not all(isinstance(c, Mapping) for c in conditions):
-        return ()
-    return tuple(sorted(set.intersection(*(set(c) for c in conditions))))
 
 
 def _as_parameter(name, spec) -> Parameter:

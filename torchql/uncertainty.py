@@ -71,7 +71,7 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     L, m = jacobian.shape
     nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
     dof = L - m
-    s2 = float(residual_variance(torch.tensor([float(sse)], dtype=torch.float64), torch.tensor([dof]), sigma_known))
+    s2 = 1.0 if sigma_known else sse / dof if dof > 0 else float("nan")  # (residual_variance, for one fit)
     if not torch.isfinite(jacobian).all():
         return Covariance(nan, dof, s2)
     free = torch.eye(m, dtype=jacobian.dtype, device=jacobian.device)
