@@ -96,3 +96,19 @@ class LotkaVolterra(torchql.ODEModel):
     def forward(self, t, z):
         x, y = z.unbind(-1)
         return torch.stack((self.a * x - self.b * x * y, -self.c * y + self.d * x * y), dim=-1)
+
+
+class Lag(torchql.ODEModel):
+    """``x' = -k (x - y)``, ``y' = -a y``: ``x`` follows a decaying ``y`` with the lag ``1 / k``
+    (stiff for a large ``k``, though not at a guess of ``k`` near 1)."""
+
+    state_names = ("x", "y")
+
+    def __init__(self, k=1.0, a=1.0):
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
+        self.register_buffer("a", torch.tensor(a, dtype=torch.float64))
+
+    def forward(self, t, z):
+        x, y = z.unbind(-1)
+        return torch.stack((-self.k * (x - y), -self.a * y), dim=-1)

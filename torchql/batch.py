@@ -42,7 +42,7 @@ from . import _checks
 from .batch_result import BatchFitError, BatchFitResult, concatenate
 from .damping import Damping
 from .schemes import Scheme
-from .engine import run_engine
+from .engine_run import run_engine
 from .noise import run_with_noise
 from .grid import make_grid
 from .model import ODEModel

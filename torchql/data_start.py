@@ -33,7 +33,7 @@ from .smoothing import interpolate, interpolate_each, smooth, smooth_each
 from .status import Status
 
 __all__ = ["data_reference", "first_reference", "derivation_uses_unknowns", "fallback_rows", "sse_at_guesses",
-           "keep_the_better_fit", "slopes", "MIN_POINTS", "FALLBACK_STATUSES"]
+           "keep_the_better_fit", "slopes", "MIN_POINTS", "FALLBACK_STATUSES", "START_WORDS", "STIFF_REFIT"]
 
 #: Accepted Gauss–Newton steps of the gradient matching that gives the first coefficients.
 MATCH_STEPS = 30
@@ -135,13 +135,21 @@ LONG_PATH = 10
 #: below its frequency, ``B = 400`` over 318 periods, needs about 2.5 on its automatic grid).
 GUESSES_STEPS = 8
 
-#: What :func:`keep_the_better_fit` appends to a message, by the second first reference: where its
-#: fit won (before and after the first fit's end), and where it did not (before its own end).
-_WON = {"integrate": (" From the first reference built from the data the fit ended ",
-                      "this fit integrated the model from the guesses."),
-        "data": (" Integrated from the guesses the fit ended ", "this fit's first reference was built from the data.")}
-_LOST = {"integrate": " Integrated from the guesses instead of starting from the data, the fit ended ",
-         "data": " From a first reference built from the data instead, the fit ended "}
+#: What :func:`keep_the_better_fit` appends to a message, by the second fit: where it won (before
+#: and after the first fit's end), and where it did not (before its own end). From the second
+#: first reference, ``"integrate"`` or ``"data"``; and by the stiff solver (:data:`STIFF_REFIT`).
+START_WORDS = {"integrate": (" From the first reference built from the data the fit ended ",
+                             "this fit integrated the model from the guesses.",
+                             " Integrated from the guesses instead of starting from the data, the fit ended "),
+               "data": (" Integrated from the guesses the fit ended ",
+                        "this fit's first reference was built from the data.",
+                        " From a first reference built from the data instead, the fit ended ")}
+#: ... for a sample that ``solver="auto"``'s explicit solver found stiff during the fit, fitted
+#: again as a stiff model (:meth:`torchql.problem.Problem.stiff_variant`).
+STIFF_REFIT = (" The explicit solver that solver=\"auto\" chose found the model stiff during the fit, which ended ",
+               "this fit is the stiff solver's (solver=\"rodas5p\").",
+               " The explicit solver that solver=\"auto\" chose found the model stiff during the fit; fitted "
+               "again by the stiff solver (solver=\"rodas5p\"), it ended ")
 
 
 def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int]]:
@@ -206,37 +214,42 @@ def sse_at_guesses(engine, codes: list, sse: torch.Tensor, residuals: torch.Tens
     return out
 
 
-def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second_start: str = "integrate",
-                        above: set[int] = frozenset()) -> None:
-    """Rows ``rows`` of the engine's ``chunk`` against ``other`` (the same samples fitted from the
-    ``second_start`` first reference, ``"integrate"`` or ``"data"``, in that order; ``chunk``'s
-    from the other one): each keeps the better fit (a success over a failure, else the lower sum of
+def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second: str | tuple = "integrate",
+                        above: set[int] = frozenset()) -> list[int]:
+    """Rows ``rows`` of the engine's ``chunk`` against ``other`` (the same samples fitted again, in
+    that order: from the ``second`` first reference, ``"integrate"`` or ``"data"``, ``chunk``'s
+    from the other one; or ``second`` the words of another second fit, as :data:`START_WORDS`'
+    values, :data:`STIFF_REFIT`): each keeps the better fit (a success over a failure, else the lower sum of
     squares, a finite one over NaN; where neither has a sum of squares, one cut short by ``max_time``:
     the fit did not finish), its message saying what the other start gave. With a likelihood
     (estimated sigmas), the sums of squares compared are its objectives (``sse_end``): each
     fit's own sigmas make its sum of squares the number of values. The rows in ``above``
     (:func:`fallback_rows`) succeeded above the sum of squares at their guesses: there a success of
-    the other start with a lower one wins. Updates ``chunk`` in place."""
+    the other start with a lower one wins. Updates ``chunk`` in place; returns the rows the second
+    fit won."""
     S = len(chunk["status"])
+    said = START_WORDS[second] if isinstance(second, str) else second
+    won = []
     for j, k in enumerate(rows):
-        first, second = chunk["status"][k], other["status"][j]
+        first, end = chunk["status"][k], other["status"][j]
         sse_first, sse_second = float(chunk["sse"][k]), float(other["sse"][j])
         lower = float(other["sse_end"][j]) < float(chunk["sse_end"][k])
         unknown = sse_first != sse_first and sse_second != sse_second
-        wins = not first.success and (second.success or lower
+        wins = not first.success and (end.success or lower
                                       or (sse_first != sse_first and sse_second == sse_second)
-                                      or (unknown and second is Status.MAX_TIME))
-        wins = wins or (k in above and second.success and lower)
+                                      or (unknown and end is Status.MAX_TIME))
+        wins = wins or (k in above and end.success and lower)
         worse = (f", above the model's own at the guesses ({float(chunk['sse_guesses'][k]):.6g})"
                  if k in above else "")
         if wins:
             for key, value in chunk.items():
                 if isinstance(value, list) or (isinstance(value, torch.Tensor) and value.shape[:1] == (S,)):
                     value[k] = other[key][j]
-            said = _WON[second_start]
             chunk["message"][k] += said[0] + f"{first.name} (SSE {sse_first:.6g}{worse}); " + said[1]
+            won.append(k)
         else:
-            chunk["message"][k] += _LOST[second_start] + f"{second.name} (SSE {sse_second:.6g})."
+            chunk["message"][k] += said[2] + f"{end.name} (SSE {sse_second:.6g})."
+    return won
 
 
 #: :func:`slopes`: a difference is widened to the next neighbours while its span is below this

@@ -20,19 +20,27 @@ from .grid import last_nodes
 from .model import AugmentedSystem, BatchedCall
 from .rk_pairs import PAIRS, combine
 
-__all__ = ["dopri_batch", "STIFF"]
+__all__ = ["dopri_batch", "STIFF", "found_stiff"]
 
 
+_STIFF_WORDS = "the problem became stiff"
 #: The words of a failed sample's last step (:meth:`_DopriRun.messages`), by code.
 _FAILURES = (None, "the step size underflowed to {h:.3g} at t = {t:.6g}",
              "the solution became non-finite (NaN or inf) after t = {t:.6g}; the step size underflowed to {h:.3g}",
              "the budget of {n} steps ran out at t = {t:.6g}",
              "max_steps = {k} steps between two grid nodes ran out at t = {t:.6g} (step size {h:.3g})",
              "stopped at t = {t:.6g} by the caller's test on the values so far",
-             "the problem became stiff at t = {t:.6g}: the step size ({h:.3g}) is held by the explicit "
+             _STIFF_WORDS + " at t = {t:.6g}: the step size ({h:.3g}) is held by the explicit "
              "method's stability, not by its accuracy (an implicit solver, solver=\"rodas5p\", integrates it)")
 #: The code of :data:`_FAILURES` for a sample found stiff (:meth:`_DopriRun._stiff`).
 STIFF = 6
+
+
+def found_stiff(message: str | None) -> bool:
+    """Whether a sample's failure ``message`` (:func:`dopri_batch`'s ``messages``) is the stiffness test's."""
+    return bool(message) and message.startswith(_STIFF_WORDS)
+
+
 #: Hairer's stiffness test (DOP853, DOPRI5): every this many accepted steps, and at every step once
 #: one has failed; a sample is stiff after :data:`STIFF_HITS` failures with fewer than
 #: :data:`STIFF_CALM` passes in a row between them.

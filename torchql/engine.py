@@ -30,7 +30,7 @@ import torch
 from .active_set import bounded_update
 from .batch_result import BatchFitResult
 from .budget import TimeBudgetExceeded, check_time, deadline, no_time_budget, time_budget, time_left
-from .data_start import data_reference, fallback_rows, keep_the_better_fit
+from .data_start import data_reference
 from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation
 from .engine_final import FinalPass
 from .engine_steps import FLAT_DAMPING, StepTests  # noqa: F401 (FLAT_DAMPING: where it was defined)
@@ -44,60 +44,12 @@ from .noise import non_finite_residuals
 from .problem import Problem
 from .result import IterationRecord, Status
 
-__all__ = ["Engine", "run_engine"]
+__all__ = ["Engine"]
 
 _STATUSES = list(Status)
-
-
-def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: Callable[[int | str | None], None],
-               history: bool = False, callback: Callable[[int, IterationRecord], None] | None = None,
-               started: float | None = None) -> BatchFitResult:
-    """Fit the validated problem ``spec``, chunk after chunk of samples: the iteration of
-    :func:`torchql.fit` (one sample) and :func:`fit_many` alike.
-
-    ``report`` receives the number of samples finished (``None``: done; a string: the phase begun);
-    ``history`` keeps every iterate's record; ``callback(sample, record)`` receives each record.
-    ``max_time`` counts from ``started`` (``time.monotonic()`` at the fit's call; default now).
-    """
-    B, m = spec.B, spec.m
-    out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
-    R = spec.weights.reshape(B, -1).shape[1]
-    shapes = dict(sse=(B,), cov=(B, m, m), residuals=(B, R), jacobian=(B, R, m), singular_values=(B, m),
-                  sse_start=(B,), sse_end=(B,), z0_start=(B, spec.system.M), exact_residual=(B,))
-    out = {key: torch.empty(shape, dtype=spec.dtype, device=spec.device) for key, shape in shapes.items()}
-    out["iterations"] = torch.empty(B, dtype=torch.long, device=spec.device)
-    statuses: list[Status] = [Status.MAX_ITER] * B
-    messages: list[str] = [""] * B
-    histories: list[list[IterationRecord]] | None = [] if history else None
-    nfev = 0
-    finished = 0
-    try:
-        with time_budget(max_time, since=started):
-            for start in range(0, B, chunk_size):
-                index = torch.arange(start, min(B, start + chunk_size), device=spec.device)
-                engine = Engine(spec, index, max_time, history=history, callback=callback)
-                chunk = engine.run(shifted_report(report, finished))
-                nfev += engine.nfev
-                retry, above = fallback_rows(chunk, spec.start_fallback)
-                if retry:  # "auto": where the first reference failed or misled, the fit from the other one
-                    again = Engine(spec, index[retry], max_time, history=history, callback=callback,
-                                   start=spec.start_fallback)
-                    keep_the_better_fit(chunk, retry, again.run(lambda count: None), spec.start_fallback, above)
-                    nfev += again.nfev
-                out_z0[index] = chunk["z0"]
-                for key in out:
-                    out[key][index] = chunk[key]
-                for k, i in enumerate(index.tolist()):
-                    statuses[i], messages[i] = chunk["status"][k], chunk["message"][k]
-                if histories is not None:
-                    histories.extend(chunk["history"])
-                finished += index.numel()
-                report(finished)
-    finally:
-        report(None)
-    result = spec.result(out_z0, out, statuses, messages, nfev)
-    result.history = histories
-    return result
+#: The detail of a sample that ``solver="auto"``'s explicit solver found stiff during the fit.
+STIFF_FOUND = (" The explicit solver found the model stiff at a trial iterate (its steps held by stability, not "
+               "accuracy).")
 
 
 class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
@@ -119,6 +71,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self.history: list[list[IterationRecord]] | None = [[] for _ in range(index.numel())] if history else None
         self.callback = callback
         self.propagation_errors: dict[int, str] = {}  # chunk row: a per-sample propagator's message
+        self.stiff_met: set[int] = set()  # chunk rows whose model an explicit pair found stiff
         self.z0_guess = spec.z0[index].clone()
         #: the first iterate ``(S, M)`` and its sum of squares ``(S,)`` (the guesses and NaN until it is made)
         self.first_z0 = self.z0_guess.clone()
@@ -331,6 +284,12 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         running = st.status == RUNNING
         if time_left() <= 0 and bool(running.any()):
             st.stop(running.nonzero().flatten(), Status.MAX_TIME)
+            running = st.status == RUNNING
+        if self.stiff_met and self.spec.stiff_refit:  # found stiff: fitted again as such (torchql.engine_run)
+            stiff = torch.tensor(sorted(self.stiff_met), device=running.device)
+            stiff = stiff[running[stiff]]
+            if stiff.numel():
+                st.stop(stiff, Status.INTEGRATION_FAILED, STIFF_FOUND)
             running = st.status == RUNNING
         start = running & st.fresh
         maxed = start & (st.iterations >= self.spec.max_iter)

@@ -13,7 +13,7 @@ import math
 import torch
 
 from .batch_integrate import integrate_each, propagate_linear_batch
-from .dopri import dopri_batch
+from .dopri import dopri_batch, found_stiff
 from .dopri_sensitivity import explicit_sensitivities
 from .engine_state import _pick, bound_of, not_above
 from .grid import DEFAULT_INTERVALS, refine
@@ -229,11 +229,10 @@ class Evaluation:
         the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
         the trial divergent, and the sample's trials are integrated by the adaptive solvers from
         then on. The other samples, or all without a guess, are integrated by
-        :func:`~torchql.dopri.dopri_batch` (``solver="dop853"`` or ``"dopri5"``, one sample as several; its
-        message says where one failed), by the implicit :func:`~torchql.solvers.rodas5p_batch` (a
-        stiff ``solver``), or each alone by torchdiffeq (another ``solver``). ``stop``: the adaptive solvers' test of
-        a sample (positions ``(L,)`` in ``idx``, its augmented states ``(L, G, M)`` so far and the next
-        node) that ends it early, as a failure (:meth:`_nonlinear_sse`, a shooting trial).
+        :func:`~torchql.dopri.dopri_batch` (``"dop853"``, ``"dopri5"``), the implicit
+        :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each alone by torchdiffeq.
+        ``stop``: the adaptive solvers' test of a sample (positions ``(L,)`` in ``idx``, its augmented
+        states ``(L, G, M)`` so far, the next node) that ends it early, as a failure.
         ``max_steps``: the batched Dormand–Prince solver's limit on a sample's steps (default its own).
         """
         spec = self.spec
@@ -378,6 +377,7 @@ class Evaluation:
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):
                 errors[s] = messages[k]
+            self.stiff_met.update(int(idx[s]) for k, s in enumerate(sub.tolist()) if found_stiff(messages[k]))
             sub = pending()
         if sub.numel():
             hit = self.t_obs if shared else self.t_obs[idx[sub]]
@@ -391,9 +391,8 @@ class Evaluation:
                     errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
 
     def _take_shared_solutions(self, idx, sub, z0, rtol, traj, ok) -> None:
-        """Fill ``traj`` and ``ok`` of the samples ``sub`` (chunk indices ``idx[sub]``, states
-        ``z0``) whose solution at exactly these estimates and ``rtol`` was integrated together
-        with other groups' (:meth:`~torchql.engine_final.FinalPass._share_final_solutions`)."""
+        """Fill ``traj`` and ``ok`` of the samples ``sub`` (chunk indices ``idx[sub]``, states ``z0``) whose solution at
+        these estimates and ``rtol`` was integrated with other groups' (:meth:`FinalPass._share_final_solutions`)."""
         if not self.shared_solutions or rtol != self.spec.rtol:
             return
         for s in sub.tolist():
@@ -507,7 +506,7 @@ class Evaluation:
                 better[both] = self._race(all_idx, cur, act, trial, rows[both])
                 rest[both[better[both]]] = False
         rows = rows[rest]
-        c_sse = self._nonlinear_sse(all_idx, cur, act[rows])
+        c_sse = self._nonlinear_sse(all_idx, cur, act[rows], current=True)
         t_sse = self._nonlinear_sse(act, trial, rows, above=bound_of(c_sse) if STOP_EARLY else None)
         better[rest] = not_above(t_sse, c_sse)
         return better
@@ -542,7 +541,8 @@ class Evaluation:
         self._keep_model_sse(act, trial, rows, traj[R:], errors[R:])
         return stopped[:R]
 
-    def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor, above: torch.Tensor | None = None) -> torch.Tensor:
+    def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor, above: torch.Tensor | None = None,
+                       current: bool = False) -> torch.Tensor:
         """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable;
         with a ``sigma(p)`` function, the objective at the iterate's sigmas).
 
@@ -552,13 +552,15 @@ class Evaluation:
         current iterate's). The implicit solver stops a sample once its objective over the data
         passed so far exceeds its bound (the remaining terms only add to it; a ``sigma(p)``
         function's log term is the sample's own constant), whose objective is then inf.
-        """
-        fresh = torch.isnan(it["nl_sse"][rows])
-        need = rows[fresh]
+        ``current``: the samples' accepted iterates, whose need of more grid-solver steps than a trial
+        may take means a grid too coarse for their model (:meth:`_nonlinear`'s ``reference``)."""
+        need = rows[torch.isnan(it["nl_sse"][rows])]
         if need.numel():
-            stop = None if above is None else self._exceeds(idx[need], it["w"][need], it["log"][need], above[fresh])
-            traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=it["W"][need][..., 0],
-                                           budget_is_final=True, stop=stop)
+            stop = None if above is None else self._exceeds(idx[need], it["w"][need], it["log"][need],
+                                                            above[torch.isnan(it["nl_sse"][rows])])
+            guess = it["W"][need][..., 0]
+            traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=guess, budget_is_final=True,
+                                           stop=stop, reference=(it["z0"][need], guess) if current else None)
             self._keep_model_sse(idx, it, need, traj, errors)
         return it["nl_sse"][rows]
 

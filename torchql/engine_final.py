@@ -148,7 +148,8 @@ class FinalPass:
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0,
-                    sse_guesses=sse_at_guesses(self, codes, sse, residuals, iterations))
+                    sse_guesses=sse_at_guesses(self, codes, sse, residuals, iterations),
+                    stiff_met=torch.tensor([k in self.stiff_met for k in range(S)], dtype=torch.bool, device=dev))
 
     def _exact_misfit(self, rows, resid) -> tuple[torch.Tensor, torch.Tensor]:
         """The largest absolute residual ``(R,)`` of the samples ``rows`` over their values marked

@@ -26,7 +26,7 @@ import torch
 from . import _checks
 from .damping import Damping
 from .schemes import Scheme
-from .engine import run_engine
+from .engine_run import run_engine
 from .noise import run_with_noise
 from .problem import Problem
 from .model import ODEModel, _set_buffer
@@ -145,7 +145,9 @@ def fit(
         ``"rodas5p"`` when the model is stiff on the data's span (:mod:`torchql.stiffness`: the
         Jacobian's fastest decay rate times the span, along the data, above ``1e4``), else
         ``"dop853"`` (``"dopri5"`` with ``linear_solver="torchdiffeq"``, which integrates with
-        torchdiffeq); ``result.solver_options["solver"]`` says which.
+        torchdiffeq); ``result.solver_options["solver"]`` says which. A fit on ``"dop853"`` that
+        the explicit pair finds stiff during the iteration stops, and is fitted again as
+        ``"auto"`` fits a stiff model (:mod:`torchql.engine_run`), the better fit kept.
     rtol, atol : float, optional
         Integrator tolerances; default ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` below.
     xtol : float, optional

@@ -7,6 +7,7 @@ worded for one dataset) and for ``B`` of them (:func:`torchql.fit_many`); the it
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import torch
@@ -30,7 +31,7 @@ from .damping import damping_strategy
 from .datasets import check_data, shared_inputs
 from .options import Limits, Tolerances, check_scheme
 from .solvers import STIFF_SOLVERS
-from .stiffness import choose_solver, linear_solver_for
+from .stiffness import AUTO, STIFF_SOLVER, choose_solver, linear_solver_for
 from .superposition import DEFAULT_LINEAR_SOLVER, check_linear_solver, initial_columns
 from .uncertainty import residual_variance
 from .initial_state import InitialStateExpressions, check_expressions
@@ -88,16 +89,24 @@ class Problem:
             self.z0 = self.initial.complete(self.z0)
         self.breakpoints = self._attach_inputs(model)
         self._check_model(self.z0[0, :system.n])
+        #: the options as given, for :meth:`stiff_variant`
+        self.given = dict(solver=self.solver, grid=grid, linear_solver=linear_solver,
+                          initial_trajectory=self.initial_trajectory)
         self._solver_and_grid(grid, linear_solver)
-        given = self.initial_trajectory
+        self._first_references()
+        self.model = user_model
+
+    def _first_references(self) -> None:
+        """The first reference of the fit (``initial_trajectory``, see
+        :func:`~torchql.data_start.first_reference`) and ``"auto"``'s other one, ``start_fallback``."""
+        given = self.given["initial_trajectory"]
         t0 = self.t0 if self.t0.dim() == 0 else self.t0[0]
 
         def choose(stiff: bool) -> str:
             return first_reference(given, self.scheme, self.operator.observed_states, self.mask, stiff=stiff,
                                    max_iter=self.max_iter, derivation_uses_unknowns=lambda measured:
                                    derivation_uses_unknowns(self.system, measured, self.unknown_index, self.z0[0], t0))
-        stiff = self.solver in STIFF_SOLVERS
-        self.initial_trajectory = choose(stiff)
+        self.initial_trajectory = choose(self.stiff)
         #: ``"auto"``'s other first reference (None: none): a sample whose fit from the chosen one
         #: fails is fitted again from it. The integrated guesses after the data; the data after
         #: the integrated guesses where only the stiffness chose these (the data's values are
@@ -105,9 +114,24 @@ class Problem:
         self.start_fallback = None
         if given == "auto" and self.initial_trajectory == "data":
             self.start_fallback = "integrate"
-        elif given == "auto" and stiff and choose(False) == "data":
+        elif given == "auto" and self.stiff and choose(False) == "data":
             self.start_fallback = "data"
-        self.model = user_model
+
+    @property
+    def stiff_refit(self) -> bool:
+        """Whether a sample that an explicit pair finds stiff during the fit is fitted again by
+        the stiff solver (:meth:`stiff_variant`): ``solver="auto"`` chose the explicit one."""
+        return self.given["solver"] == AUTO and not self.stiff
+
+    def stiff_variant(self) -> "Problem":
+        """This problem as ``solver="auto"`` would have set it up had it found the model stiff: the
+        stiff solver, its linear solver (unless one was given), grid and first references; the
+        data, unknowns and guesses shared."""
+        other = copy.copy(self)
+        other.solver = STIFF_SOLVER
+        other._solver_and_grid(self.given["grid"], self.given["linear_solver"])
+        other._first_references()
+        return other
 
     def _options(self, model, solver, damping, method, initial_trajectory, linear_solver, max_iter, max_steps,
                  rtol, atol, xtol, ftol, rcond) -> None:

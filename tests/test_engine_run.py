@@ -1,0 +1,81 @@
+"""A problem's fit and its second fits (torchql.engine_run): a sample that ``solver="auto"``'s explicit
+solver finds stiff during the fit is fitted again as a stiff model, alone, in ``fit`` and ``fit_many``.
+
+The model is :class:`testmodels.Lag`: ``x`` follows a decaying ``y`` with the lag ``1 / k``. Both
+are measured from t = 0.1 to 2 (noise 1e-4); ``x(0) = 0`` and ``y(0) = 1`` are known, ``k`` and
+``a`` are fitted from ``k = 1``, ``a = 1.5``. At the guesses the model is not stiff (``k * span =
+2``), so ``"auto"`` chooses DOP853; a true ``k = 1e4`` makes it stiff (``k * span = 2e4``, above
+:data:`torchql.stiffness.STIFF_RATIO`) once the iterates approach it.
+"""
+
+import pytest
+import torch
+
+import torchql
+from testmodels import Lag
+
+DT = torch.float64
+X0 = torch.tensor([0.0, 1.0], dtype=DT)
+OPTIONS = dict(fixed_x0=["x", "y"], t0=0.0)
+
+
+def lag_data(k: float, seed: int = 2) -> torchql.Observations:
+    t = torch.linspace(0.0, 2.0, 21, dtype=DT)[1:]
+    x = torchql.simulate(Lag(k, 1.0), X0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                         rtol=1e-12, atol=1e-16)[1:]
+    y = x + 1e-4 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=DT)
+    return torchql.Observations(t, y, observe=["x", "y"], sigma=1e-4)
+
+
+def test_auto_fits_a_model_its_explicit_solver_finds_stiff_again_as_a_stiff_model():
+    """The explicit fit found the model stiff as ``k`` passed about 1e3; the sample is fitted again
+    as ``solver="auto"`` fits a model it finds stiff from the start, and that fit is the result,
+    the same as ``solver="rodas5p"``'s, its solver recorded and the switch said."""
+    data = lag_data(1e4)
+    auto = torchql.fit(Lag(1.0, 1.5), data, X0, **OPTIONS)
+    stiff = torchql.fit(Lag(1.0, 1.5), data, X0, solver="rodas5p", **OPTIONS)
+    assert stiff.success, stiff.message
+    assert auto.status is stiff.status and auto.iterations == stiff.iterations, auto.message
+    assert auto.solver_options["solver"] == "rodas5p"
+    assert 'found the model stiff during the fit' in auto.message and 'solver="rodas5p"' in auto.message
+    torch.testing.assert_close(auto.estimates, stiff.estimates, rtol=1e-12, atol=0)
+    assert auto.sse == pytest.approx(stiff.sse, rel=1e-12)
+    assert auto.covariance is not None and bool(torch.isfinite(auto.covariance).all())
+
+
+def test_fit_many_fits_again_only_the_samples_found_stiff_each_as_its_own_fit():
+    """A batch of a sample that becomes stiff and one that does not: the first is fitted again by
+    the stiff solver, the second keeps DOP853's fit, and each is the sample's own ``fit``."""
+    sets = [lag_data(1e4), lag_data(3.0, seed=3)]
+    batch = torchql.fit_many(Lag(1.0, 1.5), sets, X0, **OPTIONS)
+    assert [batch[i].solver_options["solver"] for i in range(2)] == ["rodas5p", "dop853"]
+    for i, data in enumerate(sets):
+        alone = torchql.fit(Lag(1.0, 1.5), data, X0, **OPTIONS)
+        assert alone.success, alone.message
+        assert batch[i].status is alone.status and batch[i].iterations == alone.iterations, i
+        assert batch[i].message == alone.message
+        torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)
+        assert float(batch[i].sse) == pytest.approx(alone.sse, rel=1e-10)
+
+
+def test_an_explicit_solver_asked_for_is_not_replaced():
+    """``solver="dop853"`` asked for: the sample is not fitted again (the stiffness is the message)."""
+    result = torchql.fit(Lag(1.0, 1.5), lag_data(1e4), X0, solver="dop853", max_time=3, **OPTIONS)
+    assert result.solver_options["solver"] == "dop853"
+    assert "found the model stiff during the fit" not in result.message
+
+
+def test_an_accepted_iterate_too_fast_for_the_grid_solver_has_its_trials_integrated_adaptively():
+    """``k = 1000`` over 2 time units is not stiff for ``"auto"`` (``k * span = 2e3``), but its lag
+    (1e-3) is shorter than the storage grid's steps: from the data-built start (``k = 179``) the grid
+    solver needed more steps than a trial may take for the current iterate as for every trial, and
+    each trial was rejected as a blow-up (STALLED at k = 6036, SSE 17422). The current iterate's own
+    need shows the grid too coarse for the model; its trials go to the adaptive solver, and the fit
+    reaches the optimum Rodas5P's fit reaches."""
+    data = lag_data(1e3)
+    result = torchql.fit(Lag(1.0, 1.5), data, X0, solver="dop853", initial_trajectory="data", **OPTIONS)
+    stiff = torchql.fit(Lag(1.0, 1.5), data, X0, solver="rodas5p", **OPTIONS)
+    assert result.success and stiff.success, (result.message, stiff.message)
+    # both at rtol 1e-10: the optima agree to the sensitivity of k (relative 1e-3 per unit of SSE)
+    torch.testing.assert_close(result.estimates, stiff.estimates, rtol=1e-6, atol=0)
+    assert result.sse == pytest.approx(stiff.sse, rel=1e-7)
