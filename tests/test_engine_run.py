@@ -79,3 +79,23 @@ def test_an_accepted_iterate_too_fast_for_the_grid_solver_has_its_trials_integra
     # both at rtol 1e-10: the optima agree to the sensitivity of k (relative 1e-3 per unit of SSE)
     torch.testing.assert_close(result.estimates, stiff.estimates, rtol=1e-6, atol=0)
     assert result.sse == pytest.approx(stiff.sse, rel=1e-7)
+
+
+def test_a_model_stiff_along_an_accepted_iterate_is_fitted_again_as_stiff():
+    """``x' = -k (x - cos t)`` over 10 time units, ``k = 1e4`` fitted from 1: at the fit's tolerance
+    DOP853's steps are held at ``h k`` of 1.3 to 3.5, below its stiffness test's bound, and the
+    explicit fit crawled to the optimum (12.6 s, where Rodas5P takes 0.7 s). Along an accepted
+    iterate the Jacobian's decay rate times the span exceeds 1e4, the test that chooses the stiff
+    solver from the data: the sample is fitted again as a stiff model, with Rodas5P's result."""
+    from testmodels import Relaxation, relaxation_solution
+
+    t = torch.linspace(0.25, 10.0, 40, dtype=DT)
+    y = relaxation_solution(t, 0.0, 1e4).unsqueeze(-1)
+    y = y + 1e-4 * torch.randn(y.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+    data = torchql.Observations(t, y, observe=["x"], sigma=1e-4)
+    x0 = torch.tensor([0.0], dtype=DT)
+    auto = torchql.fit(Relaxation(1.0), data, x0, fixed_x0=["x"], t0=0.0)
+    stiff = torchql.fit(Relaxation(1.0), data, x0, fixed_x0=["x"], t0=0.0, solver="rodas5p")
+    assert stiff.success and auto.status is stiff.status, auto.message
+    assert auto.solver_options["solver"] == "rodas5p"
+    torch.testing.assert_close(auto.estimates, stiff.estimates, rtol=1e-12, atol=0)

@@ -146,7 +146,8 @@ START_WORDS = {"integrate": (" From the first reference built from the data the 
                         " From a first reference built from the data instead, the fit ended ")}
 #: ... for a sample that ``solver="auto"``'s explicit solver found stiff during the fit, fitted
 #: again as a stiff model (:meth:`torchql.problem.Problem.stiff_variant`).
-STIFF_REFIT = (" The explicit solver that solver=\"auto\" chose found the model stiff during the fit, which ended ",
+STIFF_REFIT = (" The explicit solver that solver=\"auto\" chose found the model stiff during the fit, which stopped "
+               "there: ",
                "this fit is the stiff solver's (solver=\"rodas5p\").",
                " The explicit solver that solver=\"auto\" chose found the model stiff during the fit; fitted "
                "again by the stiff solver (solver=\"rodas5p\"), it ended ")

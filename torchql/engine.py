@@ -43,13 +43,15 @@ from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update
 from .noise import non_finite_residuals
 from .problem import Problem
 from .result import IterationRecord, Status
+from .stiffness import stiff_along
+from .trajectory import DEFECT_TRUST
 
 __all__ = ["Engine"]
 
 _STATUSES = list(Status)
 #: The detail of a sample that ``solver="auto"``'s explicit solver found stiff during the fit.
-STIFF_FOUND = (" The explicit solver found the model stiff at a trial iterate (its steps held by stability, not "
-               "accuracy).")
+STIFF_FOUND = (" The model became stiff as the estimates moved (the explicit solver's steps held by its stability, "
+               "or the Jacobian's fastest decay rate times the span above 1e4 along an accepted iterate).")
 
 
 class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
@@ -72,6 +74,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self.callback = callback
         self.propagation_errors: dict[int, str] = {}  # chunk row: a per-sample propagator's message
         self.stiff_met: set[int] = set()  # chunk rows whose model an explicit pair found stiff
+        self.stopped_stiff: set[int] = set()  # ... and that stopped so (solver="auto" fits them again)
         self.z0_guess = spec.z0[index].clone()
         #: the first iterate ``(S, M)`` and its sum of squares ``(S,)`` (the guesses and NaN until it is made)
         self.first_z0 = self.z0_guess.clone()
@@ -290,6 +293,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             stiff = stiff[running[stiff]]
             if stiff.numel():
                 st.stop(stiff, Status.INTEGRATION_FAILED, STIFF_FOUND)
+                self.stopped_stiff.update(stiff.tolist())
             running = st.status == RUNNING
         start = running & st.fresh
         maxed = start & (st.iterations >= self.spec.max_iter)
@@ -409,6 +413,11 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         st.fresh[target] = True
         st.z0[target] = trial["z0"][rows]
         st.final_guess[target] = _pick(trial["W"], rows)[..., 0]
+        if self.spec.stiff_refit:  # "auto"'s explicit solver: is the model stiff along the new iterates?
+            grid = self._grid_of(target)  # (along references that nearly solve the model: an early
+            stiff = stiff_along(trial["lin"].jac[rows], self.system.n,  # superposition may pass far outside)
+                                (grid[..., -1] - grid[..., 0]).expand(rows.numel()))
+            self.stiff_met.update(target[stiff & (trial["defect"][rows] <= DEFECT_TRUST)].tolist())
 
     def _reject(self, st: LoopState, rejected, alpha) -> None:
         """Rejected trials: without a filtering damping the iteration fails; Kantorovich

@@ -85,7 +85,9 @@ class FinalPass:
         objective = torch.full((S,), float("nan"), dtype=dtype, device=dev)  # the last record's value
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
-        rows, traj, W = self._final_solutions(_evaluated(status), z0, final_guess, codes, detail)
+        evaluated = [r for r in _evaluated(status).tolist() if r not in self.stopped_stiff]  # (fitted again)
+        rows, traj, W = self._final_solutions(torch.tensor(evaluated, dtype=torch.long, device=dev), z0, final_guess,
+                                              codes, detail)
         if rows.numel():
             traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish, detail)
             converged &= torch.tensor([c is not Status.MAX_TIME for c in codes], dtype=torch.bool, device=dev)

@@ -6,11 +6,11 @@ chunk is fitted by one :class:`~torchql.engine.Engine`; then, per sample,
 - ``initial_trajectory="auto"`` fits again from the other first reference a sample whose fit from
   the first failed or was misled (:func:`torchql.data_start.fallback_rows`), keeping the better fit;
 - ``solver="auto"``, which chose an explicit solver because the model is not stiff along the data at
-  the guesses, fits again as a stiff model a sample whose model the explicit pair found stiff
-  during the fit (:func:`torchql.dopri.found_stiff`): the iterates had moved to where it is (a
-  relaxation rate guessed at 1 and fitted at 1.5e4). The engine stops such a sample at once
-  (:meth:`~torchql.engine.Engine._begin`): its explicit steps there are held by stability, and
-  every trial crawls. Its second fit is the one ``solver="auto"`` makes of a model it finds stiff
+  the guesses, fits again as a stiff model a sample whose model became stiff where the iterates
+  went (a relaxation rate guessed at 1 and fitted at 1.5e4): found by the explicit pair's own test
+  (:func:`torchql.dopri.found_stiff`) or by :func:`torchql.stiffness.stiff_along` at an accepted
+  iterate. The engine stops such a sample at once (:meth:`~torchql.engine.Engine._begin`), without
+  a final pass: its explicit steps there are held by stability, and every trial crawls. Its second fit is the one ``solver="auto"`` makes of a model it finds stiff
   (:meth:`torchql.problem.Problem.stiff_variant`: Rodas5P, the stiff linear propagator, the stiff
   grid and first reference), from the guesses; the result keeps the better fit and records its
   solver (``batch[i].solver_options``).

@@ -145,9 +145,10 @@ def fit(
         ``"rodas5p"`` when the model is stiff on the data's span (:mod:`torchql.stiffness`: the
         Jacobian's fastest decay rate times the span, along the data, above ``1e4``), else
         ``"dop853"`` (``"dopri5"`` with ``linear_solver="torchdiffeq"``, which integrates with
-        torchdiffeq); ``result.solver_options["solver"]`` says which. A fit on ``"dop853"`` that
-        the explicit pair finds stiff during the iteration stops, and is fitted again as
-        ``"auto"`` fits a stiff model (:mod:`torchql.engine_run`), the better fit kept.
+        torchdiffeq); ``result.solver_options["solver"]`` says which. A fit on ``"dop853"`` whose model
+        becomes stiff as the estimates move (the explicit pair's stiffness test, or the same test
+        as along the data along an accepted iterate) stops, and is fitted again as ``"auto"`` fits
+        a stiff model (:mod:`torchql.engine_run`), the better fit kept.
     rtol, atol : float, optional
         Integrator tolerances; default ``1e-10``/``1e-12`` in float64, ``1e-6``/``1e-8`` below.
     xtol : float, optional
