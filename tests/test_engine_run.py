@@ -99,3 +99,26 @@ def test_a_model_stiff_along_an_accepted_iterate_is_fitted_again_as_stiff():
     assert stiff.success and auto.status is stiff.status, auto.message
     assert auto.solver_options["solver"] == "rodas5p"
     torch.testing.assert_close(auto.estimates, stiff.estimates, rtol=1e-12, atol=0)
+
+
+def test_a_sample_found_stiff_by_its_first_reference_in_a_batch_of_grid_groups_is_fitted_again():
+    """Two starts on one dataset (as ``multistart`` batches them): the second's guesses (``k`` =
+    3275) make its integrated first reference stiff, and the two samples chose different grids, so
+    each group was fitted by an engine of its own, which lost the mark: the second sample ended
+    INTEGRATION_FAILED after 0 iterations, where its own ``fit`` converges on Rodas5P."""
+    x0 = torch.tensor([1.0, 0.3], dtype=DT)
+    t = torch.cat([torch.logspace(-5, -2, 8, dtype=DT), torch.linspace(0.05, 3.0, 15, dtype=DT)])
+    x = torchql.simulate(Lag(1e4, 1.0), x0, t, solver="rodas5p", rtol=1e-11, atol=1e-13)
+    y = x + 1e-3 * torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=DT)
+    data = torchql.Observations(t, y, observe=["x", "y"], sigma=1e-3)
+    guesses = torch.tensor([[1.0, 0.5], [3274.68, 14.608]], dtype=DT)
+    options = dict(bounds={"k": (0.1, 1e6), "a": (0.01, 100.0)}, initial_trajectory="integrate")
+    start = torch.tensor([0.9, 0.25], dtype=DT)
+    batch = torchql.fit_many(Lag(1.0, 0.5), [data, data], start, guesses={"k": guesses[:, 0], "a": guesses[:, 1]},
+                             **options)
+    for i in range(2):
+        alone = torchql.fit(Lag(*guesses[i].tolist()), data, start, **options)
+        assert alone.success and alone.solver_options["solver"] == "rodas5p", alone.message
+        assert batch[i].status is alone.status and batch[i].iterations == alone.iterations, (i, batch[i].message)
+        assert batch[i].solver_options == alone.solver_options
+        torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)

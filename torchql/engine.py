@@ -413,10 +413,11 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         st.fresh[target] = True
         st.z0[target] = trial["z0"][rows]
         st.final_guess[target] = _pick(trial["W"], rows)[..., 0]
-        if self.spec.stiff_refit:  # "auto"'s explicit solver: is the model stiff along the new iterates?
-            grid = self._grid_of(target)  # (along references that nearly solve the model: an early
-            stiff = stiff_along(trial["lin"].jac[rows], self.system.n,  # superposition may pass far outside)
+        if self.spec.stiff_refit:  # "auto"'s explicit solver: is the model stiff along the new iterates,
+            n, grid = self.system.n, self._grid_of(target)  # at the observations as along the data?
+            stiff = stiff_along(self._at_obs(trial["lin"].jac, act)[rows], n,
                                 (grid[..., -1] - grid[..., 0]).expand(rows.numel()))
+            # (along references that nearly solve the model: an early superposition may pass far outside)
             self.stiff_met.update(target[stiff & (trial["defect"][rows] <= DEFECT_TRUST)].tolist())
 
     def _reject(self, st: LoopState, rejected, alpha) -> None:

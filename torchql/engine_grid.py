@@ -73,6 +73,7 @@ class AutoGrid:
         for rows, first in groups:
             child = type(self)(self.spec, self.index[rows], self.max_time, history=self.history is not None,
                                callback=self.callback, start=self.start)
+            child.stiff_met = {k for k, r in enumerate(rows.tolist()) if r in self.stiff_met}  # (first references')
             children.append((rows, child, child._iterate(shifted_report(report, done), first)))
             done += rows.numel()
         report("final pass")  # the groups' final solutions, together

@@ -83,10 +83,11 @@ def stiffness_ratio(system, t: torch.Tensor, x: torch.Tensor, p: torch.Tensor, s
 def stiff_along(jac: torch.Tensor, n: int, span: torch.Tensor) -> torch.Tensor:
     """Whether each sample's model is stiff along a trajectory, by the test of :func:`choose_solver`:
     its fastest decay rate times ``span (S,)`` above :data:`STIFF_RATIO`, at the nodes where the
-    Jacobians ``jac (S, G, M, M)`` (of the augmented model; the first ``n`` rows and columns are the
-    states') are given. Bool ``(S,)``; False where they are not finite.
+    Jacobians ``jac (S, G, N, N)`` are given (``N >= n``: the first ``n`` rows and columns, the
+    states', count). Bool ``(S,)``; False where they are not finite.
 
-    The engine asks it at every accepted iterate of a fit on ``"auto"``'s explicit solver: a
+    The engine asks it at the observation times of every accepted iterate of a fit on ``"auto"``'s
+    explicit solver, as :func:`choose_solver` asks along the data: a
     fitted relaxation rate of 1e4 from a guess of 1 (``tests/test_engine_run.py``) is stiff at the
     iterates though not at the guesses, and at the fit's tolerance DOP853's steps there are held at
     ``h |lambda|`` of 1.3 to 3.5, below its stiffness test's bound. The eigenvalues are computed
