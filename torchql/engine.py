@@ -28,15 +28,14 @@ from contextlib import contextmanager
 import torch
 
 from .active_set import bounded_update
-from .batch_result import BatchFitResult
-from .budget import TimeBudgetExceeded, check_time, deadline, no_time_budget, time_budget, time_left
+from .budget import TimeBudgetExceeded, check_time, deadline, no_time_budget, time_left
 from .data_start import data_reference
 from .engine_evaluate import _LOOSE_RTOL, EXACT_MARGIN, INEXACT_FACTOR, Evaluation
 from .engine_final import FinalPass
 from .engine_steps import FLAT_DAMPING, StepTests  # noqa: F401 (FLAT_DAMPING: where it was defined)
 from .engine_records import Records
 from .engine_grid import AutoGrid
-from .engine_state import RUNNING, LoopState, _pick, by_level, put_samples, shifted_report
+from .engine_state import RUNNING, LoopState, _pick, by_level, put_samples
 from .grid import last_nodes
 from .linearize import map_fields
 from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
