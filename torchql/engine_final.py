@@ -30,16 +30,15 @@ import math
 
 import torch
 
-from .active_set import bounded_update
 from .bounds import at_bound_note, moved_guesses_note
 from .data_start import sse_at_guesses
-from .diagnosis import final_status, negligible_columns, null_detail, typical_magnitudes
+from .diagnosis import negligible_columns, typical_magnitudes
 from .budget import TimeBudgetExceeded, no_time_budget, until
 from .dopri import dopri_batch
 from .engine_state import not_above
 from .engine_steps import predicted_decrease
+from .engine_diagnosis import FinalDiagnosis
 from .engine_grid import pad_nodes
-from .lstsq import solve_update, solve_update_batch
 from .result import Status
 from .solvers import STIFF_SOLVERS
 from .stiffness import STIFF_LINEAR_SOLVER
@@ -66,7 +65,7 @@ LINEAR_STEP = 0.1
 POLISH_MAX_STEP = 1.0
 
 
-class FinalPass:
+class FinalPass(FinalDiagnosis):
     """The final evaluation (mixed into :class:`torchql.engine.Engine`)."""
 
     def _finish(self, z0, status, detail, iterations, final_guess, polish) -> dict:
@@ -116,12 +115,12 @@ class FinalPass:
                 detail[r] = " The fitted trajectory is non-finite."
             keep = ~nonfinite
             magnitudes = self._magnitudes(traj)[keep]
-            rows, J, s, rw, J_info = rows[keep], J[keep], s[keep], rw[keep], J_info[keep]
+            rows, J, s, rw, J_info, w = rows[keep], J[keep], s[keep], rw[keep], J_info[keep], w[keep]
         if rows.numel():
             used = self._used(rows)
             J, J_info = self._without_negligible(rows, z0, J, J_info)
-            deficient, singular_values[rows] = self._diagnose(rows, J, rw, s, z0, codes, detail, used, magnitudes)
-            converged |= torch.tensor([c is Status.CONVERGED for c in codes], dtype=torch.bool, device=dev)
+            deficient, singular_values[rows] = self._diagnose(rows, J, rw, w, s, z0, codes, detail, used, magnitudes)
+            converged |= torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
             exact = torch.cat([self.exact[rows], torch.zeros_like(used[:, self.exact.shape[1]:])], dim=1)
             cov[rows] = _covariance(J_info, used, s, self.L[rows], spec, deficient | exact.any(dim=1), exact)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
@@ -448,92 +447,6 @@ class FinalPass:
         function the log rows of those values after them ``(S, 2 R)``."""
         used = self.mask[rows].reshape(rows.numel(), -1)
         return used if self.spec.sigma_function is None else torch.cat([used, used], dim=1)
-
-    def _diagnose(self, rows, J, rw, sse, z0, codes, detail, used, magnitudes):
-        """The final statuses of samples ``rows`` from their weighted Jacobians ``J (S, R, m)`` and
-        residuals ``rw`` at the estimates (rows ``used (S, R)``): the Gauss–Newton step there
-        (stationarity, :meth:`_stationary_on_the_model`, with the unknowns' ``magnitudes (S, m)``
-        on the fitted solution) and the Jacobian's rank (:func:`torchql.diagnosis.final_status`),
-        for samples that converged or ran out of iterations or stalled. Updates ``codes`` and
-        ``detail``; returns ``deficient (S,)`` and the singular values ``(S, m)``."""
-        spec = self.spec
-        dtype, dev, m = spec.dtype, spec.device, spec.m
-        L = self.L[rows]
-        step, deficient, sv = solve_update_batch(J, rw, torch.ones(J.shape[:2], dtype=dtype, device=dev), spec.rcond,
-                                                 None)
-        deficient |= L < m
-        # a fit that did not converge, tested at the accuracy of the storage grid's sensitivities
-        # (sqrt(rtol)): an exactly undetermined direction measures about that, above `rcond`, and its
-        # iteration wanders along it until max_iter
-        loose = max(spec.rcond, math.sqrt(spec.rtol))
-        failed = torch.tensor([codes[r] in (Status.MAX_ITER, Status.STALLED) for r in rows.tolist()], device=dev)
-        barely = failed & ~deficient & (sv.amin(dim=1) <= loose * sv.amax(dim=1))
-        deficient |= barely
-        estimates = z0[rows][:, spec.unknown_index]
-        scales = self._typical(rows)
-        stalled = torch.tensor([codes[r] is Status.STALLED for r in rows.tolist()], dtype=torch.bool, device=dev)
-        stationary = self._stationary_on_the_model(rows, J, rw, step, estimates, torch.maximum(scales, magnitudes),
-                                                   stalled & ~deficient, codes, detail)
-        sse_list = sse.tolist()
-        first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
-        for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
-            code = codes[r]
-            if stationary[k] or not (code.success or code in (Status.MAX_ITER, Status.STALLED)):
-                continue
-            null_text = ""
-            if short:
-                n_used = int(used[k].sum())
-                sol = solve_update(J[k][used[k]], torch.zeros(n_used, dtype=dtype, device=dev),
-                                   torch.ones(n_used, dtype=dtype, device=dev),
-                                   torch.zeros(n_used, dtype=torch.bool, device=dev),
-                                   loose if bool(barely[k]) else spec.rcond)
-                null_text = null_detail(sol.null_vectors, spec.unknown_names)
-            codes[r], more = final_status(
-                code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
-                unknown_names=spec.unknown_names, sse=sse_list[k],
-                sse_start=first_sse[k], step=step[k])
-            detail[r] = more if code.success else detail[r] + more
-        return deficient, sv
-
-    def _bounded(self, J, rw, estimates, step):
-        """The Gauss–Newton step ``step (S, m)`` on the model at ``estimates (S, m)`` (weighted
-        Jacobians ``J (S, R, m)``, residuals ``rw (S, R)``) as the bounds let it be taken
-        (:func:`torchql.active_set.bounded_update`): an estimate on a bound that the data pull
-        outside stays there. NaN where the data pull one inside from its bound."""
-        bounds = self.spec.bounds
-        if not bounds.active:
-            return step
-
-        def solve(rows, C, d, w):
-            alpha = solve_update_batch(C, d, w, self.spec.rcond, None)[0]
-            return alpha, torch.zeros_like(alpha[:, 0], dtype=torch.bool), torch.zeros_like(alpha[:, 0])
-
-        alpha, capped, _, _ = bounded_update(bounds, solve, J, rw, torch.ones_like(rw), estimates)
-        return alpha.masked_fill(bounds.leaving(estimates, alpha, capped).unsqueeze(-1), float("nan"))
-
-    def _stationary_on_the_model(self, rows, J, rw, step, estimates, scales, candidates, codes, detail) -> list[bool]:
-        """Samples ``rows`` that stalled (``candidates (S,)``, with a Jacobian of full rank) whose
-        Gauss–Newton step on the model at the estimates, ``step (S, m)`` as the bounds let it be taken
-        (:meth:`_bounded`, from ``J`` and ``rw``), is at most ``xtol`` of the
-        unknowns' magnitudes ``max(|estimate|, scales)`` (the convergence test's bound) are
-        converged: the iteration stopped at the model's optimum, where rounding or the
-        integration's error, not the distance to it, decided its last trials (a fit that reaches
-        exact data to 1e-24). Their ``codes`` become ``CONVERGED``, with a note; returns which
-        samples did. A fit that ran out of ``max_iter`` keeps saying so."""
-        if self.spec.has_exact or not bool(candidates.any()):  # the step above does not meet exact values
-            return [False] * rows.numel()
-        k = candidates.nonzero().flatten()
-        bounded = self._bounded(J[k], rw[k], estimates[k], step[k])
-        size = torch.full_like(candidates, math.nan, dtype=step.dtype)
-        size[k] = (bounded.abs() / torch.maximum(estimates[k].abs(), scales[k])).amax(dim=1)
-        stationary = candidates & (size <= self.spec.xtol)
-        for k in stationary.nonzero().flatten().tolist():
-            r = int(rows[k])
-            detail[r] = (" Found on the model itself: the iteration stalled (no step it tried lowered the sum of "
-                         f"squares enough), but at the estimates the Gauss-Newton step on the model is "
-                         f"{float(size[k]):.2g} of their magnitudes, below `xtol`.")
-            codes[r] = Status.CONVERGED
-        return stationary.tolist()
 
     def _magnitudes(self, traj: torch.Tensor) -> torch.Tensor:
         """The unknowns' magnitudes ``(R, m)`` on solutions ``traj (R, G, M)``: an initial state's, its
