@@ -222,3 +222,17 @@ def test_a_tiny_initial_state_in_its_own_units_is_no_negligible_column():
     assert all(f.status is Status.CONVERGED for f in fits), [f.message for f in fits]
     assert fits[1].stderr["k"] == pytest.approx(fits[0].stderr["k"], rel=1e-5)
     assert fits[1].stderr["y(t0)"] == pytest.approx(1e-20 * fits[0].stderr["y(t0)"], rel=1e-5)
+
+
+def test_an_unconverged_fit_that_misses_the_data_by_orders_of_magnitude_diverged():
+    """A fit ending MAX_ITER or STALLED whose sum of squares exceeds SSE_GROWTH times the data's own
+    (a model predicting zero) diverged, whatever its Jacobian's rank: an undamped fit from a guess
+    whose model blows up ended at 3.8e72 with data of order 1, and was called NOT_IDENTIFIABLE. At
+    the factor itself, or for a converged fit, the status stands."""
+    common = dict(rank_deficient=True, null_text=NULL, estimates=torch.ones(2, dtype=DT), scale=SCALE,
+                  unknown_names=NAMES, sse_start=None)
+    far = final_status(Status.MAX_ITER, sse=2 * SSE_GROWTH * 5.0, sse_data=5.0, **common)
+    assert far[0] is Status.DIVERGED and "misses the data by orders of magnitude" in far[1]
+    assert final_status(Status.STALLED, sse=SSE_GROWTH * 5.0, sse_data=5.0, **common)[0] is Status.NOT_IDENTIFIABLE
+    assert final_status(Status.CONVERGED, sse=2 * SSE_GROWTH * 5.0, sse_data=5.0, **common)[0] is \
+        Status.NOT_IDENTIFIABLE

@@ -34,3 +34,20 @@ def test_a_stalled_fit_whose_model_step_promises_less_than_the_integration_resol
             there = torchql.fit(HarmonicOscillator(float(shifted[2])), data, shifted[:2], max_iter=0)
             assert there.sse > result.sse + 1e-7, (k, sign, there.sse - result.sse)  # (its error: 8e-9)
     assert result.sse == pytest.approx(40.985794, rel=1e-6)
+
+
+def test_an_undamped_fit_from_a_guess_whose_model_blows_up_is_diverged_not_unidentifiable():
+    """``damping=None`` from ``a = -80`` (``y' = 80 y``): 50 undamped iterations end at a sum of squares
+    of 3.8e72, x(0) = 2e19, with data of order 1. The Jacobian there is rank deficient, and the
+    typical magnitudes, taken from the blown-up first trajectory, made every step look small: the
+    fit was called NOT_IDENTIFIABLE, which ``profile`` accepts as a fit."""
+    from testmodels import Lag
+
+    x0 = torch.tensor([1.0, 0.3], dtype=DT)
+    t = torch.linspace(0.0, 3.0, 20, dtype=DT)
+    x = torchql.simulate(Lag(3.0, 1.0), x0, t, rtol=1e-11, atol=1e-13)
+    y = x + 0.01 * torch.randn(x.shape, generator=torch.Generator().manual_seed(5), dtype=DT)
+    data = torchql.Observations(t, y, observe=["x", "y"], sigma=0.01)
+    result = torchql.fit(Lag(1.0, -80.0), data, x0, damping=None, initial_trajectory="integrate")
+    assert result.status is torchql.Status.DIVERGED, result.message
+    assert "misses the data by orders of magnitude" in result.message

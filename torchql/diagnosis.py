@@ -5,7 +5,8 @@ A fit that ends at ``MAX_ITER`` or ``STALLED`` is examined at its final estimate
 * if its estimates ran away (some unknown grew more than :data:`RUNAWAY_FACTOR` times its
   typical magnitude, or :data:`WEAK_RUNAWAY_FACTOR` times along a direction the data barely
   determine) or its sum of squares grew more than :data:`SSE_GROWTH` times the model's own at the
-  start, it diverged (``DIVERGED``);
+  start, or exceeds :data:`SSE_GROWTH` times the data's own (that of a model predicting zero:
+  the fit misses the data by orders of magnitude), it diverged (``DIVERGED``);
 * otherwise, if the scaled Jacobian is rank deficient at a (near-)stationary iterate (the
   Gauss–Newton step there, of minimal norm, moves no unknown by more than
   :data:`STATIONARY_STEP` of its typical magnitude), the data do not determine the named
@@ -45,7 +46,10 @@ RUNAWAY_FACTOR = 1e6
 #: The same where the Jacobian at the estimates is rank deficient (a runaway along the directions
 #: the data barely determine; a non-identifiable fit's minimal-norm steps stay far below it).
 WEAK_RUNAWAY_FACTOR = 1e4
-#: A final sum of squares this many times the model's own at the start is a divergence.
+#: A final sum of squares this many times the model's own at the start, or the data's own (the
+#: weighted squares of the values: a model predicting zero), is a divergence. (An undamped fit
+#: from a guess whose model blows up ended at 3.8e72 with data of order 1; its rank-deficient
+#: Jacobian there had it called NOT_IDENTIFIABLE.)
 SSE_GROWTH = 1e3
 #: An unconverged iterate is near-stationary when its Gauss–Newton step moves no unknown by more
 #: than this fraction of its typical magnitude.
@@ -111,7 +115,8 @@ def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequen
 
 def final_status(status: Status, *, rank_deficient: bool, null_text: str, estimates: torch.Tensor,
                  scale: torch.Tensor, unknown_names: Sequence[str], sse: float,
-                 sse_start: float | None, step: torch.Tensor | None = None) -> tuple[Status, str]:
+                 sse_start: float | None, step: torch.Tensor | None = None,
+                 sse_data: float | None = None) -> tuple[Status, str]:
     """The status of a fit whose iteration ended at ``status``, and the detail to add to its message.
 
     Parameters
@@ -131,6 +136,8 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
         The model's own sum of squares at the guesses, when the iteration started from it.
     step : Tensor ``(m,)``, optional
         The minimal-norm Gauss–Newton step at the final estimates (``None``: taken as stationary).
+    sse_data : float, optional
+        The data's own weighted sum of squares (a model predicting zero; ``None``: not compared).
     """
     examined = status.success or status in (Status.MAX_ITER, Status.STALLED)
     if not examined or status.success and not rank_deficient:  # a runaway only matters to the others
@@ -147,6 +154,10 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
     if sse_start is not None and math.isfinite(sse_start) and sse > SSE_GROWTH * max(sse_start, 0.0) and sse > 0:
         return Status.DIVERGED, (f" The sum of squares grew from {sse_start:.6g} at the guesses to {sse:.6g}"
                                  f" before the iteration ended at {status.name}.")
+    if sse_data is not None and sse > SSE_GROWTH * sse_data and sse > 0:
+        return Status.DIVERGED, (f" The sum of squares, {sse:.6g}, is {sse / max(sse_data, 1e-300):.3g} times the "
+                                 f"data's own ({sse_data:.6g}, a model predicting zero) when the iteration ended at "
+                                 f"{status.name}: the fitted model misses the data by orders of magnitude.")
     if rank_deficient and (step is None or bool((step.abs() <= STATIONARY_STEP * scale).all())):
         # near a stationary point: the iteration wandered along directions the data do not determine
         return Status.NOT_IDENTIFIABLE, null_text + f" The iteration did not converge ({status.name}): it moved along them."

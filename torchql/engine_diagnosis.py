@@ -57,6 +57,8 @@ class FinalDiagnosis:
         stationary = self._stationary_on_the_model(rows, J, rw, w, step, estimates, torch.maximum(scales, magnitudes),
                                                    stalled & ~deficient, codes, detail)
         sse_list = sse.tolist()
+        R = self.y[rows].reshape(rows.numel(), -1).shape[1]  # the data's own sums of squares (predicting 0)
+        data = torch.where(self.mask[rows].reshape(-1, R), w[:, :R] * self.y[rows].reshape(-1, R), 0.0).square().sum(1)
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
         for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
             code = codes[r]
@@ -73,7 +75,7 @@ class FinalDiagnosis:
             codes[r], more = final_status(
                 code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
                 unknown_names=spec.unknown_names, sse=sse_list[k],
-                sse_start=first_sse[k], step=step[k])
+                sse_start=first_sse[k], step=step[k], sse_data=float(data[k]))
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
 
