@@ -51,3 +51,27 @@ def test_an_undamped_fit_from_a_guess_whose_model_blows_up_is_diverged_not_unide
     result = torchql.fit(Lag(1.0, -80.0), data, x0, damping=None, initial_trajectory="integrate")
     assert result.status is torchql.Status.DIVERGED, result.message
     assert "misses the data by orders of magnitude" in result.message
+
+
+def test_log_normal_data_near_one_are_not_compared_with_a_model_predicting_zero():
+    """With ``noise="lognormal"`` the residuals are of logarithms, which for data near 1 are near 0:
+    a logistic fit cut short by ``max_iter=1``, within 3.5 % of every value, was called DIVERGED,
+    "1.96e3 times the data's own". It is MAX_ITER, as the same fit with normal noise is."""
+    class Logistic(torchql.ODEModel):
+        state_names = ("y",)
+
+        def __init__(self, r=1.0, K=1.0):
+            super().__init__()
+            self.register_buffer("r", torch.tensor(r, dtype=DT))
+            self.register_buffer("K", torch.tensor(K, dtype=DT))
+
+        def forward(self, t, x):
+            return self.r * x * (1 - x / self.K)
+
+    t = torch.linspace(0, 10, 30, dtype=DT)
+    y = torchql.simulate(Logistic(0.8, 1.0), torch.tensor([0.998], dtype=DT), t)
+    y = y * torch.exp(1e-4 * torch.randn(y.shape, generator=torch.Generator().manual_seed(0), dtype=DT))
+    for noise in ("lognormal", "normal"):
+        data = torchql.Observations(t, y, observe=["y"], noise=noise)
+        result = torchql.fit(Logistic(0.3, 1.3), data, torch.tensor([0.99], dtype=DT), max_iter=1)
+        assert result.status is torchql.Status.MAX_ITER, (noise, result.message)

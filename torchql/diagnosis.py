@@ -137,7 +137,8 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
     step : Tensor ``(m,)``, optional
         The minimal-norm Gauss–Newton step at the final estimates (``None``: taken as stationary).
     sse_data : float, optional
-        The data's own weighted sum of squares (a model predicting zero; ``None``: not compared).
+        The data's own weighted sum of squares (a model predicting zero; ``None``: not compared, as
+        for log-normal data, whose logarithms are near 0 for values near 1).
     """
     examined = status.success or status in (Status.MAX_ITER, Status.STALLED)
     if not examined or status.success and not rank_deficient:  # a runaway only matters to the others

@@ -75,7 +75,8 @@ class FinalDiagnosis:
             codes[r], more = final_status(
                 code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
                 unknown_names=spec.unknown_names, sse=sse_list[k],
-                sse_start=first_sse[k], step=step[k], sse_data=float(data[k]))
+                sse_start=first_sse[k], step=step[k],
+                sse_data=None if spec.noise == "lognormal" else float(data[k]))  # (log 0: no reference)
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
 
