@@ -2,8 +2,8 @@
 
 At the estimates, from the model's own weighted Jacobian and residuals: the Gauss–Newton step
 (within the bounds), whether a stalled fit is at the model's optimum after all (``CONVERGED``:
-the step below ``xtol``; ``CONVERGED_SSE``: the decrease it promises below ``ftol`` or below what
-the integration resolves), and the Jacobian's rank and runaways (:func:`torchql.diagnosis.final_status`).
+the step below ``xtol``; ``CONVERGED_SSE``: the decrease it promises below what the integration
+resolves), and the Jacobian's rank and runaways (:func:`torchql.diagnosis.final_status`).
 """
 
 from __future__ import annotations
@@ -57,8 +57,7 @@ class FinalDiagnosis:
         stationary = self._stationary_on_the_model(rows, J, rw, w, step, estimates, torch.maximum(scales, magnitudes),
                                                    stalled & ~deficient, codes, detail)
         sse_list = sse.tolist()
-        R = self.y[rows].reshape(rows.numel(), -1).shape[1]  # the data's own sums of squares (predicting 0)
-        data = torch.where(self.mask[rows].reshape(-1, R), w[:, :R] * self.y[rows].reshape(-1, R), 0.0).square().sum(1)
+        data = self._data_sse(rows, w)
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
         for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
             code = codes[r]
@@ -75,10 +74,18 @@ class FinalDiagnosis:
             codes[r], more = final_status(
                 code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
                 unknown_names=spec.unknown_names, sse=sse_list[k],
-                sse_start=first_sse[k], step=step[k],
-                sse_data=None if spec.noise == "lognormal" else float(data[k]))  # (log 0: no reference)
+                sse_start=first_sse[k], step=step[k], sse_data=data[k])
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
+
+    def _data_sse(self, rows, w) -> list:
+        """The data's own weighted sums of squares of samples ``rows`` (weights ``w``), a model
+        predicting zero's; None for log-normal data (their residuals are of logarithms: log 0)."""
+        if self.spec.noise == "lognormal":
+            return [None] * rows.numel()
+        y = self.y[rows].reshape(rows.numel(), -1)
+        R = y.shape[1]
+        return torch.where(self.mask[rows].reshape(-1, R), w[:, :R] * y, 0.0).square().sum(1).tolist()
 
     def _bounded(self, J, rw, estimates, step):
         """The Gauss–Newton step ``step (S, m)`` on the model at ``estimates (S, m)`` (weighted
@@ -105,8 +112,8 @@ class FinalDiagnosis:
         integration's error, not the distance to it, decided its last trials (a fit that reaches
         exact data to 1e-24). Their ``codes`` become ``CONVERGED``, with a note; returns which
         samples did. So do, as ``CONVERGED_SSE``, those whose step promises a decrease of the sum
-        of squares (:func:`predicted_decrease`, with weights ``w``) at most ``ftol`` of it or
-        :data:`RESOLVED` times its integration error (as :meth:`_creeping` measures it): Boehm's
+        of squares (:func:`predicted_decrease`) at most :data:`RESOLVED` times its integration
+        error (:meth:`~torchql.engine_steps.StepTests._sse_error`, weights ``w``): Boehm's
         PEtab fit, whose damped steps crept at 1.4e-5 of 188 with its likelihood 2e-5 below the
         reference, was STALLED. A fit that ran out of ``max_iter`` keeps saying so."""
         if self.spec.has_exact or not bool(candidates.any()):  # the step above does not meet exact values
@@ -116,8 +123,7 @@ class FinalDiagnosis:
         size, promised, floor = (torch.full_like(candidates, math.nan, dtype=step.dtype) for _ in range(3))
         size[k] = (bounded.abs() / torch.maximum(estimates[k].abs(), scales[k])).amax(dim=1)
         promised[k] = predicted_decrease(J[k], rw[k], torch.ones_like(rw[k]), bounded)
-        ssq = rw.square().sum(dim=1)  # the error of the sum of squares that the integration's allows
-        floor[k] = RESOLVED * 2 * (ssq[k] * self._integration_floor(rows[k], w[k])).sqrt()
+        floor[k] = RESOLVED * self._sse_error(rows[k], rw[k].square().sum(dim=1), w[k])
         stationary, flat = candidates & (size <= self.spec.xtol), candidates & (promised <= floor)
         for k in (stationary | flat).nonzero().flatten().tolist():
             r, said = int(rows[k]), (f"the Gauss-Newton step on the model is {float(size[k]):.2g} of their magnitudes, "

@@ -84,9 +84,7 @@ class FinalPass(FinalDiagnosis):
         objective = torch.full((S,), float("nan"), dtype=dtype, device=dev)  # the last record's value
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
-        evaluated = [r for r in _evaluated(status).tolist() if r not in self.stopped_stiff]  # (fitted again)
-        rows, traj, W = self._final_solutions(torch.tensor(evaluated, dtype=torch.long, device=dev), z0, final_guess,
-                                              codes, detail)
+        rows, traj, W = self._final_solutions(_evaluated(status, self.stopped_stiff), z0, final_guess, codes, detail)
         if rows.numel():
             traj, W = self._polish(rows, traj, W, z0, iterations, codes, polish, detail)
             converged &= torch.tensor([c is not Status.MAX_TIME for c in codes], dtype=torch.bool, device=dev)
@@ -181,7 +179,7 @@ class FinalPass(FinalDiagnosis):
         them (``shared_solutions``) for their final passes."""
         items = []
         for engine, st in parts:
-            rows = _evaluated(st.status)
+            rows = _evaluated(st.status, engine.stopped_stiff)
             if rows.numel() and engine._final_by_dopri(rows.numel()):
                 items.append((engine, st, rows))
         if len(items) < 2:
@@ -507,6 +505,10 @@ def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:
     return cov
 
 
-def _evaluated(status: torch.Tensor) -> torch.Tensor:
-    """The samples (indices) whose status ``(S,)`` (codes of ``Status``) gets a final evaluation."""
-    return (~torch.isin(status, torch.tensor(_NOT_EVALUATED, device=status.device))).nonzero().flatten()
+def _evaluated(status: torch.Tensor, skipped: set[int] = frozenset()) -> torch.Tensor:
+    """The samples (indices) whose status ``(S,)`` (codes of ``Status``) gets a final evaluation, less
+    those in ``skipped`` (samples stopped as stiff: ``solver="auto"`` fits them again)."""
+    rows = (~torch.isin(status, torch.tensor(_NOT_EVALUATED, device=status.device))).nonzero().flatten()
+    if skipped:
+        rows = rows[~torch.isin(rows, torch.tensor(sorted(skipped), device=status.device))]
+    return rows

@@ -65,7 +65,7 @@ class StepTests:
         model_new, model_old = trial["nl_sse"], st.cur["nl_sse"][act]
         known = torch.isfinite(model_new) & torch.isfinite(model_old)  # the model's own decided: it is the measure
         new, old = torch.where(known, model_new, new), torch.where(known, model_old, old)
-        floor = 2 * st.cur["sse"][act].abs().sqrt() * self._integration_floor(act, st.cur["w"][act]).sqrt()
+        floor = self._sse_error(act, st.cur["sse"][act], st.cur["w"][act])
         small = (((st.scaled <= self.spec.xtol) & ~st.leaving)
                  | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor)))
         return damped & small
@@ -118,6 +118,12 @@ class StepTests:
         y, used = self.y[rows].reshape(rows.numel(), -1), self.mask[rows].reshape(rows.numel(), -1)
         scale = w[:, :y.shape[1]] * (spec.atol + spec.rtol * y.abs())
         return torch.where(used, scale, torch.zeros_like(scale)).square().sum(dim=1)
+
+    def _sse_error(self, rows, sse, w) -> torch.Tensor:
+        """The error ``(R,)`` of sums of squares ``sse (R,)`` of samples ``rows`` (weights ``w``) that
+        the integration's tolerance allows, to first order: ``2 sqrt(sse)`` times the root of
+        :meth:`_integration_floor` (every residual off by its local tolerance)."""
+        return 2 * sse.abs().sqrt() * self._integration_floor(rows, w).sqrt()
 
     def _accepted(self, st: LoopState, act, trial, ok, capped) -> torch.Tensor:
         """Which trials lower the sum of squares. The merits decide (Kantorovich: the particular
