@@ -236,3 +236,26 @@ def test_parameters_keep_a_coefficient_replaced_in_every_experiment_out_of_the_u
                              parameters={"k2": Parameter(0.3, vary=False)})
     assert all(batch[i].status is torchql.Status.CONVERGED and batch[i].unknown_names == keywords.unknown_names
                for i in range(2))
+
+
+def test_a_one_output_observe_function_may_return_a_scalar_in_every_experiment():
+    """``observe`` of one output may return a scalar (as for one dataset); stacked, each experiment's is
+    made shape (1,) before they are joined (a zero-dimensional output crashed the concatenation)."""
+    t = torch.arange(14, dtype=DT) * 0.5
+    data = [torchql.Observations(t, simulate(x0, t)[:, :1], observe=lambda x: x[0]) for x0 in X0_TRUE]
+    by_name = [torchql.Observations(d.t, d.y, observe=["y"]) for d in data]
+    guess = torch.tensor([[0.1, 0.8], [0.8, -0.2]], dtype=DT)
+    r = torchql.fit(LinearOscillator(A=0.3, B=2.0), data, x0=guess)
+    named = torchql.fit(LinearOscillator(A=0.3, B=2.0), by_name, x0=guess)
+    assert r.success, r.message
+    assert torch.allclose(r.x0, X0_TRUE, atol=1e-8) and abs(r.params["B"].item() - 3.0) < 1e-8
+    assert torch.allclose(r.estimates, named.estimates, rtol=1e-9, atol=1e-12)
+
+
+def test_a_failing_observe_function_is_named_with_its_experiment_and_state_shape():
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = simulate(X0_TRUE[0], t)[:, :1]
+    data = [torchql.Observations(t, y, observe=["y"]), torchql.Observations(t, y, observe=lambda x: x[5])]
+    with pytest.raises(ValueError, match=r"`observe` callable of experiment 1 failed on a state of shape \(2,\): "
+                                         r"IndexError"):
+        torchql.fit(LinearOscillator(A=0.3, B=2.0), data, x0=X0_TRUE.clone())

@@ -25,7 +25,7 @@ from ._arrays import float_tensor
 from .initial_state import ReadValues, check_expressions
 from .model import ODEModel, _set_buffer, coefficients, model_dtype_device
 from .noise import sigma_group_index
-from .observations import ObservationOperator, Observations
+from .observations import ObservationOperator, ObserveCallableError, Observations
 
 __all__ = ["StackedModel", "StackedExperiments", "stack_experiments", "experiment_result", "stack_observations",
            "experiment_state_name", "check_conditions", "with_condition", "replaced_everywhere"]
@@ -250,7 +250,7 @@ def stack_observations(datasets: list[Observations], state_names: list[str], t0:
             Q[offsets[e]:offsets[e] + K[e], e * n:(e + 1) * n] = op.matrix
         observe = Q
     else:
-        observe = _BlockObservation([d.observe for d in datasets], operators, n, conditions)
+        observe = _BlockObservation([op.function for op in operators], operators, n, conditions)
     sigma_given = all(d.sigma_given for d in datasets)
     if not sigma_given and any(d.sigma_given for d in datasets):
         raise ValueError("`sigma` must be given for every experiment or for none (the residual variance is shared)")
@@ -292,7 +292,8 @@ def _sigma_labels(data: Observations, operator: ObservationOperator) -> list[str
 
 
 class _BlockObservation:
-    """``h(X) = [h_1(X_1), ..., h_E(X_E)]`` for the stacked state ``X``."""
+    """``h(X) = [h_1(X_1), ..., h_E(X_E)]`` for the stacked state ``X``: each experiment's ``observe``
+    as its operator takes it (a one-output function's scalar made shape ``(1,)``)."""
 
     def __init__(self, specs, operators: list[ObservationOperator], n: int, conditions: list | None = None) -> None:
         self.specs, self.operators, self.n, self.conditions = specs, operators, n, conditions
@@ -305,10 +306,12 @@ class _BlockObservation:
             xe = x[..., e * self.n:(e + 1) * self.n]
             if op.matrix is not None:
                 out.append(xe @ op.matrix.T)
-            elif op.takes_params:
-                out.append(spec(xe, experiment_values(p, self.conditions, e)))
-            else:
-                out.append(spec(xe))
+                continue
+            try:
+                out.append(spec(xe, experiment_values(p, self.conditions, e)) if op.takes_params else spec(xe))
+            except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
+                raise ObserveCallableError(f"`observe` callable of experiment {e} failed on a state of shape "
+                                           f"{tuple(xe.shape)}: {type(exc).__name__}: {exc}") from exc
         return torch.cat(out, dim=-1)
 
 

@@ -331,6 +331,10 @@ def _check_inputs(inputs, B: int | None) -> Inputs | tuple[Inputs, ...] | None:
     raise TypeError(f"`inputs` must be {expected}; received {type(inputs).__name__}")
 
 
+class ObserveCallableError(ValueError):
+    """A user's ``observe`` callable failed; the message names the state's shape (and the experiment)."""
+
+
 def _one_output(observe):
     """``observe`` for one output (``K == 1``): a scalar it returns (``p["s"] * x[1]``) becomes shape ``(1,)``."""
     def h(*args):
@@ -444,8 +448,10 @@ class ObservationOperator:
             return
         try:
             out = self.function(x, params) if self.takes_params else self.function(x)
+        except ObserveCallableError:
+            raise
         except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
-            raise ValueError(f"`observe` callable failed on a state of shape ({self.n},): "
+            raise ObserveCallableError(f"`observe` callable failed on a state of shape ({self.n},): "
                              f"{type(exc).__name__}: {exc}") from exc
         if not isinstance(out, torch.Tensor) or out.shape != (self.K,):
             shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
