@@ -241,6 +241,34 @@ def test_plot_profile_writes_a_figure(car, agg, tmp_path):
     path = tmp_path / "profile.png"
     fig.savefig(path)
     assert path.stat().st_size > 1000
+    assert not prof.likelihood and ax.get_ylabel() == "optimal SSE"
+    assert ax.lines[0].get_label() == "profile SSE"
+    assert torch.equal(torch.as_tensor(ax.lines[0].get_ydata()), prof.sse)
+
+
+def test_a_likelihood_fit_is_plotted_with_its_negative_log_likelihood(agg):
+    """With estimated sigmas the SSE is in units of the sigmas (the number of values, near enough):
+    the fit's title names its NLL, the profile's axis twice the NLL it holds."""
+    data = torchql.Observations(CAR_TIMES, SUNBEAM, observe=["v"], sigma="estimate")
+    fit = torchql.fit(CoastingCar(17.3, 80.43), data)
+    assert fit.success and fit.likelihood
+    fig, axes = fit.plot_fit()
+    assert f"NLL {fit.nll:.4g}" in axes[0].get_title() and "SSE" not in axes[0].get_title()
+    prof = torchql.profile(fit, "mu", max_points=2)
+    assert prof.likelihood
+    fig, ax = prof.plot()
+    assert ax.get_ylabel() == "optimal 2 x negative log-likelihood"
+    assert ax.lines[0].get_label() == "profile 2 NLL"
+    assert torch.equal(torch.as_tensor(ax.lines[0].get_ydata()), prof.sse)
+    assert prof.sse_min == pytest.approx(2 * fit.nll, rel=1e-9, abs=1e-9)
+    # the iterates' objective, SSE + 2 sum log sigma, is negative here: drawn on a linear axis
+    fig, (_, ax_objective) = fit.plot_convergence()
+    objective = torch.tensor([rec.sse for rec in fit.history], dtype=DT)
+    assert float(objective[-1]) < 0 and ax_objective.get_yscale() == "linear"
+    assert torch.equal(torch.as_tensor(ax_objective.lines[0].get_ydata()), objective)
+    n = fit.residuals.numel()
+    assert float(objective[-1]) == pytest.approx(2 * fit.nll - n * math.log(2 * math.pi), rel=1e-9)
+    assert "with estimated sigmas, SSE + 2 sum log sigma" in fit.report()
 
 
 def test_missing_matplotlib_names_the_extra(car, monkeypatch):

@@ -125,7 +125,9 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
         if ax_res is not None:
             ax_res.plot(tk, (y[ok, k] - h_obs[ok, k]).cpu().numpy(), "o-", color=color, ms=4, lw=0.8)
     ax_fit.set_ylabel("observed")
-    ax_fit.set_title(f"{result.method} fit: {result.status.name}, SSE {result.sse:.4g}")
+    # a likelihood fit's SSE is in units of its sigmas: the objective it minimized is its NLL
+    objective = f"NLL {result.nll:.4g}" if result.likelihood else f"SSE {result.sse:.4g}"
+    ax_fit.set_title(f"{result.method} fit: {result.status.name}, {objective}")
     ax_fit.legend(fontsize="small")
     if ax_res is not None:
         ax_res.axhline(0.0, color="0.5", lw=0.8)
@@ -137,7 +139,8 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
 
 
 def plot_convergence(result: "FitResult", ax=None, *, values: bool = False):
-    """Each unknown and the SSE against iteration.
+    """Each unknown and the SSE against iteration (with estimated sigmas or a ``sigma(p)`` function,
+    the objective ``SSE + 2 sum log sigma`` instead, on a linear axis: it may be negative).
 
     Parameters
     ----------
@@ -177,9 +180,13 @@ def plot_convergence(result: "FitResult", ax=None, *, values: bool = False):
     ax_u.legend(fontsize="small")
     if ax_sse is not None:
         sse = torch.tensor([rec.sse for rec in history], dtype=torch.float64)
-        pos = torch.where(sse > 0, sse, torch.full_like(sse, math.nan))
-        ax_sse.semilogy(iters, pos.numpy(), "o-", color="k")
-        ax_sse.set_ylabel("SSE")
+        if result.sigma_function or result.sigma is not None:  # SSE + 2 sum log sigma: of any sign
+            ax_sse.plot(iters, sse.numpy(), "o-", color="k")
+            ax_sse.set_ylabel("2 NLL - n log 2 pi")
+        else:
+            pos = torch.where(sse > 0, sse, torch.full_like(sse, math.nan))
+            ax_sse.semilogy(iters, pos.numpy(), "o-", color="k")
+            ax_sse.set_ylabel("SSE")
         ax_sse.set_xlabel("iteration")
     else:
         ax_u.set_xlabel("iteration")
@@ -187,7 +194,8 @@ def plot_convergence(result: "FitResult", ax=None, *, values: bool = False):
 
 
 def plot_profile(profile: "ProfileResult", ax=None):
-    """The profile ``SSE(value)`` with its threshold, the profile interval and the Wald interval.
+    """The profile ``SSE(value)`` (a likelihood profile's ``2 NLL(value)``) with its threshold, the
+    profile interval and the Wald interval.
 
     Returns
     -------
@@ -198,7 +206,8 @@ def plot_profile(profile: "ProfileResult", ax=None):
         fig, ax = plt.subplots(figsize=(6, 4))
     else:
         fig = ax.figure
-    ax.plot(profile.values.numpy(), profile.sse.numpy(), "o-", ms=3, label="profile SSE")
+    what = "2 NLL" if profile.likelihood else "SSE"
+    ax.plot(profile.values.numpy(), profile.sse.numpy(), "o-", ms=3, label=f"profile {what}")
     ax.axhline(profile.threshold, color="r", ls="--", lw=0.8, label=f"{100 * profile.level:g}% threshold")
     ax.axvline(profile.estimate, color="k", lw=0.8, label="estimate")
     for end, closed in zip(profile.interval, profile.closed):
@@ -210,7 +219,7 @@ def plot_profile(profile: "ProfileResult", ax=None):
     ax.plot([], [], color="r", lw=0.8, label="profile interval")
     ax.plot([], [], color="0.5", ls=":", lw=0.8, label="Wald interval")
     ax.set_xlabel(profile.name)
-    ax.set_ylabel("optimal SSE")
+    ax.set_ylabel("optimal 2 x negative log-likelihood" if profile.likelihood else "optimal SSE")
     ax.legend(fontsize="small")
     return fig, ax
 

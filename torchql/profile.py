@@ -171,7 +171,7 @@ def profile(
         threshold=threshold.sse_min + threshold.delta, interval=(ends[0], ends[1]), closed=(closed[0], closed[1]),
         wald=(float(wald[0]), float(wald[1])), values=values, sse=sses, estimates=estimates, unknown_names=names,
         message=message, n_fits=refit.n_fits, failures=refit.failures, sigma_known=result.sigma_known,
-        residual_variance=threshold.s2,
+        residual_variance=threshold.s2, likelihood=threshold.likelihood,
     )
 
 

@@ -56,6 +56,9 @@ class ProfileResult:
     sigma_known : bool
     residual_variance : float
         ``s^2`` used (1 when ``sigma`` is known).
+    likelihood : bool
+        Whether ``sse``, ``sse_min`` and ``threshold`` are twice the negative log-likelihood (a fit
+        with estimated sigmas, a ``sigma(p)`` function or log-normal noise) rather than the SSE.
     """
 
     name: str
@@ -75,6 +78,7 @@ class ProfileResult:
     failures: list = field(default_factory=list)
     sigma_known: bool = False
     residual_variance: float = 1.0
+    likelihood: bool = False
 
     @property
     def tau(self) -> torch.Tensor:

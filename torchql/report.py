@@ -292,9 +292,9 @@ def _iterations_section(result: "FitResult") -> list[str]:
                 "steps are accepted on IterationRecord.merit or the model's own sum of squares")
     else:
         what = "SSE: of the model's solution from the iterate's estimates"
-    if result.sigma_function:
-        what += ("; with sigma(p), SSE + 2 sum log sigma, the objective (twice the negative log-likelihood less "
-                 "n log 2 pi)")
+    if result.sigma_function or result.sigma is not None:
+        what += (f"; with {'sigma(p)' if result.sigma_function else 'estimated sigmas'}, SSE + 2 sum log sigma, the "
+                 "objective (twice the negative log-likelihood less n log 2 pi)")
     cols = [max(14, len(n) + 1) for n in names]
     lines = [f"[[Iterations]] ({what}; |alpha|: the update scaled by the unknowns' magnitudes)",
              f"    {'iter':>4} {'SSE':>12} {'|alpha|':>10} " + " ".join(f"{n:>{w}}" for n, w in zip(names, cols))]
