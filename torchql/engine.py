@@ -89,6 +89,8 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self.fits_grid: dict[int, bytes] = {}
         #: samples whose automatic storage grid misses their model's change: misfit (FinalPass._missed_by_storage)
         self.storage_missed: dict[int, float] = {}
+        #: samples whose final sensitivities were integrated with their solutions for their grid solver's sake
+        self.joint_final: set[int] = set()
         #: the trials' linear transfers' tolerance while proposed (None: ``rtol``; see ``INEXACT_FACTOR``)
         self.trial_rtol: float | None = None
         if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)

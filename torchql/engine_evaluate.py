@@ -15,11 +15,11 @@ import torch
 from .batch_integrate import integrate_each, propagate_linear_batch
 from .dopri import dopri_batch, found_stiff
 from .dopri_sensitivity import explicit_sensitivities
+from .engine_grid_solve import GridSolve
 from .engine_state import _pick, bound_of, not_above
-from .grid import DEFAULT_INTERVALS, refine
-from .grid_solve import solve_on_grid_batch
+from .grid import DEFAULT_INTERVALS
 from .integrate import IntegrationError
-from .linearize import Linearization, flow_rates, linearize, map_fields
+from .linearize import Linearization, linearize, map_fields
 from .rk_pairs import PAIRS
 from .sigma_function import noise_rows
 from .solvers import STIFF_SOLVERS
@@ -40,9 +40,6 @@ BATCHED_SOLVERS = (*BATCHED_EXPLICIT, *STIFF_SOLVERS)
 #: with Jacobians); above it the batched Dormand–Prince integrator, whose rounds advance every
 #: sample at once, costs less.
 _SHOOTING_POINTS = 20_000
-#: Newton iterations the grid solver gets from a trajectory's linear prediction before the
-#: adaptive solver takes over (from a good prediction it needs two or three).
-_GRID_NEWTON = 8
 #: Most RK4 steps per grid interval in that solver: an interval that needs more (a trajectory
 #: that blows up, a stiff stretch) is left to the adaptive solver rather than subdivided further.
 _GRID_SUBSTEPS, _GRID_SUBSTEPS_LOOSE = 32, 16
@@ -72,7 +69,7 @@ EXACT_MARGIN = 2.0
 STOP_EARLY = True
 
 
-class Evaluation:
+class Evaluation(GridSolve):
     """Evaluations of a chunk's iterates (mixed into :class:`torchql.engine.Engine`, whose
     attributes ``spec``, ``system``, ``grid``, ``obs``, ``t_obs``, ``G``, ``y``, ``w``, ``mask``,
     ``exact``, ``nfev``, ``propagation_errors``, ``coarse_grid`` and ``fits_grid`` it uses)."""
@@ -224,11 +221,12 @@ class Evaluation:
         to the same failure, or through a stiff stretch that a step far from the current iterate
         led into; the damping shortens the step instead), an interval then being allowed
         ``_BLOWUP_STEPS / (G - 1)`` steps if that is more, so that a coarse grid does not turn a
-        smooth trial into a blow-up. Unless the current iterate needs more steps too (its
-        ``reference = (z0 (S, M), traj (S, G, M))`` solved on the grid with the same budget): then
-        the grid is too coarse for the sample's model (a rough measured input, a fast mode), not
-        the trial divergent, and the sample's trials are integrated by the adaptive solvers from
-        then on. The other samples, or all without a guess, are integrated by
+        smooth trial into a blow-up. Given the current iterate, ``reference = (z0 (S, M), traj (S,
+        G, M))``, solved on the grid with the same budget: where it needs more steps too, the grid
+        is too coarse for the sample's model (a rough measured input, a fast mode), not the trial
+        divergent, and the sample's trials are integrated by the adaptive solvers from then on;
+        where it does not, the trial is tried by the adaptive solver, within a budget of steps
+        (:meth:`~torchql.engine_grid_solve.GridSolve._over_budget`). The other samples, or all without a guess, are integrated by
         :func:`~torchql.dopri.dopri_batch` (``"dop853"``, ``"dopri5"``), the implicit
         :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each alone by torchdiffeq.
         ``stop``: the adaptive solvers' test of a sample (positions ``(L,)`` in ``idx``, its augmented
@@ -254,56 +252,9 @@ class Evaluation:
                                       device=z0.device)
                 if bool(coarse.any()):
                     guess = torch.where(coarse.reshape(-1, 1, 1), torch.full_like(guess, float("nan")), guess)
-                self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference)
+                self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference, stop)
             self._adaptive(idx, z0, rtol, atol, traj, ok, errors, stop, max_steps)
         return traj, errors
-
-    def _on_grid(self, idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors,
-                 reference=None) -> None:
-        """:meth:`_nonlinear`'s grid solver, from ``guess``, for the samples whose guess is finite;
-        fills ``traj`` and ``ok`` in place, and with ``budget_is_final`` the blow-ups' ``errors``
-        (not where the ``reference`` needs more steps too: see :meth:`_nonlinear`)."""
-        over = self._grid_solve(idx, z0, guess, rtol, atol, substeps, traj, ok)
-        if not budget_is_final:
-            return
-        over &= ~ok
-        if reference is not None and bool(over.any()):
-            # the current iterates not yet seen to fit in the budget (one check per accepted iterate)
-            keys = {int(r): reference[0][r].detach().cpu().numpy().tobytes() for r in over.nonzero().flatten()}
-            rows = torch.tensor([r for r, key in keys.items() if self.fits_grid.get(int(idx[r])) != key],
-                                dtype=torch.long, device=over.device)
-            if rows.numel():
-                ref_traj = torch.full_like(traj[rows], float("nan"))
-                ref_ok = torch.zeros_like(ok[rows])
-                ref_over = self._grid_solve(idx[rows], reference[0][rows], reference[1][rows], rtol, atol, substeps,
-                                            ref_traj, ref_ok)
-                for k, r in enumerate(rows.tolist()):
-                    if bool(ref_over[k]):
-                        self.coarse_grid.add(int(idx[r]))
-                        over[r] = False  # the adaptive solvers take it
-                    else:
-                        self.fits_grid[int(idx[r])] = keys[r]
-        for s in over.nonzero().flatten().tolist():
-            errors[s] = f"a grid interval needed more than the grid solver's {substeps} steps (a blow-up)"
-
-    def _grid_solve(self, idx, z0, guess, rtol, atol, substeps, traj, ok) -> torch.Tensor:
-        """The grid solver from ``guess`` for the samples whose guess is finite; fills ``traj`` and
-        ``ok`` in place and returns ``over (S,)``: the samples that exceeded ``substeps``."""
-        grid = self._grid_of(idx)
-        sub = torch.isfinite(guess).flatten(1).all(dim=1).nonzero().flatten()
-        over = torch.zeros_like(ok)
-        if not sub.numel():
-            return over
-        k = self._split
-        grid = grid if grid.dim() == 1 else grid[sub]
-        slopes, curvatures = self._guess_derivatives(grid, guess[sub])
-        grid, guess = refine(grid, guess[sub], slopes, k, curvatures)
-        solved = solve_on_grid_batch(self.system, z0[sub], grid, rtol=rtol, atol=atol, guess=guess,
-                                     max_newton=_GRID_NEWTON, max_substeps=substeps)
-        self.nfev += solved.n_evals
-        good = solved.ok
-        traj[sub[good]], ok[sub[good]], over[sub] = solved.traj[good][:, ::k], True, solved.over_budget
-        return over
 
     def _grid_solves(self, count: int) -> bool:
         """Whether :meth:`_nonlinear` takes ``count`` samples (with a guess) to the grid solver: at most
@@ -322,25 +273,6 @@ class Evaluation:
     def _split(self) -> int:
         """Sub-intervals per grid interval in the grid solver (see :data:`_GRID_SOLVE_INTERVALS`)."""
         return max(1, math.ceil(_GRID_SOLVE_INTERVALS / max(1, self.G - 1)))
-
-    def _guess_derivatives(self, grid: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """What the grid solver's interpolant of its guess ``z (S, G, M)`` on ``grid`` (``(G,)`` or
-        ``(S, G)``) takes at the nodes: the augmented model's slopes (zeros, not evaluated, where it
-        splits no interval), and for a storage of quintic interpolants, whose grids are coarser (a
-        cubic interpolant on their sub-intervals would cost Newton an iteration), their rates
-        ``d/dt f = f_t + A f`` along the flow (:func:`torchql.linearize.flow_rates`; the
-        coefficients' rows zero); otherwise None (the cubic interpolant)."""
-        if self._split == 1:
-            return torch.zeros_like(z), None
-        S, G, M = z.shape
-        t = grid.expand(S, -1).reshape(-1)
-        if self.spec.linear_solver.storage_degree < 5:
-            return torch.vmap(self.system.f)(t, z.reshape(-1, M)).reshape(z.shape), None
-        n = self.system.n
-        slopes, rates = flow_rates(self.system.f, t, z.reshape(-1, M), n)
-        curvatures = torch.zeros_like(z)
-        curvatures[..., :n] = rates.reshape(S, G, n)
-        return slopes.reshape(z.shape), curvatures
 
     def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None, max_steps: int | None = None) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:

@@ -127,11 +127,7 @@ class FinalPass(FinalDiagnosis):
                 last = self.history[r][-1] if self.history[r] else None
                 if last is None or last.iteration != int(iterations[r]) or not torch.equal(last.x0, z0[r, :self.system.n]):
                     self.history[r].append(self._record(r, int(iterations[r]), z0[r], float("nan")))
-        for k, misfit in self.storage_missed.items():
-            detail[k] += (f" The automatic storage grid misses a change of the model between its nodes (its "
-                          f"interpolants stray by {misfit:.2g} of the states over an interval): the final pass "
-                          "integrated the sensitivities with the solution; a finer `grid` makes the iterations "
-                          "faithful too.")
+        self._storage_notes(detail)
         for k, r in enumerate(self.index.tolist()):
             if spec.bounds.active:
                 stderr = cov[k].diagonal().clamp_min(0).sqrt()  # (NaN where not converged: none named)
@@ -149,6 +145,22 @@ class FinalPass(FinalDiagnosis):
                     sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0,
                     sse_guesses=sse_at_guesses(self, codes, sse, residuals, iterations),
                     stiff_met=torch.tensor([k in self.stiff_met for k in range(S)], dtype=torch.bool, device=dev))
+
+    def _storage_notes(self, detail: list) -> None:
+        """Say in ``detail`` of each sample whose storage grid misses its model (its interpolants stray
+        between the nodes, ``storage_missed``, or its model needs more than the grid solver's steps
+        in an interval, ``coarse_grid``, finally evaluated so) that the final pass integrated its
+        sensitivities with its solution."""
+        for k, misfit in self.storage_missed.items():
+            detail[k] += (f" The automatic storage grid misses a change of the model between its nodes (its "
+                          f"interpolants stray by {misfit:.2g} of the states over an interval): the final pass "
+                          "integrated the sensitivities with the solution; a finer `grid` makes the iterations "
+                          "faithful too.")
+        for k in sorted(self.joint_final - set(self.storage_missed)):
+            detail[k] += (" The storage grid misses a change of the model between its nodes (an interval needed "
+                          "more steps than the grid solver takes): the model's solutions were integrated by the "
+                          "adaptive solver, and the final pass integrated the sensitivities with the solution; a "
+                          "finer `grid` makes the iterations faithful too.")
 
     def _exact_misfit(self, rows, resid) -> tuple[torch.Tensor, torch.Tensor]:
         """The largest absolute residual ``(R,)`` of the samples ``rows`` over their values marked
@@ -214,7 +226,12 @@ class FinalPass(FinalDiagnosis):
         that integrated; the others' ``codes`` become INTEGRATION_FAILED with the solver's words."""
         if not rows.numel():
             return rows, None, None
-        good, traj, W, errors = self._model_at(rows, z0[rows], final_guess[rows])
+        # a sample whose model is too fast for its grid's solver (``coarse_grid``) is too fast for its
+        # grid's sensitivities too: they are integrated with its solution (Gauss-Newton with the
+        # grid's stopped a relaxation rate grown 100-fold from its guess 2.5e-5 short of its optimum)
+        joint = torch.tensor([int(r) in self.coarse_grid for r in rows.tolist()], dtype=torch.bool, device=rows.device)
+        good, traj, W, errors = self._model_at(rows, z0[rows], final_guess[rows], joint=joint)
+        self.joint_final = set(rows[joint & good].tolist())
         for k, r in enumerate(rows.tolist()):
             if errors[k] is not None:
                 codes[r] = Status.INTEGRATION_FAILED
@@ -295,7 +312,7 @@ class FinalPass(FinalDiagnosis):
         (``self.deadline``); those it stops end as :meth:`_out_of_time` says. Returns the solutions
         at the estimates kept."""
         accurate = torch.zeros_like(polish)  # samples whose sensitivities are integrated with their solutions
-        accurate[list(self.storage_missed)] = True
+        accurate[list(self.storage_missed) + sorted(self.coarse_grid)] = True
         trying: dict[int, float] = {}  # the samples whose needed step is being taken: its scaled size
         try:
             with until(getattr(self, "deadline", None)):
@@ -420,13 +437,14 @@ class FinalPass(FinalDiagnosis):
         ``scaled``), those that may not take it (``max_iter`` reached, or the ``last`` pass): their
         fits are not converged on the model, ``MAX_ITER`` with the step's size in the message."""
         out = need & ((iterations[rows] >= self.spec.max_iter) | last)
+        remedy = "" if self.spec.scheme.integrates_model else ' or `method="shooting"`'
         for j in out.nonzero().flatten().tolist():
             r = int(rows[j])
             codes[r] = Status.MAX_ITER
             detail[r] = (" The iteration's fixed point was off the model's optimum (the storage grid misses a "
                          "change of the model), and the final pass's Gauss–Newton steps on the model stopped before "
                          f"converging: the next would move the unknowns by {float(scaled[j]):.2g} of their scale; a "
-                         "finer `grid` or `method=\"shooting\"` reaches the optimum.")
+                         f"finer `grid`{remedy} reaches the optimum.")
         return out
 
     def _not_minimal(self, rows, here: dict, alpha: torch.Tensor) -> torch.Tensor:

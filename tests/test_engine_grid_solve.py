@@ -1,0 +1,59 @@
+"""The engine's grid solver and its step budget (torchql.engine_grid_solve).
+
+The model is :class:`testmodels.Lag` (``x`` follows a decaying ``y`` with the lag ``1 / k``), measured
+from t = 0.1 to 2 with ``k`` fitted by shooting from a guess of 1: the automatic grid is chosen for
+that guess, and as ``k`` grows its model outgrows the grid (the grid solver's RK4 steps per
+interval). Where the current iterate still fits the grid solver's budget and the next trial does
+not, the trial is not a blow-up: it is integrated by the adaptive solver, and so are the sample's
+later trials, its final solution and their sensitivities.
+"""
+
+import torch
+
+import torchql
+from testmodels import Lag
+
+DT = torch.float64
+X0 = torch.tensor([0.0, 1.0], dtype=DT)
+OPTIONS = dict(fixed_x0=["x", "y"], t0=0.0, method="shooting")
+
+
+def lag_data(k: float, seed: int = 2) -> torchql.Observations:
+    t = torch.linspace(0.0, 2.0, 21, dtype=DT)[1:]
+    x = torchql.simulate(Lag(k, 1.0), X0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                         rtol=1e-12, atol=1e-16)[1:]
+    y = x + 1e-4 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=DT)
+    return torchql.Observations(t, y, observe=["x", "y"], sigma=1e-4)
+
+
+def test_a_model_that_outgrows_its_grid_is_fitted_with_sensitivities_integrated_with_its_solution():
+    """A lag of 1/100 from a guess of 1: the trials past k = 30 need more RK4 steps than the grid
+    solver allows, the iterate before them did not. Those trials were blow-ups, and the damping
+    held k at the budget's wall (26 iterations); integrated adaptively, the fit takes 16, and its
+    estimates are the optimum that the sensitivities integrated with each solution reach (every
+    trial's, ``linear_solver="rodas5p"``), within ``xtol`` (1e-8): the grid's sensitivities,
+    0.7 % off at k = 26, stopped Gauss–Newton 2.5e-5 (relative) short of it."""
+    data = lag_data(100.0)
+    fit = torchql.fit(Lag(1.0, 1.5), data, X0, **OPTIONS)
+    joint = torchql.fit(Lag(1.0, 1.5), data, X0, linear_solver="rodas5p", **OPTIONS)
+    assert fit.success and joint.success, (fit.message, joint.message)
+    assert fit.solver_options["solver"] == "dop853"
+    assert torch.allclose(fit.estimates, joint.estimates, rtol=1e-7, atol=0), (fit.estimates, joint.estimates)
+    for name, se in joint.stderr.items():  # from the sensitivities integrated with the final solution
+        assert abs(fit.stderr[name] - se) <= 1e-6 * se, name
+    assert fit.iterations <= 18
+    assert "an interval needed more steps than the grid solver takes" in fit.message
+
+
+def test_shooting_on_auto_follows_a_model_that_becomes_stiff_to_the_stiff_solver():
+    """A lag of 1e-4 from a guess of 1: held at the grid solver's wall, the explicit fit crept to
+    k = 62 and ended MAX_ITER after 50 iterations. Its trials past the wall integrated adaptively,
+    k grows until the model is found stiff along an iterate, and ``"auto"`` fits it again as a
+    stiff model: the result is ``solver="rodas5p"``'s."""
+    data = lag_data(1e4)
+    auto = torchql.fit(Lag(1.0, 1.5), data, X0, **OPTIONS)
+    stiff = torchql.fit(Lag(1.0, 1.5), data, X0, solver="rodas5p", **OPTIONS)
+    assert stiff.success, stiff.message
+    assert auto.status is stiff.status and auto.iterations == stiff.iterations, auto.message
+    assert auto.solver_options["solver"] == "rodas5p" and "found the model stiff during the fit" in auto.message
+    assert torch.allclose(auto.estimates, stiff.estimates, rtol=1e-12, atol=0)
