@@ -102,6 +102,40 @@ def test_bad_solver_name_lists_valid_ones(solver):
         assert repr(name) in str(info.value)
 
 
+def test_the_default_solver_is_auto_explicit_where_the_model_is_not_stiff():
+    """``"auto"``: DOP853 (the same solution as ``solver="dop853"``), and ``"auto"`` is a name it takes."""
+    t = torch.linspace(0.0, 10.0, 21, dtype=torch.float64)
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    x = torchql.simulate(HarmonicOscillator(4.0), x0, t)
+    assert torch.equal(x, torchql.simulate(HarmonicOscillator(4.0), x0, t, solver="dop853"))
+    assert torch.equal(x, torchql.simulate(HarmonicOscillator(4.0), x0, t, solver="auto"))
+    torch.testing.assert_close(x, torch.stack([torch.cos(2 * t), -2 * torch.sin(2 * t)], dim=1), rtol=0, atol=1e-9)
+
+
+def test_auto_takes_the_stiff_solver_for_a_model_stiff_at_its_initial_state():
+    """``y' = -1e5 y`` over 1 time unit: the decay rate times the span, 1e5, is above the stiffness
+    ratio (1e4) at ``x0``: Rodas5P's solution, exact to the tolerance."""
+    t = torch.tensor([0.0, 1e-5, 3e-5, 1e-4, 0.5, 1.0], dtype=torch.float64)
+    x = torchql.simulate(Decay(1e5), [X0], t)
+    assert torch.equal(x, torchql.simulate(Decay(1e5), [X0], t, solver="rodas5p"))
+    torch.testing.assert_close(x[:, 0], X0 * torch.exp(-1e5 * t), rtol=1e-8, atol=1e-12)
+
+
+def test_auto_integrates_again_by_the_stiff_solver_where_the_explicit_one_finds_stiffness():
+    """Robertson's kinetics are not stiff at ``(1, 0, 0)`` (decay rates 0.04 and 0) and become so
+    within 1e-3 time units: DOP853 fails, saying so, and the result is Rodas5P's, where
+    torchdiffeq's ``"dopri5"``, the former default, ran over 100 s."""
+    from torchql.models.stiff import Robertson
+
+    t = torch.logspace(-5, 3, 9, dtype=torch.float64)
+    x0 = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    with pytest.raises(torchql.IntegrationError, match="stiff"):
+        torchql.simulate(Robertson(), x0, t, solver="dop853")
+    x = torchql.simulate(Robertson(), x0, t)
+    assert torch.equal(x, torchql.simulate(Robertson(), x0, t, solver="rodas5p"))
+    torch.testing.assert_close(x.sum(dim=1), torch.ones(9, dtype=torch.float64), rtol=0, atol=1e-9)  # mass conserved
+
+
 def test_solver_names():
     assert "dopri5" in torchql.SOLVER_NAMES and "rk4" in torchql.SOLVER_NAMES
     assert "scipy_solver" not in torchql.SOLVER_NAMES

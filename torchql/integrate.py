@@ -11,9 +11,10 @@ from . import _checks
 from ._arrays import float_tensor
 from .budget import check_time
 from .inputs import Inputs
-from .dopri import dopri_batch
+from .dopri import dopri_batch, found_stiff
 from .model import ODEModel, model_dtype_device
 from .solvers import STIFF_SOLVERS, JacobianError, rodas5p_solve
+from .stiffness import AUTO, EXPLICIT_SOLVER, STIFF_SOLVER, stiff_along
 
 __all__ = ["SOLVER_NAMES", "ADAPTIVE_SOLVERS", "OWN_EXPLICIT_SOLVERS", "IntegrationError", "check_solver",
            "default_tolerances", "interval_tolerances", "solve", "simulate", "CountedField"]
@@ -195,7 +196,7 @@ def _solve_stiff(func, y0, t, **options) -> torch.Tensor:
     return out
 
 
-def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "dopri5",
+def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "auto",
              rtol: float | None = None, atol: float | None = None, inputs: Inputs | None = None) -> torch.Tensor:
     """Integrate ``model`` from ``x0`` at time ``t0`` and return the states at times ``t``.
 
@@ -210,10 +211,16 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     t0 : float, optional
         Time of ``x0``; default ``t[0]``.
     solver : str
-        Default ``"dopri5"``, torchdiffeq's (not ``fit``'s ``"auto"``); ``"dop853"`` is torchql's
-        own, which fails at once, saying so, where the solution becomes stiff; ``"rodas5p"`` for
-        stiff models (fast chemistry, relaxation oscillations), where explicit solvers crawl: an
-        implicit Rosenbrock method, see :mod:`torchql.solvers`.
+        Default ``"auto"``, as :func:`torchql.fit`'s: ``"rodas5p"`` where the model is stiff at
+        ``x0`` (its fastest decay rate times the span above
+        :data:`torchql.stiffness.STIFF_RATIO`), else ``"dop853"``, integrated again by
+        ``"rodas5p"`` where it becomes stiff on the way (its stiffness test fails it at once);
+        explicit solvers crawl through a stiff model, torchdiffeq's ``"dopri5"`` with no end (a
+        Robertson kinetics ran over 100 s). Or any of :data:`SOLVER_NAMES`: ``"dop853"`` is
+        torchql's own explicit pair, which fails, saying so, where the solution becomes stiff;
+        ``"rodas5p"`` for stiff models (fast chemistry, relaxation oscillations): an implicit
+        Rosenbrock method, see :mod:`torchql.solvers`; ``"dopri5"``, torchdiffeq's, was the default
+        before ``"auto"``.
     rtol, atol
         As in :func:`torchql.fit`.
     inputs : Inputs, optional
@@ -226,7 +233,7 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     Tensor ``(T, n_states)``
     """
     _checks.model_class(model)
-    check_solver(solver)
+    check_solver(solver, auto=True)
     dtype, device = model_dtype_device(model)
     n = len(model.state_names)
     t = float_tensor(t, "t", dtype, device, expected="a one-dimensional tensor of times")
@@ -249,7 +256,28 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     # solver's to report, as IntegrationError, like one met later on)
     _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
     with torch.no_grad():
-        return _integrate_both_ways(func, x0, t, t0_, solver, rtol, atol)
+        if solver != AUTO:
+            return _integrate_both_ways(func, x0, t, t0_, solver, rtol, atol)
+        span = (torch.maximum(t[-1], t0_) - torch.minimum(t[0], t0_)).reshape(1)
+        if _stiff_at(func, t0_, x0, span):
+            return _integrate_both_ways(func, x0, t, t0_, STIFF_SOLVER, rtol, atol)
+        try:
+            return _integrate_both_ways(func, x0, t, t0_, EXPLICIT_SOLVER, rtol, atol)
+        except IntegrationError as exc:
+            if not found_stiff(str(exc)):
+                raise
+            return _integrate_both_ways(func, x0, t, t0_, STIFF_SOLVER, rtol, atol)
+
+
+def _stiff_at(func, t0: torch.Tensor, x0: torch.Tensor, span: torch.Tensor) -> bool:
+    """Whether the model ``func(t, x)`` is stiff at ``(t0, x0)`` over ``span (1,)``, by ``solver="auto"``'s
+    test (:func:`torchql.stiffness.stiff_along`); not where its Jacobian cannot be taken."""
+    try:
+        jac = torch.func.jacrev(lambda x: func(t0, x))(x0)
+    except Exception:  # noqa: BLE001 - a model jacrev cannot differentiate: the explicit solver decides
+        return False
+    n = x0.shape[0]
+    return bool(stiff_along(jac.reshape(1, 1, n, n), n, span)[0])
 
 
 def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: float, dtype, device):
