@@ -136,6 +136,36 @@ def test_auto_integrates_again_by_the_stiff_solver_where_the_explicit_one_finds_
     torch.testing.assert_close(x.sum(dim=1), torch.ones(9, dtype=torch.float64), rtol=0, atol=1e-9)  # mass conserved
 
 
+def test_auto_sees_a_model_stiff_backwards_as_stiff():
+    """``y' = +1e5 y`` integrated from ``t0 = 0`` back to -1: its growth rate is the reversed field's
+    decay rate, stiff; DOP853 took 6,800 steps there before its own test gave up (and said the time
+    without its sign)."""
+    t = torch.tensor([-1.0, -0.5, -1e-4, 0.0], dtype=torch.float64)
+    x = torchql.simulate(Decay(-1e5), [X0], t, t0=0.0)
+    assert torch.equal(x, torchql.simulate(Decay(-1e5), [X0], t, t0=0.0, solver="rodas5p"))
+    torch.testing.assert_close(x[:, 0], X0 * torch.exp(1e5 * t), rtol=1e-8, atol=1e-12)
+    with pytest.raises(torchql.IntegrationError, match=r"became stiff at t = -"):
+        torchql.simulate(Decay(-1e5), [X0], t, t0=0.0, solver="dop853")
+
+
+class _Item(torchql.ODEModel):
+    """``y' = -k y`` computed in NumPy: a model torch.func cannot vmap or differentiate."""
+
+    state_names = ("y",)
+
+    def forward(self, t, x):
+        return torch.as_tensor(-K * x.detach().numpy())
+
+
+def test_auto_integrates_a_model_that_leaves_torch_as_the_former_default_did():
+    """DOP853 and Rodas5P vmap and differentiate the model; one computed in NumPy is integrated
+    by torchdiffeq's ``"dopri5"``, which calls it as it is (the former default's result)."""
+    t = torch.linspace(0.0, 3.0, 7, dtype=torch.float64)
+    x = torchql.simulate(_Item(), [X0], t)
+    assert torch.equal(x, torchql.simulate(_Item(), [X0], t, solver="dopri5"))
+    torch.testing.assert_close(x[:, 0], exact(t), rtol=0, atol=1e-8)
+
+
 def test_solver_names():
     assert "dopri5" in torchql.SOLVER_NAMES and "rk4" in torchql.SOLVER_NAMES
     assert "scipy_solver" not in torchql.SOLVER_NAMES

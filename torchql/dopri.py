@@ -133,6 +133,7 @@ class _DopriRun:
         self.kept: list | None = None  # the accepted steps, where the caller keeps them
         self.per_sample = grid.dim() == 2
         self.fv = BatchedCall(system.f)  # one model call per stage where the model takes it
+        self.time_sign = getattr(system, "time_sign", 1.0)  # -1: integrated in reversed time (messages say t)
         self.x = x = z0.clone()
         self.t = grid[:, 0].clone() if self.per_sample else grid[0].expand(S).clone()
         self.node = torch.ones(S, dtype=torch.long, device=device)  # next node to reach
@@ -301,7 +302,8 @@ class _DopriRun:
             elif code == 0:
                 out.append("the initial state is not finite")
             else:
-                out.append(_FAILURES[code].format(t=float(self.t[s]), h=float(self.h[s]), n=self.max_steps,
+                out.append(_FAILURES[code].format(t=self.time_sign * float(self.t[s]), h=float(self.h[s]),
+                                                  n=self.max_steps,
                                                   k=self.interval_steps))
         return out
 

@@ -155,6 +155,7 @@ class _OwnField:
     def __init__(self, func, shape: torch.Size, sign: float) -> None:
         self.func, self.shape, self.sign = func, shape, sign
         self.n = shape.numel()
+        self.time_sign = sign  # the solver's messages give the time ``t = sign s``
 
     def f(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         return self.sign * self.func(self.sign * s, z.reshape(self.shape)).reshape(-1)
@@ -258,26 +259,39 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     with torch.no_grad():
         if solver != AUTO:
             return _integrate_both_ways(func, x0, t, t0_, solver, rtol, atol)
-        span = (torch.maximum(t[-1], t0_) - torch.minimum(t[0], t0_)).reshape(1)
-        if _stiff_at(func, t0_, x0, span):
-            return _integrate_both_ways(func, x0, t, t0_, STIFF_SOLVER, rtol, atol)
-        try:
-            return _integrate_both_ways(func, x0, t, t0_, EXPLICIT_SOLVER, rtol, atol)
-        except IntegrationError as exc:
-            if not found_stiff(str(exc)):
-                raise
-            return _integrate_both_ways(func, x0, t, t0_, STIFF_SOLVER, rtol, atol)
+        return _simulate_auto(func, x0, t, t0_, rtol, atol)
 
 
-def _stiff_at(func, t0: torch.Tensor, x0: torch.Tensor, span: torch.Tensor) -> bool:
-    """Whether the model ``func(t, x)`` is stiff at ``(t0, x0)`` over ``span (1,)``, by ``solver="auto"``'s
-    test (:func:`torchql.stiffness.stiff_along`); not where its Jacobian cannot be taken."""
+def _simulate_auto(func, x0: torch.Tensor, t: torch.Tensor, t0: torch.Tensor, rtol: float, atol: float):
+    """:func:`simulate`'s ``solver="auto"``: Rodas5P where the model is stiff at ``x0`` in a direction it
+    is integrated in, else DOP853, and Rodas5P again where DOP853's stiffness test fails it. A model
+    that neither can run (its ``forward`` leaves torch: NumPy, ``.item()``; they vmap and
+    differentiate it) is integrated by torchdiffeq's ``"dopri5"``, which calls it as it is."""
     try:
-        jac = torch.func.jacrev(lambda x: func(t0, x))(x0)
-    except Exception:  # noqa: BLE001 - a model jacrev cannot differentiate: the explicit solver decides
-        return False
+        stiff = _stiff_at(func, t0, x0, t)
+        try:
+            return _integrate_both_ways(func, x0, t, t0, STIFF_SOLVER if stiff else EXPLICIT_SOLVER, rtol, atol)
+        except IntegrationError as exc:
+            if stiff or not found_stiff(str(exc)):
+                raise
+            return _integrate_both_ways(func, x0, t, t0, STIFF_SOLVER, rtol, atol)
+    except IntegrationError:
+        raise
+    except RuntimeError:  # not vmapped or differentiated by torch.func: called as it is
+        return _integrate_both_ways(func, x0, t, t0, "dopri5", rtol, atol)
+
+
+def _stiff_at(func, t0: torch.Tensor, x0: torch.Tensor, t: torch.Tensor) -> bool:
+    """Whether the model ``func(t, x)`` is stiff at ``(t0, x0)`` in a direction it is integrated in to the
+    times ``t``, by ``solver="auto"``'s test (:func:`torchql.stiffness.stiff_along`): forwards its
+    decay rates, backwards its growth rates (the reversed field's decay rates), each times its span.
+    Raises RuntimeError where the Jacobian cannot be taken (a model that leaves torch)."""
+    jac = torch.func.jacrev(lambda x: func(t0, x))(x0)
     n = x0.shape[0]
-    return bool(stiff_along(jac.reshape(1, 1, n, n), n, span)[0])
+    jac = jac.reshape(1, 1, n, n)
+    forward, backward = (t[-1] - t0).clamp(min=0), (t0 - t[0]).clamp(min=0)
+    return any(bool(stiff_along(sign * jac, n, span.reshape(1))[0])
+               for sign, span in ((1.0, forward), (-1.0, backward)) if float(span) > 0)
 
 
 def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: float, dtype, device):

@@ -15,3 +15,8 @@ def test_stiff_simulate_quick_writes_table(tmp_path, run_script):
     for row in rows[::3]:  # torchql meets its tolerance against the references
         assert float(row.split("|")[8]) < 3, row
     assert "`dopri5`" in table
+    defaults = table.split("torchql's default")[1].splitlines()
+    rows = [line for line in defaults if line.startswith("| Robertson") or line.startswith("| HIRES")]
+    assert len(rows) == 2
+    for row in rows:  # simulate's default ("auto") meets its tolerance too
+        assert float(row.split("|")[4]) < 3, row
