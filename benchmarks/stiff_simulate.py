@@ -179,7 +179,8 @@ def default_row(p: Problem, rtol: float, repeats: int) -> list[str]:
     model, x0 = p.model(), torch.tensor(p.x0, dtype=DT)
     times = torch.tensor([0.0, p.t_end], dtype=DT)
     seconds, y = best_of(repeats, lambda: torchql.simulate(model, x0, times, rtol=rtol, atol=atol))
-    return [p.name, f"{rtol:.0e}", f"{seconds:.3f}", f"{mixed_error(y[-1].numpy(), p.reference, rtol, atol):.2g}"]
+    return ["default", p.name, f"{rtol:.0e}", f"{seconds:.3f}",
+            f"{mixed_error(y[-1].numpy(), p.reference, rtol, atol):.2g}"]
 
 
 def dopri5_on_robertson(cap: float) -> str:
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> None:
             for row in rows_for(p, rtol, args.repeats):
                 lines.append("| " + " | ".join(row) + " |")
                 print(lines[-1], flush=True)
-    defaults = ["| problem | rtol | best time (s) | error (tolerances) |", "|---|---|---|---|"]
+    defaults = ["| simulate | problem | rtol | best time (s) | error (tolerances) |", "|---|---|---|---|---|"]
     for p in problems(args.quick):
         for rtol in args.rtol:
             defaults.append("| " + " | ".join(default_row(p, rtol, args.repeats)) + " |")

@@ -63,6 +63,38 @@ def test_a_switch_between_the_nodes_is_a_miss_on_either_storage():
     assert not bool(storage_misses(torch.tensor([_misfit(NonlinearOscillator(), 200, 3)], dtype=DT), 1e-10)[0])
 
 
+class _Relaxation(ODEModel):
+    """``x' = -k (x - cos t)``: affine in ``x``."""
+
+    state_names = ("x",)
+
+    def __init__(self, k: float = 30.0) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+
+    def forward(self, t, x):
+        return -self.k * (x - torch.cos(t))
+
+
+def test_a_transient_between_two_nodes_is_a_miss_where_an_unknown_coefficient_reads_it():
+    """From ``x(0) = 0`` the relaxation's transient, of width ``1 / k = 0.033``, passes between the
+    first two of 20 nodes over 2: the interpolants of ``f`` and of ``z`` agree with each other (``f``
+    is affine in ``x``), but not with the model (the slope of ``z``'s interpolant, 0.13 of the
+    state over the interval), and ``k``'s column reads that trajectory: a miss. With ``x(0)`` the
+    only unknown the Jacobian is constant and the trajectory's own error moves nothing: what is left
+    is the interpolation of ``cos t`` in ``h f``, 8e-7 (0.008 of the threshold)."""
+    t = torch.linspace(0.0, 2.0, 21, dtype=DT)
+    misfits = []
+    for params in (["k"], []):
+        system = AugmentedSystem(_Relaxation(), params, DT, torch.device("cpu"))
+        x = torchql.simulate(_Relaxation(), torch.zeros(1, dtype=DT), t, rtol=1e-13, atol=1e-15)
+        z = torch.cat([x, torch.full_like(x, 30.0)], dim=1) if params else x
+        lin = map_fields(linearize(system, t, z), lambda v: v.unsqueeze(0))
+        misfits.append(float(interpolation_misfit(system.f, t, z.unsqueeze(0), lin, 3, system.n)[0]))
+    assert misfits[0] > 0.1 and bool(storage_misses(torch.tensor(misfits[:1], dtype=DT), 1e-10)[0])
+    assert misfits[1] < 0.01 * MISS_FACTOR * math.sqrt(1e-10)
+
+
 def test_padded_intervals_of_per_sample_grids_count_nothing():
     """A grid padded at its end by repeating its last node (zero-length intervals) gets the misfit
     of its real intervals."""

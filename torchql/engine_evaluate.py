@@ -375,6 +375,7 @@ class Evaluation(GridSolve):
                                                              rtol=spec.rtol, atol=spec.atol, method=spec.solver,
                                                              interval_steps=spec.max_steps)
                 self.nfev += evals
+                self.stiff_met.update(int(idx[k]) for k, e in enumerate(errors) if found_stiff(e))
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
         failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=z0.device)
         z = torch.where(failed.reshape(-1, 1, 1), z0.unsqueeze(1).expand_as(z), z)

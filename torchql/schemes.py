@@ -23,6 +23,7 @@ import torch
 
 from . import engine_evaluate
 from .engine_state import _pick, bound_of
+from .linearize import map_fields
 from .registry import Registry
 from .trajectory import model_defect
 
@@ -103,17 +104,37 @@ class Shooting(Scheme):
 
     def trial(self, engine, act, cur, z0_new, z_new):
         guess = torch.where(torch.isfinite(z_new), z_new, z0_new.unsqueeze(1).expand_as(z_new))
-        W = None
-        if engine._joint_sensitivities:  # the solution and its sensitivities in one pass (finite where failed)
-            traj, W, errors = engine._solve_with_sensitivities(act, z0_new)
-        else:
-            traj, errors = engine._nonlinear(act, z0_new, loose=False, guess=guess, budget_is_final=True,
-                                             reference=(_pick(cur["z0"], act), _pick(cur["rz"], act)),
-                                             stop=_above_current(engine, act, cur))
+        # the solution and its sensitivities in one pass (finite where failed) for the propagators that
+        # integrate them so, and for the samples whose model is too fast for their grid (``coarse_grid``):
+        # the grid's sensitivities miss it as its solver does (a relaxation rate 100 times its guess
+        # crept 8 % of the way a step, to max_iter)
+        joint = torch.tensor([engine._joint_sensitivities or int(i) in engine.coarse_grid for i in act.tolist()],
+                             dtype=torch.bool, device=z0_new.device)
+        traj, W, errors = guess.clone(), None, [None] * act.numel()
+        together, alone = joint.nonzero().flatten(), (~joint).nonzero().flatten()
+        if together.numel():
+            traj_j, W_j, errors_j = engine._solve_with_sensitivities(act[together], z0_new[together])
+            traj[together], W = traj_j, W_j.new_full((act.numel(), *W_j.shape[1:]), float("nan"))
+            W[together] = W_j
+            for k, e in zip(together.tolist(), errors_j):
+                errors[k] = e
+        if alone.numel():
+            part = act[alone]
+            traj[alone], errors_a = engine._nonlinear(part, z0_new[alone], loose=False, guess=guess[alone],
+                                                      budget_is_final=True, stop=_above_current(engine, part, cur),
+                                                      reference=(_pick(cur["z0"], part), _pick(cur["rz"], part)))
+            for k, e in zip(alone.tolist(), errors_a):
+                errors[k] = e
         integrated = torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0_new.device)
         traj = torch.where(integrated.reshape(-1, 1, 1), traj, guess)  # failed samples: any finite stand-in
         lin = engine._linearize(act, traj)
+        failed = None
+        if W is not None and alone.numel():  # the others' sensitivities propagated on their grids
+            W[alone], failed = engine._propagate(act[alone], traj[alone], lin.f[alone], map_fields(lin, lambda v: None if v is None else v[alone]),
+                                                 engine.spec.columns(z0_new[alone]))
         trial = engine._evaluate(act, z0_new, traj, lin.f, lin, solution=True, W=W)
+        if failed is not None:
+            trial["failed"][alone] |= failed
         trial["defect"] = torch.zeros_like(trial["merit"])
         return trial, _usable(trial, integrated)
 

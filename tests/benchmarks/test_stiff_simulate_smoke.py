@@ -15,8 +15,7 @@ def test_stiff_simulate_quick_writes_table(tmp_path, run_script):
     for row in rows[::3]:  # torchql meets its tolerance against the references
         assert float(row.split("|")[8]) < 3, row
     assert "`dopri5`" in table
-    defaults = table.split("torchql's default")[1].splitlines()
-    rows = [line for line in defaults if line.startswith("| Robertson") or line.startswith("| HIRES")]
-    assert len(rows) == 2
-    for row in rows:  # simulate's default ("auto") meets its tolerance too
-        assert float(row.split("|")[4]) < 3, row
+    defaults = [line for line in table.splitlines() if line.startswith("| default |")]
+    assert [row.split("|")[2].split(",")[0].strip() for row in defaults] == ["Robertson", "HIRES"]
+    for row in defaults:  # simulate's default ("auto") meets its tolerance too
+        assert float(row.split("|")[5]) < 3, row
