@@ -12,19 +12,11 @@ import pytest
 import torch
 
 import torchql
-from testmodels import Lag
+from testmodels import Lag, lag_data
 
 DT = torch.float64
 X0 = torch.tensor([0.0, 1.0], dtype=DT)
 OPTIONS = dict(fixed_x0=["x", "y"], t0=0.0)
-
-
-def lag_data(k: float, seed: int = 2) -> torchql.Observations:
-    t = torch.linspace(0.0, 2.0, 21, dtype=DT)[1:]
-    x = torchql.simulate(Lag(k, 1.0), X0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
-                         rtol=1e-12, atol=1e-16)[1:]
-    y = x + 1e-4 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=DT)
-    return torchql.Observations(t, y, observe=["x", "y"], sigma=1e-4)
 
 
 def test_auto_fits_a_model_its_explicit_solver_finds_stiff_again_as_a_stiff_model():

@@ -112,3 +112,14 @@ class Lag(torchql.ODEModel):
     def forward(self, t, z):
         x, y = z.unbind(-1)
         return torch.stack((-self.k * (x - y), -self.a * y), dim=-1)
+
+
+def lag_data(k: float, seed: int = 2) -> torchql.Observations:
+    """:class:`Lag` with ``a = 1`` from ``x(0) = 0``, ``y(0) = 1``: both states at 20 times over (0, 2]
+    (Rodas5P at ``rtol=1e-12``), plus noise of sigma 1e-4 (generator ``seed``)."""
+    t = torch.linspace(0.0, 2.0, 21, dtype=torch.float64)[1:]
+    x0 = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    x = torchql.simulate(Lag(k, 1.0), x0, torch.cat([torch.zeros(1, dtype=torch.float64), t]), solver="rodas5p",
+                         rtol=1e-12, atol=1e-16)[1:]
+    y = x + 1e-4 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return torchql.Observations(t, y, observe=["x", "y"], sigma=1e-4)
