@@ -130,7 +130,8 @@ class Shooting(Scheme):
         lin = engine._linearize(act, traj)
         failed = None
         if W is not None and alone.numel():  # the others' sensitivities propagated on their grids
-            W[alone], failed = engine._propagate(act[alone], traj[alone], lin.f[alone], map_fields(lin, lambda v: None if v is None else v[alone]),
+            lin_alone = map_fields(lin, lambda v: None if v is None else v[alone])
+            W[alone], failed = engine._propagate(act[alone], traj[alone], lin_alone.f, lin_alone,
                                                  engine.spec.columns(z0_new[alone]))
         trial = engine._evaluate(act, z0_new, traj, lin.f, lin, solution=True, W=W)
         if failed is not None:
