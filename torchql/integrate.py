@@ -213,11 +213,12 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
         Time of ``x0``; default ``t[0]``.
     solver : str
         Default ``"auto"``, as :func:`torchql.fit`'s: ``"rodas5p"`` where the model is stiff at
-        ``x0`` (its fastest decay rate times the span above
-        :data:`torchql.stiffness.STIFF_RATIO`), else ``"dop853"``, integrated again by
-        ``"rodas5p"`` where it becomes stiff on the way (its stiffness test fails it at once);
+        ``x0`` in a direction integrated (its fastest decay rate, backwards its growth rate, times
+        that span above :data:`torchql.stiffness.STIFF_RATIO`), else ``"dop853"``, integrated
+        again by ``"rodas5p"`` where it becomes stiff on the way (its stiffness test fails it);
         explicit solvers crawl through a stiff model, torchdiffeq's ``"dopri5"`` with no end (a
-        Robertson kinetics ran over 100 s). Or any of :data:`SOLVER_NAMES`: ``"dop853"`` is
+        Robertson kinetics ran over 100 s). A model that ``torch.func`` cannot vmap or
+        differentiate (NumPy inside) is integrated by ``"dopri5"``. Or any of :data:`SOLVER_NAMES`: ``"dop853"`` is
         torchql's own explicit pair, which fails, saying so, where the solution becomes stiff;
         ``"rodas5p"`` for stiff models (fast chemistry, relaxation oscillations): an implicit
         Rosenbrock method, see :mod:`torchql.solvers`; ``"dopri5"``, torchdiffeq's, was the default
