@@ -157,10 +157,11 @@ class FinalPass(FinalDiagnosis):
                           "integrated the sensitivities with the solution; a finer `grid` makes the iterations "
                           "faithful too.")
         for k in sorted(self.joint_final - set(self.storage_missed)):
-            detail[k] += (" The storage grid misses a change of the model between its nodes (an interval needed "
-                          "more steps than the grid solver takes): the model's solutions were integrated by the "
-                          "adaptive solver, and the final pass integrated the sensitivities with the solution; a "
-                          "finer `grid` makes the iterations faithful too.")
+            detail[k] += (" The storage grid misses a change of the model between its nodes, or the model is faster "
+                          "than the grid: an interval needed more steps than the grid solver takes. The model's "
+                          "solutions were integrated by the adaptive solver, and the final pass integrated the "
+                          "sensitivities with the solution; a finer `grid`, or `linear_solver=\"rodas5p\"` (the "
+                          "sensitivities integrated with every solution), makes the iterations faster.")
 
     def _exact_misfit(self, rows, resid) -> tuple[torch.Tensor, torch.Tensor]:
         """The largest absolute residual ``(R,)`` of the samples ``rows`` over their values marked
