@@ -516,9 +516,15 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         return by_level(levels, lambda pos: spec.scheme.propose(self, act[pos], cur, alpha[pos]), self._transfers_at)
 
     def _scaled(self, act, cur, alpha) -> torch.Tensor:
-        """The scaled sizes ``(S,)`` of the updates ``alpha (S, m)`` of ``cur``'s samples ``act``:
-        ``max_i |alpha_i| / max(|u_i|, s_i)`` (the convergence test's measure)."""
-        u = _pick(cur["z0"], act)[:, self.spec.unknown_index]
+        """The scaled sizes ``(S,)`` of the updates ``alpha (S, m)`` of ``cur``'s samples ``act``
+        (:meth:`_scaled_step`)."""
+        return self._scaled_step(act, _pick(cur["z0"], act), alpha)
+
+    def _scaled_step(self, act, z0, alpha) -> torch.Tensor:
+        """The scaled sizes ``(S,)`` of the steps ``alpha (S, m)`` in the unknowns of the chunk's
+        samples ``act`` from their augmented states ``z0 (S, M)``: ``max_i |alpha_i| / max(|u_i|,
+        s_i)`` (the convergence test's measure)."""
+        u = z0[:, self.spec.unknown_index]
         return (alpha.abs() / torch.maximum(u.abs(), self.scale[act])).amax(dim=1)
 
     @contextmanager

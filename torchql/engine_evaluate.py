@@ -248,8 +248,7 @@ class Evaluation(GridSolve):
             substeps = min(substeps, 1 << (spec.max_steps.bit_length() - 1))
         with torch.no_grad():
             if guess is not None and self._grid_solves(S) and substeps >= 2:
-                coarse = torch.tensor([int(i) in self.coarse_grid for i in idx.tolist()], dtype=torch.bool,
-                                      device=z0.device)
+                coarse = self._in_coarse_grid(idx)
                 if bool(coarse.any()):
                     guess = torch.where(coarse.reshape(-1, 1, 1), torch.full_like(guess, float("nan")), guess)
                 self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference, stop)
@@ -274,11 +273,13 @@ class Evaluation(GridSolve):
         """Sub-intervals per grid interval in the grid solver (see :data:`_GRID_SOLVE_INTERVALS`)."""
         return max(1, math.ceil(_GRID_SOLVE_INTERVALS / max(1, self.G - 1)))
 
-    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None, max_steps: int | None = None) -> None:
+    def _adaptive(self, idx, z0, rtol, atol, traj, ok, errors, stop=None, max_steps: int | None = None,
+                  note_stiff: bool = True) -> None:
         """:meth:`_nonlinear`'s adaptive solvers for the samples not solved and not failed yet:
         Rodas5P (a stiff ``solver``), the batched Dormand–Prince (``"dop853"``, ``"dopri5"``, at most
         ``max_steps`` steps a sample if given), or torchdiffeq per sample; fills ``traj``, ``ok`` and
-        ``errors`` in place."""
+        ``errors`` in place; with ``note_stiff``, marks the samples the explicit pair found stiff
+        (:meth:`_note_stiff`)."""
         spec = self.spec
         grid = self._grid_of(idx)
         shared = grid.dim() == 1
@@ -309,7 +310,8 @@ class Evaluation(GridSolve):
             traj[sub[good]], ok[sub[good]] = tr[good], True
             for k, s in enumerate(sub.tolist()):
                 errors[s] = messages[k]
-            self.stiff_met.update(int(idx[s]) for k, s in enumerate(sub.tolist()) if found_stiff(messages[k]))
+            if note_stiff:
+                self._note_stiff(idx[sub], messages)
             sub = pending()
         if sub.numel():
             hit = self.t_obs if shared else self.t_obs[idx[sub]]
@@ -321,6 +323,12 @@ class Evaluation(GridSolve):
                     traj[s], ok[s] = tr[k], True
                 else:
                     errors[s] = errs[k] or "the solution became non-finite (NaN or inf)"
+
+    def _note_stiff(self, idx, messages: list) -> None:
+        """Mark (``stiff_met``) the chunk's samples ``idx`` whose explicit pair's failure ``messages``
+        (one each, None where it did not fail) is its stiffness test's: ``solver="auto"`` fits them
+        again as stiff models."""
+        self.stiff_met.update(int(i) for i, e in zip(idx.tolist(), messages) if found_stiff(e))
 
     def _take_shared_solutions(self, idx, sub, z0, rtol, traj, ok) -> None:
         """Fill ``traj`` and ``ok`` of the samples ``sub`` (chunk indices ``idx[sub]``, states ``z0``) whose solution at
@@ -375,7 +383,7 @@ class Evaluation(GridSolve):
                                                              rtol=spec.rtol, atol=spec.atol, method=spec.solver,
                                                              interval_steps=spec.max_steps)
                 self.nfev += evals
-                self.stiff_met.update(int(idx[k]) for k, e in enumerate(errors) if found_stiff(e))
+                self._note_stiff(idx, errors)
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
         failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=z0.device)
         z = torch.where(failed.reshape(-1, 1, 1), z0.unsqueeze(1).expand_as(z), z)

@@ -230,7 +230,7 @@ class FinalPass(FinalDiagnosis):
         # a sample whose model is too fast for its grid's solver (``coarse_grid``) is too fast for its
         # grid's sensitivities too: they are integrated with its solution (Gauss-Newton with the
         # grid's stopped a relaxation rate grown 100-fold from its guess 2.5e-5 short of its optimum)
-        joint = torch.tensor([int(r) in self.coarse_grid for r in rows.tolist()], dtype=torch.bool, device=rows.device)
+        joint = self._in_coarse_grid(rows)
         good, traj, W, errors = self._model_at(rows, z0[rows], final_guess[rows], joint=joint)
         self.joint_final = set(rows[joint & good].tolist())
         for k, r in enumerate(rows.tolist()):

@@ -82,10 +82,14 @@ class GridSolve:
     def _near(self, idx, z0, current) -> torch.Tensor:
         """Whether the trials' estimates ``z0 (S, M)`` of the chunk's samples ``idx`` are within
         :data:`NEAR_STEP` of their current iterates' ``current (S, M)`` (scaled as the convergence
-        test scales a step), ``(S,)``."""
+        test scales a step, :meth:`~torchql.engine.Engine._scaled_step`), ``(S,)``."""
         index = self.spec.unknown_index
-        u = current[:, index]
-        return ((z0[:, index] - u).abs() / torch.maximum(u.abs(), self.scale[idx])).amax(dim=1) <= NEAR_STEP
+        return self._scaled_step(idx, current, z0[:, index] - current[:, index]) <= NEAR_STEP
+
+    def _in_coarse_grid(self, idx) -> torch.Tensor:
+        """Whether each of the chunk's samples ``idx`` is one whose model is too fast for its grid's
+        solver (``coarse_grid``: the adaptive solvers take its solutions), bool ``(S,)``."""
+        return torch.tensor([int(i) in self.coarse_grid for i in idx.tolist()], dtype=torch.bool, device=idx.device)
 
     def _over_budget(self, idx, rows, z0, rtol, atol, traj, ok, errors, stop) -> None:
         """The trials of the samples ``rows`` (positions in ``idx``) that need more steps than the
@@ -98,15 +102,14 @@ class GridSolve:
         sub_traj, sub_ok = traj[rows].clone(), ok[rows].clone()
         sub_errors: list = [None] * rows.numel()
         asked = None if stop is None else (lambda pos, y, reached: stop(rows[pos], y, reached))
-        stiff_before = set(self.stiff_met)
-        self._adaptive(idx[rows], z0[rows], rtol, atol, sub_traj, sub_ok, sub_errors, asked, ADAPTIVE_BLOWUP_STEPS)
+        # (a rejected trial's stiff stretch says nothing of the fit's: the sample is not marked stiff)
+        self._adaptive(idx[rows], z0[rows], rtol, atol, sub_traj, sub_ok, sub_errors, asked, ADAPTIVE_BLOWUP_STEPS,
+                       note_stiff=False)
         traj[rows], ok[rows] = sub_traj, sub_ok
         for k, r in enumerate(rows.tolist()):
             if bool(sub_ok[k]):
                 self.coarse_grid.add(int(idx[r]))
             else:
-                if int(idx[r]) not in stiff_before:  # a rejected trial's stiff stretch says nothing of the fit's
-                    self.stiff_met.discard(int(idx[r]))
                 errors[r] = ("a grid interval needed more than the grid solver's steps, and the adaptive solver "
                              f"failed: {sub_errors[k] or 'stopped'} (a blow-up)")
 

@@ -108,8 +108,7 @@ class Shooting(Scheme):
         # integrate them so, and for the samples whose model is too fast for their grid (``coarse_grid``):
         # the grid's sensitivities miss it as its solver does (a relaxation rate 100 times its guess
         # crept 8 % of the way a step, to max_iter)
-        joint = torch.tensor([engine._joint_sensitivities or int(i) in engine.coarse_grid for i in act.tolist()],
-                             dtype=torch.bool, device=z0_new.device)
+        joint = engine._in_coarse_grid(act) | engine._joint_sensitivities
         traj, W, errors = guess.clone(), None, [None] * act.numel()
         together, alone = joint.nonzero().flatten(), (~joint).nonzero().flatten()
         if together.numel():

@@ -100,7 +100,7 @@ def stiff_along(jac: torch.Tensor, n: int, span: torch.Tensor) -> torch.Tensor:
         rows = A.abs().sum(dim=-1)  # each row's sum bounds its Gershgorin bound: most models end here
         if float(rows.amax()) * float(rate.amax()) <= STIFF_RATIO:
             return torch.zeros(S, dtype=torch.bool, device=A.device)
-        bound = (A.abs().sum(dim=-1) - A.diagonal(dim1=-2, dim2=-1).abs() - A.diagonal(dim1=-2, dim2=-1)).amax(dim=-1)
+        bound = (rows - A.diagonal(dim1=-2, dim2=-1).abs() - A.diagonal(dim1=-2, dim2=-1)).amax(dim=-1)
         nodes = (bound * rate > STIFF_RATIO) & torch.isfinite(A).flatten(2).all(dim=-1)  # (S, G)
         stiff = torch.zeros(S, dtype=torch.bool, device=A.device)
         if bool(nodes.any()):
