@@ -238,3 +238,40 @@ def test_the_second_derivative_has_the_explicit_time_terms_along_a_solution():
     assert float((middle - differences).abs().amax()) < 1e-6 * scale
     jets = linearize(system, times, z, order="forward", second=True)
     torch.testing.assert_close(jets.jac_ddot, lin.jac_ddot, rtol=1e-12, atol=1e-12 * scale)
+
+
+_UNDER_W_ERROR = '''
+import torch, torchql
+
+class Chain5(torchql.ODEModel):
+    state_names = ("a", "b", "c", "d", "e")
+
+    def __init__(self, k=1.0):
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return torch.cat([-self.k * x[..., :1], self.k * (x[..., :-1] - x[..., 1:])], dim=-1)
+
+t = torch.linspace(0, 4, 9, dtype=torch.float64)
+x0 = torch.tensor([1.0, 0, 0, 0, 0], dtype=torch.float64)
+y = torchql.simulate(Chain5(0.8), x0, t)
+r = torchql.fit(Chain5(), torchql.Observations(t, y, observe=list(Chain5.state_names)), x0=x0,
+                fixed_x0=list(Chain5.state_names))
+print(r.status.name, float(r.params["k"]))
+'''
+
+
+def test_a_fit_under_warnings_as_errors_is_not_blamed_on_the_model():
+    """A five-state model is linearized in forward mode; torch's first ``jvp`` loads decompositions
+    it scripts with the deprecated ``torch.jit.script``. Under ``-W error`` that warning failed the
+    fit as "`model` forward could not be differentiated". A fresh process: torch loads them once."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-W", "error", "-c", _UNDER_W_ERROR], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    status, k = run.stdout.split()
+    assert status == "CONVERGED"
+    assert abs(float(k) - 0.8) < 1e-8

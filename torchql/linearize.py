@@ -33,6 +33,8 @@ solver's, the data start's) the same way.
 
 from __future__ import annotations
 
+import functools
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -41,7 +43,22 @@ from torch.func import jacfwd, jacrev, jvp, vmap
 from .model import AugmentedSystem
 
 __all__ = ["Linearization", "SecondLinearization", "map_fields", "linearize", "node_jacobian", "flow_rates",
-           "REVERSE_WORK_LIMIT", "AUTOGRAD_STATES"]
+           "load_forward_mode", "REVERSE_WORK_LIMIT", "AUTOGRAD_STATES"]
+
+
+@functools.cache
+def load_forward_mode() -> None:
+    """Load torch's forward-mode decompositions, once, as its first ``jvp`` would (a problem's
+    set-up calls this before its first linearization). torch 2.13 scripts them with
+    ``torch.jit.script``, which warns that it is deprecated: torch's own warning, which under
+    ``-W error`` (a test suite's ``filterwarnings = error``) failed a user's first fit as a model
+    that cannot be differentiated."""
+    load = getattr(torch.autograd.forward_ad, "_maybe_load_decompositions", None)
+    if load is not None:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"`torch\.jit\.", category=DeprecationWarning)
+            load()
+
 
 #: Largest ``nodes * M**2`` linearized in reverse over forward mode (see the module docstring).
 #: Measured crossovers: 7e4 to 1.5e5 on 3- to 6-component nonlinear models, below 6.4e4 on a

@@ -21,7 +21,7 @@ from .data_start import derivation_uses_unknowns, first_reference
 from .dopri import dopri_batch
 from .grid import AUTO_PROBE, SMOOTH_RTOL, SMOOTH_SAMPLES, make_grid, make_grids, smooth_intervals
 from .integrate import check_solver
-from .linearize import linearize
+from .linearize import linearize, load_forward_mode
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
 from .estimated_noise import EstimatedNoise
 from .noise import sigma_group_index
@@ -509,11 +509,14 @@ class Problem:
                                   sample)
 
         check(0)
+        load_forward_mode()
         try:  # every sample's guesses under vmap (which .item(), float() and branching on values fail),
             # then one node's linearization as the engine takes it for this model
             with torch.no_grad():
                 finite = torch.isfinite(vmap(system.f)(t0, self.z0)).all(dim=1)
             linearize(system, t0[:1], self.z0[:1])
+        except Warning:  # a warning turned error (-W error) is the warning's, not a fault of the model's
+            raise
         except Exception as exc:  # noqa: BLE001
             raise _not_differentiable(exc) from exc
         bad = (~finite).nonzero().flatten().tolist()
