@@ -52,8 +52,8 @@ StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *, rtol: float, atol: float,
                 max_steps: int = 100_000, land: torch.Tensor | None = None, messages: list | None = None,
                 interval_steps: int | None = None, stop: StopTest | None = None, method: str = "dopri5",
-                norm=None, first_step: float | None = None, steps: list | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, int]:
+                norm=None, first_step: float | None = None, steps: list | None = None,
+                stiff_every: int = STIFF_EVERY) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` by an embedded Runge–Kutta pair, each sample
     its own steps.
 
@@ -91,6 +91,9 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     ``steps``, a list if given, gets each round's accepted steps, ``(sample, t, h, end, x, K)``
     (:meth:`torchql.solvers.steps.StepRecord.join` takes them; ``K`` the pair's slopes), to
     differentiate them (:mod:`torchql.dopri_sensitivity`).
+
+    ``stiff_every``: the stiffness test's period in accepted steps (:meth:`_DopriRun._stiff`;
+    Hairer's :data:`STIFF_EVERY` by default, 1 to test every step).
     """
     S, M = z0.shape
     out = z0.new_full((S, grid.shape[-1], M), float("nan"))
@@ -100,7 +103,7 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
         return out, ok, 0
     run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop, PAIRS[method],
                     norm, first_step)
-    run.kept = steps
+    run.kept, run.stiff_every = steps, stiff_every
     # a sample with one node (then padding) is done: its padding is filled below
     active = (ok if run.end is None else ok & (run.end > 1)).nonzero().flatten()
     while active.numel():
@@ -131,6 +134,7 @@ class _DopriRun:
         self.rtol, self.atol, self.max_steps, self.interval_steps = rtol, atol, max_steps, interval_steps
         self.stop = stop
         self.kept: list | None = None  # the accepted steps, where the caller keeps them
+        self.stiff_every = STIFF_EVERY
         self.per_sample = grid.dim() == 2
         self.fv = BatchedCall(system.f)  # one model call per stage where the model takes it
         self.time_sign = getattr(system, "time_sign", 1.0)  # -1: integrated in reversed time (messages say t)
@@ -258,7 +262,7 @@ class _DopriRun:
         ``nstiff``, E. Hairer, G. Wanner, *Solving ODEs II*, section IV.2) on their accepted steps:
         ``h lambda ~ |h| |k_j - k_i| / |x_new - u_i|`` from two slopes at the step's end (stage ``i``'s
         argument ``u_i`` and the new solution) beyond the bound of the pair's stability, tested every
-        :data:`STIFF_EVERY` accepted steps and at every step once it has failed, :data:`STIFF_HITS`
+        ``stiff_every`` (:data:`STIFF_EVERY`) accepted steps and at every step once it has failed, :data:`STIFF_HITS`
         times with fewer than :data:`STIFF_CALM` passes in a row between. An explicit method then
         takes steps its stability holds far below its accuracy's (Robertson's kinetics: 100,000
         steps over ``t < 151``)."""
@@ -266,7 +270,7 @@ class _DopriRun:
         n = self.n
         count = self.accepted[active] + accept.long()
         self.accepted[active] = count
-        check = accept & ((count % STIFF_EVERY == 0) | (self.hits[active] > 0))
+        check = accept & ((count % self.stiff_every == 0) | (self.hits[active] > 0))
         found = torch.zeros_like(accept)
         if not bool(check.any()):
             return found
