@@ -214,6 +214,12 @@ def test_inputs_that_do_not_fit_the_model_or_the_data_are_named():
         torchql.fit_many(DrivenOscillator(), [data, bare], x0=GUESS_X0)
     with pytest.raises(ValueError, match="`data\\[1\\].inputs` must cover the experiment's times"):
         torchql.fit(DrivenOscillator(), [data, short], x0=torch.zeros(2, 2, dtype=DT))
+    # fit_many fits samples with other inputs as other problems: the error names the sample in `data`
+    with pytest.raises(ValueError, match="`data\\[2\\].inputs` must cover sample 2's times \\[0, 12\\]"):
+        torchql.fit_many(DrivenOscillator(), [data, measured(force(1)), short], x0=GUESS_X0)
+    stacked = torchql.Observations(data.t, torch.stack([data.y, data.y]), observe=["y"], inputs=[force(0), short.inputs])
+    with pytest.raises(ValueError, match="`data.inputs\\[1\\]` must cover sample 1's times"):
+        torchql.fit_many(DrivenOscillator(), stacked, x0=GUESS_X0)
     with pytest.raises(ValueError, match="`model` takes inputs \\('u',\\).*pass `inputs="):
         torchql.simulate(DrivenOscillator(), X0, data.t)
     with pytest.raises(ValueError, match="`inputs` must cover the simulated times \\[0, 12\\]"):
