@@ -258,14 +258,42 @@ def test_unidentifiable_pair_has_a_flat_open_profile():
                                torch.full_like(prof.values, result.params["a"].item() * result.params["b"].item()))
 
 
-def test_a_fit_of_several_experiments_is_refused_with_its_reason():
-    """The re-fits of a profile take one experiment's data; a fit of several says so, instead of an
-    error about a `data` argument the user never gave."""
+def _two_experiments():
+    """``y' = -k y`` measured in two experiments from their own initial states (sigma 0.01, known)."""
+    gen = torch.Generator().manual_seed(3)
     t = torch.linspace(0, 5, 21, dtype=DT)
-    first = torchql.Observations(t, torch.exp(-0.7 * t)[:, None], observe=["y"])
-    second = torchql.Observations(t, 2 * torch.exp(-0.7 * t)[:, None], observe=["y"])
-    result = torchql.fit(Decay(0.5), [first, second], x0=torch.tensor([[1.0], [2.0]], dtype=DT))
-    with pytest.raises(ValueError, match="`result` is a fit of 2 experiments, which `profile` does not re-fit yet"):
+    data = [torchql.Observations(t, (y0 * torch.exp(-0.7 * t) + 0.01 * torch.randn(21, generator=gen, dtype=DT))[:, None],
+                                 observe=["y"], sigma=0.01) for y0 in (1.0, 2.0)]
+    return data, torchql.fit(Decay(0.5), data, x0=torch.tensor([[1.0], [2.0]], dtype=DT))
+
+
+@pytest.mark.parametrize("name", ["k", "y[1](t0)"])
+def test_a_fit_of_several_experiments_is_profiled_by_refits_of_all_of_them(name):
+    """A coefficient shared by the experiments and one experiment's initial state: at each end of
+    the interval a fit of both experiments with that unknown held there (an experiment's initial
+    state fixed in that experiment alone) lies the chi-square quantile above the optimum."""
+    data, result = _two_experiments()
+    assert result.success and result.unknown_names == ["y[0](t0)", "y[1](t0)", "k"]
+    prof = torchql.profile(result, name)
+    assert prof.closed == (True, True)
+    q2 = normal_quantile(0.975) ** 2
+    lo, hi = prof.wald
+    for end in prof.interval:
+        x0 = result.x0.clone()
+        if name == "k":
+            held = torchql.fit(Decay(end), data, x0=x0, params=[])
+        else:
+            x0[1, 0] = end
+            held = torchql.fit(Decay(result.params["k"].item()), data, x0=x0, params=["k"], fixed_x0=[[], ["y"]])
+        assert held.success
+        assert held.sse - result.sse == pytest.approx(q2, rel=1e-5)
+    assert prof.interval[0] == pytest.approx(lo, rel=1e-2) and prof.interval[1] == pytest.approx(hi, rel=1e-2)
+
+
+def test_the_only_unknown_of_several_experiments_is_refused_with_its_reason():
+    data, _ = _two_experiments()
+    result = torchql.fit(Decay(0.5), data, x0=torch.tensor([[1.0], [2.0]], dtype=DT), fixed_x0=[["y"], ["y"]])
+    with pytest.raises(ValueError, match="`name` 'k' is the only unknown of a fit of 2 experiments"):
         torchql.profile(result, "k")
 
 

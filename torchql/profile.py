@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import inspect
 import math
+import re
 import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -189,11 +190,15 @@ def _check_arguments(result: FitResult, name: str, data: Observations | None, le
         data = result.data
     if data is None:
         raise ValueError("`data` is required: this FitResult does not hold the observations it was fitted to")
-    if isinstance(data, (list, tuple)) and result.experiment_t0 is not None:
-        raise ValueError(f"`result` is a fit of {len(data)} experiments, which `profile` does not re-fit yet: "
-                         "profile a fit of one experiment, or compare the likelihoods of fits with the unknown held "
-                         "at chosen values (`parameters={name: Parameter(value, vary=False)}`)")
-    if not isinstance(data, Observations):
+    if isinstance(data, (list, tuple)) and result.experiment_t0 is not None:  # several experiments
+        for e, item in enumerate(data):
+            if not isinstance(item, Observations):
+                raise TypeError(f"`data[{e}]` must be a torchql.Observations; received {type(item).__name__}")
+        if len(names) == 1:
+            raise ValueError(f"`name` {name!r} is the only unknown of a fit of {len(data)} experiments: its profile "
+                             "is the sum of squares at each value, which `profile` re-fits only with other unknowns "
+                             "left; compare fits with it held at chosen values instead")
+    elif not isinstance(data, Observations):
         raise TypeError(f"`data` must be a torchql.Observations; received {type(data).__name__}")
     if not (result.success or result.status is Status.NOT_IDENTIFIABLE) or not math.isfinite(result.sse):
         raise ValueError(f"`result` must be a converged fit to profile; its status is {result.status.name}: {result.message}")
@@ -213,18 +218,29 @@ def _check_arguments(result: FitResult, name: str, data: Observations | None, le
     return data
 
 
-def _held_fixed(result: FitResult, name: str, buffers: dict) -> tuple[list[str], list[str], int | None]:
+def _held_fixed(result: FitResult, name: str, buffers: dict) -> tuple[list[str], list, int | tuple[int, int] | None]:
     """How the re-fits hold ``name`` fixed: ``(params, fixed_x0, state_index)``.
 
     ``params`` are the buffers to estimate, ``fixed_x0`` the states whose initial value is not
-    estimated, ``state_index`` the index of ``name``'s state when it is an initial state (else None).
+    estimated (one list per experiment for a fit of several), ``state_index`` the index of
+    ``name``'s state when it is an initial state (``(experiment, state)`` for a fit of several; else None).
     """
     names = list(result.unknown_names)
     states = list(result.model.state_names)
     free_params = _original_params(result, buffers)
     given = {k.removesuffix("(t0)") for k in (result.fit_kwargs.get("x0_expr") or {})}  # follow the estimates
+    if result.experiment_t0 is not None:  # several experiments: states "y[e](t0)", fixed per experiment
+        fixed = [[s for s in states if f"{s}[{e}](t0)" not in names and s not in given]
+                 for e in range(len(result.experiment_t0))]
+        state = re.fullmatch(r"(.+)\[(\d+)\]\(t0\)", name)
+        if state and state[1] in states and name not in buffers:
+            e, i = int(state[2]), states.index(state[1])
+            fixed[e].append(states[i])
+            return free_params, fixed, (e, i)
+        if name in buffers and buffers[name].dim() == 0:
+            return [p for p in free_params if p != name], fixed, None
     fixed_states = [s for s in states if f"{s}(t0)" not in names and s not in given]
-    if name.endswith("(t0)") and name[:-4] in states and name not in buffers:
+    if result.experiment_t0 is None and name.endswith("(t0)") and name[:-4] in states and name not in buffers:
         state_index = states.index(name[:-4])
         return free_params, fixed_states + [states[state_index]], state_index
     if name in buffers and buffers[name].dim() == 0:
@@ -240,7 +256,7 @@ def _refit_options(result: FitResult, name: str, fit_options: dict) -> dict:
     options = {k: result.fit_kwargs[k] for k in _INHERITED if k in result.fit_kwargs}
     options.setdefault("method", result.method)
     options.update({k: v for k, v in result.solver_options.items() if k not in options or options[k] is None})
-    options["t0"] = result.t0
+    options["t0"] = result.t0 if result.experiment_t0 is None else list(result.experiment_t0)
     if options.get("solver") == "auto" and "solver" in result.solver_options:  # the fit's choice, kept
         options["solver"] = result.solver_options["solver"]
     for key in ("bounds", "scale"):  # the profiled unknown is held fixed: its own bound and scale go
@@ -294,8 +310,8 @@ class _Refitter:
     data: Observations
     options: dict
     params: list[str]
-    fixed_x0: list[str]
-    state_index: int | None
+    fixed_x0: list
+    state_index: int | tuple[int, int] | None
     buffers: dict
     likelihood: bool
     n_fits: int = 0
@@ -502,9 +518,11 @@ def _sse_noise(result: FitResult, data: Observations, options: dict) -> float:
     from .integrate import default_tolerances
 
     rtol, _ = default_tolerances(result.x0.dtype, options.get("rtol"), options.get("atol"))
-    mask = data.mask
-    yw = (data.y / data.sigma)[mask][~data.exact[mask]]
-    return 100.0 * rtol**2 * float((yw.to(torch.float64) ** 2).sum())
+    total = 0.0
+    for part in data if isinstance(data, (list, tuple)) else [data]:  # each experiment's
+        yw = (part.y / part.sigma)[part.mask][~part.exact[part.mask]]
+        total += float((yw.to(torch.float64) ** 2).sum())
+    return 100.0 * rtol**2 * total
 
 
 def _expressions_applied(model, x0: torch.Tensor, expressions: dict | None) -> torch.Tensor:
