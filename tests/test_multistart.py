@@ -129,8 +129,10 @@ def test_batched_path_gives_the_loop_best_and_optima(monkeypatch):
         assert torch.allclose(ours.estimates, theirs.estimates, rtol=1e-8, atol=0)
 
 
-@pytest.mark.parametrize("kwargs", [dict(linear_solver="torchdiffeq")])
+@pytest.mark.parametrize("kwargs", [dict(linear_solver="torchdiffeq"), dict(max_time=60.0)])
 def test_options_fit_many_lacks_keep_the_loop(decay_data, kwargs):
+    """A propagator without a batched form; a ``max_time``, which is each start's in a loop and would
+    be the whole batch's."""
     ms = torchql.multistart(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT), starts=2, grid=50, max_iter=2,
                             **kwargs)
     assert not ms.batched and all(isinstance(r, torchql.FitResult) for r in ms.results)
@@ -152,6 +154,39 @@ def test_starts_with_bounds_are_batched_and_match_the_loop(decay_data, monkeypat
     for ours, theirs in zip(batched.results, loop.results):
         assert torch.allclose(ours.estimates, theirs.estimates, rtol=1e-8, atol=0)
         assert torch.equal(ours.lower, theirs.lower)
+
+
+def _two_decays():
+    """``y' = -k y`` in two experiments (1 % noise); the first's initial value 1.5 is known and
+    measured exactly."""
+    gen = torch.Generator().manual_seed(4)
+    t = torch.linspace(0, 2, 11, dtype=DT)
+    out = []
+    for y0 in (1.5, 0.8):
+        y = (y0 * torch.exp(-0.7 * t) * (1 + 0.01 * torch.randn(11, generator=gen, dtype=DT))).unsqueeze(-1)
+        y[0] = y0 if y0 == 1.5 else y[0]
+        exact = torch.zeros(11, 1, dtype=torch.bool)
+        exact[0] = y0 == 1.5
+        out.append(torchql.Observations(t, y, observe=["y"], sigma=0.01 * y0, exact=exact))
+    return out
+
+
+@pytest.mark.parametrize("options", [dict(), dict(scale={"k": "log"}, method="shooting")])
+def test_starts_of_several_experiments_with_exact_values_are_batched_and_match_the_loop(monkeypatch, options):
+    """``fit_many`` fits each sample as ``fit`` does, experiments and exact values included: the
+    starts are one batch, each start's fit the loop's (statuses, iterations, estimates)."""
+    args = (Decay(0.3), _two_decays(), torch.tensor([[1.5], [1.0]], dtype=DT))
+    kwargs = dict(starts=4, seed=2, **options)
+    batched = torchql.multistart(*args, **kwargs)
+    monkeypatch.setattr(multistart_module, "_fit_many_serves", lambda *a: False)
+    loop = torchql.multistart(*args, **kwargs)
+    assert batched.batched and not loop.batched
+    assert [r.status for r in batched.results] == [r.status for r in loop.results]
+    assert [r.iterations for r in batched.results] == [r.iterations for r in loop.results]
+    for ours, theirs in zip(batched.results, loop.results):
+        torch.testing.assert_close(ours.estimates, theirs.estimates, rtol=1e-8, atol=0)
+    assert batched.best.success and batched.best.x0[0, 0].item() == 1.5  # the exact value met
+    assert batched.best.params["k"].item() == pytest.approx(0.7, rel=0.02)
 
 
 def test_a_batch_of_datasets_is_rejected(decay_data):

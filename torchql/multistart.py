@@ -7,13 +7,12 @@ the coefficients (log-uniform over a range around the model's own values, or wit
 distinct optima found, so that a user can see whether the best is likely global (most starts
 reach it) or fragile (few do).
 
-When the fits are of one dataset with options that :func:`torchql.fit_many` supports
-(``bounds``, ``method`` and ``initial_trajectory`` included, a ``linear_solver`` with a batched
-form; no values marked ``exact``), every start is fitted in one ``fit_many`` call, each sample from its own
-guesses on ``torchql.fit``'s iteration; the best start is then fitted once more with
+Every start is fitted in one :func:`torchql.fit_many` call, each sample from its own guesses on
+``torchql.fit``'s iteration (one dataset or one list of experiments, with any of ``fit``'s options:
+``fit_many`` gives each sample its own ``fit``); the best start is then fitted once more with
 :func:`torchql.fit`, so that ``best`` is the full :class:`~torchql.FitResult` a loop would
-give. Otherwise (exact values, several experiments, ...) each start is one
-``torchql.fit``.
+give. With a ``max_time`` (one per start), a per-iteration ``callback`` or a ``linear_solver``
+without a batched form, each start is one ``torchql.fit``.
 """
 
 from __future__ import annotations
@@ -40,14 +39,11 @@ from .propagators import linear_propagator
 
 __all__ = ["multistart", "MultiStartResult", "Optimum"]
 
-#: Options of :func:`torchql.fit` that :func:`torchql.fit_many` takes as they are.
-_FIT_MANY_OPTIONS = frozenset({"fixed_x0", "t0", "max_iter", "rtol", "atol", "xtol", "ftol", "rcond", "grid",
-                               "damping", "solver", "max_steps", "method", "linear_solver",
-                               "initial_trajectory"})
+#: Options of :func:`torchql.fit` whose meaning differs in :func:`torchql.fit_many` (one time budget
+#: for the batch; a callback that also receives the sample): given, each start is one ``fit``.
+_FIT_ALONE = frozenset({"max_time", "callback"})
 #: The keywords of :func:`torchql.fit` (``options`` included), which ``multistart`` passes on.
 _FIT_KEYWORDS = frozenset(inspect.signature(fit).parameters) | {"options"}
-#: Options of :func:`torchql.fit` that ``fit_many`` always runs with these values.
-_FIT_MANY_FIXED: dict = {}
 
 
 @dataclass
@@ -254,7 +250,7 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
     if batched:
         rows = [system.unpack_params(g) for g in guesses]
         per_start = {name: torch.stack([row[name] for row in rows]) for name in system.param_names}
-        options = {key: value for key, value in fit_kwargs.items() if key in _FIT_MANY_OPTIONS}
+        options = {key: value for key, value in fit_kwargs.items() if key not in _FIT_ALONE}
         results += fit_many(model, [data] * starts, x0, params=params, guesses=per_start, bounds=bounds, **options)
         if callback is not None:
             for k, r in enumerate(results):
@@ -276,19 +272,18 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
 
 
 def _fit_many_serves(data, fit_kwargs: dict) -> bool:
-    """Whether :func:`torchql.fit_many` fits every start as ``torchql.fit(..., **fit_kwargs)`` would.
-
-    True for one dataset (not a list of experiments) without ``exact`` values, and options all
-    among :data:`_FIT_MANY_OPTIONS`, at the values of :data:`_FIT_MANY_FIXED`, or a
-    ``linear_solver`` with a batched form.
-    """
-    if not isinstance(data, Observations) or bool(data.exact.any()):
+    """Whether :func:`torchql.fit_many` fits every start as ``torchql.fit(..., **fit_kwargs)`` would:
+    for one dataset or one list of experiments, with any option but a ``max_time`` (a batch has one
+    budget for all its starts, a loop one per start), a ``callback`` (``fit_many``'s names the
+    sample) and a ``linear_solver`` without a batched form."""
+    if not (isinstance(data, Observations)
+            or (isinstance(data, (list, tuple)) and data and all(isinstance(d, Observations) for d in data))):
         return False
 
     def served(key, value) -> bool:
         if key == "linear_solver":
             return value is None or linear_propagator(value).batched
-        return key in _FIT_MANY_OPTIONS or (key in _FIT_MANY_FIXED and value == _FIT_MANY_FIXED[key])
+        return key not in _FIT_ALONE or value is None
     return all(served(key, value) for key, value in fit_kwargs.items())
 
 
