@@ -99,10 +99,7 @@ def interpolation_misfit(f, t: torch.Tensor, traj: torch.Tensor, lin, degree: in
     slopes = torch.vmap(f)(times.reshape(-1), z.flatten(1).T).T[components].unflatten(1, times.shape)
     stored = values[:, M:].unflatten(1, (a, M + 1))[:, rows, 0].transpose(0, 1)  # h f's rows (states, P, S N)
     # the interpolant of z's own slope there, d/ds z(s) (its local time's: h z'), in stored rows (P, M, S N)
-    data = coefficients.data[:, :M]
-    degree = data.shape[0] - 1
-    rates = data[1:] * torch.arange(1, degree + 1, dtype=data.dtype, device=data.device).reshape(-1, 1, 1)
-    z_slope = (torch.stack([points ** j for j in range(degree)], dim=-1) @ rates.flatten(1)).unflatten(1, data.shape[1:])
+    z_slope = coefficients.values(points, rows=slice(0, M), derivative=True)
     defect = z_slope[:, rows].transpose(0, 1) - h * slopes  # the interpolant of z against the model (states, P, S N)
     # (it moves the propagation only where the Jacobian, the unknown coefficients' columns included,
     # changes along the trajectory: a linear system with only initial states unknown is propagated

@@ -440,11 +440,18 @@ class _Coefficients:
     def intervals(self) -> int:
         return self.data.shape[-1]
 
-    def values(self, s: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+    def values(self, s: torch.Tensor, index: torch.Tensor | None = None, *, rows: slice | None = None,
+               derivative: bool = False) -> torch.Tensor:
         """The interpolants' values ``(K, Q, I)`` at local times ``s (K,)``, in the stored rows (the
-        reference ``z``, then each active component's ``h f`` and ``h A``), of the intervals ``index``
-        (default all): one matrix product with the powers of ``s``."""
+        reference ``z``, then each active component's ``h f`` and ``h A``; ``rows``: those only), of
+        the intervals ``index`` (default all): one matrix product with the powers of ``s``. With
+        ``derivative``, their derivatives in local time (``h`` times the time derivative)."""
         data = self.data if index is None else self.data[..., index]
+        if rows is not None:
+            data = data[:, rows]
+        if derivative:
+            degrees = torch.arange(1, data.shape[0], dtype=data.dtype, device=data.device)
+            data = data[1:] * degrees.reshape(-1, 1, 1)
         powers = [torch.ones_like(s)]
         for _ in range(data.shape[0] - 1):
             powers.append(powers[-1] * s)
