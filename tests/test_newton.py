@@ -159,3 +159,15 @@ def test_a_float32_guess_converges_at_its_own_precision():
     assert single.success and double.success, single.message
     assert single.x.dtype == torch.float32 and single.iterations <= double.iterations
     torch.testing.assert_close(single.x.double(), double.x, rtol=1e-6, atol=0)
+
+
+def test_a_step_below_xtol_far_from_any_root_is_not_success():
+    """``sin(x)`` from ``pi / 2``, where its derivative is 6e-17: the first step throws the iterate to
+    ``-1.6e16``, where every later step is below ``xtol`` beside ``|x|``; it was reported converged
+    with ``|sin(x)| = 0.66``. The residual did not fall: no root, said so."""
+    sol = torchql.newton_raphson(torch.sin, torch.tensor([math.pi / 2], dtype=torch.float64))
+    assert not sol.success
+    assert sol.residual_norms[-1] > 0.1
+    assert "no root was found" in sol.message and "ftol" in sol.message
+    near = torchql.newton_raphson(torch.sin, torch.tensor([3.0], dtype=torch.float64))
+    assert near.success and abs(float(near.x[0]) - math.pi) < 1e-15

@@ -11,7 +11,12 @@ from torch.func import jacrev
 
 from ._arrays import float_tensor
 
-__all__ = ["newton_raphson", "NewtonResult"]
+__all__ = ["newton_raphson", "NewtonResult", "ROOT_FALL"]
+
+#: A step below ``xtol`` is convergence only where the residual fell to this fraction of the guess's:
+#: ``sin(x)`` from ``pi / 2`` (where its derivative is 6e-17) was thrown to ``x = -1.6e16``, where every
+#: step is below ``xtol`` beside ``|x|``, and was reported converged with ``|sin(x)| = 0.66``.
+ROOT_FALL = 1e-3
 
 
 @dataclass
@@ -23,7 +28,8 @@ class NewtonResult:
     x : Tensor ``(m,)``
         The last iterate.
     success : bool
-        Whether the step fell below ``xtol`` (relative) or the residual below ``ftol``.
+        Whether the residual fell below ``ftol``, or the step below ``xtol`` (relative) with the
+        residual below :data:`ROOT_FALL` of the guess's.
     message : str
         Why it stopped.
     iterations : int
@@ -64,9 +70,11 @@ def newton_raphson(
     xtol : float, optional
         Stop when ``max |dx_i| <= xtol * max(|x_i|, 1)``. Default ``1e-12`` in float64, 100 roundoffs
         in a lower precision (``1.2e-5`` in float32: a Newton step there is rounding once the
-        iterate is within a few roundoffs of the root).
+        iterate is within a few roundoffs of the root). That is success only where ``max |R(x)|``
+        fell to :data:`ROOT_FALL` of the guess's (else no root was found, and the message says so).
     ftol : float
-        Stop when ``max |R(x)| <= ftol``.
+        Stop when ``max |R(x)| <= ftol``, a success (give it where the guess may already be within
+        a thousandth of the residual's roundoff).
     jacobian : callable ``J(x) -> (m, m)``, optional
         Analytic Jacobian; default :func:`torch.func.jacrev` of ``residual``. Non-square
         systems are solved in the least-squares sense (Gauss–Newton).
@@ -114,7 +122,15 @@ def newton_raphson(
         if not (torch.isfinite(x).all() and math.isfinite(norms[-1])):
             message = "The iteration diverged (non-finite iterate). Start closer to the root."
             break
-        if float((dx.abs() / x.abs().clamp_min(1.0)).max()) <= xtol or norms[-1] <= ftol:
+        if norms[-1] <= ftol:
             message, success = "Converged.", True
+            break
+        if float((dx.abs() / x.abs().clamp_min(1.0)).max()) <= xtol:
+            success = norms[-1] <= ROOT_FALL * norms[0]
+            message = ("Converged." if success else
+                       f"The step fell below `xtol`, but max |R(x)| = {norms[-1]:.3g} is not below {ROOT_FALL:g} of the "
+                       f"guess's {norms[0]:.3g}: no root was found (the iterate is at max |x| = "
+                       f"{float(x.abs().max()):.3g}, where such a step is small beside it). Start from another guess, "
+                       "or give `ftol` the residual that counts as a root.")
             break
     return NewtonResult(x=x, success=success, message=message, iterations=it, history=history, residual_norms=norms)
