@@ -245,3 +245,14 @@ def test_bad_tolerances_rejected(tolerances):
 def test_model_not_an_odemodel():
     with pytest.raises(TypeError, match="`model` must be a torchql.ODEModel"):
         torchql.simulate(torch.nn.Linear(1, 1), [X0], [0.0, 1.0])
+
+
+def test_a_step_size_underflow_in_float32_names_the_precision():
+    """Van der Pol (mu = 1000) in float32 stops at its first jump near t = 807, where no step is
+    shorter than 10 eps |t| = 1e-3; the message blamed singularities or tolerances only."""
+    from torchql.models import VanDerPol
+
+    t = torch.tensor([100.0, 900.0])
+    with pytest.raises(torchql.IntegrationError, match=r"in float32 no step near t = 80\d\.\d+ is shorter than "
+                                                        r"10 eps \|t\| = 0\.00096.*model\.double\(\)"):
+        torchql.simulate(VanDerPol().float(), torch.tensor([2.0, 0.0]), t, t0=0.0, rtol=1e-3, atol=1e-5)

@@ -19,6 +19,7 @@ from .budget import check_time
 from .grid import last_nodes
 from .model import AugmentedSystem, BatchedCall
 from .rk_pairs import PAIRS, combine
+from .solvers.rosenbrock import precision_note
 
 __all__ = ["dopri_batch", "STIFF", "found_stiff"]
 
@@ -306,9 +307,9 @@ class _DopriRun:
             elif code == 0:
                 out.append("the initial state is not finite")
             else:
-                out.append(_FAILURES[code].format(t=self.time_sign * float(self.t[s]), h=float(self.h[s]),
-                                                  n=self.max_steps,
-                                                  k=self.interval_steps))
+                t = self.time_sign * float(self.t[s])
+                out.append(_FAILURES[code].format(t=t, h=float(self.h[s]), n=self.max_steps, k=self.interval_steps)
+                           + (precision_note(t, self.t.dtype) if code == 1 else ""))
         return out
 
     def _control(self, xa: torch.Tensor, x_new: torch.Tensor, K: torch.Tensor, hc: torch.Tensor, he: torch.Tensor,
