@@ -92,3 +92,49 @@ def test_shooting_reaches_the_optimum_of_a_relaxation_whose_transient_its_grid_m
         # the sums of squares agree to their integration error, 2 sqrt(SSE) |w rtol y| sqrt(20) = 3e-5 (2.5e-6 of it)
         assert abs(fit.sse - joint.sse) <= 2.5e-6 * joint.sse
         assert "misses a change of the model" in fit.message
+
+
+def test_a_relaxation_whose_decay_holds_the_explicit_steps_takes_rodas5p_sensitivities(monkeypatch):
+    """True ``k = 1e3`` over ``[0, 2]``: ``k * span = 2e3``, below the stiff path's 1e4, but DOP853's
+    steps at the fit's tolerance are held at ``h k`` of about 1.3, 1,600 of them, each with twelve
+    stage Jacobians to differentiate: the sample's shooting trials took 8.1 s of DOP853 sensitivities.
+    Once an accepted iterate decays faster than 100 per span over most of it, its solutions with
+    sensitivities are Rodas5P's (1.5 s), at the same optimum in as many iterations."""
+    import torchql.engine_evaluate as evaluate
+
+    calls = {"explicit": 0, "rodas": 0}
+
+    def counted(name, function):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return function(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(evaluate, "explicit_sensitivities", counted("explicit", evaluate.explicit_sensitivities))
+    monkeypatch.setattr(evaluate, "rodas5p_sensitivities", counted("rodas", evaluate.rodas5p_sensitivities))
+    data = _relaxation_data(1e3)
+    options = dict(method="shooting", params=["k", "A"], t0=0.0, fixed_x0=["x"])
+    fit = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), **options)
+    used = dict(calls)
+    joint = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), linear_solver="rodas5p", **options)
+    assert fit.status is torchql.Status.CONVERGED and joint.success, fit.message
+    assert fit.solver_options["solver"] == "dop853"
+    assert used["rodas"] >= 8 and used["explicit"] <= 3, used  # (every solve was DOP853's: 10)
+    assert fit.iterations == joint.iterations
+    assert torch.allclose(fit.estimates, joint.estimates, rtol=1e-7, atol=0), (fit.estimates, joint.estimates)
+    assert "by the adaptive solver (Rodas5P's with their sensitivities" in fit.message
+
+
+def test_fit_many_takes_rodas5p_sensitivities_for_the_samples_whose_decay_holds_dop853_alone():
+    """A batch of the relaxation at ``k = 1e3`` (Rodas5P's sensitivities once its decay holds DOP853's
+    steps) and at ``k = 30`` (DOP853's): each sample is its own fit."""
+    sets = [_relaxation_data(1e3), _relaxation_data(30.0)]
+    options = dict(method="shooting", params=["k", "A"], t0=0.0, fixed_x0=["x"])
+    batch = torchql.fit_many(_Relaxation(), sets, torch.zeros(1, dtype=DT), **options)
+    for i, data in enumerate(sets):
+        alone = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), **options)
+        assert batch[i].status is alone.status and batch[i].iterations == alone.iterations, i
+        assert batch[i].message == alone.message
+        torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)
+    assert "Rodas5P's with their sensitivities" in batch[0].message
+    assert "Rodas5P's with their sensitivities" not in batch[1].message

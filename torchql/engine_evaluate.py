@@ -361,34 +361,56 @@ class Evaluation(GridSolve):
     def _solve_with_sensitivities(self, idx, z0) -> tuple[torch.Tensor, torch.Tensor, list]:
         """The model integrated from ``z0 (S, M)`` together with its sensitivities to the unknowns,
         the solver's steps differentiated, on the grid of the chunk's samples ``idx``: by Rodas5P
-        (:mod:`torchql.solvers.sensitivity`, landing as :meth:`_landing` says) for a stiff model or
-        the ``"rodas5p"`` propagator, else by the batched explicit pair of ``solver``
+        (:mod:`torchql.solvers.sensitivity`, landing as :meth:`_landing` says) for a stiff model,
+        the ``"rodas5p"`` propagator and the samples in ``fast_decay`` (their decay along an
+        iterate outran DOP853's steps), else by the batched explicit pair of ``solver``
         (:mod:`torchql.dopri_sensitivity`, landing on every node). Returns ``traj (S, G, M)``,
         ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
         :meth:`~torchql.problem.Problem.columns`) and error messages (None: ok). A sample that
         failed keeps its initial state and columns at every node: a finite stand-in, as a failed
         trial needs one.
         """
-        spec = self.spec
-        first = spec.columns(z0)
-        with torch.no_grad():
-            if self._joint_sensitivities or not self._batched_dopri():  # (a stiff solver is not batched dopri)
-                sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
-                                                  atol=spec.atol, land=self._landing(idx),
-                                                  interval_steps=spec.max_steps)
-                self.nfev += sol.n_f
-                errors = [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
-            else:
-                z, V, errors, evals = explicit_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx),
-                                                             rtol=spec.rtol, atol=spec.atol, method=spec.solver,
-                                                             interval_steps=spec.max_steps)
-                self.nfev += evals
-                self._note_stiff(idx, errors)
+        first = self.spec.columns(z0)
+        implicit = torch.full((idx.numel(),), self._joint_sensitivities or not self._batched_dopri(), dtype=torch.bool,
+                              device=idx.device)  # (a stiff solver is not batched dopri)
+        implicit |= torch.tensor([int(i) in self.fast_decay for i in idx.tolist()], dtype=torch.bool,
+                                 device=idx.device)
+        parts = [(rows, by_rodas) for rows, by_rodas in ((implicit.nonzero().flatten(), True),
+                                                         ((~implicit).nonzero().flatten(), False)) if rows.numel()]
+        if len(parts) == 1:
+            z, V, errors = self._sensitivities_by(idx, z0, first, parts[0][1])
+        else:  # samples whose decay outran DOP853's steps, and the others
+            G = self._grid_of(idx).shape[-1]
+            z = z0.new_empty(idx.numel(), G, z0.shape[1])
+            V = z0.new_empty(idx.numel(), G, first.shape[1], first.shape[2] - 1)
+            errors = [None] * idx.numel()
+            for rows, by_rodas in parts:
+                z[rows], V[rows], part_errors = self._sensitivities_by(idx[rows], z0[rows], first[rows], by_rodas)
+                for k, e in zip(rows.tolist(), part_errors):
+                    errors[k] = e
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
         failed = torch.tensor([e is not None for e in errors], dtype=torch.bool, device=z0.device)
         z = torch.where(failed.reshape(-1, 1, 1), z0.unsqueeze(1).expand_as(z), z)
         W = torch.where(failed.reshape(-1, 1, 1, 1), first.unsqueeze(1).expand_as(W), W)
         return z, W, errors
+
+    def _sensitivities_by(self, idx, z0, first, rodas: bool) -> tuple[torch.Tensor, torch.Tensor, list]:
+        """:meth:`_solve_with_sensitivities` of the samples ``idx`` from ``z0``, columns ``first``,
+        by Rodas5P (``rodas``) or by the batched explicit pair: ``z``, ``V`` and error messages."""
+        spec = self.spec
+        with torch.no_grad():
+            if rodas:
+                sol, z, V = rodas5p_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx), rtol=spec.rtol,
+                                                  atol=spec.atol, land=self._landing(idx),
+                                                  interval_steps=spec.max_steps)
+                self.nfev += sol.n_f
+                return z, V, [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
+            z, V, errors, evals = explicit_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx),
+                                                         rtol=spec.rtol, atol=spec.atol, method=spec.solver,
+                                                         interval_steps=spec.max_steps)
+        self.nfev += evals
+        self._note_stiff(idx, errors)
+        return z, V, errors
 
     def _model_from_data(self, idx, z0, reference):
         """Shooting's first iterate from the data: the model integrated from the coefficients that

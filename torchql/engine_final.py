@@ -41,7 +41,7 @@ from .engine_diagnosis import FinalDiagnosis
 from .engine_grid import pad_nodes
 from .result import Status
 from .solvers import STIFF_SOLVERS
-from .stiffness import STIFF_LINEAR_SOLVER
+from .stiffness import IMPLICIT_SENSITIVITY_RATIO, STIFF_LINEAR_SOLVER
 from .storage_check import interpolation_misfit, storage_misses
 from .transfer import interval_coefficients
 from .uncertainty import covariance, residual_variance
@@ -157,9 +157,11 @@ class FinalPass(FinalDiagnosis):
                           "integrated the sensitivities with the solution; a finer `grid` makes the iterations "
                           "faithful too.")
         for k in sorted(self.joint_final - set(self.storage_missed)):
+            by = (" (Rodas5P's with their sensitivities, its decay rate times the span above "
+                  f"{IMPLICIT_SENSITIVITY_RATIO:g})" if k in self.fast_decay else "")
             detail[k] += (" The storage grid misses a change of the model between its nodes, or the model is faster "
                           "than the grid: an interval needed more steps than the grid solver takes. The model's "
-                          "solutions were integrated by the adaptive solver, and the final pass integrated the "
+                          f"solutions were integrated by the adaptive solver{by}, and the final pass integrated the "
                           "sensitivities with the solution; a finer `grid`, or `linear_solver=\"rodas5p\"` (the "
                           "sensitivities integrated with every solution), makes the iterations faster.")
 
