@@ -472,7 +472,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         candidates = rejected[(st.damping[rejected] == 0) & ~cur["anchored"][rejected]]
         if self.spec.scheme.integrates_model or not candidates.numel():  # the model's own solution already
             return rejected[:0]
-        self._nonlinear_sse(st.all_idx, cur, candidates)
+        self._nonlinear_sse(st.all_idx, cur, candidates, current=True)
         integrable = torch.isfinite(cur["nl_traj"][candidates]).flatten(1).all(dim=1)
         rows = candidates[integrable]
         if self.spec.stiff and rows.numel():  # at the fit's tolerance, as the first reference (_first_reference)
