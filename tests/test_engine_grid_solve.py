@@ -98,8 +98,9 @@ def test_a_relaxation_whose_decay_holds_the_explicit_steps_takes_rodas5p_sensiti
     """True ``k = 1e3`` over ``[0, 2]``: ``k * span = 2e3``, below the stiff path's 1e4, but DOP853's
     steps at the fit's tolerance are held at ``h k`` of about 1.3, 1,600 of them, each with twelve
     stage Jacobians to differentiate: the sample's shooting trials took 8.1 s of DOP853 sensitivities.
-    Once an accepted iterate decays faster than 100 per span over most of it, its solutions with
-    sensitivities are Rodas5P's (1.5 s), at the same optimum in as many iterations."""
+    Once a decay holds most of DOP853's steps in one such solve (at k = 530, the fourth) (``h max(-Re lambda) >= 1``), the
+    sample's solutions with sensitivities are Rodas5P's (1.5 s), at the same optimum in as many
+    iterations."""
     import torchql.engine_evaluate as evaluate
 
     calls = {"explicit": 0, "rodas": 0}
@@ -119,7 +120,7 @@ def test_a_relaxation_whose_decay_holds_the_explicit_steps_takes_rodas5p_sensiti
     joint = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), linear_solver="rodas5p", **options)
     assert fit.status is torchql.Status.CONVERGED and joint.success, fit.message
     assert fit.solver_options["solver"] == "dop853"
-    assert used["rodas"] >= 8 and used["explicit"] <= 3, used  # (every solve was DOP853's: 10)
+    assert used["rodas"] >= 6 and used["explicit"] <= 4, used  # (every solve was DOP853's: 10)
     assert fit.iterations == joint.iterations
     assert torch.allclose(fit.estimates, joint.estimates, rtol=1e-7, atol=0), (fit.estimates, joint.estimates)
     assert "by the adaptive solver (Rodas5P's with their sensitivities" in fit.message

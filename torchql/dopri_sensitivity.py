@@ -26,34 +26,52 @@ from .rk_pairs import PAIRS, combine
 from .solvers.sensitivity import STEP_CHUNK, compose_steps, state_rows
 from .solvers.steps import StepRecord
 
-__all__ = ["explicit_sensitivities", "explicit_step_maps"]
+__all__ = ["explicit_sensitivities", "explicit_step_maps", "HELD_STEP"]
+
+
+#: A step of the explicit pair is held by a decay when its size times the fastest decay rate at its
+#: start (``max(-Re lambda)`` of the states' Jacobian) is at least this: at a fit's tolerance the
+#: pair's accurate steps on a smooth solution stay below it (``h omega`` of about 0.3 on an oscillation
+#: at rtol 1e-10), and a relaxation ``x' = -k (x - cos t)`` of ``k = 1e3`` holds them at about 1.3.
+HELD_STEP = 1.0
 
 
 def explicit_sensitivities(system, z0: torch.Tensor, columns: torch.Tensor, grid: torch.Tensor, *, rtol: float,
-                           atol: float, method: str = "dop853", interval_steps: int | None = None
-                           ) -> tuple[torch.Tensor, torch.Tensor, list, int]:
+                           atol: float, method: str = "dop853", interval_steps: int | None = None,
+                           held: list | None = None) -> tuple[torch.Tensor, torch.Tensor, list, int]:
     """The augmented model from ``z0 (S, M)`` over ``grid`` (``(G,)`` or ``(S, G)``) by the explicit
     pair ``method`` (landing on every node), and its columns from ``columns (S, M, m)`` (their
-    values at the first node): ``(z (S, G, M), V (S, G, M, m), errors, evaluations)``, ``errors`` one
-    per sample, the solver's words or None (a failed sample's values are not meaningful), and the
-    right-hand side's evaluations (points) of the solution."""
+    values at the first node): ``(z (S, G, M), V (S, G, M, m), errors, evaluations)``, ``errors``
+    one per sample, the solver's words or None (a failed sample's values are not meaningful), and
+    the right-hand side's evaluations (points) of the solution. ``held``, a list if given, gets the
+    fraction of each sample's steps held by a decay (:data:`HELD_STEP`; 0 for a sample without
+    steps): where most are, an implicit solver's steps are not so held."""
     S = z0.shape[0]
     parts: list = []
     messages: list = []
     z, _, evals = dopri_batch(system, z0, grid, rtol=rtol, atol=atol, messages=messages, interval_steps=interval_steps,
                           method=method, steps=parts)
     pair = PAIRS[method](z0.dtype, z0.device)
+    if held is not None:
+        held[:] = [0.0] * S
     if not parts:  # no sample took a step: their first columns throughout
         return z, columns.unsqueeze(1).expand(S, grid.shape[-1], *columns.shape[1:]).clone(), messages, evals
     steps = StepRecord.join(parts, z0)
-    change = torch.cat([explicit_step_maps(system, pair, steps, slice(k, k + STEP_CHUNK))
-                        for k in range(0, steps.t.shape[0], STEP_CHUNK)])
+    maps = [explicit_step_maps(system, pair, steps, slice(k, k + STEP_CHUNK))
+            for k in range(0, steps.t.shape[0], STEP_CHUNK)]
+    change = torch.cat([m[0] for m in maps])
+    decay = torch.cat([m[1] for m in maps])  # (N,): h max(-Re lambda) at each step's start
+    if held is not None:
+        counts = torch.bincount(steps.sample, minlength=S).to(z0.dtype)
+        fraction = z0.new_zeros(S).index_add_(0, steps.sample, (decay >= HELD_STEP).to(z0.dtype))
+        held[:] = (fraction / counts.clamp(min=1)).tolist()
     return z, compose_steps(steps, change, columns, grid.expand(S, grid.shape[-1])), messages, evals
 
 
-def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> torch.Tensor:
+def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> tuple[torch.Tensor, torch.Tensor]:
     """The state rows of the steps ``part``'s maps of the columns, ``(N, n, M)``: a step takes the
-    columns ``V (M, m)`` to ``V + [change @ V; 0]`` (the coefficients' rows are constant)."""
+    columns ``V (M, m)`` to ``V + [change @ V; 0]`` (the coefficients' rows are constant); and each
+    step's size times the fastest decay rate of the states' Jacobian at its start, ``(N,)``."""
     n = system.n
     t, h, x, K = steps.t[part], steps.h[part], steps.y[part], steps.K[:, part]
     N, M = x.shape
@@ -68,4 +86,5 @@ def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> torch.Te
         G[i] = A[i]
         if i:
             G[i] += A[i, :, :, :n] @ (hc.unsqueeze(-1) * combine(pair.rows_a[i], G[:i]))
-    return hc.unsqueeze(-1) * combine(pair.rows_a[last], G)
+    decay = (-torch.linalg.eigvals(A[0, :, :, :n]).real).amax(dim=-1).clamp(min=0)
+    return hc.unsqueeze(-1) * combine(pair.rows_a[last], G), h.abs() * decay

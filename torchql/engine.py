@@ -42,7 +42,7 @@ from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update
 from .noise import non_finite_residuals
 from .problem import Problem
 from .result import IterationRecord, Status
-from .stiffness import IMPLICIT_SENSITIVITY_RATIO, STIFF_RATIO, node_decay
+from .stiffness import stiff_along
 from .trajectory import DEFECT_TRUST
 
 __all__ = ["Engine"]
@@ -85,8 +85,9 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         #: samples whose current iterate needs more grid-solver steps than a trial may take (their
         #: trials are integrated by the adaptive solvers; see Evaluation._nonlinear)
         self.coarse_grid: set[int] = set()
-        #: ... whose decay rate along an accepted iterate times the span passed IMPLICIT_SENSITIVITY_RATIO:
-        #: their solutions with sensitivities are Rodas5P's (Evaluation._solve_with_sensitivities)
+        #: ... whose explicit pair's steps most of the span were held by a decay (``held_steps`` of
+        #: :func:`~torchql.dopri_sensitivity.explicit_sensitivities`): their solutions with sensitivities
+        #: are Rodas5P's from then on (Evaluation._solve_with_sensitivities)
         self.fast_decay: set[int] = set()
         #: per sample, the current iterate (its initial state's bytes) seen to fit in that budget
         self.fits_grid: dict[int, bytes] = {}
@@ -419,15 +420,10 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         st.final_guess[target] = _pick(trial["W"], rows)[..., 0]
         if self.spec.stiff_refit:  # "auto"'s explicit solver: is the model stiff along the new iterates,
             n, grid = self.system.n, self._grid_of(target)  # at the observations as along the data?
-            coarse = self._in_coarse_grid(target)
-            decay = node_decay(self._at_obs(trial["lin"].jac, act)[rows], n,
-                               (grid[..., -1] - grid[..., 0]).expand(rows.numel()),
-                               IMPLICIT_SENSITIVITY_RATIO if bool(coarse.any()) else STIFF_RATIO)
+            stiff = stiff_along(self._at_obs(trial["lin"].jac, act)[rows], n,
+                                (grid[..., -1] - grid[..., 0]).expand(rows.numel()))
             # (along references that nearly solve the model: an early superposition may pass far outside)
-            trusted = trial["defect"][rows] <= DEFECT_TRUST
-            self.stiff_met.update(target[(decay.amax(dim=1) > STIFF_RATIO) & trusted].tolist())
-            held = (decay > IMPLICIT_SENSITIVITY_RATIO).to(decay.dtype).mean(dim=1) > 0.5  # most of the span
-            self.fast_decay.update(target[held & coarse & trusted].tolist())
+            self.stiff_met.update(target[stiff & (trial["defect"][rows] <= DEFECT_TRUST)].tolist())
 
     def _reject(self, st: LoopState, rejected, alpha) -> None:
         """Rejected trials: without a filtering damping the iteration fails; Kantorovich

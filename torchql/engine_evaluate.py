@@ -362,8 +362,9 @@ class Evaluation(GridSolve):
         """The model integrated from ``z0 (S, M)`` together with its sensitivities to the unknowns,
         the solver's steps differentiated, on the grid of the chunk's samples ``idx``: by Rodas5P
         (:mod:`torchql.solvers.sensitivity`, landing as :meth:`_landing` says) for a stiff model,
-        the ``"rodas5p"`` propagator and the samples in ``fast_decay`` (their decay along an
-        iterate outran DOP853's steps), else by the batched explicit pair of ``solver``
+        the ``"rodas5p"`` propagator and the samples in ``fast_decay`` (a decay held most of the
+        explicit pair's steps in an earlier such solve, with ``solver="auto"``), else by the
+        batched explicit pair of ``solver``
         (:mod:`torchql.dopri_sensitivity`, landing on every node). Returns ``traj (S, G, M)``,
         ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
         :meth:`~torchql.problem.Problem.columns`) and error messages (None: ok). A sample that
@@ -379,7 +380,7 @@ class Evaluation(GridSolve):
                                                          ((~implicit).nonzero().flatten(), False)) if rows.numel()]
         if len(parts) == 1:
             z, V, errors = self._sensitivities_by(idx, z0, first, parts[0][1])
-        else:  # samples whose decay outran DOP853's steps, and the others
+        else:  # samples whose decay held DOP853's steps, and the others
             G = self._grid_of(idx).shape[-1]
             z = z0.new_empty(idx.numel(), G, z0.shape[1])
             V = z0.new_empty(idx.numel(), G, first.shape[1], first.shape[2] - 1)
@@ -405,11 +406,14 @@ class Evaluation(GridSolve):
                                                   interval_steps=spec.max_steps)
                 self.nfev += sol.n_f
                 return z, V, [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
+            held: list = []
             z, V, errors, evals = explicit_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx),
                                                          rtol=spec.rtol, atol=spec.atol, method=spec.solver,
-                                                         interval_steps=spec.max_steps)
+                                                         interval_steps=spec.max_steps, held=held)
         self.nfev += evals
         self._note_stiff(idx, errors)
+        if spec.stiff_refit:  # "auto": where a decay held most of the explicit pair's steps, Rodas5P's from now on
+            self.fast_decay.update(int(i) for i, part, e in zip(idx.tolist(), held, errors) if part > 0.5 and e is None)
         return z, V, errors
 
     def _model_from_data(self, idx, z0, reference):

@@ -35,13 +35,14 @@ from .data_start import sse_at_guesses
 from .diagnosis import negligible_columns, typical_magnitudes
 from .budget import TimeBudgetExceeded, no_time_budget, until
 from .dopri import dopri_batch
+from .dopri_sensitivity import HELD_STEP
 from .engine_state import not_above
 from .engine_steps import predicted_decrease
 from .engine_diagnosis import FinalDiagnosis
 from .engine_grid import pad_nodes
 from .result import Status
 from .solvers import STIFF_SOLVERS
-from .stiffness import IMPLICIT_SENSITIVITY_RATIO, STIFF_LINEAR_SOLVER
+from .stiffness import STIFF_LINEAR_SOLVER
 from .storage_check import interpolation_misfit, storage_misses
 from .transfer import interval_coefficients
 from .uncertainty import covariance, residual_variance
@@ -157,8 +158,8 @@ class FinalPass(FinalDiagnosis):
                           "integrated the sensitivities with the solution; a finer `grid` makes the iterations "
                           "faithful too.")
         for k in sorted(self.joint_final - set(self.storage_missed)):
-            by = (" (Rodas5P's with their sensitivities, its decay rate times the span above "
-                  f"{IMPLICIT_SENSITIVITY_RATIO:g})" if k in self.fast_decay else "")
+            by = (" (Rodas5P's with their sensitivities: a decay held most of DOP853's steps, "
+                  f"h max(-Re lambda) >= {HELD_STEP:g})" if k in self.fast_decay else "")
             detail[k] += (" The storage grid misses a change of the model between its nodes, or the model is faster "
                           "than the grid: an interval needed more steps than the grid solver takes. The model's "
                           f"solutions were integrated by the adaptive solver{by}, and the final pass integrated the "

@@ -21,20 +21,11 @@ from torch.func import jacrev, vmap
 
 from .solvers import STIFF_SOLVERS
 
-__all__ = ["STIFF_RATIO", "IMPLICIT_SENSITIVITY_RATIO", "AUTO", "STIFF_SOLVER", "EXPLICIT_SOLVER", "STIFF_LINEAR_SOLVER", "stiffness_ratio",
-           "states_from_data", "choose_solver", "linear_solver_for", "stiff_along", "node_decay"]
+__all__ = ["STIFF_RATIO", "AUTO", "STIFF_SOLVER", "EXPLICIT_SOLVER", "STIFF_LINEAR_SOLVER", "stiffness_ratio",
+           "states_from_data", "choose_solver", "linear_solver_for", "stiff_along"]
 
 #: ``max(-Re lambda) * span`` above which ``solver="auto"`` takes the stiff path.
 STIFF_RATIO = 1e4
-#: ``max(-Re lambda) * span`` along an accepted iterate, at more than half its observation times,
-#: above which a sample too fast for its grid (the engine's ``coarse_grid``) has its solutions with
-#: their sensitivities integrated by Rodas5P rather than DOP853, whose steps at a fit's tolerance
-#: are held at ``h |lambda|`` of 1.3 to 3.5 there, each with twelve stage Jacobians to differentiate
-#: where Rodas5P's takes one. A relaxation ``x' = -k (x - cos t)`` over 10 time units, simulated at
-#: rtol 1e-10: DOP853 and Rodas5P alike at ``k * span = 100``, Rodas5P 2 and 3 times faster at 300
-#: and 1e3. (A decay only where a friction switches, ``tanh(50 v)`` near ``v = 0``, is no such
-#: hold: DOP853's steps there are short for accuracy.)
-IMPLICIT_SENSITIVITY_RATIO = 100.0
 #: The name that asks for the choice.
 AUTO = "auto"
 #: What ``"auto"`` takes for a stiff model, and for any other: Hairer's eighth-order DOP853, whose
@@ -99,31 +90,24 @@ def stiff_along(jac: torch.Tensor, n: int, span: torch.Tensor) -> torch.Tensor:
     explicit solver, as :func:`choose_solver` asks along the data: a
     fitted relaxation rate of 1e4 from a guess of 1 (``tests/test_engine_run.py``) is stiff at the
     iterates though not at the guesses, and at the fit's tolerance DOP853's steps there are held at
-    ``h |lambda|`` of 1.3 to 3.5, below its stiffness test's bound."""
-    return node_decay(jac, n, span, STIFF_RATIO).amax(dim=1) > STIFF_RATIO
-
-
-def node_decay(jac: torch.Tensor, n: int, span: torch.Tensor, floor: float) -> torch.Tensor:
-    """The fastest decay rate at each node of a trajectory times its sample's ``span (S,)``, where it
-    exceeds ``floor``: ``(S, G)``, 0 where it does not (or where the Jacobians ``jac (S, G, N, N)``,
-    of which the first ``n`` rows and columns count, are not finite). The eigenvalues are computed
+    ``h |lambda|`` of 1.3 to 3.5, below its stiffness test's bound. The eigenvalues are computed
     only at the nodes whose Gershgorin bound on the decay rates (the largest ``-a_ii + sum_{j != i}
-    |a_ij|`` over the rows) reaches ``floor``: at none for a model that is not stiff."""
+    |a_ij|`` over the rows) reaches the ratio: at none for a model that is not stiff."""
     A = jac[..., :n, :n]
     S = A.shape[0]
     rate = span.to(A.dtype).abs().reshape(S, 1)
-    ratio = A.new_zeros(A.shape[:2])
     with torch.no_grad():
         rows = A.abs().sum(dim=-1)  # each row's sum bounds its Gershgorin bound: most models end here
-        if float(rows.amax()) * float(rate.amax()) <= floor:
-            return ratio
+        if float(rows.amax()) * float(rate.amax()) <= STIFF_RATIO:
+            return torch.zeros(S, dtype=torch.bool, device=A.device)
         bound = (rows - A.diagonal(dim1=-2, dim2=-1).abs() - A.diagonal(dim1=-2, dim2=-1)).amax(dim=-1)
-        nodes = (bound * rate > floor) & torch.isfinite(A).flatten(2).all(dim=-1)  # (S, G)
+        nodes = (bound * rate > STIFF_RATIO) & torch.isfinite(A).flatten(2).all(dim=-1)  # (S, G)
+        stiff = torch.zeros(S, dtype=torch.bool, device=A.device)
         if bool(nodes.any()):
             sample, node = nodes.nonzero(as_tuple=True)
-            decay = (-torch.linalg.eigvals(A[sample, node]).real).amax(dim=-1) * rate[sample, 0]
-            ratio[sample, node] = decay.where(decay > floor, 0.0)
-    return ratio
+            decay = (-torch.linalg.eigvals(A[sample, node]).real).amax(dim=-1)
+            stiff[sample[decay * rate[sample, 0] > STIFF_RATIO]] = True
+    return stiff
 
 
 def choose_solver(solver: str, system, t: torch.Tensor, y: torch.Tensor, observed: list, x0: torch.Tensor,
