@@ -105,6 +105,9 @@ def test_bad_specifications_are_named(data, parameters, kwargs, error, match):
     (dict(scale="ln"), ValueError, r"`Parameter.scale` must be one of \['lin', 'log', 'log10'\]; received 'ln'"),
     (dict(vary=1), TypeError, r"`Parameter.vary` must be True or False"),
     (dict(min="0"), TypeError, r"`Parameter.min` must be a number or None"),
+    (dict(min=float("nan")), ValueError, r"`Parameter.min` must be a number \(or None for no bound\), not NaN"),
+    (dict(min=2.0, max=1.0), ValueError, r"`Parameter.min` must be below `Parameter.max`; received min=2.0, max=1.0"),
+    (dict(min=1.0, max=1.0), ValueError, r"`Parameter.min` must be below `Parameter.max`"),
 ])
 def test_bad_parameter_fields_are_named(kwargs, error, match):
     with pytest.raises(error, match=match):

@@ -79,9 +79,13 @@ class Parameter:
                             f"{type(self.expr).__name__}")
         for side in ("min", "max"):
             bound = getattr(self, side)
-            if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float))
-                                      or math.isnan(bound)):
+            if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float))):
                 raise TypeError(f"`Parameter.{side}` must be a number or None; received {bound!r}")
+            if bound is not None and math.isnan(bound):
+                raise ValueError(f"`Parameter.{side}` must be a number (or None for no bound), not NaN")
+        if self.min is not None and self.max is not None and not self.min < self.max:
+            raise ValueError(f"`Parameter.min` must be below `Parameter.max`; received min={self.min!r}, "
+                             f"max={self.max!r}")
         # roles that exclude each other are an error, as the keywords they stand for make them
         given = {name: getattr(self, name) for name in ("min", "max") if getattr(self, name) is not None}
         if self.scale != "lin":
