@@ -172,3 +172,27 @@ def test_runs_of_a_batch_share_the_budget_counted_from_the_call():
     spent = _fit_runs(runs, Decay(k=0.2), data, x0, guesses=None, max_time=1.0, progress=False, callback=None,
                       started=time.monotonic() - 2.0)
     assert [s.name for s in spent.status] == ["MAX_TIME"] * 3
+
+
+def test_the_callback_receives_the_iterate_a_fit_stopped_at_when_its_time_ran_out(monkeypatch):
+    """The time budget ran out while a step from the third iterate was being made: the fit's result
+    is that iterate (``MAX_TIME``), and ``history`` ends with its record, which the callback had
+    not been handed (no step from it was decided). It is handed over as the fit stops."""
+    from torchql.engine import Engine
+
+    real, calls = Engine._propose, []
+
+    def propose(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise TimeBudgetExceeded("time's up")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Engine, "_propose", propose)
+    seen = []
+    data = torchql.Observations(T, Y, observe=["y"])
+    result = torchql.fit(Decay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), callback=seen.append, max_time=60.0,
+                         **INTEGRATE)
+    assert result.status is torchql.Status.MAX_TIME
+    assert len(result.history) >= 3
+    assert [id(r) for r in seen] == [id(r) for r in result.history]

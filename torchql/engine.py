@@ -71,6 +71,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         #: each sample's iterates (``torchql.fit``'s ``history``), when kept, and the open record
         self.history: list[list[IterationRecord]] | None = [[] for _ in range(index.numel())] if history else None
         self.callback = callback
+        self.notified: dict = {}  # per sample, the last record handed to the callback
         self.propagation_errors: dict[int, str] = {}  # chunk row: a per-sample propagator's message
         self.stiff_met: set[int] = set()  # chunk rows whose model an explicit pair found stiff
         self.stopped_stiff: set[int] = set()  # ... and that stopped so (solver="auto" fits them again)
@@ -176,6 +177,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
             st.stop((st.status == RUNNING).nonzero().flatten(), Status.MAX_TIME)
         for r, c in enumerate(st.status.tolist()):
             if c == _STATUSES.index(Status.MAX_TIME):
+                self._notify_unsent(r)
                 budget = "an enclosing fit's" if self.max_time is None else f"{self.max_time:g} s"
                 st.detail[r] = (f" Stopped after {int(st.iterations[r])} iterations (max_time = {budget}), not "
                                 "evaluated further." + st.detail[r])

@@ -52,3 +52,14 @@ class Records:
             return
         for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
             self.callback(int(self.index[r]), self.history[r][-1])
+            self.notified[r] = self.history[r][-1]
+
+    def _notify_unsent(self, rows) -> None:
+        """Hand the open records of samples ``rows`` to the callback where it has not had them: an
+        iterate whose step the time budget cut short is the result's (``MAX_TIME``) though no step
+        from it was decided."""
+        if self.callback is None or self.history is None:
+            return
+        for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
+            if self.history[r] and self.notified.get(r) is not self.history[r][-1]:
+                self._notify(r)
