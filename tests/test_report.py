@@ -78,6 +78,8 @@ def test_aic_bic_follow_lmfit(car):
     text = car.report()
     assert f"AIC                = {aic:.7g}" in text
     assert f"BIC                = {bic:.7g}" in text
+    # beside the -log likelihood, the convention is named: these are not 2 NLL + 2 m
+    assert f"AIC                = {aic:.7g} (lmfit's: N ln(SSE/N) + 2 m, from the SSE; not 2 NLL + 2 m)" in text
 
 
 def test_condition_number_and_iteration_table(car):
