@@ -218,8 +218,9 @@ def _statistics_section(result: "FitResult") -> list[str]:
         add(f"    residual std       = {_g(math.sqrt(rv) if rv >= 0 else math.nan)} (estimated, sqrt(SSE / dof))")
     add(f"    -log likelihood    = {_g(result.nll)}")
     likelihood = result.sigma is not None or result.noise != "normal" or bool(result.sigma_function)
-    add(f"    AIC                = {_g(aic)}" + (" (2 NLL + 2 k, k: the unknowns and the estimated sigmas)" if likelihood
-                                              else " (lmfit's: N ln(SSE/N) + 2 m, from the SSE; not 2 NLL + 2 m)"))
+    convention = (" (2 NLL + 2 k, k: the unknowns and the estimated sigmas)" if likelihood
+                  else " (lmfit's: N ln(SSE/N) + 2 m, from the SSE; not 2 NLL + 2 m)")
+    add(f"    AIC                = {_g(aic)}" + convention)
     add(f"    BIC                = {_g(bic)}" + (" (2 NLL + ln(N) k)" if likelihood else " (N ln(SSE/N) + ln(N) m)"))
     add(f"    condition number   = {_g(condition_number(result), 4)} (column-scaled weighted Jacobian)")
     return lines
