@@ -267,3 +267,27 @@ def test_several_experiments_carry_the_bounds_and_bounded_intervals():
     half = student_t_quantile(0.975, result.dof) * se / k_hat
     assert cis["k"] == pytest.approx((k_hat * math.exp(-half), k_hat * math.exp(half)), rel=1e-12)
     assert all(0 < lo < hi for lo, hi in cis.values())
+
+
+@pytest.mark.parametrize("upper", [None, 1.0])
+def test_an_estimate_just_inside_its_bound_gets_the_interval_about_it_clipped(upper):
+    """A bound 0.05 standard errors below the estimate: the Wald half-width of ``log(k - lo)`` is 40,
+    and its interval mapped back was (lo, 1e16) for a rate the data determine to 10 %. Past a
+    half-width of 3 (a factor 20) the interval is the one about the estimate, clipped to the bounds,
+    as on the bound itself; further inside, the mapped interval stays (the test above)."""
+    free = _decay_fit()
+    k_hat, se = free.estimates[1].item(), free.stderr["k"]
+    q = student_t_quantile(0.975, 7)
+    lo = k_hat - 0.05 * se
+    near = _decay_fit({"k": (lo, upper)})
+    assert near.success and near.estimates[1].item() == pytest.approx(k_hat, rel=1e-7)
+    ends = near.confidence_intervals(0.95)["k"]
+    assert ends[0] == lo
+    assert ends[1] == pytest.approx(near.estimates[1].item() + q * near.stderr["k"], rel=1e-12)
+    if upper is None:  # further inside, half-width 0.5 in log(k - lo): the mapped interval
+        far = k_hat - 2 * q * se
+        inside = _decay_fit({"k": (far, None)})
+        a, b = inside.confidence_intervals(0.95)["k"]
+        d = inside.estimates[1].item() - far
+        assert a == pytest.approx(far + d * math.exp(-0.5), rel=1e-6)
+        assert b == pytest.approx(far + d * math.exp(0.5), rel=1e-6)

@@ -174,6 +174,11 @@ def student_t_quantile(p: float, dof: float) -> float:
     return 0.5 * (lo + hi)
 
 
+#: A bounded unknown whose internal variable's Wald half-width exceeds this (a factor e^3 = 20 in the
+#: distance to a single bound) gets the interval about the estimate clipped to its bounds instead.
+NEAR_BOUND_WIDTH = 3.0
+
+
 def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, level: float,
                    lower: torch.Tensor | None = None, upper: torch.Tensor | None = None,
                    valid: bool = True, log: torch.Tensor | None = None) -> dict[str, tuple[float, float]]:
@@ -186,8 +191,9 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     ``q_hat -/+ q * stderr / |du/dq|``, mapped back to ``u``: it lies inside the bounds and is
     asymmetric about the estimate (the delta method's standard error of ``q``). So does an
     unknown on a log scale (``log (m,)`` bool, ``None``: none), whose ``q`` is in ``log u``. An
-    estimate on its bound (:meth:`~torchql.bounds.Bounds.at_bound`), where ``du/dq`` vanishes,
-    gets ``estimate -/+ q * stderr`` clipped to the bounds.
+    estimate on its bound (:meth:`~torchql.bounds.Bounds.at_bound`), where ``du/dq`` vanishes, or
+    so near one that the internal variable's half-width passes :data:`NEAR_BOUND_WIDTH`, gets
+    ``estimate -/+ q * stderr`` clipped to the bounds.
 
     ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual variance
     was estimated (NaN without degrees of freedom), the normal quantile when ``sigma`` was
@@ -227,8 +233,13 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
             # on its bound the internal variable's standard error is unbounded (``du/dq`` -> 0): the
             # interval about the estimate, clipped to the bounds (a c >= 0 at 4e-36 with standard
-            # error 0.0047 had (0, inf))
-            for name in bounds.at_bound(u, stderr=se):
+            # error 0.0047 had (0, inf)); so near one, where the internal variable's half-width
+            # passes NEAR_BOUND_WIDTH and its linearization means nothing over it (k >= 1.2 at
+            # 1.20057, standard error 0.0107: 37 in log(k - 1.2), the interval (1.2, 8.4e12))
+            near = set(bounds.at_bound(u, stderr=se))
+            wide = (q * se_q > NEAR_BOUND_WIDTH) & (bounds.has_lower | bounds.has_upper)
+            near |= {names[i] for i in (bounded & wide).nonzero().flatten().tolist()}
+            for name in sorted(near, key=names.index):
                 i = names.index(name)
                 lo, hi = float(bounds.lower[i]), float(bounds.upper[i])
                 out[name] = (max(lo, float(u[i]) - q * ses[i]), min(hi, float(u[i]) + q * ses[i]))
