@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchql
-from testmodels import Decay
+from testmodels import Decay, counting
 from torchql.models import HarmonicOscillator, LinearOscillator
 
 #: The module (``torchql.multistart`` the attribute is the function of the same name).
@@ -103,15 +103,8 @@ def test_batched_path_gives_the_loop_best_and_optima(monkeypatch):
     kwargs = dict(starts=6, spread=4.0, seed=3, grid=100, max_iter=12, method="kantorovich")  # 2 starts: MAX_ITER
 
     calls = {"fit_many": 0, "fit": 0}
-
-    def counted(name, function):
-        def wrapper(*a, **k):
-            calls[name] += 1
-            return function(*a, **k)
-        return wrapper
-
-    monkeypatch.setattr(multistart_module, "fit_many", counted("fit_many", multistart_module.fit_many))
-    monkeypatch.setattr(multistart_module, "fit", counted("fit", multistart_module.fit))
+    monkeypatch.setattr(multistart_module, "fit_many", counting(calls, "fit_many", multistart_module.fit_many))
+    monkeypatch.setattr(multistart_module, "fit", counting(calls, "fit", multistart_module.fit))
     batched = torchql.multistart(*args, **kwargs)
     assert batched.batched and calls == {"fit_many": 1, "fit": 1}  # one batch, then the best's full fit
     assert isinstance(batched.best, torchql.FitResult) and batched.best.success

@@ -123,3 +123,12 @@ def lag_data(k: float, seed: int = 2) -> torchql.Observations:
                          rtol=1e-12, atol=1e-16)[1:]
     y = x + 1e-4 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
     return torchql.Observations(t, y, observe=["x", "y"], sigma=1e-4)
+
+
+def counting(calls: dict, name: str, function):
+    """``function`` wrapped to add one to ``calls[name]`` at every call (a test's spy on a solver or
+    an entry point, set with ``monkeypatch.setattr``)."""
+    def wrapper(*args, **kwargs):
+        calls[name] += 1
+        return function(*args, **kwargs)
+    return wrapper
