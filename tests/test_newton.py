@@ -171,3 +171,21 @@ def test_a_step_below_xtol_far_from_any_root_is_not_success():
     assert "no root was found" in sol.message and "ftol" in sol.message
     near = torchql.newton_raphson(torch.sin, torch.tensor([3.0], dtype=torch.float64))
     assert near.success and abs(float(near.x[0]) - math.pi) < 1e-15
+
+
+@pytest.mark.parametrize("start", [math.sqrt(2.0), 1.4142135623731, 1.414213562373])
+def test_a_guess_at_the_root_converges(start):
+    """From the root itself (or within rounding of it) the residual cannot fall a thousandfold: it
+    is at its rounding from the start (4e-16), and that is convergence."""
+    sol = torchql.newton_raphson(lambda x: x**2 - 2.0, torch.tensor([start], dtype=torch.float64))
+    assert sol.success, sol.message
+    assert abs(float(sol.x[0]) - math.sqrt(2.0)) < 1e-15
+
+
+def test_a_scaled_residual_at_its_rounding_converges():
+    """``1e8 (e^x - 3)`` near ``ln 3``: the residual's rounding is about 1e-7; from 2.9e-6 it falls to
+    4.4e-8, 65 times, and that is the root to rounding."""
+    sol = torchql.newton_raphson(lambda x: 1e8 * (torch.exp(x) - 3.0), torch.tensor([1.0986122886681],
+                                                                                    dtype=torch.float64))
+    assert sol.success, sol.message
+    assert abs(float(sol.x[0]) - math.log(3.0)) < 1e-15

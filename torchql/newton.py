@@ -13,9 +13,10 @@ from ._arrays import float_tensor
 
 __all__ = ["newton_raphson", "NewtonResult", "ROOT_FALL"]
 
-#: A step below ``xtol`` is convergence only where the residual fell to this fraction of the guess's:
-#: ``sin(x)`` from ``pi / 2`` (where its derivative is 6e-17) was thrown to ``x = -1.6e16``, where every
-#: step is below ``xtol`` beside ``|x|``, and was reported converged with ``|sin(x)| = 0.66``.
+#: A step below ``xtol`` is convergence only where the residual fell to this fraction of the guess's,
+#: or to its rounding at the guess's scale (``100 eps ||J|| max(|x|, 1)`` there: a guess at the root
+#: itself): ``sin(x)`` from ``pi / 2`` (where its derivative is 6e-17) was thrown to ``x = -1.6e16``,
+#: where every step is below ``xtol`` beside ``|x|``, and was reported converged with ``|sin(x)| = 0.66``.
 ROOT_FALL = 1e-3
 
 
@@ -29,7 +30,7 @@ class NewtonResult:
         The last iterate.
     success : bool
         Whether the residual fell below ``ftol``, or the step below ``xtol`` (relative) with the
-        residual below :data:`ROOT_FALL` of the guess's.
+        residual below :data:`ROOT_FALL` of the guess's or at the rounding of its guess's scale.
     message : str
         Why it stopped.
     iterations : int
@@ -71,10 +72,10 @@ def newton_raphson(
         Stop when ``max |dx_i| <= xtol * max(|x_i|, 1)``. Default ``1e-12`` in float64, 100 roundoffs
         in a lower precision (``1.2e-5`` in float32: a Newton step there is rounding once the
         iterate is within a few roundoffs of the root). That is success only where ``max |R(x)|``
-        fell to :data:`ROOT_FALL` of the guess's (else no root was found, and the message says so).
+        fell to :data:`ROOT_FALL` of the guess's, or to rounding (``100 eps ||J|| max(|x|, 1)`` at the
+        guess); else no root was found, and the message says so.
     ftol : float
-        Stop when ``max |R(x)| <= ftol``, a success (give it where the guess may already be within
-        a thousandth of the residual's roundoff).
+        Stop when ``max |R(x)| <= ftol``, a success.
     jacobian : callable ``J(x) -> (m, m)``, optional
         Analytic Jacobian; default :func:`torch.func.jacrev` of ``residual``. Non-square
         systems are solved in the least-squares sense (Gauss–Newton).
@@ -95,6 +96,7 @@ def newton_raphson(
     jac_fn = jacobian if jacobian is not None else jacrev(residual)
     history, norms = [x.clone()], []
     r = residual(x)
+    roundoff = math.nan  # the residual's rounding at the guess's scale (set with its first Jacobian)
     if not isinstance(r, torch.Tensor) or r.dim() != 1:
         raise ValueError("`residual` must return a one-dimensional tensor (m,)")
     norms.append(float(r.abs().max()))
@@ -107,6 +109,8 @@ def newton_raphson(
         J = jac_fn(x)
         if J.shape != (r.shape[0], x.shape[0]):
             raise ValueError(f"`jacobian` must return shape ({r.shape[0]}, {x.shape[0]}); received {tuple(J.shape)}")
+        if it == 1:
+            roundoff = 100 * torch.finfo(x.dtype).eps * float(J.abs().sum(dim=1).max()) * max(float(x.abs().max()), 1.0)
         if J.shape[0] == J.shape[1]:
             dx, info = torch.linalg.solve_ex(J, -r)
             if int(info) != 0 or not torch.isfinite(dx).all():
@@ -126,10 +130,10 @@ def newton_raphson(
             message, success = "Converged.", True
             break
         if float((dx.abs() / x.abs().clamp_min(1.0)).max()) <= xtol:
-            success = norms[-1] <= ROOT_FALL * norms[0]
+            success = norms[-1] <= max(ROOT_FALL * norms[0], roundoff)
             message = ("Converged." if success else
                        f"The step fell below `xtol`, but max |R(x)| = {norms[-1]:.3g} is not below {ROOT_FALL:g} of the "
-                       f"guess's {norms[0]:.3g}: no root was found (the iterate is at max |x| = "
+                       f"guess's {norms[0]:.3g} nor at its rounding: no root was found (the iterate is at max |x| = "
                        f"{float(x.abs().max()):.3g}, where such a step is small beside it). Start from another guess, "
                        "or give `ftol` the residual that counts as a root.")
             break
