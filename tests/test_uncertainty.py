@@ -291,3 +291,44 @@ def test_an_estimate_just_inside_its_bound_gets_the_interval_about_it_clipped(up
         d = inside.estimates[1].item() - far
         assert a == pytest.approx(far + d * math.exp(-0.5), rel=1e-6)
         assert b == pytest.approx(far + d * math.exp(0.5), rel=1e-6)
+
+
+class _Inflow(torchql.ODEModel):
+    """``x' = -k x + c``: an inflow ``c`` the data barely see."""
+
+    state_names = ("x",)
+
+    def __init__(self, k: float = 0.7, c: float = 0.3) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.tensor(k, dtype=DT))
+        self.register_buffer("c", torch.tensor(c, dtype=DT))
+
+    def forward(self, t, x):
+        return -self.k * x + self.c
+
+
+def _inflow_fit(c_true: float, seed: int, **options):
+    t = torch.linspace(0, 4, 15, dtype=DT)
+    x = torchql.simulate(_Inflow(1.0, c_true), torch.tensor([1.0], dtype=DT), t, rtol=1e-12, atol=1e-14)
+    noise = 0.01 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=DT)
+    return torchql.fit(_Inflow(), torchql.Observations(t, x + noise, observe=["x"]), torch.tensor([1.0], dtype=DT),
+                       **options)
+
+
+def test_a_log_scaled_unknown_near_its_bound_or_at_zero_gets_the_interval_about_it_clipped():
+    """``c >= 1e-3`` on a log scale, estimated at 0.0036 with standard error 0.0062: its internal
+    variable is ``log(log c - log 1e-3)``, whose half-width of 2.3 mapped back to (0.00107, 3.2e7).
+    The reach of the mapped interval is measured in ``c`` itself: the interval is that of the linear
+    scale, (1e-3, 0.0171). Unbounded on a log scale at ``c = 1.8e-31`` (the data want it below 0):
+    ``c -/+ q se`` had a negative lower end; a log scale's edge is 0."""
+    linear = _inflow_fit(1e-3, 7, bounds={"c": (1e-3, None)})
+    logged = _inflow_fit(1e-3, 7, bounds={"c": (1e-3, None)}, scale={"c": "log"})
+    assert linear.success and logged.success
+    lo, hi = logged.confidence_intervals(0.95)["c"]
+    assert lo == 1e-3 and hi == pytest.approx(linear.confidence_intervals(0.95)["c"][1], rel=1e-6)
+    assert hi < 0.02
+    edge = _inflow_fit(0.0, 1, scale={"c": "log"})
+    assert edge.success and edge.params["c"].item() < 1e-20
+    lo, hi = edge.confidence_intervals(0.95)["c"]
+    q = student_t_quantile(0.975, edge.dof)
+    assert lo == 0.0 and hi == pytest.approx(edge.params["c"].item() + q * edge.stderr["c"], rel=1e-12)

@@ -174,8 +174,12 @@ def student_t_quantile(p: float, dof: float) -> float:
     return 0.5 * (lo + hi)
 
 
-#: A bounded unknown whose internal variable's Wald half-width exceeds this (a factor e^3 = 20 in the
-#: distance to a single bound) gets the interval about the estimate clipped to its bounds instead.
+#: A bounded unknown whose mapped interval reaches further from the estimate than this many times the
+#: Wald half-width ``q * stderr`` (in its own units, whatever its scale), or whose internal variable's
+#: half-width exceeds :data:`NEAR_BOUND_WIDTH` (two bounds: the interval spans their range), gets the
+#: interval about the estimate clipped to its bounds instead (a positive rate whose interval crosses
+#: 0 reaches twice as far).
+NEAR_BOUND_REACH = 20.0
 NEAR_BOUND_WIDTH = 3.0
 
 
@@ -192,8 +196,9 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     asymmetric about the estimate (the delta method's standard error of ``q``). So does an
     unknown on a log scale (``log (m,)`` bool, ``None``: none), whose ``q`` is in ``log u``. An
     estimate on its bound (:meth:`~torchql.bounds.Bounds.at_bound`), where ``du/dq`` vanishes, or
-    so near one that the internal variable's half-width passes :data:`NEAR_BOUND_WIDTH`, gets
-    ``estimate -/+ q * stderr`` clipped to the bounds.
+    so near one that the mapped interval reaches past :data:`NEAR_BOUND_REACH` times ``q * stderr``
+    or the internal half-width past :data:`NEAR_BOUND_WIDTH`, gets ``estimate -/+ q * stderr``
+    clipped to the bounds (and to 0 on a log scale).
 
     ``q`` is Student's t quantile with ``dof`` degrees of freedom when the residual variance
     was estimated (NaN without degrees of freedom), the normal quantile when ``sigma`` was
@@ -233,14 +238,18 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
             # on its bound the internal variable's standard error is unbounded (``du/dq`` -> 0): the
             # interval about the estimate, clipped to the bounds (a c >= 0 at 4e-36 with standard
-            # error 0.0047 had (0, inf)); so near one, where the internal variable's half-width
-            # passes NEAR_BOUND_WIDTH and its linearization means nothing over it (k >= 1.2 at
-            # 1.20057, standard error 0.0107: 37 in log(k - 1.2), the interval (1.2, 8.4e12))
+            # error 0.0047 had (0, inf)); so near one, where the mapped interval reaches past
+            # NEAR_BOUND_REACH times the Wald half-width and the internal variable's linearization
+            # means nothing over it (k >= 1.2 at 1.20057, standard error 0.0107: (1.2, 8.4e12))
             near = set(bounds.at_bound(u, stderr=se))
-            wide = (q * se_q > NEAR_BOUND_WIDTH) & (bounds.has_lower | bounds.has_upper)
+            reach = torch.maximum(ends[1] - u, u - ends[0])  # in the unknown's units, whatever its scale
+            wide = (reach > NEAR_BOUND_REACH * q * se) | (q * se_q > NEAR_BOUND_WIDTH)
+            wide &= bounds.has_lower | bounds.has_upper
             near |= {names[i] for i in (bounded & wide).nonzero().flatten().tolist()}
             for name in sorted(near, key=names.index):
                 i = names.index(name)
                 lo, hi = float(bounds.lower[i]), float(bounds.upper[i])
+                if bool(bounds.log[i]):  # a log scale's edge is 0
+                    lo = max(lo, 0.0)
                 out[name] = (max(lo, float(u[i]) - q * ses[i]), min(hi, float(u[i]) + q * ses[i]))
     return {name: ends if math.isfinite(s) else (nan, nan) for (name, ends), s in zip(out.items(), ses)}
