@@ -6,6 +6,7 @@ specification gives the same fit as the keywords it stands for (``params``, ``fi
 left as they were.
 """
 
+import math
 import pytest
 import torch
 
@@ -108,6 +109,8 @@ def test_bad_specifications_are_named(data, parameters, kwargs, error, match):
     (dict(min=float("nan")), ValueError, r"`Parameter.min` must be a number \(or None for no bound\), not NaN"),
     (dict(min=2.0, max=1.0), ValueError, r"`Parameter.min` must be below `Parameter.max`; received min=2.0, max=1.0"),
     (dict(min=1.0, max=1.0), ValueError, r"`Parameter.min` must be below `Parameter.max`"),
+    (dict(min=math.inf), ValueError, r"`Parameter.min` must be below inf and `Parameter.max` above -inf"),
+    (dict(max=-math.inf), ValueError, r"received min=None, max=-inf"),
 ])
 def test_bad_parameter_fields_are_named(kwargs, error, match):
     with pytest.raises(error, match=match):

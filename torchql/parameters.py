@@ -83,6 +83,9 @@ class Parameter:
                 raise TypeError(f"`Parameter.{side}` must be a number or None; received {bound!r}")
             if bound is not None and math.isnan(bound):
                 raise ValueError(f"`Parameter.{side}` must be a number (or None for no bound), not NaN")
+        if (self.min is not None and self.min == math.inf) or (self.max is not None and self.max == -math.inf):
+            raise ValueError(f"`Parameter.min` must be below inf and `Parameter.max` above -inf (None: no bound); "
+                             f"received min={self.min!r}, max={self.max!r}")
         if self.min is not None and self.max is not None and not self.min < self.max:
             raise ValueError(f"`Parameter.min` must be below `Parameter.max`; received min={self.min!r}, "
                              f"max={self.max!r}")
