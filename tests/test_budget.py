@@ -196,3 +196,15 @@ def test_the_callback_receives_the_iterate_a_fit_stopped_at_when_its_time_ran_ou
     assert result.status is torchql.Status.MAX_TIME
     assert len(result.history) >= 3
     assert [id(r) for r in seen] == [id(r) for r in result.history]
+
+
+def test_the_callback_receives_the_guesses_of_a_fit_stopped_before_its_first_step():
+    """A budget spent before the first step: ``history`` holds the guesses' record (the result's
+    estimates, unevaluated), and the callback gets it too, under the fit's budget (the final pass
+    that hands it over evaluates without one)."""
+    seen = []
+    data = torchql.Observations(T, Y, observe=["y"])
+    result = torchql.fit(Decay(k=0.2), data, x0=torch.tensor([1.0], dtype=DT), callback=seen.append, max_time=1e-9,
+                         **INTEGRATE)
+    assert result.status is torchql.Status.MAX_TIME and result.iterations == 0
+    assert result.history and [id(r) for r in seen] == [id(r) for r in result.history]

@@ -128,6 +128,7 @@ class FinalPass(FinalDiagnosis):
                 last = self.history[r][-1] if self.history[r] else None
                 if last is None or last.iteration != int(iterations[r]) or not torch.equal(last.x0, z0[r, :self.system.n]):
                     self.history[r].append(self._record(r, int(iterations[r]), z0[r], float("nan")))
+                    self._notify(r)  # (a fit stopped by its time budget before its first step)
         self._storage_notes(detail)
         for k, r in enumerate(self.index.tolist()):
             if spec.bounds.active:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import torch
 
+from .budget import deadline, until
 from .result import IterationRecord
 
 __all__ = ["Records"]
@@ -47,12 +48,15 @@ class Records:
                 setattr(record, key, value)
 
     def _notify(self, rows) -> None:
-        """Hand the open records of samples ``rows`` to the callback."""
+        """Hand the open records of samples ``rows`` to the callback, under the fit's own time budget
+        (the final pass evaluates without one; a callback's own work, a re-fit, keeps to the fit's)."""
         if self.callback is None or self.history is None:
             return
-        for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
-            self.callback(int(self.index[r]), self.history[r][-1])
-            self.notified[r] = self.history[r][-1]
+        moment = getattr(self, "deadline", None) if deadline() is None else deadline()
+        with until(moment):
+            for r in (rows.tolist() if isinstance(rows, torch.Tensor) else [rows]):
+                self.callback(int(self.index[r]), self.history[r][-1])
+                self.notified[r] = self.history[r][-1]
 
     def _notify_unsent(self, rows) -> None:
         """Hand the open records of samples ``rows`` to the callback where it has not had them: an
