@@ -57,21 +57,23 @@ def explicit_sensitivities(system, z0: torch.Tensor, columns: torch.Tensor, grid
     if not parts:  # no sample took a step: their first columns throughout
         return z, columns.unsqueeze(1).expand(S, grid.shape[-1], *columns.shape[1:]).clone(), messages, evals
     steps = StepRecord.join(parts, z0)
-    maps = [explicit_step_maps(system, pair, steps, slice(k, k + STEP_CHUNK))
+    maps = [explicit_step_maps(system, pair, steps, slice(k, k + STEP_CHUNK), decay=held is not None)
             for k in range(0, steps.t.shape[0], STEP_CHUNK)]
     change = torch.cat([m[0] for m in maps])
-    decay = torch.cat([m[1] for m in maps])  # (N,): h max(-Re lambda) at each step's start
     if held is not None:
+        decay = torch.cat([m[1] for m in maps])  # (N,): h max(-Re lambda) at each step's start
         counts = torch.bincount(steps.sample, minlength=S).to(z0.dtype)
         fraction = z0.new_zeros(S).index_add_(0, steps.sample, (decay >= HELD_STEP).to(z0.dtype))
         held[:] = (fraction / counts.clamp(min=1)).tolist()
     return z, compose_steps(steps, change, columns, grid.expand(S, grid.shape[-1])), messages, evals
 
 
-def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> tuple[torch.Tensor, torch.Tensor]:
+def explicit_step_maps(system, pair, steps: StepRecord, part: slice, decay: bool = False
+                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The state rows of the steps ``part``'s maps of the columns, ``(N, n, M)``: a step takes the
-    columns ``V (M, m)`` to ``V + [change @ V; 0]`` (the coefficients' rows are constant); and each
-    step's size times the fastest decay rate of the states' Jacobian at its start, ``(N,)``."""
+    columns ``V (M, m)`` to ``V + [change @ V; 0]`` (the coefficients' rows are constant); and, with
+    ``decay``, each step's size times the fastest decay rate of the states' Jacobian at its start,
+    ``(N,)`` (else None)."""
     n = system.n
     t, h, x, K = steps.t[part], steps.h[part], steps.y[part], steps.K[:, part]
     N, M = x.shape
@@ -86,5 +88,7 @@ def explicit_step_maps(system, pair, steps: StepRecord, part: slice) -> tuple[to
         G[i] = A[i]
         if i:
             G[i] += A[i, :, :, :n] @ (hc.unsqueeze(-1) * combine(pair.rows_a[i], G[:i]))
-    decay = (-torch.linalg.eigvals(A[0, :, :, :n]).real).amax(dim=-1).clamp(min=0)
-    return hc.unsqueeze(-1) * combine(pair.rows_a[last], G), h.abs() * decay
+    change = hc.unsqueeze(-1) * combine(pair.rows_a[last], G)
+    if not decay:
+        return change, None
+    return change, h.abs() * (-torch.linalg.eigvals(A[0, :, :, :n]).real).amax(dim=-1).clamp(min=0)

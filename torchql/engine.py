@@ -86,7 +86,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         #: samples whose current iterate needs more grid-solver steps than a trial may take (their
         #: trials are integrated by the adaptive solvers; see Evaluation._nonlinear)
         self.coarse_grid: set[int] = set()
-        #: ... whose explicit pair's steps most of the span were held by a decay (``held_steps`` of
+        #: ... whose explicit pair's steps were held by a decay most of the span (``held`` of
         #: :func:`~torchql.dopri_sensitivity.explicit_sensitivities`): their solutions with sensitivities
         #: are Rodas5P's from then on (Evaluation._solve_with_sensitivities)
         self.fast_decay: set[int] = set()

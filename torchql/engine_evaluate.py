@@ -16,7 +16,7 @@ from .batch_integrate import integrate_each, propagate_linear_batch
 from .dopri import dopri_batch, found_stiff
 from .dopri_sensitivity import explicit_sensitivities
 from .engine_grid_solve import GridSolve
-from .engine_state import _pick, bound_of, not_above
+from .engine_state import _pick, bound_of, members, not_above
 from .grid import DEFAULT_INTERVALS
 from .integrate import IntegrationError
 from .linearize import Linearization, linearize, map_fields
@@ -226,8 +226,8 @@ class Evaluation(GridSolve):
         is too coarse for the sample's model (a rough measured input, a fast mode), not the trial
         divergent, and the sample's trials are integrated by the adaptive solvers from then on;
         where it does not, the trial is tried by the adaptive solver, within a budget of steps
-        (:meth:`~torchql.engine_grid_solve.GridSolve._over_budget`). The other samples, or all without a guess, are integrated by
-        :func:`~torchql.dopri.dopri_batch` (``"dop853"``, ``"dopri5"``), the implicit
+        (:meth:`~torchql.engine_grid_solve.GridSolve._over_budget`). The other samples, or all
+        without a guess, are integrated by :func:`~torchql.dopri.dopri_batch` (``"dop853"``, ``"dopri5"``), the implicit
         :func:`~torchql.solvers.rodas5p_batch` (a stiff ``solver``), or each alone by torchdiffeq.
         ``stop``: the adaptive solvers' test of a sample (positions ``(L,)`` in ``idx``, its augmented
         states ``(L, G, M)`` so far, the next node) that ends it early, as a failure.
@@ -372,21 +372,20 @@ class Evaluation(GridSolve):
         trial needs one.
         """
         first = self.spec.columns(z0)
-        implicit = torch.full((idx.numel(),), self._joint_sensitivities or not self._batched_dopri(), dtype=torch.bool,
-                              device=idx.device)  # (a stiff solver is not batched dopri)
-        implicit |= torch.tensor([int(i) in self.fast_decay for i in idx.tolist()], dtype=torch.bool,
-                                 device=idx.device)
-        parts = [(rows, by_rodas) for rows, by_rodas in ((implicit.nonzero().flatten(), True),
-                                                         ((~implicit).nonzero().flatten(), False)) if rows.numel()]
-        if len(parts) == 1:
-            z, V, errors = self._sensitivities_by(idx, z0, first, parts[0][1])
+        if self._joint_sensitivities or not self._batched_dopri():  # (a stiff solver is not batched dopri)
+            implicit = torch.ones(idx.numel(), dtype=torch.bool, device=idx.device)
+        else:
+            implicit = members(self.fast_decay, idx)
+        if bool(implicit.all()) or not bool(implicit.any()):
+            z, V, errors = self._sensitivities_by(idx, z0, first, bool(implicit[0]))
         else:  # samples whose decay held DOP853's steps, and the others
             G = self._grid_of(idx).shape[-1]
             z = z0.new_empty(idx.numel(), G, z0.shape[1])
             V = z0.new_empty(idx.numel(), G, first.shape[1], first.shape[2] - 1)
             errors = [None] * idx.numel()
-            for rows, by_rodas in parts:
-                z[rows], V[rows], part_errors = self._sensitivities_by(idx[rows], z0[rows], first[rows], by_rodas)
+            for rodas in (True, False):
+                rows = (implicit == rodas).nonzero().flatten()
+                z[rows], V[rows], part_errors = self._sensitivities_by(idx[rows], z0[rows], first[rows], rodas)
                 for k, e in zip(rows.tolist(), part_errors):
                     errors[k] = e
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
@@ -406,13 +405,13 @@ class Evaluation(GridSolve):
                                                   interval_steps=spec.max_steps)
                 self.nfev += sol.n_f
                 return z, V, [None if bool(sol.ok[k]) else sol.message(k) for k in range(z0.shape[0])]
-            held: list = []
+            held = [] if spec.stiff_refit else None  # "auto": where a decay held most steps, Rodas5P's from now on
             z, V, errors, evals = explicit_sensitivities(self.system, z0, first[..., 1:], self._grid_of(idx),
                                                          rtol=spec.rtol, atol=spec.atol, method=spec.solver,
                                                          interval_steps=spec.max_steps, held=held)
         self.nfev += evals
         self._note_stiff(idx, errors)
-        if spec.stiff_refit:  # "auto": where a decay held most of the explicit pair's steps, Rodas5P's from now on
+        if held is not None:
             self.fast_decay.update(int(i) for i, part, e in zip(idx.tolist(), held, errors) if part > 0.5 and e is None)
         return z, V, errors
 

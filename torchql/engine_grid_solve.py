@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import torch
 
+from .engine_state import members
 from .grid import refine
 from .grid_solve import solve_on_grid_batch
 from .linearize import flow_rates
@@ -89,7 +90,7 @@ class GridSolve:
     def _in_coarse_grid(self, idx) -> torch.Tensor:
         """Whether each of the chunk's samples ``idx`` is one whose model is too fast for its grid's
         solver (``coarse_grid``: the adaptive solvers take its solutions), bool ``(S,)``."""
-        return torch.tensor([int(i) in self.coarse_grid for i in idx.tolist()], dtype=torch.bool, device=idx.device)
+        return members(self.coarse_grid, idx)
 
     def _over_budget(self, idx, rows, z0, rtol, atol, traj, ok, errors, stop) -> None:
         """The trials of the samples ``rows`` (positions in ``idx``) that need more steps than the

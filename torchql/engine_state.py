@@ -14,7 +14,8 @@ from .status import Status
 if TYPE_CHECKING:
     from .engine import Engine
 
-__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "by_level", "shifted_report", "not_above", "bound_of"]
+__all__ = ["LoopState", "RUNNING", "TRIAL_ONLY", "put_samples", "by_level", "shifted_report", "not_above", "bound_of",
+           "members"]
 
 _STATUSES = list(Status)
 #: The status code of a sample still iterating.
@@ -36,6 +37,12 @@ def not_above(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def bound_of(b: torch.Tensor) -> torch.Tensor:
     """The largest value that :func:`not_above` takes as not above ``b``."""
     return torch.where(b >= 0, b * (1 + _MERIT_SLACK), b * (1 - _MERIT_SLACK))
+
+
+def members(samples: set, idx: torch.Tensor) -> torch.Tensor:
+    """Whether each of the chunk's samples ``idx (S,)`` is in ``samples`` (one of the engine's sets of
+    chunk rows: ``coarse_grid``, ``fast_decay``), bool ``(S,)``."""
+    return torch.tensor([int(i) in samples for i in idx.tolist()], dtype=torch.bool, device=idx.device)
 
 
 def shifted_report(report, offset: int):
