@@ -334,15 +334,16 @@ def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: floa
 
 def _integrate_both_ways(func, x0, t, t0, solver, rtol, atol, stiff_every: int = STIFF_EVERY):
     """States at ``t`` from ``x0`` at ``t0``, integrating forward and backward as needed."""
-    pieces, jumps = [], getattr(func, "jumps", None)
+    pieces = []
+    options = dict(solver=solver, rtol=rtol, atol=atol, jumps=getattr(func, "jumps", None), stiff_every=stiff_every)
     before = t[t < t0]
     if before.numel():
         times = torch.cat([t0.reshape(1), before.flip(0)])
-        pieces.append(solve(func, x0, times, solver=solver, rtol=rtol, atol=atol, jumps=jumps, stiff_every=stiff_every)[1:].flip(0))
+        pieces.append(solve(func, x0, times, **options)[1:].flip(0))
     after = t[t >= t0]
     if after.numel():
         starts_at_t0 = bool(after[0] == t0)
         times = after if starts_at_t0 else torch.cat([t0.reshape(1), after])
-        out = solve(func, x0, times, solver=solver, rtol=rtol, atol=atol, jumps=jumps, stiff_every=stiff_every)
+        out = solve(func, x0, times, **options)
         pieces.append(out if starts_at_t0 else out[1:])
     return torch.cat(pieces)

@@ -132,9 +132,9 @@ def newton_raphson(
         if float((dx.abs() / x.abs().clamp_min(1.0)).max()) <= xtol:
             success = norms[-1] <= max(ROOT_FALL * norms[0], roundoff)
             message = ("Converged." if success else
-                       f"The step fell below `xtol`, but max |R(x)| = {norms[-1]:.3g} is not below {ROOT_FALL:g} of the "
-                       f"guess's {norms[0]:.3g} nor at its rounding: no root was found (the iterate is at max |x| = "
-                       f"{float(x.abs().max()):.3g}, where such a step is small beside it). Start from another guess, "
-                       "or give `ftol` the residual that counts as a root.")
+                       f"The step fell below `xtol`, but max |R(x)| = {norms[-1]:.3g} is not below {ROOT_FALL:g} of "
+                       f"the guess's {norms[0]:.3g} nor at its rounding: no root was found (the iterate is at max |x| "
+                       f"= {float(x.abs().max()):.3g}, where such a step is small beside it). Start from another "
+                       "guess, or give `ftol` the residual that counts as a root.")
             break
     return NewtonResult(x=x, success=success, message=message, iterations=it, history=history, residual_norms=norms)

@@ -31,6 +31,7 @@ import torch
 
 from .initial_state import check_expressions
 from .model import _set_buffer, coefficients
+from .multi import experiment_state_name
 from .options import expand_options
 from .noise import estimate_sigma, negative_log_likelihood, sigma_group_index
 from .observations import ObservationOperator, Observations
@@ -229,22 +230,22 @@ def _held_fixed(result: FitResult, name: str, buffers: dict) -> tuple[list[str],
     states = list(result.model.state_names)
     free_params = _original_params(result, buffers)
     given = {k.removesuffix("(t0)") for k in (result.fit_kwargs.get("x0_expr") or {})}  # follow the estimates
-    if result.experiment_t0 is not None:  # several experiments: states "y[e](t0)", fixed per experiment
-        fixed = [[s for s in states if f"{s}[{e}](t0)" not in names and s not in given]
+    if result.experiment_t0 is None:
+        fixed = [s for s in states if f"{s}(t0)" not in names and s not in given]
+        held = states.index(name[:-4]) if name.endswith("(t0)") and name[:-4] in states else None
+    else:  # several experiments: states "y[e](t0)", fixed per experiment
+        fixed = [[s for s in states if f"{experiment_state_name(s, e)}(t0)" not in names and s not in given]
                  for e in range(len(result.experiment_t0))]
         state = re.fullmatch(r"(.+)\[(\d+)\]\(t0\)", name)
-        if state and state[1] in states and name not in buffers:
-            e, i = int(state[2]), states.index(state[1])
-            fixed[e].append(states[i])
-            return free_params, fixed, (e, i)
-        if name in buffers and buffers[name].dim() == 0:
-            return [p for p in free_params if p != name], fixed, None
-    fixed_states = [s for s in states if f"{s}(t0)" not in names and s not in given]
-    if result.experiment_t0 is None and name.endswith("(t0)") and name[:-4] in states and name not in buffers:
-        state_index = states.index(name[:-4])
-        return free_params, fixed_states + [states[state_index]], state_index
+        held = (int(state[2]), states.index(state[1])) if state and state[1] in states else None
+    if held is not None and name not in buffers:
+        if isinstance(held, tuple):
+            fixed[held[0]].append(states[held[1]])
+        else:
+            fixed.append(states[held])
+        return free_params, fixed, held
     if name in buffers and buffers[name].dim() == 0:
-        return [p for p in free_params if p != name], fixed_states, None
+        return [p for p in free_params if p != name], fixed, None
     raise ValueError(
         f"`name` {name!r} is an element of a vector or matrix coefficient: only scalar coefficients and "
         "initial states can be profiled"

@@ -44,8 +44,8 @@ from .field import BatchedField
 from .output import OutputGrid
 from .steps import StepRecord, dense_value
 
-__all__ = ["RosenbrockSolution", "rodas5p_batch", "precision_note", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW", "MAX_STEPS",
-           "STOPPED"]
+__all__ = ["RosenbrockSolution", "rodas5p_batch", "precision_note", "SUCCESS", "NON_FINITE", "STEP_UNDERFLOW",
+           "MAX_STEPS", "STOPPED"]
 
 #: Per-sample status codes of :class:`RosenbrockSolution`.
 SUCCESS, NON_FINITE, STEP_UNDERFLOW, MAX_STEPS, STOPPED = 0, 1, 2, 3, 4
