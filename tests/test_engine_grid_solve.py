@@ -11,7 +11,7 @@ later trials, its final solution and their sensitivities.
 import torch
 
 import torchql
-from testmodels import Lag, counting, lag_data
+from testmodels import Lag, Relaxation, counting, lag_data
 
 DT = torch.float64
 X0 = torch.tensor([0.0, 1.0], dtype=DT)
@@ -51,23 +51,9 @@ def test_shooting_on_auto_follows_a_model_that_becomes_stiff_to_the_stiff_solver
     assert torch.allclose(auto.estimates, stiff.estimates, rtol=1e-12, atol=0)
 
 
-class _Relaxation(torchql.ODEModel):
-    """``x' = -k (x - A cos t)``."""
-
-    state_names = ("x",)
-
-    def __init__(self, k: float = 1.0, A: float = 1.5) -> None:
-        super().__init__()
-        self.register_buffer("k", torch.tensor(k, dtype=DT))
-        self.register_buffer("A", torch.tensor(A, dtype=DT))
-
-    def forward(self, t, x):
-        return -self.k * (x - self.A * torch.cos(t))
-
-
 def _relaxation_data(k: float) -> torchql.Observations:
     t = torch.linspace(0.1, 2.0, 20, dtype=DT)
-    x = torchql.simulate(_Relaxation(k, 1.0), torch.zeros(1, dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
+    x = torchql.simulate(Relaxation(k, 1.0), torch.zeros(1, dtype=DT), torch.cat([torch.zeros(1, dtype=DT), t]),
                          solver="rodas5p", rtol=1e-12, atol=1e-16)[1:]
     noise = 1e-4 * torch.randn(x.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
     return torchql.Observations(t, x + noise, observe=["x"], sigma=1e-4)
@@ -85,8 +71,8 @@ def test_shooting_reaches_the_optimum_of_a_relaxation_whose_transient_its_grid_m
     for k in (30.0, 100.0):
         data = _relaxation_data(k)
         options = dict(method="shooting", params=["k", "A"], t0=0.0, fixed_x0=["x"])
-        fit = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), **options)
-        joint = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), linear_solver="rodas5p", **options)
+        fit = torchql.fit(Relaxation(1.0, 1.5), data, torch.zeros(1, dtype=DT), **options)
+        joint = torchql.fit(Relaxation(1.0, 1.5), data, torch.zeros(1, dtype=DT), linear_solver="rodas5p", **options)
         assert fit.status is torchql.Status.CONVERGED and joint.success, (k, fit.message)
         assert torch.allclose(fit.estimates, joint.estimates, rtol=1e-7, atol=0), (k, fit.estimates, joint.estimates)
         # the sums of squares agree to their integration error, 2 sqrt(SSE) |w rtol y| sqrt(20) = 3e-5 (2.5e-6 of it)
@@ -108,9 +94,9 @@ def test_a_relaxation_whose_decay_holds_the_explicit_steps_takes_rodas5p_sensiti
         monkeypatch.setattr(evaluate, solver, counting(calls, name, getattr(evaluate, solver)))
     data = _relaxation_data(1e3)
     options = dict(method="shooting", params=["k", "A"], t0=0.0, fixed_x0=["x"])
-    fit = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), **options)
+    fit = torchql.fit(Relaxation(1.0, 1.5), data, torch.zeros(1, dtype=DT), **options)
     used = dict(calls)
-    joint = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), linear_solver="rodas5p", **options)
+    joint = torchql.fit(Relaxation(1.0, 1.5), data, torch.zeros(1, dtype=DT), linear_solver="rodas5p", **options)
     assert fit.status is torchql.Status.CONVERGED and joint.success, fit.message
     assert fit.solver_options["solver"] == "dop853"
     assert used["rodas"] >= 6 and used["explicit"] <= 4, used  # (every solve was DOP853's: 10)
@@ -124,9 +110,9 @@ def test_fit_many_takes_rodas5p_sensitivities_for_the_samples_whose_decay_holds_
     steps) and at ``k = 30`` (DOP853's): each sample is its own fit."""
     sets = [_relaxation_data(1e3), _relaxation_data(30.0)]
     options = dict(method="shooting", params=["k", "A"], t0=0.0, fixed_x0=["x"])
-    batch = torchql.fit_many(_Relaxation(), sets, torch.zeros(1, dtype=DT), **options)
+    batch = torchql.fit_many(Relaxation(1.0, 1.5), sets, torch.zeros(1, dtype=DT), **options)
     for i, data in enumerate(sets):
-        alone = torchql.fit(_Relaxation(), data, torch.zeros(1, dtype=DT), **options)
+        alone = torchql.fit(Relaxation(1.0, 1.5), data, torch.zeros(1, dtype=DT), **options)
         assert batch[i].status is alone.status and batch[i].iterations == alone.iterations, i
         assert batch[i].message == alone.message
         torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)

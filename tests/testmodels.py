@@ -51,16 +51,19 @@ class SIR(torchql.ODEModel):
 
 
 class Relaxation(torchql.ODEModel):
-    """``x' = -k (x - cos t)``: stiff for large ``k``, driven by the time-dependent ``cos t``."""
+    """``x' = -k (x - A cos t)``: stiff for large ``k``, driven by the time-dependent ``cos t``; the
+    amplitude ``A`` (1 by default) is a constant unless ``params`` names it."""
 
     state_names = ("x",)
+    constants = ("A",)
 
-    def __init__(self, k=1e3):
+    def __init__(self, k=1e3, A=1.0):
         super().__init__()
         self.register_buffer("k", torch.tensor(k, dtype=torch.float64))
+        self.register_buffer("A", torch.tensor(A, dtype=torch.float64))
 
     def forward(self, t, x):
-        return -self.k * (x - torch.cos(t))
+        return -self.k * (x - self.A * torch.cos(t))
 
 
 def relaxation_solution(t, x0, k):
