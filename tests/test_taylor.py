@@ -85,6 +85,19 @@ def test_substep_matrices_shift_a_cubic_exactly():
         torch.testing.assert_close((c @ W[m]) @ powers, c @ torch.stack([s**k for k in range(4)]), rtol=0, atol=1e-15)
 
 
+def test_substep_matrices_are_built_once_per_count_and_degree():
+    """The table for 1,024 substeps is a loop of 37,000 Python steps; an SIR fit whose rejected
+    trials needed that many spent a third of its time building it again for each."""
+    from torchql.taylor import _shift_table
+
+    _shift_table.cache_clear()
+    first = _substep_matrices(1024, DT, torch.device("cpu"), 5)
+    first.zero_()  # a caller's copy: the cached table is not touched
+    again = _substep_matrices(1024, DT, torch.device("cpu"), 5)
+    assert _shift_table.cache_info().hits == 1 and _shift_table.cache_info().misses == 1
+    assert again[0, 0, 0] == 1.0 and again[1, 1, 0] == 1 / 1024
+
+
 def test_result_does_not_depend_on_which_intervals_are_summed_together():
     # the number of terms is decided per interval, so a batch of two references gives each the
     # same transfers, bit for bit, as alone

@@ -98,6 +98,9 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self.joint_final: set[int] = set()
         #: the trials' linear transfers' tolerance while proposed (None: ``rtol``; see ``INEXACT_FACTOR``)
         self.trial_rtol: float | None = None
+        #: (S,) samples whose trial of this round the model's own sum of squares judges whatever its
+        #: merit: their step was capped at a bound's largest move, or their iterate is distrusted
+        self.judged_by_model = torch.zeros(index.numel(), dtype=torch.bool, device=spec.device)
         if spec.grid_size is None:  # shared times: one grid (G,), observations at nodes (T,)
             self.grid, self.obs, self.t_obs = spec.grid, spec.obs_in_grid, spec.t_obs
         else:  # per sample: grids (S, G), trimmed to the chunk's longest, nodes (S, T)
@@ -269,6 +272,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         act, alpha, capped = self._converged(st, act, alpha, capped)
         if not act.numel():
             return True
+        self.judged_by_model[act] = capped | st.distrust[act]
         trial, ok = self._propose(act, st.cur, alpha)
         accept = self._accepted(st, act, trial, ok, capped)
         lost = self._lost(st, act)

@@ -146,17 +146,26 @@ class Evaluation(GridSolve):
         total = torch.where(exact, zero, wr ** 2).sum(dim=1)
         return total + self.exact_weight[idx] * torch.where(exact, wr.abs(), zero).sum(dim=1) if penalty else total
 
-    def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False, W: torch.Tensor | None = None) -> dict:
+    def _evaluate(self, idx, z0, z, z_dot, lin, solution: bool = False, W: torch.Tensor | None = None,
+                  propagate: torch.Tensor | None = None) -> dict:
         """Propagate each sample's linear system from ``z0 (S, M)`` about ``z``; rows at the observations.
 
         ``solution``: ``z`` is the model's own solution from ``z0`` (shooting), which then stands
         for the particular solution (its propagation would only add the propagator's error).
         ``W (S, G, M, 1 + m)``: the solutions already found (:meth:`_solve_with_sensitivities`),
-        not propagated again.
+        not propagated again. ``propagate (S,)`` bool: the samples propagated (default all); the
+        others' solutions are NaN, and they are marked ``failed``.
         """
         spec = self.spec
         rtol = spec.rtol if self.trial_rtol is None or W is not None else self.trial_rtol
-        if W is None:
+        if W is None and propagate is not None and not bool(propagate.all()):
+            W = z.new_full((*z.shape, 1 + len(spec.unknown_index)), float("nan"))
+            failed = ~propagate
+            if bool(propagate.any()):
+                k = propagate
+                W[k], failed[k] = self._propagate(idx[k], z[k], z_dot[k], map_fields(lin, lambda v: v[k]),
+                                                  spec.columns(z0[k]), rtol)
+        elif W is None:
             W, failed = self._propagate(idx, z, z_dot, lin, spec.columns(z0), rtol)
         else:
             failed = torch.zeros(z.shape[0], dtype=torch.bool, device=z.device)
@@ -206,7 +215,7 @@ class Evaluation(GridSolve):
         return W, failed
 
     def _nonlinear(self, idx, z0, loose: bool, guess=None, budget_is_final: bool = False, reference=None,
-                   stop=None, max_steps: int | None = None):
+                   stop=None, max_steps: int | None = None, note_stiff: bool = True):
         """The model integrated from ``z0 (S, M)`` over the grid of the chunk's samples ``idx``: ``traj (S, G, M)``
         and error messages (None: ok).
 
@@ -232,6 +241,7 @@ class Evaluation(GridSolve):
         ``stop``: the adaptive solvers' test of a sample (positions ``(L,)`` in ``idx``, its augmented
         states ``(L, G, M)`` so far, the next node) that ends it early, as a failure.
         ``max_steps``: the batched Dormand–Prince solver's limit on a sample's steps (default its own).
+        ``note_stiff``: an explicit pair's stiffness marks the sample (:meth:`_adaptive`).
         """
         spec = self.spec
         rtol = max(spec.rtol, _LOOSE_RTOL) if loose else spec.rtol
@@ -252,7 +262,7 @@ class Evaluation(GridSolve):
                 if bool(coarse.any()):
                     guess = torch.where(coarse.reshape(-1, 1, 1), torch.full_like(guess, float("nan")), guess)
                 self._on_grid(idx, z0, guess, rtol, atol, substeps, budget_is_final, traj, ok, errors, reference, stop)
-            self._adaptive(idx, z0, rtol, atol, traj, ok, errors, stop, max_steps)
+            self._adaptive(idx, z0, rtol, atol, traj, ok, errors, stop, max_steps, note_stiff)
         return traj, errors
 
     def _grid_solves(self, count: int) -> bool:
@@ -473,7 +483,8 @@ class Evaluation(GridSolve):
                 rest[both[better[both]]] = False
         rows = rows[rest]
         c_sse = self._nonlinear_sse(all_idx, cur, act[rows], current=True)
-        t_sse = self._nonlinear_sse(act, trial, rows, above=bound_of(c_sse) if STOP_EARLY else None)
+        # (a trial's stiff stretch, where its sum of squares is inf, says nothing of the fit's: not marked)
+        t_sse = self._nonlinear_sse(act, trial, rows, above=bound_of(c_sse) if STOP_EARLY else None, note_stiff=False)
         better[rest] = not_above(t_sse, c_sse)
         return better
 
@@ -508,7 +519,7 @@ class Evaluation(GridSolve):
         return stopped[:R]
 
     def _nonlinear_sse(self, idx, it: dict, rows: torch.Tensor, above: torch.Tensor | None = None,
-                       current: bool = False) -> torch.Tensor:
+                       current: bool = False, note_stiff: bool = True) -> torch.Tensor:
         """Cached nonlinear sums of squares of ``it``'s samples ``rows`` (inf when not integrable;
         with a ``sigma(p)`` function, the objective at the iterate's sigmas).
 
@@ -519,14 +530,16 @@ class Evaluation(GridSolve):
         passed so far exceeds its bound (the remaining terms only add to it; a ``sigma(p)``
         function's log term is the sample's own constant), whose objective is then inf.
         ``current``: the samples' accepted iterates, whose need of more grid-solver steps than a trial
-        may take means a grid too coarse for their model (:meth:`_nonlinear`'s ``reference``)."""
+        may take means a grid too coarse for their model (:meth:`_nonlinear`'s ``reference``).
+        ``note_stiff``: as :meth:`_nonlinear`'s."""
         need = rows[torch.isnan(it["nl_sse"][rows])]
         if need.numel():
             stop = None if above is None else self._exceeds(idx[need], it["w"][need], it["log"][need],
                                                             above[torch.isnan(it["nl_sse"][rows])])
             guess = it["W"][need][..., 0]
             traj, errors = self._nonlinear(idx[need], it["z0"][need], loose=True, guess=guess, budget_is_final=True,
-                                           stop=stop, reference=(it["z0"][need], guess) if current else None)
+                                           stop=stop, reference=(it["z0"][need], guess) if current else None,
+                                           note_stiff=note_stiff)
             self._keep_model_sse(idx, it, need, traj, errors)
         return it["nl_sse"][rows]
 

@@ -22,7 +22,7 @@ _STATUSES = list(Status)
 RUNNING = -1
 
 #: Entries of a trial iterate that only decide its acceptance and are not kept.
-TRIAL_ONLY = ("failed", "defect")
+TRIAL_ONLY = ("failed", "defect", "by_model")
 #: A trial step is accepted when its merit exceeds the current one by at most ``_MERIT_SLACK`` times
 #: its magnitude (rounding of the sums of squares must not reject a converging step).
 _MERIT_SLACK = 1e-10

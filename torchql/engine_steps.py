@@ -138,8 +138,52 @@ class StepTests:
         if spec.scheme.integrates_model:  # the merit is the model's own sum of squares
             return ok & lower
         better = lower & (trial["defect"] <= DEFECT_TRUST) & ~capped & ~st.distrust[act]
+        better |= trial.get("by_model", torch.zeros_like(better))  # judged so before it was propagated
         check = ok & ~better
         if bool(check.any()):
             rows = check.nonzero().flatten()
             better[rows] = self._model_not_above(st.all_idx, cur, act, trial, rows)
         return ok & better
+
+    def _evaluate_unless_rejected(self, act, cur: dict, z0, z, z_dot, lin, defect, finite) -> dict:
+        """Kantorovich's trial iterates from ``z0 (A, M)`` about their references ``z (A, G, M)``
+        (slopes ``z_dot``, linearization ``lin``, :func:`~torchql.trajectory.model_defect`
+        ``defect (A,)``, ``finite (A,)``), evaluated (:meth:`_evaluate`) but for those that
+        :meth:`_accepted` would reject whatever their propagation gave: the trials that the model's
+        own sum of squares judges (their step capped at a bound's largest move, their iterate
+        distrusted, :attr:`judged_by_model`, or their trajectory too far from solving the model,
+        ``defect`` above :data:`~torchql.trajectory.DEFECT_TRUST`) are judged first, and those
+        whose model is above their current iterate's are not propagated (marked failed). Far from
+        solving the model, a trajectory's linearization may change a thousand times faster than the
+        iterate's: an SIR fit's rejected trials took 1,024 substeps in every interval, 7.5 of its 8.4 s.
+
+        ``by_model (A,)`` says which trials the model found not above (:meth:`_accepted` takes them
+        where they propagate); their model solutions are kept (``nl_sse``, ``nl_traj``)."""
+        A = act.numel()
+        judged = (self.judged_by_model[act] | ~(defect <= DEFECT_TRUST)) & finite
+        if not self.spec.damping.filters or not bool(judged.any()):
+            trial = self._evaluate(act, z0, z, z_dot, lin)
+            trial["by_model"] = torch.zeros(A, dtype=torch.bool, device=z0.device)
+            return trial
+        rows = judged.nonzero().flatten()
+        before = self._unpropagated(act, z0, z)
+        better = self._model_not_above(torch.arange(self.S, device=act.device), cur, act, before, rows)
+        keep = ~judged
+        keep[rows[better]] = True
+        trial = self._evaluate(act, z0, z, z_dot, lin, propagate=keep)
+        trial["nl_sse"][rows], trial["nl_traj"][rows] = before["nl_sse"][rows], before["nl_traj"][rows]
+        trial["by_model"] = torch.zeros(A, dtype=torch.bool, device=z0.device)
+        trial["by_model"][rows[better]] = True
+        return trial
+
+    def _unpropagated(self, act, z0, z) -> dict:
+        """What :meth:`_model_not_above` reads of trial iterates from ``z0 (A, M)`` about ``z (A, G,
+        M)`` before their propagation: estimates, weights, log terms, the model's sums of squares
+        and solutions (unknown: NaN), and ``W``'s particular solution (the reference ``z``, the grid
+        solver's first guess)."""
+        R = self.w[0].numel()
+        m = len(self.spec.unknown_index)
+        _, _, w, log = self._weighted(act, z0, z0.new_zeros(act.numel(), R, m), z0.new_zeros(act.numel(), R))
+        nan = float("nan")
+        return dict(z0=z0, W=z.unsqueeze(-1), w=w, log=log, nl_sse=torch.full_like(log, nan),
+                    nl_traj=torch.full_like(z, nan))

@@ -91,8 +91,9 @@ class Kantorovich(Scheme):
         lin_ref = cur["lin"]
         z_dot = _pick(lin_ref.f, act) + torch.einsum("sgij,sgj->sgi", _pick(lin_ref.jac, act), z_safe - z_ref)
         lin = engine._linearize(act, z_safe, z_dot)
-        trial = engine._evaluate(act, z0_new, z_safe, z_dot, lin)
-        trial["defect"] = model_defect(lin.f, z_dot, engine.system.n)
+        defect = model_defect(lin.f, z_dot, engine.system.n)
+        trial = engine._evaluate_unless_rejected(act, cur, z0_new, z_safe, z_dot, lin, defect, finite)
+        trial["defect"] = defect
         return trial, _usable(trial, finite)
 
 
