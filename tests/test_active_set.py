@@ -125,7 +125,8 @@ def test_an_optimum_on_two_bounds_is_converged_with_its_standard_errors():
     assert result.status is torchql.Status.CONVERGED, result.message
     assert result.sse == pytest.approx(sse, rel=1e-9)
     assert float(result.x0[0]) == pytest.approx(ref[0], rel=1e-8)
-    assert float(result.params["V"]) == pytest.approx(0.5, rel=1e-12)
+    # (approached a decade a step, MAX_TOWARD_STEP: the last step below xtol leaves a tenth of it)
+    assert float(result.params["V"]) == pytest.approx(0.5, rel=1e-11)
     assert float(result.params["Km"]) < 1e-10
     assert all(math.isfinite(v) for v in result.stderr.values())
     assert "['V', 'Km']" in result.message

@@ -171,12 +171,10 @@ def test_a_trial_the_model_rejects_is_not_propagated(monkeypatch):
     from scipy.integrate import solve_ivp
     from scipy.optimize import least_squares
 
-    from testmodels import SIR
+    from testmodels import SIR, SIR_FAR, SIR_FAR_GUESSES, sir_counts
 
-    t = torch.arange(0.0, 41.0, 2.0, dtype=DT)
-    x = torchql.simulate(SIR(0.6, 0.25, 1000.0), torch.tensor([995.0, 5.0, 0.0], dtype=DT), t)
-    y = x[:, 1:2] + 5.0 * torch.randn(21, 1, generator=torch.Generator().manual_seed(2), dtype=DT)
-    data = torchql.Observations(t, y, observe=["I"], sigma=5.0)
+    data = sir_counts()
+    t, y = data.t, data.y
     masks = []
     evaluate = torchql.engine.Engine._evaluate
 
@@ -184,9 +182,7 @@ def test_a_trial_the_model_rejects_is_not_propagated(monkeypatch):
         masks.append(propagate)
         return evaluate(self, *args, propagate=propagate, **kwargs)
     monkeypatch.setattr(torchql.engine.Engine, "_evaluate", spy)
-    result = torchql.fit(SIR(2.2969, 0.6942, 1000.0), data, x0=torch.tensor([990.0, 10.0, 0.0], dtype=DT),
-                         params=["beta", "gamma"], fixed_x0=["R"], x0_expr={"S": lambda v: v["N"] - v["I"]},
-                         bounds={"beta": (0, None), "gamma": (0, None), "I": (0, None)})
+    result = torchql.fit(SIR(**SIR_FAR_GUESSES), data, **SIR_FAR)
     assert result.status is torchql.Status.CONVERGED, result.message
     assert any(m is not None and not bool(m.all()) for m in masks)  # some trials were not propagated
 

@@ -328,7 +328,7 @@ def test_a_log_scaled_unknown_near_its_bound_or_at_zero_gets_the_interval_about_
     assert lo == 1e-3 and hi == pytest.approx(linear.confidence_intervals(0.95)["c"][1], rel=1e-6)
     assert hi < 0.02
     edge = _inflow_fit(0.0, 1, scale={"c": "log"})
-    assert edge.success and edge.params["c"].item() < 1e-20
+    assert edge.success and edge.params["c"].item() < 1e-18  # (a tenfold approach a step toward the edge)
     lo, hi = edge.confidence_intervals(0.95)["c"]
     q = student_t_quantile(0.975, edge.dof)
     assert lo == 0.0 and hi == pytest.approx(edge.params["c"].item() + q * edge.stderr["c"], rel=1e-12)

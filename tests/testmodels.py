@@ -50,6 +50,22 @@ class SIR(torchql.ODEModel):
         return torch.stack([-infection, infection - self.gamma * I, self.gamma * I], -1)
 
 
+def sir_counts() -> torchql.Observations:
+    """Infected counts of :class:`SIR` (``N = 1000``, ``beta = 0.6``, ``gamma = 0.25``, ``I(0) = 5``) at
+    t = 0, 2, ..., 40 with noise of standard deviation 5 (``sigma=5``)."""
+    t = torch.arange(0.0, 41.0, 2.0, dtype=torch.float64)
+    x = torchql.simulate(SIR(0.6, 0.25, 1000.0), torch.tensor([995.0, 5.0, 0.0], dtype=torch.float64), t)
+    y = x[:, 1:2] + 5.0 * torch.randn(21, 1, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    return torchql.Observations(t, y, observe=["I"], sigma=5.0)
+
+
+#: Fitting :func:`sir_counts` from guesses three to four times off: I(0) and the rates bounded below
+#: by 0, S(0) = N - I(0), R(0) = 0.
+SIR_FAR = dict(x0=torch.tensor([990.0, 10.0, 0.0], dtype=torch.float64), params=["beta", "gamma"], fixed_x0=["R"],
+               x0_expr={"S": lambda v: v["N"] - v["I"]}, bounds={"beta": (0, None), "gamma": (0, None), "I": (0, None)})
+SIR_FAR_GUESSES = dict(beta=2.2969, gamma=0.6942, N=1000.0)
+
+
 class Relaxation(torchql.ODEModel):
     """``x' = -k (x - A cos t)``: stiff for large ``k``, driven by the time-dependent ``cos t``; the
     amplitude ``A`` (1 by default) is a constant unless ``params`` names it."""
