@@ -382,3 +382,29 @@ def test_a_data_start_that_runs_out_of_iterations_after_a_long_path_is_fitted_ag
     assert result.sigma["y"] == pytest.approx(math.sqrt(plain.sse / 15), rel=1e-6)
     short = torchql.fit(DrivenOscillator(), data, torch.zeros(2, dtype=DT), t0=0.0, max_iter=5)
     assert short.status is torchql.Status.MAX_ITER and "From the first reference" not in short.message
+
+
+def test_a_fit_from_the_data_far_above_its_known_sigmas_is_fitted_again_from_the_guesses(monkeypatch):
+    """Van der Pol (mu = 3) measured in y at t = 1, ..., 20 with sigma 0.01, mu guessed 2.8 and
+    bounded below by 0. The gradient matching gave mu = 0.61, from where the fit went to its bound:
+    CONVERGED at mu = 8e-12 with SSE 907,976, 45,000 times the number of values, while the model at
+    the guesses had 48,620. Its residuals' lag-one correlation (0.62) was below white noise's three
+    deviations (0.67), and its path shorter than LONG_PATH, so nothing compared it with the guesses.
+    With the data's sigma given, a sum of squares a hundred times the number of values does: fitted
+    again from the integrated guesses, it reaches mu = 3 (SSE 19.2), and the message says why."""
+    import torchql.data_start
+    from torchql.models import VanDerPol
+
+    monkeypatch.setattr(torchql.data_start, "LONG_PATH", 1000)  # only the known sigmas' test may decide
+    t = torch.linspace(1.0, 20.0, 20, dtype=DT)
+    x0 = torch.tensor([2.0, 0.0], dtype=DT)
+    y = torchql.simulate(VanDerPol(3.0), x0, torch.cat([torch.zeros(1, dtype=DT), t]), solver="rodas5p",
+                         rtol=1e-11, atol=1e-13)[1:, :1]
+    y = y + 0.01 * torch.randn(y.shape, generator=torch.Generator().manual_seed(2), dtype=DT)
+    data = torchql.Observations(t, y, observe=["y"], sigma=0.01)
+    result = torchql.fit(VanDerPol(2.8), data, x0, params=["mu"], fixed_x0=["y", "v"], t0=0.0,
+                         bounds={"mu": (0.0, None)}, rtol=1e-8, atol=1e-10)
+    assert result.status is torchql.Status.CONVERGED, result.message
+    assert result.sse < 2 * len(t)  # the noise's own (20 values)
+    assert float(result.params["mu"]) == pytest.approx(3.0, rel=1e-3)
+    assert "From the first reference built from the data the fit ended CONVERGED" in result.message
