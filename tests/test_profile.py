@@ -405,3 +405,22 @@ def test_a_float32_fit_is_not_taken_for_one_off_its_optimum():
         prof = torchql.profile(result, "B")
     assert prof.closed == (True, True)
     assert "lower SSE" not in prof.message
+
+
+def test_a_profile_approaches_the_fits_bound_without_evaluating_on_it():
+    """``y' = -a b y`` with a and b bounded below by 0: the data determine only ``a b``, and the
+    profile of ``a`` is flat all the way to 0. On the bound itself the model degenerates (``a = 0``:
+    SSE 25.9), and the re-fit there made the profile cross its threshold at ``a = 7e-6``, a closed
+    lower end the data do not give (a re-fit at ``a = 1e-7`` has the flat SSE). The bound is
+    approached, not evaluated: the side is open, ending at the bound."""
+    t = torch.linspace(0, 3, 16, dtype=torch.float64)
+    noise = 0.05 * torch.randn(16, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    data = torchql.Observations(t, 5 * torch.exp(-0.6 * t).unsqueeze(-1) + noise, observe=["y"])
+    result = torchql.fit(Product(0.5, 2.0), data, x0=torch.tensor([4.0], dtype=torch.float64),
+                         bounds={"a": (0, None), "b": (0, None)})
+    assert result.status is torchql.Status.NOT_IDENTIFIABLE
+    profile = torchql.profile(result, "a")
+    assert profile.interval[0] == 0.0 and not profile.closed[0]
+    assert float(profile.values.min()) > 0  # never on the bound
+    assert float(profile.sse.max()) < profile.threshold  # flat: every point below the threshold
+    assert "open below: the search bound 0 was reached" in profile.message
