@@ -129,3 +129,18 @@ def test_a_sigma_group_without_values_is_named_before_the_fit():
     batch = torchql.Observations(t, torch.stack([x, y]), observe=["y", "v"], sigma="estimate")
     with pytest.raises(ValueError, match=r"have no values of `data\[1\]`"):
         torchql.fit_many(LinearOscillator(0.5, 1.0), batch, x0)
+
+
+def test_estimated_and_known_sigmas_in_one_fit_are_an_error_that_says_so():
+    """One experiment with ``sigma="estimate"``, another with ``sigma=0.1``: the error said "`sigma`
+    must be given for every experiment or for none", though both gave one."""
+    from torchql.models import LinearOscillator
+
+    t = torch.linspace(0, 10, 21, dtype=torch.float64)
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    y = torchql.simulate(LinearOscillator(), x0, t)[:, :1]
+    data = [torchql.Observations(t, y, observe=["y"], sigma="estimate"),
+            torchql.Observations(t, y, observe=["y"], sigma=0.1)]
+    with pytest.raises(ValueError, match=r"sigma='estimate' must be given for every experiment or for none: the "
+                                         r"experiments \[0\] estimate theirs, \[1\] do not"):
+        torchql.fit(LinearOscillator(), data, x0=torch.stack([x0, x0]))

@@ -293,3 +293,19 @@ def test_a_one_sample_hold_is_a_constant_input_from_its_time_on():
     late = torchql.Inputs(torch.tensor([1.0], dtype=DT), torch.tensor([2.0], dtype=DT), names="u", kind="zoh")
     with pytest.raises(ValueError, match=r"`inputs` must cover the simulated times \[0, 3\]"):
         torchql.simulate(_Lag(), torch.zeros(1, dtype=DT), t, inputs=late)  # from its time on only
+
+
+def test_predict_past_the_fitted_inputs_says_which_inputs_it_used():
+    """``result.predict(t)`` beyond the fitted data's inputs, with no ``inputs=``: the error said
+    "`inputs` must cover ..." to a user who passed none. It says the model's own (the fitted data's)
+    were used, and how to pass others."""
+    t = torch.linspace(0.0, 3.0, 7, dtype=DT)
+    signal = torchql.Inputs(t, torch.sin(t), names="u")
+    y = torchql.simulate(_Lag(1.3), torch.zeros(1, dtype=DT), t, inputs=signal)
+    result = torchql.fit(_Lag(), torchql.Observations(t, y, observe=["y"], inputs=signal), x0=torch.zeros(1, dtype=DT))
+    with pytest.raises(ValueError, match=r"simulated times \[0, 6\] \(no `inputs` was passed: these are the ones the "
+                                         r"model holds, its fitted data's; pass `inputs="):
+        result.predict(torch.linspace(0.0, 6.0, 4, dtype=DT))
+    longer = torchql.Inputs(torch.linspace(0.0, 6.0, 13, dtype=DT), torch.sin(torch.linspace(0.0, 6.0, 13, dtype=DT)),
+                            names="u")
+    assert result.predict(torch.linspace(0.0, 6.0, 4, dtype=DT), inputs=longer).shape == (4, 1)

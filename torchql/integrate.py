@@ -323,7 +323,10 @@ def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: floa
     if signals is None:
         raise ValueError(f"`model` takes inputs {names} (its `input_names`): pass `inputs=torchql.Inputs(t_u, u, "
                          f"names={list(names)})`")
-    signals = signals.for_model(names, start, end, dtype, device, where="inputs", span="the simulated times")
+    held = "" if inputs is not None else (" (no `inputs` was passed: these are the ones the model holds, its fitted "
+                                          "data's; pass `inputs=torchql.Inputs(...)` that cover the times)")
+    signals = signals.for_model(names, start, end, dtype, device, where="inputs", span="the simulated times",
+                                note=held)
 
     def func(t, x):
         return model(t, x, signals(t))

@@ -251,10 +251,16 @@ def stack_observations(datasets: list[Observations], state_names: list[str], t0:
         observe = Q
     else:
         observe = _BlockObservation([op.function for op in operators], operators, n, conditions)
+    first = datasets[0]
+    estimated = [d.sigma_estimated for d in datasets]
+    if any(estimated) and not all(estimated):
+        raise ValueError(f"sigma='estimate' must be given for every experiment or for none: the experiments "
+                         f"{[e for e, x in enumerate(estimated) if x]} estimate theirs, "
+                         f"{[e for e, x in enumerate(estimated) if not x]} do not (a known sigma, or none)")
     sigma_given = all(d.sigma_given for d in datasets)
     if not sigma_given and any(d.sigma_given for d in datasets):
-        raise ValueError("`sigma` must be given for every experiment or for none (the residual variance is shared)")
-    first = datasets[0]
+        raise ValueError(f"`sigma` must be given for every experiment or for none (the residual variance is shared); "
+                         f"it is given for experiments {[e for e, d in enumerate(datasets) if d.sigma_given]} only")
     for e, d in enumerate(datasets[1:], start=1):
         if (d.noise, d.sigma_estimated) != (first.noise, first.sigma_estimated):
             raise ValueError(f"`data[{e}]` has another noise model than `data[0]` (`noise` or sigma='estimate' "
