@@ -136,7 +136,9 @@ class FitResult:
         (nonlinear solution from ``x0`` with ``params``), over the least-squares observations.
     residuals : Tensor ``(L,)``
         Weighted residuals ``(y - h(x(t))) / sigma`` of the fitted model at every used value
-        (time-major order, NaNs skipped), exact ones included.
+        (time-major order, NaNs skipped), exact ones included. Several experiments: in the order
+        of their normalized times ``(t - t0_e) / T_e`` (``T_e`` each one's span), the values of
+        one normalized time in experiment order.
     jacobian : Tensor ``(L, m)``
         Weighted sensitivities ``d h(x(t)) / d unknowns / sigma`` at the estimates (the final
         homogeneous solutions at the observation times).
