@@ -309,3 +309,50 @@ def test_predict_past_the_fitted_inputs_says_which_inputs_it_used():
     longer = torchql.Inputs(torch.linspace(0.0, 6.0, 13, dtype=DT), torch.sin(torch.linspace(0.0, 6.0, 13, dtype=DT)),
                             names="u")
     assert result.predict(torch.linspace(0.0, 6.0, 4, dtype=DT), inputs=longer).shape == (4, 1)
+
+
+@pytest.mark.parametrize("kind", ["zoh", "linear"])
+def test_inputs_at_clock_times_fit_and_simulate_as_near_zero(kind):
+    """The driven oscillator measured at t ~ 1e8 (clock times in seconds): a held input's step spanned
+    1e5 roundoffs of t, and ``simulate`` failed (step size underflow) and ``fit`` ended
+    INTEGRATION_FAILED at c = -1.9, k = 156; a linear input's fit took 9 s at 1e8 and failed at 1e9.
+    Fits and simulations run in local time from ``t0``: the results equal those at t ~ 0, and the
+    result speaks the data's time (``t0``, the records' times, ``predict``)."""
+    x0 = torch.tensor([0.2, 0.0], dtype=DT)
+    tu, t = torch.linspace(0, 10, 21, dtype=DT), torch.linspace(0, 10, 41, dtype=DT)
+    u = torch.sin(3 * tu)
+    results = []
+    for offset in (0.0, 1e8, 1e9):
+        signal = torchql.Inputs(tu + offset, u, names="u", kind=kind)
+        y = torchql.simulate(DrivenOscillator(0.3, 4.0), x0, t + offset, inputs=signal)
+        result = torchql.fit(DrivenOscillator(0.5, 2.0), torchql.Observations(t + offset, y[:, :1], observe=["y"],
+                                                                              inputs=signal),
+                             x0=torch.zeros(2, dtype=DT))
+        assert result.status is torchql.Status.CONVERGED, result.message
+        assert result.t0 == offset and float(result.history[-1].trajectory_t[0]) == offset
+        torch.testing.assert_close(result.predict(t + offset), y, rtol=0, atol=1e-8)
+        results.append((y, result.estimates))
+    for y, estimates in results[1:]:
+        torch.testing.assert_close(y, results[0][0], rtol=0, atol=1e-12)
+        torch.testing.assert_close(estimates, results[0][1], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(results[0][1][2:], torch.tensor([0.3, 4.0], dtype=DT), rtol=1e-8, atol=0)
+
+
+def test_experiments_with_inputs_at_clock_times_fit_as_near_zero():
+    """Two experiments of the driven oscillator, each with its own held input, 50 s apart at t ~ 1e8:
+    each experiment's input is read in its own local time, and the fit equals the one near zero."""
+    x0 = torch.tensor([0.2, 0.0], dtype=DT)
+    tu, t = torch.linspace(0, 10, 21, dtype=DT), torch.linspace(0, 10, 41, dtype=DT)
+    estimates = []
+    for offset in (0.0, 1e8):
+        data = []
+        for e, start in enumerate((offset, offset + 50.0)):
+            u = torch.sin(3 * tu + e)
+            y = torchql.simulate(DrivenOscillator(0.3, 4.0), x0, t, inputs=torchql.Inputs(tu, u, names="u", kind="zoh"))
+            data.append(torchql.Observations(t + start, y[:, :1], observe=["y"],
+                                             inputs=torchql.Inputs(tu + start, u, names="u", kind="zoh")))
+        result = torchql.fit(DrivenOscillator(0.5, 2.0), data, x0=torch.zeros(2, 2, dtype=DT))
+        assert result.status is torchql.Status.CONVERGED, result.message
+        assert result.experiment_t0 == [offset, offset + 50.0]
+        estimates.append(result.estimates)
+    torch.testing.assert_close(estimates[1], estimates[0], rtol=1e-9, atol=1e-12)

@@ -493,7 +493,7 @@ class _GradientRun:
         # the evaluation at the estimates within what is left of the budget, at least a quarter of it
         left = None if self.max_time is None else max(self.max_time - elapsed, self.max_time / 4)
         final = fit(p.system.model_with(z[n:]), data, x0=z[:n], params=list(p.system.param_names),
-                    fixed_x0=fixed, t0=float(p.t0), max_iter=0, solver=p.solver, rtol=p.rtol, atol=p.atol,
+                    fixed_x0=fixed, t0=float(p.data_t0), max_iter=0, solver=p.solver, rtol=p.rtol, atol=p.atol,
                     max_time=left)
         if final.status in (Status.INTEGRATION_FAILED, Status.DIVERGED):
             status = final.status

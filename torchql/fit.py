@@ -343,7 +343,7 @@ class _Problem:
                              "gradient fitting does not minimize: give sigma values, or fit with torchql.fit")
         self.system, self.operator, self.dtype, self.device = spec.system, spec.operator, spec.dtype, spec.device
         self.rtol, self.atol, self.rcond, self.solver = spec.rtol, spec.atol, spec.rcond, spec.solver
-        self.t0, self.t_obs = spec.t0, spec.t_obs
+        self.t0, self.t_obs, self.data_t0 = spec.t0, spec.t_obs, spec.data_t0  # (local times: Problem.origin)
         self.rows_mask, self.y = spec.mask[0], spec.y[0]
         self.weights = spec.weights[0][self.rows_mask]
         self.z0 = spec.z0[0].clone()

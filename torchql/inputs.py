@@ -178,6 +178,18 @@ class Inputs:
         out._tables = {}
         return out
 
+    def shifted(self, origin: float) -> "Inputs":
+        """The same signals on the times ``t - origin``: a local time origin, where the times a solver
+        steps through are resolved to a roundoff of the span, not of ``origin`` (at ``t ~ 1e8`` a
+        zero-order hold's step held only 1e5 distinct times, and fits at rtol 1e-10 failed). The
+        zero-order hold's ramp is the span's :data:`RAMP` there."""
+        if origin == 0.0:
+            return self
+        out = self.to()
+        out.t = self.t - origin
+        out.ramp = _ramp(out.t, self.kind)
+        return out
+
     def select(self, names: Sequence[str], where: str = "inputs") -> "Inputs":
         """The signals in the order of ``names`` (the model's ``input_names``); a clear error for an
         unknown or missing name. ``where`` names the argument in the error."""

@@ -265,9 +265,12 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     rtol, atol = default_tolerances(dtype, rtol, atol)
     rtol, atol = _checks.positive_number("rtol", rtol), _checks.positive_number("atol", atol)
     t0_ = t[0] if t0 is None else torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
-    func = _with_inputs(model, inputs, min(float(t0_), float(t[0])), max(float(t0_), float(t[-1])), dtype, device)
+    func = _with_inputs(model, inputs, min(float(t0_), float(t[0])), max(float(t0_), float(t[-1])), dtype, device,
+                        origin=float(t0_))
     # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is the
     # solver's to report, as IntegrationError, like one met later on)
+    if func is not model:  # with inputs: integrated in local time from t0 (see _with_inputs)
+        t, t0_ = t - func.origin, t0_ - func.origin
     _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
     with torch.no_grad():
         if solver != AUTO:
@@ -308,9 +311,12 @@ def _stiff_at(func, t0: torch.Tensor, x0: torch.Tensor, t: torch.Tensor) -> bool
                for sign, span in ((1.0, forward), (-1.0, backward)) if float(span) > 0)
 
 
-def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: float, dtype, device):
-    """The right-hand side ``f(t, x)`` of ``model`` with its inputs (the given ones, else those it
-    holds), checked against its ``input_names`` and the span ``[start, end]``; the model itself
+def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: float, dtype, device,
+                 origin: float = 0.0):
+    """The right-hand side ``f(s, x)`` of ``model`` with its inputs (the given ones, else those it
+    holds), checked against its ``input_names`` and the span ``[start, end]``, in the local time
+    ``s = t - origin`` (its ``origin`` attribute; the model is given ``t``): at ``t ~ 1e8`` a held input's
+    step spanned 1e5 roundoffs of ``t``, and DOP853's step size underflowed in it. The model itself
     when it has none."""
     names = tuple(getattr(model, "input_names", ()))
     if inputs is not None and not isinstance(inputs, Inputs):
@@ -326,12 +332,12 @@ def _with_inputs(model: ODEModel, inputs: Inputs | None, start: float, end: floa
     held = "" if inputs is not None else (" (no `inputs` was passed: these are the ones the model holds, its fitted "
                                           "data's; pass `inputs=torchql.Inputs(...)` that cover the times)")
     signals = signals.for_model(names, start, end, dtype, device, where="inputs", span="the simulated times",
-                                note=held)
+                                note=held).shifted(origin)
 
-    def func(t, x):
-        return model(t, x, signals(t))
+    def func(s, x):
+        return model(s + origin, x, signals(s))
 
-    func.jumps = signals.jumps
+    func.jumps, func.origin = signals.jumps, origin
     return func
 
 

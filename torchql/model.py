@@ -118,6 +118,8 @@ class ODEModel(nn.Module):
 #: Where a model holds its attached input signals (a plain attribute: not a buffer, so never an
 #: unknown, and deep-copied with the model).
 _INPUTS = "_torchql_inputs"
+#: ... and the origin of the local time in which it is evaluated (:func:`attach_inputs`)
+_ORIGIN = "_torchql_time_origin"
 
 
 def _call_with_inputs(self, t: torch.Tensor, x: torch.Tensor, *args, **kwargs) -> torch.Tensor:
@@ -131,16 +133,23 @@ def _call_with_inputs(self, t: torch.Tensor, x: torch.Tensor, *args, **kwargs) -
                 "them with the data, Observations(..., inputs=torchql.Inputs(t, u, names=...)), or to "
                 "torchql.simulate(..., inputs=...)")
         args = (signals(t),)
+        origin = self.__dict__.get(_ORIGIN, 0.0)
+        if origin:  # the solvers' time is local: the model's own t is the data's
+            t = t + origin
     return nn.Module.__call__(self, t, x, *args, **kwargs)
 
 
-def attach_inputs(model: nn.Module, signals: "Inputs | None") -> None:
+def attach_inputs(model: nn.Module, signals: "Inputs | None", origin: float = 0.0) -> None:
     """Attach ``signals`` (already in the model's input order, dtype and device) to ``model`` (the
-    library's own copy; modified in place), or detach with ``None``."""
+    library's own copy; modified in place), or detach with ``None``. ``origin``: the model is then
+    evaluated in local time ``t - origin`` (``signals`` on those times, :meth:`Inputs.shifted`), its
+    ``forward`` still given ``t`` itself."""
     if signals is None:
         model.__dict__.pop(_INPUTS, None)
+        model.__dict__.pop(_ORIGIN, None)
     else:
         model.__dict__[_INPUTS] = signals
+        model.__dict__[_ORIGIN] = origin
 
 
 def coefficients(model: nn.Module) -> dict[str, torch.Tensor]:

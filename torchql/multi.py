@@ -115,7 +115,9 @@ class StackedModel(ODEModel):
         self.constants = tuple(getattr(model, "constants", ())) + self.internal_buffers
         self.register_buffer("_t0", t0.clone(), persistent=False)
         self.register_buffer("_span", span.clone(), persistent=False)
-        self._signals = inputs
+        # each experiment's signals in its local time t - t0_e, read at T_e tau (at t ~ 1e8 a held
+        # input's step spanned 1e5 roundoffs of t0_e + T_e tau: see Inputs.shifted)
+        self._signals = None if inputs is None else [s.shifted(float(t0[e])) for e, s in enumerate(inputs)]
         self._conditions = conditions
         # a coefficient that every experiment replaces is no unknown by default
         self.constants = self.constants + replaced_everywhere(conditions)
@@ -126,7 +128,7 @@ class StackedModel(ODEModel):
         for e in range(self.E):
             xe = x[..., e * self.n:(e + 1) * self.n]
             te = self._t0[e] + self._span[e] * t
-            args = (te, xe) if self._signals is None else (te, xe, self._signals[e](te))
+            args = (te, xe) if self._signals is None else (te, xe, self._signals[e](self._span[e] * t))
             own = condition_values(buffers, self._conditions[e]) if self._conditions else buffers
             out.append(self._span[e] * functional_call(self.inner.model, own, args))
         return torch.cat(out, dim=-1)
@@ -140,7 +142,7 @@ class StackedModel(ODEModel):
         return self._normalized("jumps")
 
     def _normalized(self, kind: str) -> torch.Tensor | None:
-        pieces = [(getattr(s, kind).to(self._t0) - self._t0[e]) / self._span[e]
+        pieces = [getattr(s, kind).to(self._t0) / self._span[e]  # (the signals are in local time)
                   for e, s in enumerate(self._signals or ()) if getattr(s, kind) is not None]
         return torch.cat(pieces) if pieces else None
 

@@ -67,6 +67,8 @@ class Problem:
         # --- times: t_obs (T,) shared or (B, T) per sample, t0 () shared or (B,) per sample
         self.t_obs = self.t
         self.t0 = self._initial_time(t0)
+        #: the fit's local time origin (:meth:`_attach_inputs`); ``t0`` and the inputs in the data's time
+        self.origin, self.data_t0, self.data_inputs = 0.0, self.t0, None
         # --- initial states
         self.operator = ObservationOperator(self.observe, names, self.K, self.dtype, self.device).bind(system)
         self.initial = InitialStateExpressions(
@@ -472,7 +474,12 @@ class Problem:
         signals = self.inputs.for_model(names, float(torch.as_tensor(self.t0).min()), float(self.t_obs[..., -1].max()),
                                         self.dtype, self.device, where=where, span="the data's times",
                                         note=" (from t0 to the last observation)")
-        attach_inputs(self.system.model, signals)
+        # the fit runs in local time from the earliest t0: measured at t ~ 1e8 (clock times), a held
+        # input's step spanned 1e5 roundoffs of t and a fit at rtol 1e-10 failed (INTEGRATION_FAILED)
+        self.origin = float(torch.as_tensor(self.t0).min())
+        self.t_obs, self.t0, self.data_inputs = self.t_obs - self.origin, self.t0 - self.origin, signals
+        signals = signals.shifted(self.origin)
+        attach_inputs(self.system.model, signals, self.origin)
         return signals.nodes
 
     def _x0_from_data(self, names) -> torch.Tensor:
@@ -536,17 +543,20 @@ class Problem:
     # ------------------------------------------------------------------------------------------
     def result(self, z0, out, statuses, messages, nfev) -> BatchFitResult:
         system, n, B = self.system, self.system.n, self.B
+        model = system.user_model()
+        if self.data_inputs is not None:  # the data's own times, not the fit's local ones
+            attach_inputs(model, self.data_inputs)
         params = self._params_of(z0)
         dof = self.L - self.m
         variance = residual_variance(out["sse"], dof, self.sigma_known)
         return BatchFitResult(
             success=torch.tensor([s.success for s in statuses], dtype=torch.bool, device=self.device),
             status=statuses, message=messages, params=params, x0=z0[:, :n].clone(),
-            t0=float(self.t0) if self.t0.dim() == 0 else self.t0.clone(),
+            t0=float(self.data_t0) if self.data_t0.dim() == 0 else self.data_t0.clone(),
             unknown_names=list(self.unknown_names), estimates=z0[:, self.unknown_index].clone(),
             iterations=out["iterations"], sse=out["sse"], covariance=out["cov"], n_observations=self.L.clone(),
             dof=dof, residual_variance=variance, sigma_known=self.sigma_known, nfev=nfev,
-            model=system.user_model(), residuals=out["residuals"], jacobian=out["jacobian"],
+            model=model, residuals=out["residuals"], jacobian=out["jacobian"],
             used=self.mask.reshape(B, -1).clone(), singular_values=out["singular_values"],
             exact=self.exact.reshape(B, -1).clone(), exact_residual=out["exact_residual"],
             start_params=self._params_of(out["z0_start"]), start_x0=out["z0_start"][:, :n].clone(),
