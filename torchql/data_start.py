@@ -19,6 +19,7 @@ the data after the integrated guesses of a stiff model), and keep the better of 
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -127,6 +128,11 @@ MISFIT_CORRELATION = 0.5
 MISFIT_FLOOR = 100.0
 #: ... and so is one that took at least this many iterations.
 LONG_PATH = 10
+#: A data-started success after at least this many iterations is fitted again from the integrated
+#: guesses whatever their sum of squares (:func:`fallback_rows`), and loses only to a success lower
+#: by more than :data:`GUESSES_MARGIN` of its own: an oscillator sampled below its frequency took 27
+#: to a wrong optimum, where fits that took 10 to 15 reached the right one.
+LONG_SUCCESS = 20
 #: ... and one whose data's ``sigma`` was given and whose sum of squares exceeds this many times the
 #: number of values (each weighted residual ten standard deviations on average): a van der Pol
 #: fit (20 values, sigma 0.01) from mu = 2.8 ended CONVERGED at mu = 8e-12 on its bound with SSE
@@ -166,7 +172,7 @@ def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int
     succeeded above the model's own sum of squares at the guesses (``chunk["sse_guesses"]``, by
     more than :data:`GUESSES_MARGIN` of it: the data's reference led it to a worse optimum than
     where the guesses lay), or ran out of ``max_iter`` above it. Returns ``(rows, above)``, ``above``
-    the latter."""
+    the latter, and the data-started successes after at least :data:`LONG_SUCCESS` iterations."""
     if not fallback:
         return [], set()
     # (out of max_iter after a long path: wandering, not on its way; a runaway of an initial state
@@ -176,6 +182,12 @@ def fallback_rows(chunk: dict, fallback: str | None) -> tuple[list[int], set[int
     at_guesses = chunk.get("sse_guesses")
     above = set() if at_guesses is None else set(
         (at_guesses < (1 - GUESSES_MARGIN) * chunk["sse_end"]).nonzero().flatten().tolist())
+    # a success from the data after a long path: its matched start lay far from where it ended, and
+    # may have misled it (an oscillator sampled below its frequency, B = 80 guessed 64: 27 iterations
+    # to B = 0.26 at 40 times the optimum's SSE, the guesses' own above both)
+    iterations = chunk.get("iterations")
+    if fallback == "integrate" and iterations is not None:
+        above |= {k for k, code in enumerate(chunk["status"]) if code.success and int(iterations[k]) >= LONG_SUCCESS}
     return sorted(failed | above), above
 
 
@@ -247,9 +259,12 @@ def keep_the_better_fit(chunk: dict, rows: list[int], other: dict, second: str |
         wins = not first.success and (end.success or lower
                                       or (sse_first != sse_first and sse_second == sse_second)
                                       or (unknown and end is Status.MAX_TIME))
-        wins = wins or (k in above and end.success and lower)
-        worse = (f", above the model's own at the guesses ({float(chunk['sse_guesses'][k]):.6g})"
-                 if k in above else "")
+        guesses = float(chunk["sse_guesses"][k]) if "sse_guesses" in chunk else math.nan
+        by_guesses = guesses < (1 - GUESSES_MARGIN) * float(chunk["sse_end"][k])  # (else by its long path)
+        clearly = by_guesses or float(other["sse_end"][j]) < (1 - GUESSES_MARGIN) * float(chunk["sse_end"][k])
+        wins = wins or (k in above and end.success and lower and clearly)
+        worse = ("" if k not in above else f", above the model's own at the guesses ({guesses:.6g})" if by_guesses
+                 else f", after {int(chunk['iterations'][k])} iterations")
         if wins:
             for key, value in chunk.items():
                 if isinstance(value, list) or (isinstance(value, torch.Tensor) and value.shape[:1] == (S,)):
