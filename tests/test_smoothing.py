@@ -153,3 +153,19 @@ def test_series_each_on_its_own_knots_are_interpolated_as_each_alone():
     assert each.shape == (N, 90)
     for n in range(N):
         assert torch.equal(each[n], interpolate(t[n], y[n], tq[n]))
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1e7])
+def test_the_smoothing_does_not_depend_on_the_units_of_the_values_and_their_sigmas(scale):
+    """Values and sigmas in units ``scale`` times smaller (weights ``1 / scale^2`` times): the same
+    smoothing in those units. The candidates' range was fixed: with sigmas of 1e6 only the flat
+    smoothings remained, and a Lotka–Volterra fit started from them ran to max_iter at 1,700 times
+    the optimum's sum of squares (its fit in the first units: 6 iterations)."""
+    t = torch.linspace(0, 15, 61, dtype=torch.float64)
+    y = torch.sin(t) + 0.2 * torch.randn(61, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    weights = torch.full_like(t, 1 / 0.2 ** 2) * (1 + 0.5 * torch.rand(61, generator=torch.Generator().manual_seed(2),
+                                                                       dtype=torch.float64))
+    base = smooth(t, y, weights)
+    torch.testing.assert_close(smooth(t, y * scale, weights / scale ** 2), base * scale, rtol=1e-9, atol=1e-12 * scale)
+    torch.testing.assert_close(smooth_each(t.unsqueeze(0), (y * scale).unsqueeze(0), (weights / scale ** 2).unsqueeze(0)),
+                               base.unsqueeze(0) * scale, rtol=1e-9, atol=1e-12 * scale)

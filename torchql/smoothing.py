@@ -70,9 +70,12 @@ def _operators(t: torch.Tensor, w: torch.Tensor, lams: torch.Tensor | None):
     logarithmic range scaled to each series' span, ``(N, L)``) are the candidates."""
     T = t.shape[1]
     if lams is None:
-        # lam * span^-3-ish balances the roughness term against one squared residual per point
+        # lam * span^-3-ish balances the roughness term against one squared residual per point, of
+        # the series' mean weight: sigmas all s times larger ask lam / s^2 (their range at unit
+        # weights, else a sigma of 1e6 left only flat smoothings, and the fit from them ran to max_iter)
         span = (t[:, -1] - t[:, 0]).unsqueeze(1)
-        lams = torch.logspace(-12, 2, 29, dtype=t.dtype, device=t.device).unsqueeze(0) * span ** 3 / T
+        lams = (torch.logspace(-12, 2, 29, dtype=t.dtype, device=t.device).unsqueeze(0) * span ** 3 / T
+                * w.mean(dim=1, keepdim=True))
     r = w.sqrt()
     # one eigendecomposition per series, each copied to a buffer of its own by eigh: in one batched
     # call a series' matrix sits at an offset that LAPACK's kernels may take another path for (MKL
