@@ -256,3 +256,18 @@ def test_a_step_size_underflow_in_float32_names_the_precision():
     with pytest.raises(torchql.IntegrationError, match=r"in float32 no step near t = 80\d\.\d+ is shorter than "
                                                         r"10 eps \|t\| = 0\.00096.*model\.double\(\)"):
         torchql.simulate(VanDerPol().float(), torch.tensor([2.0, 0.0]), t, t0=0.0, rtol=1e-3, atol=1e-5)
+
+
+@pytest.mark.parametrize("solver", ["dop853", "rodas5p"])
+def test_a_simulation_at_clock_times_equals_the_one_near_zero(solver):
+    """An autonomous model integrated at t ~ 1e9 (clock times in seconds): each step advanced the
+    state by h and the clock by fl(t + h), an ulp of t (1e-7) apart, and the solution drifted 5e-7
+    from the one near zero (DOP853; Rodas5P 3e-7). The step taken is the one the clock takes."""
+    from torchql.models import NonlinearOscillator
+
+    t = torch.linspace(0.0, 20.0, 41, dtype=torch.float64)
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    near = torchql.simulate(NonlinearOscillator(), x0, t, solver=solver, rtol=1e-10, atol=1e-12)
+    for offset in (1e6, 1e9):
+        far = torchql.simulate(NonlinearOscillator(), x0, t + offset, solver=solver, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(far, near, rtol=0, atol=1e-11)

@@ -208,7 +208,9 @@ class _DopriRun:
             target = self.grid[self.next_land[node_a]]
         gap = target - ta
         clipped = ha >= gap
-        he = torch.where(clipped, gap, ha)
+        # the step the clock takes, ``fl(t + h) - t``: at t ~ 1e9 the rounding of each step's end
+        # (an ulp of t, 1e-7) had been lost between the state and the clock, 5e-7 over a simulation
+        he = torch.where(clipped, gap, (ta + ha) - ta)
         hc = he.unsqueeze(-1)
         K, x_new = self.pair.step(self.fv, xa, ta, ka, hc)
         self.evals += self.pair.evals * active.numel()

@@ -280,7 +280,7 @@ def _round(field: BatchedField, tab: tableau.Tensors, grid: OutputGrid, samples:
     gap = target - t
     clipped = h >= gap
     empty = clipped & (gap <= 0)  # a zero-length interval: its end value is its start value
-    he = torch.where(clipped & ~empty, gap, h)
+    he = torch.where(clipped & ~empty, gap, (t + h) - t)  # the step the clock takes (as dopri_batch's)
     y_new, K, lu = _stages(field, tab, t, he, y, st["f0"], st["J"], st["ft"])
     ratio = _error_ratio(K[-1][:, :n], y[:, :n], y_new[:, :n], rtol, atol, norm)
     exponent = _EXPONENT
@@ -463,7 +463,7 @@ def _one_sample(field, tab, out: OutputGrid, samples: _Samples, status, n, rtol,
         gap = target - t
         clipped = h >= gap
         empty = clipped and gap <= 0
-        he = gap if clipped and not empty else h
+        he = gap if clipped and not empty else (t + h) - t  # the step the clock takes (as dopri_batch's)
         ht = samples.t.new_tensor([he])
         y_new, K, lu = _stages(field, tab, tt, ht, y, f0, J, ft)
         ratio = float(_error_ratio(K[-1][:, :n], y[:, :n], y_new[:, :n], rtol, atol, norm))
