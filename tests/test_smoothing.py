@@ -167,5 +167,5 @@ def test_the_smoothing_does_not_depend_on_the_units_of_the_values_and_their_sigm
                                                                        dtype=torch.float64))
     base = smooth(t, y, weights)
     torch.testing.assert_close(smooth(t, y * scale, weights / scale ** 2), base * scale, rtol=1e-9, atol=1e-12 * scale)
-    torch.testing.assert_close(smooth_each(t.unsqueeze(0), (y * scale).unsqueeze(0), (weights / scale ** 2).unsqueeze(0)),
-                               base.unsqueeze(0) * scale, rtol=1e-9, atol=1e-12 * scale)
+    each = smooth_each(t.unsqueeze(0), (y * scale).unsqueeze(0), (weights / scale ** 2).unsqueeze(0))
+    torch.testing.assert_close(each, base.unsqueeze(0) * scale, rtol=1e-9, atol=1e-12 * scale)
