@@ -90,6 +90,11 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         #: :func:`~torchql.dopri_sensitivity.explicit_sensitivities`): their solutions with sensitivities
         #: are Rodas5P's from then on (Evaluation._solve_with_sensitivities)
         self.fast_decay: set[int] = set()
+        #: ... found so in this round's trial solution: marked ``fast_decay`` if the trial is taken (a
+        #: rejected trial's decay says nothing of the fit's: an SIR trial's gamma of 87, 1000 times the
+        #: iterate's, made every later solve of a 17-iteration fit Rodas5P's; its stiffness, found by
+        #: DOP853's test, had the fit stopped and fitted again by Rodas5P, 20 s where scipy takes 0.2)
+        self.trial_decay: set[int] = set()
         #: per sample, the current iterate (its initial state's bytes) seen to fit in that budget
         self.fits_grid: dict[int, bytes] = {}
         #: samples whose automatic storage grid misses their model's change: misfit (FinalPass._missed_by_storage)
@@ -280,6 +285,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         flat = self._flat(st, act, trial, accept, alpha)
         creeping = self._creeping(st, act, trial, accept & ~flat)
         self._take(st, act, trial, accept)
+        self.trial_decay.difference_update(act.tolist())
         if bool(flat.any()):
             st.stop(act[flat], Status.CONVERGED_SSE)
         if bool(creeping.any()):  # the final pass goes on from here by steps on the model itself
@@ -418,6 +424,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self._notify(target)
         st.prev_z0[target], st.distrust[target] = st.cur["z0"][target], False
         put_samples(st.cur, target, trial, rows)
+        self.fast_decay.update(r for r in target.tolist() if r in self.trial_decay)
         st.last_damping[target] = st.damping[target]
         st.damping[target] = 0.0
         st.iterations[target] += 1

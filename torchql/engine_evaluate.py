@@ -368,7 +368,7 @@ class Evaluation(GridSolve):
         (:meth:`_solve_with_sensitivities`): the linear propagator says so (``"rodas5p"``)."""
         return self.spec.linear_solver.with_solution
 
-    def _solve_with_sensitivities(self, idx, z0) -> tuple[torch.Tensor, torch.Tensor, list]:
+    def _solve_with_sensitivities(self, idx, z0, trial: bool = False) -> tuple[torch.Tensor, torch.Tensor, list]:
         """The model integrated from ``z0 (S, M)`` together with its sensitivities to the unknowns,
         the solver's steps differentiated, on the grid of the chunk's samples ``idx``: by Rodas5P
         (:mod:`torchql.solvers.sensitivity`, landing as :meth:`_landing` says) for a stiff model,
@@ -379,7 +379,8 @@ class Evaluation(GridSolve):
         ``W (S, G, M, 1 + m)`` (``W[..., 0]`` the solution, then the homogeneous columns from
         :meth:`~torchql.problem.Problem.columns`) and error messages (None: ok). A sample that
         failed keeps its initial state and columns at every node: a finite stand-in, as a failed
-        trial needs one.
+        trial needs one. ``trial``: solutions from trial estimates, whose decay marks their samples
+        only once the trial is taken (``trial_decay``).
         """
         first = self.spec.columns(z0)
         if self._joint_sensitivities or not self._batched_dopri():  # (a stiff solver is not batched dopri)
@@ -387,7 +388,7 @@ class Evaluation(GridSolve):
         else:
             implicit = members(self.fast_decay, idx)
         if bool(implicit.all()) or not bool(implicit.any()):
-            z, V, errors = self._sensitivities_by(idx, z0, first, bool(implicit[0]))
+            z, V, errors = self._sensitivities_by(idx, z0, first, bool(implicit[0]), trial)
         else:  # samples whose decay held DOP853's steps, and the others
             G = self._grid_of(idx).shape[-1]
             z = z0.new_empty(idx.numel(), G, z0.shape[1])
@@ -395,7 +396,8 @@ class Evaluation(GridSolve):
             errors = [None] * idx.numel()
             for rodas in (True, False):
                 rows = (implicit == rodas).nonzero().flatten()
-                z[rows], V[rows], part_errors = self._sensitivities_by(idx[rows], z0[rows], first[rows], rodas)
+                z[rows], V[rows], part_errors = self._sensitivities_by(idx[rows], z0[rows], first[rows], rodas,
+                                                                       trial)
                 for k, e in zip(rows.tolist(), part_errors):
                     errors[k] = e
         W = torch.cat([z.unsqueeze(-1), V], dim=-1)
@@ -404,7 +406,8 @@ class Evaluation(GridSolve):
         W = torch.where(failed.reshape(-1, 1, 1, 1), first.unsqueeze(1).expand_as(W), W)
         return z, W, errors
 
-    def _sensitivities_by(self, idx, z0, first, rodas: bool) -> tuple[torch.Tensor, torch.Tensor, list]:
+    def _sensitivities_by(self, idx, z0, first, rodas: bool, trial: bool = False
+                          ) -> tuple[torch.Tensor, torch.Tensor, list]:
         """:meth:`_solve_with_sensitivities` of the samples ``idx`` from ``z0``, columns ``first``,
         by Rodas5P (``rodas``) or by the batched explicit pair: ``z``, ``V`` and error messages."""
         spec = self.spec
@@ -420,9 +423,11 @@ class Evaluation(GridSolve):
                                                          rtol=spec.rtol, atol=spec.atol, method=spec.solver,
                                                          interval_steps=spec.max_steps, held=held)
         self.nfev += evals
-        self._note_stiff(idx, errors)
+        if not trial:  # (a trial's stiff stretch fails it: rejected, it says nothing of the fit's)
+            self._note_stiff(idx, errors)
         if held is not None:
-            self.fast_decay.update(int(i) for i, part, e in zip(idx.tolist(), held, errors) if part > 0.5 and e is None)
+            found = (int(i) for i, part, e in zip(idx.tolist(), held, errors) if part > 0.5 and e is None)
+            (self.trial_decay if trial else self.fast_decay).update(found)
         return z, V, errors
 
     def _model_from_data(self, idx, z0, reference):

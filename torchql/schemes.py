@@ -113,7 +113,7 @@ class Shooting(Scheme):
         traj, W, errors = guess.clone(), None, [None] * act.numel()
         together, alone = joint.nonzero().flatten(), (~joint).nonzero().flatten()
         if together.numel():
-            traj_j, W_j, errors_j = engine._solve_with_sensitivities(act[together], z0_new[together])
+            traj_j, W_j, errors_j = engine._solve_with_sensitivities(act[together], z0_new[together], trial=True)
             traj[together], W = traj_j, W_j.new_full((act.numel(), *W_j.shape[1:]), float("nan"))
             W[together] = W_j
             for k, e in zip(together.tolist(), errors_j):
