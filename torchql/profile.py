@@ -156,12 +156,11 @@ def profile(
     points = [center]
     ends, closed, notes = [], [], []
     for direction, limit in ((-1.0, lower_bound), (1.0, upper_bound)):
-        end, why, found = _search_side(refit, center, direction, limit, threshold,
+        end, why, found, reached = _search_side(refit, center, direction, limit, threshold,
                                        first=0.5 * math.sqrt(threshold.q2) * h, growth=growth,
                                        max_points=max_points, tol=xtol * h, approach=own)
         points.extend(found)
-        reached = own and limit is not None and end is None and why is not None and why.startswith(_REACHED)
-        ends.append(limit if reached else direction * math.inf if end is None else end)
+        ends.append(limit if own and reached else direction * math.inf if end is None else end)
         closed.append(end is not None)
         if end is None:
             notes.append(f"open {'below' if direction < 0 else 'above'}: {why}")
@@ -360,17 +359,14 @@ class _Refitter:
         return _Point(value, 2 * r.nll if self.likelihood else r.sse, est, r.model, r.x0)
 
 
-_REACHED = "the search bound"
-
-
 def _search_side(refit: _Refitter, center: _Point, direction: float, limit: float | None, threshold: _Threshold,
                  *, first: float, growth: float, max_points: int, tol: float, approach: bool = False
-                 ) -> tuple[float | None, str | None, list[_Point]]:
+                 ) -> tuple[float | None, str | None, list[_Point], bool]:
     """Walk out from ``center`` (``direction`` -1: below, +1: above) until the profile crosses the threshold.
 
     ``approach``: the ``limit`` is one of the fit's own bounds, approached to :data:`BOUND_APPROACH`
     of the distance, not evaluated on it. Returns the end (None when the side is open), why it is
-    open, and the points evaluated in order.
+    open, the points evaluated in order, and whether the search reached ``limit`` (below the threshold).
     """
     name = refit.name
     side = "below" if direction < 0 else "above"
@@ -387,21 +383,23 @@ def _search_side(refit: _Refitter, center: _Point, direction: float, limit: floa
         if point is None and refit.failures[-1][1] == Status.EXACT_INFEASIBLE.name:
             # past here no value of the others meets the values marked exact: the profile is infinite
             # (an initial state measured exactly: its interval is the estimate itself)
-            return prev.value, None, points
+            return prev.value, None, points, False
         if point is None:
-            return None, (f"the re-fits failed {side} {name} = {prev.value:.6g} "
-                          f"({refit.failures[-1][1]}; the profile stays below the threshold up to there)"), points
+            why = (f"the re-fits failed {side} {name} = {prev.value:.6g} "
+                   f"({refit.failures[-1][1]}; the profile stays below the threshold up to there)")
+            return None, why, points, False
         points.append(point)
         if threshold.excess(point) >= 0:
             end, extra = _crossing(prev, point, threshold.excess, refit, tol)
-            return end, None, points + extra
+            return end, None, points + extra, False
         prev = point
         dist *= growth
         if at_limit:
             near = f" (to {point.value:.6g})" if approach else ""
-            return None, f"{_REACHED} {limit:.6g} was reached{near} with the profile still below the threshold", points
+            return (None, f"the search bound {limit:.6g} was reached{near} with the profile still below the threshold",
+                    points, True)
     return None, (f"the profile stays below the threshold up to {name} = {prev.value:.6g} "
-                  f"({max_points} steps; widen the search with `max_points=`/`growth=`/`step=`)"), points
+                  f"({max_points} steps; widen the search with `max_points=`/`growth=`/`step=`)"), points, False
 
 
 def _step_out(refit: _Refitter, prev: _Point, target: float, direction: float) -> tuple[_Point | None, bool]:
