@@ -36,11 +36,26 @@ def test_t_non_finite(bad):
 def test_t_non_increasing_names_index_and_values():
     with pytest.raises(ValueError, match=r"`t` must be strictly increasing.*t\[1\] = 2 followed by t\[2\] = 1"):
         torchql.Observations([0.0, 2.0, 1.0], [1.0, 2.0, 3.0], ["y"])
+    with pytest.raises(ValueError, match=r"Sort the times, and the values with them"):
+        torchql.Observations([0.0, 2.0, 1.0], [1.0, 2.0, 3.0], ["y"])
 
 
 def test_t_duplicate_names_index_and_values():
     with pytest.raises(ValueError, match=r"`t` must be strictly increasing \(no duplicates\).*t\[2\] = 3 followed by t\[3\] = 3"):
         torchql.Observations([0.0, 1.0, 3.0, 3.0], [1.0, 2.0, 3.0, 4.0], ["y"])
+    with pytest.raises(ValueError, match=r"Replicate measurements at one time are columns"):
+        torchql.Observations([0.0, 1.0, 3.0, 3.0], [1.0, 2.0, 3.0, 4.0], ["y"])
+
+
+def test_replicates_as_columns_are_the_advised_remedy():
+    """What the duplicate-time error advises works: two replicates at 3.0 as two columns of one state, one
+    missing elsewhere: the four values are exact samples of y' = -k y with k = ln 2, which the fit recovers."""
+    t = torch.tensor([0.0, 1.0, 3.0], dtype=torch.float64)
+    y = torch.tensor([[1.0, float("nan")], [0.5, float("nan")], [0.125, 0.125]], dtype=torch.float64)
+    result = torchql.fit(Decay(k=0.5), torchql.Observations(t, y, observe=["y", "y"]),
+                         torch.tensor([0.9], dtype=torch.float64))
+    assert result.success and result.n_observations == 4
+    assert result.params["k"].item() == pytest.approx(math.log(2.0), rel=1e-7)
 
 
 def test_t_rejects_non_numeric():

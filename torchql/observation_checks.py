@@ -72,15 +72,23 @@ def check_times(t: torch.Tensor) -> None:
     if bool(step.all()):
         return
     b, j = (int(v) for v in (~step).nonzero()[0])
+    remedy = _REPEATED if bool(rows[b, j] == rows[b, j + 1]) else _UNSORTED
     if not per_sample:
         raise ValueError(
             "`t` must be strictly increasing (no duplicates); received "
-            f"t[{j}] = {t[j].item():g} followed by t[{j + 1}] = {t[j + 1].item():g}"
+            f"t[{j}] = {t[j].item():g} followed by t[{j + 1}] = {t[j + 1].item():g}. {remedy}"
         )
     raise ValueError(
         f"`t` must be strictly increasing (no duplicates) in every row; received t[{b}, {j}] = {t[b, j].item():g} "
-        f"followed by t[{b}, {j + 1}] = {t[b, j + 1].item():g} (the times of sample {b})"
+        f"followed by t[{b}, {j + 1}] = {t[b, j + 1].item():g} (the times of sample {b}). {remedy}"
     )
+
+
+#: What to do about a repeated time: replicates are columns of one time's row.
+_REPEATED = ("Replicate measurements at one time are columns of that time's row: observe the state once per "
+             "replicate (observe=[\"y\", \"y\"]), with NaN where a replicate is missing.")
+#: What to do about unsorted times.
+_UNSORTED = "Sort the times, and the values with them (order = t.argsort(); t[order], y[order])."
 
 
 def exact_mask(exact, shape: tuple[int, ...], y: torch.Tensor) -> torch.Tensor:
