@@ -32,7 +32,7 @@ import torch
 
 from .bounds import at_bound_note, moved_guesses_note
 from .data_start import sse_at_guesses
-from .diagnosis import negligible_columns, typical_magnitudes
+from .diagnosis import RUNAWAY_FACTOR, negligible_columns, typical_magnitudes
 from .budget import TimeBudgetExceeded, no_time_budget, until
 from .dopri import dopri_batch
 from .dopri_sensitivity import HELD_STEP
@@ -352,7 +352,7 @@ class FinalPass(FinalDiagnosis):
             if bool(fresh.any()):
                 here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
         polish[r[~need]] = False
-        need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS)
+        need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS, z0)
         trying.clear()
         trying.update(zip(r[need].tolist(), scaled[need].tolist()))
         if not bool(need.any()):
@@ -437,15 +437,24 @@ class FinalPass(FinalDiagnosis):
         traj, W, errors = self._solve_with_sensitivities(rows, z0)
         return torch.tensor([e is None for e in errors], dtype=torch.bool, device=z0.device), traj, W, errors
 
-    def _out_of_steps(self, rows, need, scaled, iterations, codes, detail, last: bool) -> torch.Tensor:
+    def _out_of_steps(self, rows, need, scaled, iterations, codes, detail, last: bool, z0) -> torch.Tensor:
         """Of the samples ``rows`` whose next step on the model is needed (``need``; its scaled size
-        ``scaled``), those that may not take it (``max_iter`` reached, or the ``last`` pass): their
-        fits are not converged on the model, ``MAX_ITER`` with the step's size in the message."""
-        out = need & ((iterations[rows] >= self.spec.max_iter) | last)
+        ``scaled``), those that may not take it (``max_iter`` reached, the ``last`` pass, or estimates
+        ``z0[rows]`` run away: an unknown beyond :data:`~torchql.diagnosis.RUNAWAY_FACTOR` times its
+        typical magnitude, which the diagnosis calls a divergence whatever a further step does): their
+        fits are not converged on the model, ``MAX_ITER`` with the step's size in the message. (Steps
+        of a fit whose optimum lies at infinity doubled an initial state from 1e6 to 4e11, each at
+        the same sum of squares, each a solve with sensitivities.)"""
+        away = ~(z0[rows][:, self.spec.unknown_index].abs() <= RUNAWAY_FACTOR * self._typical(rows)).all(dim=1)
+        out = need & ((iterations[rows] >= self.spec.max_iter) | last | away)
         remedy = "" if self.spec.scheme.integrates_model else ' or `method="shooting"`'
         for j in out.nonzero().flatten().tolist():
             r = int(rows[j])
             codes[r] = Status.MAX_ITER
+            if bool(away[j]):
+                detail[r] = (" The final pass's Gauss–Newton steps on the model were stopped with the estimates beyond "
+                             f"{RUNAWAY_FACTOR:g} times their typical magnitudes.")
+                continue
             detail[r] = (" The iteration's fixed point was off the model's optimum (the storage grid misses a "
                          "change of the model), and the final pass's Gauss–Newton steps on the model stopped before "
                          f"converging: the next would move the unknowns by {float(scaled[j]):.2g} of their scale; a "
