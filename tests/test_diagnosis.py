@@ -236,3 +236,29 @@ def test_an_unconverged_fit_that_misses_the_data_by_orders_of_magnitude_diverged
     assert final_status(Status.STALLED, sse=SSE_GROWTH * 5.0, sse_data=5.0, **common)[0] is Status.NOT_IDENTIFIABLE
     assert final_status(Status.CONVERGED, sse=2 * SSE_GROWTH * 5.0, sse_data=5.0, **common)[0] is \
         Status.NOT_IDENTIFIABLE
+
+
+def test_rounding_spread_is_the_largest_value_change_of_rounding_the_estimates():
+    """``eps sum_j |J_ij| |u_j|``, the largest over the rows; zero estimates contribute nothing."""
+    from torchql.diagnosis import rounding_spread
+
+    J = torch.tensor([[1.0, 2.0], [-3.0, 4.0]], dtype=torch.float64)
+    u = torch.tensor([2.0, -0.5], dtype=torch.float64)
+    eps = torch.finfo(torch.float64).eps
+    assert float(rounding_spread(J, u)) == pytest.approx(eps * (3.0 * 2.0 + 4.0 * 0.5), rel=1e-15)
+    assert float(rounding_spread(J, torch.zeros(2, dtype=torch.float64))) == 0.0
+
+
+def test_a_rounding_spread_above_the_data_makes_any_status_diverged():
+    """Above the data's root mean square the fit diverged, converged or stalled, rank deficient or not;
+    below it (or with data all zero, which have no magnitude to compare) the other rules decide."""
+    common = dict(null_text=" {a}.", estimates=torch.ones(2, dtype=torch.float64),
+                  scale=torch.ones(2, dtype=torch.float64), unknown_names=["a", "b"], sse=1.0, sse_start=2.0,
+                  sse_data=4.0, n_values=4)
+    for status in (Status.CONVERGED, Status.STALLED):
+        for deficient in (False, True):
+            code, text = final_status(status, rank_deficient=deficient, rounding=1.5, **common)
+            assert code is Status.DIVERGED and "root mean square (1)" in text
+    assert final_status(Status.CONVERGED, rank_deficient=False, rounding=0.5, **common)[0] is Status.CONVERGED
+    common["sse_data"] = 0.0
+    assert final_status(Status.CONVERGED, rank_deficient=False, rounding=1.5, **common)[0] is Status.CONVERGED

@@ -75,3 +75,32 @@ def test_log_normal_data_near_one_are_not_compared_with_a_model_predicting_zero(
         data = torchql.Observations(t, y, observe=["y"], noise=noise)
         result = torchql.fit(Logistic(0.3, 1.3), data, torch.tensor([0.99], dtype=DT), max_iter=1)
         assert result.status is torchql.Status.MAX_ITER, (noise, result.message)
+
+
+@pytest.mark.parametrize("options", [{"method": "shooting"},
+                                     {"initial_trajectory": "integrate", "damping": None}])
+def test_a_fit_whose_model_amplifies_rounding_beyond_the_data_is_diverged(options):
+    """A decaying oscillation (A = 0.2, B = 2) from guesses A = -5, B = -50, whose model grows as
+    e^(10 t) over the data's 6.5 time units: the fit ends with its initial state on the decaying mode
+    e^(-5 t), "converged" at a sum of squares (1.86) that its own ``predict`` misses by 1e22, and its
+    column-scaled Jacobian is of rank 1. It was called NOT_IDENTIFIABLE, telling the user to fix
+    unknowns the data determine well (from A = 0.3, B = 2.5 the fit converges to SSE 8.4e-4). A
+    change of the unknowns in their last digits moves a fitted value by 2.5e11, the data being of
+    order 0.36: DIVERGED, saying so, in fit and fit_many alike."""
+    from torchql.models import LinearOscillator
+
+    t = torch.arange(14, dtype=DT) * 0.5
+    x0 = torch.tensor([0.0, 1.0], dtype=DT)
+    y = torchql.simulate(LinearOscillator(0.2, 2.0), x0, t)[:, :1]
+    y = y + 0.01 * torch.randn(y.shape, generator=torch.Generator().manual_seed(5), dtype=DT)
+    data = torchql.Observations(t, y, observe=["y"])
+    result = torchql.fit(LinearOscillator(-5.0, -50.0), data, x0, **options)
+    assert result.status is torchql.Status.DIVERGED, result.message
+    assert "changes a weighted fitted value by up to" in result.message
+    assert "more than the data's own root mean square (0.363)" in result.message
+    batch = torchql.fit_many(LinearOscillator(-5.0, -50.0), torchql.Observations(t, torch.stack([y, y]), observe=["y"]),
+                             x0, **options)
+    assert [s.name for s in batch.status] == ["DIVERGED", "DIVERGED"]
+    good = torchql.fit(LinearOscillator(0.3, 2.5), data, x0, **options)
+    assert good.success, good.message
+    assert abs(float(good.params["B"]) - 2.0) < 0.05 and "last digits" not in good.message

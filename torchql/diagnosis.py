@@ -17,6 +17,12 @@ A fit that ends at ``MAX_ITER`` or ``STALLED`` is examined at its final estimate
 A Jacobian column whose effect is below rounding (:func:`negligible_columns`) is no information:
 its unknown is treated as one with a zero column, which the data do not determine.
 
+A fit, converged or not, whose model at its estimates amplifies a change of the unknowns in their
+last digits into more than the data's own magnitude (:func:`rounding_spread`) diverged, whatever
+its rank: no fitted value there is computable. (A linear oscillator from guesses whose model grows
+as e^(10 t) ended with its initial state on the decaying mode: "converged", then called
+NOT_IDENTIFIABLE, at a sum of squares its own ``predict`` missed by 1e22.)
+
 A converged fit is examined too: a rank-deficient Jacobian at its estimates means the data do
 not determine them (``NOT_IDENTIFIABLE``), unless the estimates ran away along that direction.
 A runaway into a degenerate limit (a Michaelis–Menten ``V, Km -> inf`` with ``V / Km`` fixed,
@@ -39,7 +45,7 @@ import torch
 from .status import Status
 
 __all__ = ["RUNAWAY_FACTOR", "WEAK_RUNAWAY_FACTOR", "SSE_GROWTH", "STATIONARY_STEP", "null_detail",
-           "typical_magnitudes", "negligible_columns", "ran_away", "final_status"]
+           "typical_magnitudes", "negligible_columns", "rounding_spread", "ran_away", "final_status"]
 
 #: An unknown whose magnitude exceeds this many times its typical one has run away.
 RUNAWAY_FACTOR = 1e6
@@ -106,6 +112,26 @@ def negligible_columns(jacobian: torch.Tensor, estimates: torch.Tensor, scale: t
     return effect <= max(L, m) * eps * effect.amax(dim=-1, keepdim=True)
 
 
+def rounding_spread(jacobian: torch.Tensor, estimates: torch.Tensor) -> torch.Tensor:
+    """The largest change of a weighted value that rounding the unknowns makes: ``(...,)``, the
+    largest over the rows of ``eps sum_j |J_ij| |estimate_j|``.
+
+    Of the order of rounding times the data's magnitudes wherever the fitted values are a
+    well-conditioned function of the unknowns. Above the data's own magnitude, the model at these
+    estimates amplifies a change in the unknowns' last digits into more than the data hold (a
+    solution that grows as e^(10 t) over 6.5 time units, kept small only by an initial state on its
+    decaying mode): no computed value there means anything, and neither does a rank test.
+
+    Parameters
+    ----------
+    jacobian : Tensor ``(..., L, m)``
+        Weighted sensitivities of the values to the unknowns (zero rows for values not used).
+    estimates : Tensor ``(..., m)``
+    """
+    eps = torch.finfo(jacobian.dtype).eps
+    return eps * (jacobian.abs() * estimates.abs().unsqueeze(-2)).sum(dim=-1).amax(dim=-1)
+
+
 def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequence[str],
              factor: float = RUNAWAY_FACTOR) -> list[str]:
     """Names of the unknowns ``(m,)`` larger in magnitude than ``factor`` times ``scale (m,)``."""
@@ -116,7 +142,8 @@ def ran_away(estimates: torch.Tensor, scale: torch.Tensor, unknown_names: Sequen
 def final_status(status: Status, *, rank_deficient: bool, null_text: str, estimates: torch.Tensor,
                  scale: torch.Tensor, unknown_names: Sequence[str], sse: float,
                  sse_start: float | None, step: torch.Tensor | None = None,
-                 sse_data: float | None = None) -> tuple[Status, str]:
+                 sse_data: float | None = None, rounding: float | None = None,
+                 n_values: int | None = None) -> tuple[Status, str]:
     """The status of a fit whose iteration ended at ``status``, and the detail to add to its message.
 
     Parameters
@@ -139,10 +166,24 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
     sse_data : float, optional
         The data's own weighted sum of squares (a model predicting zero; ``None``: not compared, as
         for log-normal data, whose logarithms are near 0 for values near 1).
+    rounding, n_values : float and int, optional
+        :func:`rounding_spread` at the estimates, and the number of values used: a spread above the
+        data's root mean square, ``sqrt(sse_data / n_values)`` (data not all zero), is a divergence
+        into a model too ill-conditioned to compute (whatever the iteration's status or the
+        Jacobian's rank).
     """
     examined = status.success or status in (Status.MAX_ITER, Status.STALLED)
-    if not examined or status.success and not rank_deficient:  # a runaway only matters to the others
+    if not examined:
         return status, ""
+    ill = None
+    if rounding is not None and sse_data and n_values and rounding > math.sqrt(sse_data / n_values):
+        ill = (Status.DIVERGED, f" At the final estimates, a change of the unknowns in their last digits changes a "
+                                f"weighted fitted value by up to {rounding:.3g}, more than the data's own root mean "
+                                f"square ({math.sqrt(sse_data / n_values):.3g}): the model amplifies rounding there "
+                                f"beyond what the data hold (a fast-growing mode), so its fitted values, sum of squares "
+                                f"and rank mean nothing.")
+    if status.success and not rank_deficient:  # a runaway only matters to the others
+        return ill or (status, "")
     factor = WEAK_RUNAWAY_FACTOR if rank_deficient else RUNAWAY_FACTOR
     runaway = ran_away(estimates, scale, unknown_names, factor)
     if runaway and (rank_deficient or not status.success):
@@ -151,7 +192,7 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
         return Status.DIVERGED, (f" The estimates of {runaway} ran away (more than {factor:g} times their typical "
                                  f"magnitude){ended}{where}")
     if status.success:
-        return (Status.NOT_IDENTIFIABLE, null_text) if rank_deficient else (status, "")
+        return ill or ((Status.NOT_IDENTIFIABLE, null_text) if rank_deficient else (status, ""))
     if sse_start is not None and math.isfinite(sse_start) and sse > SSE_GROWTH * max(sse_start, 0.0) and sse > 0:
         return Status.DIVERGED, (f" The sum of squares grew from {sse_start:.6g} at the guesses to {sse:.6g}"
                                  f" before the iteration ended at {status.name}.")
@@ -159,6 +200,8 @@ def final_status(status: Status, *, rank_deficient: bool, null_text: str, estima
         return Status.DIVERGED, (f" The sum of squares, {sse:.6g}, is {sse / max(sse_data, 1e-300):.3g} times the "
                                  f"data's own ({sse_data:.6g}, a model predicting zero) when the iteration ended at "
                                  f"{status.name}: the fitted model misses the data by orders of magnitude.")
+    if ill:
+        return ill
     if rank_deficient and (step is None or bool((step.abs() <= STATIONARY_STEP * scale).all())):
         # near a stationary point: the iteration wandered along directions the data do not determine
         return Status.NOT_IDENTIFIABLE, null_text + f" The iteration did not converge ({status.name}): it moved along them."

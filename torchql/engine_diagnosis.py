@@ -13,7 +13,7 @@ import math
 import torch
 
 from .active_set import bounded_update
-from .diagnosis import final_status, null_detail
+from .diagnosis import final_status, null_detail, rounding_spread
 from .engine_steps import predicted_decrease
 from .lstsq import solve_update, solve_update_batch
 from .result import Status
@@ -58,6 +58,7 @@ class FinalDiagnosis:
                                                    stalled & ~deficient, codes, detail)
         sse_list = sse.tolist()
         data = self._data_sse(rows, w)
+        spread = rounding_spread(torch.where(used.unsqueeze(-1), J, 0.0), estimates).tolist()
         first_sse = [None] * rows.numel() if self.start == "data" else self.first_sse[rows].tolist()
         for k, (r, short) in enumerate(zip(rows.tolist(), deficient.tolist())):
             code = codes[r]
@@ -74,7 +75,8 @@ class FinalDiagnosis:
             codes[r], more = final_status(
                 code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
                 unknown_names=spec.unknown_names, sse=sse_list[k],
-                sse_start=first_sse[k], step=step[k], sse_data=data[k])
+                sse_start=first_sse[k], step=step[k], sse_data=data[k], rounding=spread[k],
+                n_values=int(used[k].sum()))
             detail[r] = more if code.success else detail[r] + more
         return deficient, sv
 
