@@ -205,6 +205,7 @@ def test_plot_fit_bars_of_log_normal_data_span_y_times_e_to_the_sigma(agg):
 
 def test_plot_fit_of_several_experiments_draws_the_one_named(agg):
     """A fit of two experiments: each drawn with its own data, initial state and curve; without
+    ``experiment`` every one, a column each, as each alone; into a given ``ax`` without
     ``experiment`` a clear error (it was an AttributeError of the list of datasets)."""
     from torchql.models import LinearOscillator
 
@@ -220,8 +221,16 @@ def test_plot_fit_of_several_experiments_draws_the_one_named(agg):
         assert measured == pytest.approx(sets[k].y[:, 0].tolist())
         assert fitted[0] == pytest.approx(float(starts[k][0]), abs=1e-6)  # the curve from that experiment's start
         assert max(abs(v) for v in ax_res.lines[0].get_ydata()) < 1e-6
-    with pytest.raises(ValueError, match=r"`experiment` must be an index 0..1 \(the fit has 2 experiments\)"):
-        result.plot_fit()
+    fig, pairs = result.plot_fit()
+    assert len(pairs) == 2 and len(fig.axes) == 4
+    for k, (ax_fit, ax_res) in enumerate(pairs):
+        _, (alone, _) = result.plot_fit(experiment=k)
+        assert ax_fit.lines[1].get_ydata() == pytest.approx(sets[k].y[:, 0].tolist())
+        assert ax_fit.lines[0].get_ydata() == pytest.approx(alone.lines[0].get_ydata(), rel=0, abs=0)
+        assert ax_fit.get_title().startswith(f"experiment {k}: ")
+    with pytest.raises(ValueError, match=r"`experiment` must be an index 0..1 \(the fit has 2 experiments\) when "
+                                         r"`data` or `ax` is given"):
+        result.plot_fit(ax=pairs[0][0])
     with pytest.raises(ValueError, match="`experiment` applies only to fits of several experiments"):
         torchql.fit(LinearOscillator(0.5, 2.0), sets[0], x0=starts[0]).plot_fit(experiment=0)
 

@@ -64,17 +64,21 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     n_points : int
         Points of the fitted curve.
     experiment : int, optional
-        With a fit of several experiments, which one (its data, initial state and conditions);
-        required then.
+        With a fit of several experiments, which one (its data, initial state and conditions).
+        ``None`` there (with ``data`` and ``ax`` not given): every experiment, one column of the
+        new figure each.
 
     Returns
     -------
-    (Figure, (Axes, Axes or None))
+    (Figure, (Axes, Axes or None)); for every experiment of a fit of ``E``: (Figure, list of the
+    ``E`` pairs of Axes)
     """
     from .model import coefficients
     from .observations import ObservationOperator, Observations
 
-    several = result._experiment_index(experiment) is not None
+    if experiment is None and result.experiment_t0 is not None and data is None and ax is None:
+        return _plot_each_experiment(result, n_points)
+    several = result._experiment_index(experiment, when=" when `data` or `ax` is given") is not None
     if several and data is None and isinstance(result.data, (list, tuple)):
         data = result.data[experiment]
     if data is None:
@@ -136,6 +140,17 @@ def plot_fit(result: "FitResult", data: "Observations | None" = None, ax=None, n
     else:
         ax_fit.set_xlabel("t")
     return fig, (ax_fit, ax_res)
+
+
+def _plot_each_experiment(result: "FitResult", n_points: int):
+    """:func:`plot_fit` of every experiment of ``result``, one column of a new figure each."""
+    E = len(result.experiment_t0)
+    fig, axes = _pyplot().subplots(2, E, sharex="col", figsize=(5 * E, 6), squeeze=False,
+                                   gridspec_kw={"height_ratios": [3, 1]})
+    pairs = [plot_fit(result, ax=(axes[0, e], axes[1, e]), n_points=n_points, experiment=e)[1] for e in range(E)]
+    for e, (top, _) in enumerate(pairs):
+        top.set_title(f"experiment {e}: " + top.get_title(), fontsize="small")
+    return fig, pairs
 
 
 def plot_convergence(result: "FitResult", ax=None, *, values: bool = False):

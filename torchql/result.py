@@ -326,7 +326,7 @@ class FitResult:
 
     def plot_fit(self, data=None, ax=None, experiment: int | None = None):
         """Plot the fit against the data, with a residual panel (with several experiments, that of
-        ``experiment``); see :func:`torchql.plotting.plot_fit`."""
+        ``experiment``, or every one, a column each); see :func:`torchql.plotting.plot_fit`."""
         from .plotting import plot_fit
 
         return plot_fit(self, data, ax=ax, experiment=experiment)
