@@ -208,6 +208,25 @@ def test_invalid_arguments(data, kwargs, error, match):
         adjoint_fit(guess_model(), data, **kwargs)
 
 
+@pytest.mark.parametrize("solver", ["dop853", "rodas5p"])
+def test_torchqls_own_solvers_are_refused_by_name(data, solver):
+    """torchql's DOP853 and implicit solvers are not differentiated through torchdiffeq: a clear error
+    listing the methods that are (``"dop853"`` failed inside torchdiffeq, on the first loss)."""
+    with pytest.raises(ValueError, match=r"`solver` of adjoint_fit must be a torchdiffeq method.*'dopri5'.*"
+                                         rf"received '{solver}'"):
+        adjoint_fit(guess_model(), data, x0=GUESS_X0, solver=solver)
+    with pytest.raises(ValueError, match="must be a torchdiffeq method"):
+        adjoint_fit(guess_model(), data, x0=GUESS_X0, options=torchql.FitOptions(solver=solver))
+
+
+def test_auto_solver_is_dopri5(data):
+    """``"auto"``, FitOptions' default, is this function's own default (it named "dop853" inside torchdiffeq)."""
+    auto = adjoint_fit(guess_model(), data, x0=GUESS_X0, optimizer="lbfgs", adjoint=False, max_steps=3,
+                       solver="auto")
+    own = adjoint_fit(guess_model(), data, x0=GUESS_X0, optimizer="lbfgs", adjoint=False, max_steps=3)
+    assert torch.equal(auto.estimates, own.estimates) and auto.sse == own.sse
+
+
 def test_exact_values_rejected(data):
     exact = torchql.Observations(data.t, data.y, observe=["y"], exact=torch.arange(14) == 0)
     with pytest.raises(ValueError, match="`exact`"):

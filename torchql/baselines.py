@@ -31,7 +31,7 @@ from . import _checks
 from .budget import TimeBudgetExceeded, check_time, time_budget
 from .diagnosis import null_detail
 from .fit import _Problem, fit
-from .integrate import IntegrationError, solve
+from .integrate import OWN_EXPLICIT_SOLVERS, SOLVER_NAMES, IntegrationError, check_solver, solve
 from .lstsq import solve_update
 from .model import ODEModel, _set_buffer
 from .observations import Observations
@@ -54,6 +54,23 @@ _DEFAULTS = {
 _RTOL, _ATOL = 1e-7, 1e-9
 #: Largest number of loss evaluations of one L-BFGS line search.
 _MAX_LINE_SEARCH = 25
+
+
+def _gradient_solver(solver) -> str:
+    """``adjoint_fit``'s ``solver`` checked: a torchdiffeq method, through whose operations the gradients
+    flow (torchql's own DOP853 and implicit solvers are not differentiable so); ``"auto"``, the
+    default of :class:`torchql.FitOptions`, is ``"dopri5"``, this function's own default."""
+    if not isinstance(solver, str):
+        raise TypeError(f"`solver` must be a string; received {type(solver).__name__}")
+    check_solver(solver, auto=True)
+    if solver == "auto":
+        return "dopri5"
+    if solver in OWN_EXPLICIT_SOLVERS + STIFF_SOLVERS:
+        methods = tuple(name for name in SOLVER_NAMES if name not in OWN_EXPLICIT_SOLVERS + STIFF_SOLVERS)
+        advice = " (use torchql.fit for stiff models)" if solver in STIFF_SOLVERS else ""
+        raise ValueError(f"`solver` of adjoint_fit must be a torchdiffeq method, differentiated through torchdiffeq: "
+                         f"one of {methods}, or \"auto\" (\"dopri5\"); received {solver!r}{advice}")
+    return solver
 
 
 @accepts_options(unlike=("max_steps",))
@@ -122,7 +139,9 @@ def adjoint_fit(
         ``callback(step, sse, estimates)`` after each evaluation of an iterate (step 0 is the
         guess; ``estimates`` in ``unknown_names`` order).
     solver : str
-        torchdiffeq method; default ``"dopri5"``.
+        torchdiffeq method; default ``"dopri5"`` (``"auto"``, :class:`torchql.FitOptions`' default,
+        is ``"dopri5"`` too). torchql's own ``"dop853"`` and implicit solvers are not differentiated
+        through torchdiffeq: a clear ``ValueError``.
     rtol, atol : float, optional
         Integrator tolerances of the forward and adjoint solves, and of the final evaluation.
         Default ``1e-7``/``1e-9`` (torchdiffeq's own defaults: what a neural-ODE user gets)
@@ -166,9 +185,7 @@ def adjoint_fit(
         raise ValueError(f"`optimizer` must be one of {OPTIMIZERS}; received {optimizer!r}")
     if not isinstance(adjoint, bool):
         raise TypeError(f"`adjoint` must be True or False; received {adjoint!r}")
-    if solver in STIFF_SOLVERS:  # gradients flow through torchdiffeq's solvers only
-        raise ValueError(f"`solver` of adjoint_fit must be a torchdiffeq method, differentiated through "
-                         f"torchdiffeq; received {solver!r} (use torchql.fit for stiff models)")
+    solver = _gradient_solver(solver)
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable as callback(step, sse, estimates); received {callback!r}")
     defaults = _DEFAULTS[optimizer]

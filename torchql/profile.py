@@ -121,7 +121,9 @@ def profile(
     max_points : int
         Maximum number of steps out on each side before it is declared open.
     xtol : float
-        The interval's ends are located to ``xtol * step``.
+        The interval's ends are located to ``xtol * step``. (Not the re-fits' own convergence
+        tolerance, :func:`torchql.fit`'s ``xtol``, which this name takes from ``fit_options``: that
+        one is set by ``options=torchql.FitOptions(xtol=...)``.)
     **fit_options
         Keyword arguments of :func:`torchql.fit` overriding those of the original fit
         (``method=``, ``grid=``, ``rtol=``, ``max_iter=``, ...), or ``options=`` a
