@@ -266,3 +266,21 @@ def test_the_summary_names_starts_that_did_not_converge_below_the_best_optimum()
     assert "below" not in torchql.multistart(Decay(k=0.5), torchql.Observations(
         t[:20], torch.exp(-0.7 * t[:20])[:, None], observe=["y"]), x0=torch.tensor([1.0], dtype=torch.float64),
         starts=3).summary()
+
+
+def test_fits_a_hundredth_of_a_standard_error_apart_are_one_optimum(decay_data):
+    """Fits whose estimates differ by 1e-3 of their standard errors are one optimum, though 100 times
+    ``x_rtol`` apart (a flat optimum's fits, each converged on the sum of squares, stop so far apart,
+    and were listed as optima of their own); fits a standard error apart are two."""
+    from dataclasses import replace
+
+    from torchql.multistart import _cluster
+
+    fit = torchql.fit(Decay(0.3), decay_data, torch.tensor([1.0], dtype=DT))
+    stderr = torch.tensor(list(fit.stderr.values()), dtype=DT)
+    assert fit.success and bool(torch.isfinite(stderr).all()) and bool((stderr > 0).all())
+    near = replace(fit, estimates=fit.estimates + 1e-3 * stderr, sse=fit.sse * (1 + 1e-12))
+    far = replace(fit, estimates=fit.estimates + stderr, sse=fit.sse * 1.5)
+    x_rtol = 1e-5 * float((stderr / fit.estimates.abs()).min())  # far below 1e-3 standard errors
+    optima = _cluster([fit, near, far], x_rtol, 0.0)
+    assert [o.starts for o in optima] == [[0, 1], [2]]

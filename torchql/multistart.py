@@ -178,7 +178,8 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         Whether the first start is the model's own values.
     x_rtol, x_atol : float
         Two successful fits are the same optimum when every estimate agrees to within
-        ``x_rtol`` times its magnitude plus ``x_atol``.
+        ``x_rtol`` times its magnitude plus ``x_atol``, or within a hundredth of its standard
+        error (:data:`SAME_OPTIMUM_STDERR`: the data cannot tell them apart).
     callback : callable, optional
         Called as ``callback(k, result)`` after each fit (progress reporting); when the starts
         are fitted in one batch, for every start once the batch is done.
@@ -332,8 +333,16 @@ def _draw(center: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, spread
     return out
 
 
+#: Two fits are at one optimum where every estimate is within this fraction of its standard error of the
+#: other's (or within ``x_rtol``): the data cannot tell them apart. (A flat optimum's fits, each
+#: converged on the sum of squares to its tolerance, stop 1e-4 standard errors apart; float32 fits
+#: 2e-4 apart relative, beyond ``x_rtol``. Each was listed as an optimum of its own.)
+SAME_OPTIMUM_STDERR = 0.01
+
+
 def _cluster(results: list[FitResult], x_rtol: float, x_atol: float) -> list[Optimum]:
-    """Group the successful fits into distinct optima, best first."""
+    """Group the successful fits into distinct optima, best first: each fit joins the first optimum
+    whose estimates its own match (``x_rtol``, ``x_atol``, or :data:`SAME_OPTIMUM_STDERR`)."""
     ok = sorted((k for k, r in enumerate(results) if r.success and math.isfinite(r.objective)),
                 key=lambda k: results[k].objective)
     optima: list[Optimum] = []
@@ -342,7 +351,13 @@ def _cluster(results: list[FitResult], x_rtol: float, x_atol: float) -> list[Opt
     for k in ok:
         r = results[k]
         for opt in optima:
-            if bool(((r.estimates - opt.estimates).abs() <= x_rtol * opt.estimates.abs() + x_atol).all()):
+            apart = (r.estimates - opt.estimates).abs()
+            close = apart <= x_rtol * opt.estimates.abs() + x_atol
+            covariance = results[opt.starts[0]].covariance  # the best fit's at this optimum
+            if covariance is not None and covariance.shape[-1] == apart.shape[-1]:
+                stderr = torch.diagonal(covariance).clamp_min(0).sqrt().to(apart)
+                close |= apart <= SAME_OPTIMUM_STDERR * stderr  # (NaN standard errors: not close)
+            if bool(close.all()):
                 opt.starts.append(k)
                 break
         else:
