@@ -130,7 +130,9 @@ class FitResult:
     iterations : int
         Number of updates applied.
     history : list of IterationRecord
-        Every iterate, from the initial guess (iteration 0) to the last.
+        Every iterate, from the first (iteration 0) to the last. The first is the guesses' where the
+        iteration starts from the integrated guesses (``initial_trajectory="integrate"``), and the
+        coefficients matched to the data where it starts from a reference built from the data.
     sse : float
         Weighted sum of squared residuals ``sum(((y - h(x(t))) / sigma)^2)`` of the fitted model
         (nonlinear solution from ``x0`` with ``params``), over the least-squares observations.
@@ -196,7 +198,8 @@ class FitResult:
     moved_guesses : dict of str to (float, float)
         ``{name: (given, used)}`` for every guess that lay on or outside its ``bounds`` and was
         moved strictly inside before the iteration (see :meth:`torchql.bounds.Bounds.move_inside`);
-        ``history[0]`` holds the guesses used. Empty when none was moved.
+        the guesses used start the iteration (``history[0]`` where it starts from them, see
+        :attr:`history`). Empty when none was moved.
     nll : float
         The negative log-likelihood of the data at the estimates (:mod:`torchql.noise`; for
         log-normal noise, of ``y`` itself). AIC and BIC in :meth:`report` follow from it.
