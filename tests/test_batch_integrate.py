@@ -1,5 +1,6 @@
 """Integrators for a batch of samples on one grid: each sample on its own error control."""
 
+import pytest
 import torch
 
 from torchql.batch_integrate import dopri_batch, integrate_each, propagate_linear_batch
@@ -265,3 +266,38 @@ def test_integrate_each_on_per_sample_grids_hits_each_samples_times():
         exact = _exact_speed(own - own[0], z0[s:s + 1])[0]
         assert float(((traj[s, :count, 0] - exact) / exact).abs().max()) < 1e-8
         assert torch.equal(traj[s, count:], traj[s, count - 1].expand(grid.shape[1] - count, -1))
+
+
+def test_thin_landings_keeps_every_kth_observation_and_the_last_per_sample():
+    """At most about ``most`` landings a sample, every ``k``-th and its last; a sample with no more is
+    unchanged, and nodes that are not landings stay off."""
+    from torchql.dopri import thin_landings
+
+    land = torch.zeros(2, 12, dtype=torch.bool)
+    land[0, 1:11] = True  # ten observations: every third, and the last
+    land[1, [0, 5]] = True  # two: unchanged
+    thinned = thin_landings(land, most=4)
+    assert thinned[0].nonzero().flatten().tolist() == [3, 6, 9, 10]
+    assert torch.equal(thinned[1], land[1])
+    assert torch.equal(thin_landings(land[0], most=10), land[0])
+
+
+def test_dense_observations_are_read_from_the_dense_output_within_tolerance():
+    """21,000 observation times of an oscillation: the fit's explicit pair lands on about
+    ``LANDED_OBSERVATIONS`` of them and reads the rest from its dense output (each landing ends a step:
+    landing on all took 21,000 steps a solve where the accuracy asks about 300, 25 s a fit against 0.23 s
+    at 19,000 times on the grid solver). The fit reaches scipy's optimum, as at 19,000 times."""
+    import torchql
+    from torchql.dopri import LANDED_OBSERVATIONS
+
+    assert LANDED_OBSERVATIONS <= 1000
+    t = torch.linspace(0, 14, 21_000, dtype=torch.float64)
+    clean = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=torch.float64), t)[:, :1]
+    y = clean + 0.01 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    data = torchql.Observations(t, y, observe=["y"])
+    result = torchql.fit(LinearOscillator(0.11, 2.9), data, x0=torch.tensor([0.0, 1.0], dtype=torch.float64),
+                         initial_trajectory="integrate", max_time=60)
+    assert result.success, result.message
+    # scipy's least_squares over solve_ivp (DOP853, rtol 1e-10) on the same data: A = 0.100064, B = 2.999967
+    assert float(result.params["A"]) == pytest.approx(0.100064, abs=2e-6)
+    assert float(result.params["B"]) == pytest.approx(2.999967, abs=2e-6)

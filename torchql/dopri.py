@@ -21,7 +21,7 @@ from .model import AugmentedSystem, BatchedCall
 from .rk_pairs import PAIRS, combine
 from .solvers.rosenbrock import precision_note
 
-__all__ = ["dopri_batch", "STIFF", "found_stiff"]
+__all__ = ["dopri_batch", "STIFF", "found_stiff", "LANDED_OBSERVATIONS", "thin_landings"]
 
 
 _STIFF_WORDS = "the problem became stiff"
@@ -46,6 +46,23 @@ def found_stiff(message: str | None) -> bool:
 #: one has failed; a sample is stiff after :data:`STIFF_HITS` failures with fewer than
 #: :data:`STIFF_CALM` passes in a row between them.
 STIFF_EVERY, STIFF_HITS, STIFF_CALM = 1000, 15, 6
+#: At most about this many observation times a sample's steps land on; denser ones come from the
+#: dense output (of the pair's order, DOP853's seventh). Each landing ends a step: 21,000
+#: observations of an oscillation over 14 time units took 21,000 steps a solve where its accuracy
+#: asks about 300, 25 s a fit against 0.23 s at 19,000 (on the grid solver) and scipy's 0.17 s.
+LANDED_OBSERVATIONS = 256
+
+
+def thin_landings(land: torch.Tensor, most: int = LANDED_OBSERVATIONS) -> torch.Tensor:
+    """Of the nodes ``land`` (bool ``(G,)`` or ``(S, G)``: a sample's observation times), every
+    ``k``-th, ``k = ceil(count / most)`` for each sample's ``count``, and its last: at most about
+    ``most`` a sample, unchanged where it has no more."""
+    count = land.sum(dim=-1, keepdim=True)
+    every = (count + most - 1) // most
+    rank = land.long().cumsum(dim=-1)
+    return land & ((rank % every.clamp(min=1) == 0) | (rank == count))
+
+
 #: A caller's test that ends samples at a node: ``(rows (L,), out (L, G, M), reached (L,)) -> bool (L,)``.
 StopTest = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 

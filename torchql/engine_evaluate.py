@@ -13,7 +13,7 @@ import math
 import torch
 
 from .batch_integrate import integrate_each, propagate_linear_batch
-from .dopri import dopri_batch, found_stiff
+from .dopri import dopri_batch, found_stiff, thin_landings
 from .dopri_sensitivity import explicit_sensitivities
 from .engine_grid_solve import GridSolve
 from .engine_state import _pick, bound_of, members, not_above
@@ -313,7 +313,7 @@ class Evaluation(GridSolve):
         if sub.numel() and batched:
             messages: list = []
             tr, good, evals = dopri_batch(self.system, z0[sub], grid_of(sub), rtol=rtol, atol=atol,
-                                          land=self._landing(idx[sub]), messages=messages,
+                                          land=self._landing(idx[sub], explicit=True), messages=messages,
                                           interval_steps=spec.max_steps, stop=asked(sub), method=spec.solver,
                                           **({} if max_steps is None else {"max_steps": max_steps}))
             self.nfev += evals
@@ -452,15 +452,19 @@ class Evaluation(GridSolve):
         traj, errors = self._nonlinear(idx, z0, loose=False, guess=reference)
         return z0, traj, None, errors
 
-    def _landing(self, rows: torch.Tensor) -> torch.Tensor:
+    def _landing(self, rows: torch.Tensor, explicit: bool = False) -> torch.Tensor:
         """The nodes that an adaptive solver's steps land on for the samples of chunk indices
-        ``rows``: their observation times and the nodes at an input's breakpoints (where its
-        steps restart, as torchdiffeq's ``jump_t``), ``(G,)`` on a shared grid or ``(S, G)`` (the
-        other nodes come from the dense output)."""
+        ``rows``: their observation times (for the ``explicit`` pairs at most about
+        :data:`~torchql.dopri.LANDED_OBSERVATIONS` of them, :func:`~torchql.dopri.thin_landings`)
+        and the nodes at an input's breakpoints (where its steps restart, as torchdiffeq's
+        ``jump_t``), ``(G,)`` on a shared grid or ``(S, G)`` (the other nodes come from the dense
+        output)."""
         shared = self.grid.dim() == 1
         grid = self.grid if shared else self.grid[rows]
         land = torch.zeros(grid.shape, dtype=torch.bool, device=grid.device)
         land.scatter_(-1, self.obs if shared else self.obs[rows], True)
+        if explicit:
+            land = thin_landings(land)
         breakpoints = self.spec.breakpoints
         if breakpoints is not None:
             inner = breakpoints.to(grid).expand(*grid.shape[:-1], -1).contiguous()

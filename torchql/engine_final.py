@@ -206,7 +206,7 @@ class FinalPass(FinalDiagnosis):
         for engine, _, rows in items:
             grids.append(pad_nodes(engine._grid_of(rows).expand(rows.numel(), engine.G), width))
             land = torch.zeros(rows.numel(), width, dtype=torch.bool, device=engine.grid.device)
-            land[:, :engine.G] = engine._landing(rows)
+            land[:, :engine.G] = engine._landing(rows, explicit=True)
             lands.append(land)
         z0 = torch.cat([st.z0[rows] for _, st, rows in items])
         with no_time_budget(), torch.no_grad():
