@@ -271,3 +271,25 @@ def test_a_simulation_at_clock_times_equals_the_one_near_zero(solver):
     for offset in (1e6, 1e9):
         far = torchql.simulate(NonlinearOscillator(), x0, t + offset, solver=solver, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(far, near, rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("solver", ["auto", "dop853", "dopri5", "rodas5p"])
+def test_a_forward_not_finite_at_x0_is_named_so(solver):
+    """A forward that is NaN at ``x0`` (``sqrt`` of a negative state): every solver's error names the
+    forward and the derivative at ``x0``, where it read "underflow in dt 0.0" (dopri5) or "the step size
+    underflowed" (DOP853)."""
+
+    class Root(torchql.ODEModel):
+        state_names = ("y",)
+
+        def __init__(self):
+            super().__init__()
+            self.register_buffer("k", torch.tensor(1.0, dtype=torch.float64))
+
+        def forward(self, t, x):
+            return -self.k * torch.sqrt(x)
+
+    t = torch.linspace(0.0, 1.0, 5, dtype=torch.float64)
+    with pytest.raises(torchql.IntegrationError, match=r"`model` forward is not finite at `x0` = \[-1.0\]: "
+                                                       r"dy/dt = nan at t0 = 0; the solution cannot start there"):
+        torchql.simulate(Root(), torch.tensor([-1.0], dtype=torch.float64), t, solver=solver)

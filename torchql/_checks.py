@@ -74,7 +74,7 @@ def model_class(model) -> None:
 
 
 def model_forward(rhs, t0: torch.Tensor, x0: torch.Tensor, names, coefficients: dict[str, float],
-                  dtype: torch.dtype, sample: str = "", finite: bool = True) -> None:
+                  dtype: torch.dtype, sample: str = "", finite: bool = True) -> torch.Tensor:
     """Evaluate a model's right-hand side once at the guesses; errors name `model` forward and the fix.
 
     ``rhs(t, x)`` is the model's forward (with the coefficient guesses ``coefficients``, named
@@ -83,6 +83,7 @@ def model_forward(rhs, t0: torch.Tensor, x0: torch.Tensor, names, coefficients: 
     caught here by torch's own check (a fit differentiates through the forward), and any change
     of ``x``'s values too. Then: a Tensor of ``x``'s shape and ``dtype``, finite (unless ``finite``
     is false). ``sample`` says whose guesses they are in the message, e.g. ``" of `data[3]`"``.
+    Returns the derivative ``(n,)``.
     """
     n = x0.shape[0]
     x = x0.detach().clone().requires_grad_(True)
@@ -116,6 +117,7 @@ def model_forward(rhs, t0: torch.Tensor, x0: torch.Tensor, names, coefficients: 
             f"`model` forward is not finite at the guesses{sample}: {derivatives} at t0 = {float(t0):g}, x0 = ({state})"
             f"{coefs}. The model must be finite at the initial state: choose a `x0` and coefficient guesses where "
             "it is defined, or guard the forward against division by zero and log/sqrt of negative values")
+    return out
 
 
 def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> list[str]:

@@ -216,7 +216,9 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     Parameters
     ----------
     model : ODEModel
-        Its buffers (and parameters) are the coefficients used; float32 or float64.
+        Its buffers (and parameters) are the coefficients used; float32 or float64. Their values
+        only: the result carries no gradient to them, nor to ``x0`` (a solution to differentiate is
+        ``torchdiffeq.odeint``'s; :func:`torchql.baselines.adjoint_fit` fits so).
     x0 : Tensor ``(n_states,)``
         State at ``t0`` (its values; not differentiated through).
     t : Tensor ``(T,)``
@@ -267,11 +269,15 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     t0_ = t[0] if t0 is None else torch.as_tensor(_checks.finite_number("t0", t0), dtype=dtype, device=device)
     func = _with_inputs(model, inputs, min(float(t0_), float(t[0])), max(float(t0_), float(t[-1])), dtype, device,
                         origin=float(t0_))
-    # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is the
-    # solver's to report, as IntegrationError, like one met later on)
+    # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is an
+    # IntegrationError, like one met later on)
     if func is not model:  # with inputs: integrated in local time from t0 (see _with_inputs)
         t, t0_ = t - func.origin, t0_ - func.origin
-    _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
+    slope = _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
+    if not bool(torch.isfinite(slope).all()):
+        bad = ", ".join(f"d{name}/dt = {float(v)}" for name, v in zip(model.state_names, slope) if not torch.isfinite(v))
+        raise IntegrationError(f"`model` forward is not finite at `x0` = {x0.tolist()}: {bad} at t0 = "
+                               f"{float(t0_) + getattr(func, 'origin', 0.0):g}; the solution cannot start there")
     with torch.no_grad():
         if solver != AUTO:
             return _integrate_both_ways(func, x0, t, t0_, solver, rtol, atol)

@@ -1,6 +1,6 @@
 """Ready-to-use models: the thesis' oscillators and coasting car, a driven oscillator (a measured
 input), FitzHugh–Nagumo, A -> B -> C kinetics, and stiff ones (Robertson, van der Pol, HIRES, enzyme
-kinetics; simulate them with ``solver="rodas5p"``)."""
+kinetics, which ``solver="auto"`` integrates by Rodas5P)."""
 
 from .car import AIR_DENSITY, GRAVITY, CoastingCar
 from .fitzhugh_nagumo import FitzHughNagumo

@@ -1,8 +1,9 @@
 """Stiff models: Robertson's chemistry, van der Pol's relaxation oscillator, HIRES, enzyme kinetics.
 
-Their fast and slow time scales differ by many orders of magnitude, so explicit solvers (``dopri5``,
-the default) take steps of the fastest scale over the whole interval; integrate them with
-``solver="rodas5p"`` (:mod:`torchql.solvers`). Reference solutions: the Test Set for IVP Solvers,
+Their fast and slow time scales differ by many orders of magnitude, so explicit solvers
+(``"dop853"``, ``"dopri5"``) take steps of the fastest scale over the whole interval. The default
+``solver="auto"`` of :func:`torchql.simulate` and :func:`torchql.fit` finds them stiff and integrates
+them by ``"rodas5p"`` (:mod:`torchql.solvers`), which may also be asked for by name. Reference solutions: the Test Set for IVP Solvers,
 F. Mazzia and C. Magherini, release 2.4 (2008), University of Bari
 (https://archimede.uniba.it/~testset/), problems ROBER and HIRES.
 """
@@ -30,8 +31,8 @@ class Robertson(ODEModel):
 
     States ``(y1, y2, y3)``: concentrations (dimensionless; ``y1 + y2 + y3`` is conserved).
     Rate constants ``k1 = 0.04`` (1/time), ``k2 = 3e7`` and ``k3 = 1e4`` (1/(concentration time)).
-    The standard start is ``(1, 0, 0)`` at ``t = 0``; ``y2`` rises to about ``3.6e-5`` within
-    ``1e-3`` and then decays slowly over ``t`` up to ``1e11`` (the IVP test set's ROBER interval).
+    The standard start is ``(1, 0, 0)`` at ``t = 0``; ``y2`` rises to a peak of about ``3.65e-5``
+    near ``t = 4.5e-3`` (``2.9e-5`` at ``1e-3``) and then decays slowly over ``t`` up to ``1e11`` (the IVP test set's ROBER interval).
     Eigenvalues of the Jacobian reach ``-1e4`` and beyond: explicit solvers are impractical.
     """
 
@@ -124,8 +125,8 @@ class MichaelisMentenEnzyme(ODEModel):
     product (µM; ``E + C`` and ``S + C + P`` are conserved). Rate constants ``kf`` (1/(µM s)),
     ``kr`` and ``kcat`` (1/s). The defaults ``kf = 1e3``, ``kr = 1e3``, ``kcat = 1`` give
     ``K_M = (kr + kcat) / kf ~ 1`` µM and binding a thousand times faster than turnover: from
-    ``(S, E, C, P) = (10, 1, 0, 0)`` the complex reaches its quasi-steady state within about
-    ``1e-4`` s, then the substrate is converted over about 20 s (the regime where the
+    ``(S, E, C, P) = (10, 1, 0, 0)`` the complex approaches its quasi-steady state with a time
+    constant of about ``1e-4`` s (within a few percent by ``5e-4`` s), then the substrate is converted over about 20 s (the regime where the
     Michaelis–Menten rate law ``P' = kcat E_T S / (K_M + S)`` holds; Segel and Slemrod, SIAM Rev.
     31 (1989)). The fast binding makes the system stiff (eigenvalue ``~ -kf (E + S + K_M)``).
     """
