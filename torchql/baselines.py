@@ -65,8 +65,9 @@ def _gradient_solver(solver) -> str:
     check_solver(solver, auto=True)
     if solver == "auto":
         return "dopri5"
-    if solver in OWN_EXPLICIT_SOLVERS + STIFF_SOLVERS:
-        methods = tuple(name for name in SOLVER_NAMES if name not in OWN_EXPLICIT_SOLVERS + STIFF_SOLVERS)
+    own = OWN_EXPLICIT_SOLVERS + STIFF_SOLVERS
+    if solver in own:
+        methods = tuple(name for name in SOLVER_NAMES if name not in own)
         advice = " (use torchql.fit for stiff models)" if solver in STIFF_SOLVERS else ""
         raise ValueError(f"`solver` of adjoint_fit must be a torchdiffeq method, differentiated through torchdiffeq: "
                          f"one of {methods}, or \"auto\" (\"dopri5\"); received {solver!r}{advice}")

@@ -271,13 +271,14 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
                         origin=float(t0_))
     # in-place updates of `x` and the output's shape and dtype (a non-finite derivative is an
     # IntegrationError, like one met later on)
-    if func is not model:  # with inputs: integrated in local time from t0 (see _with_inputs)
-        t, t0_ = t - func.origin, t0_ - func.origin
+    origin = 0.0 if func is model else func.origin  # with inputs: in local time from t0 (see _with_inputs)
+    if origin:
+        t, t0_ = t - origin, t0_ - origin
     slope = _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
     if not bool(torch.isfinite(slope).all()):
         bad = ", ".join(f"d{name}/dt = {float(v)}" for name, v in zip(model.state_names, slope) if not torch.isfinite(v))
         raise IntegrationError(f"`model` forward is not finite at `x0` = {x0.tolist()}: {bad} at t0 = "
-                               f"{float(t0_) + getattr(func, 'origin', 0.0):g}; the solution cannot start there")
+                               f"{float(t0_) + origin:g}; the solution cannot start there")
     with torch.no_grad():
         if solver != AUTO:
             return _integrate_both_ways(func, x0, t, t0_, solver, rtol, atol)
