@@ -109,3 +109,37 @@ def test_padded_intervals_of_per_sample_grids_count_nothing():
         misfits.append(interpolation_misfit(system.f, grid.unsqueeze(0), values.unsqueeze(0), lin, 3, system.n))
     assert torch.isfinite(misfits[1]).all()
     torch.testing.assert_close(misfits[1], misfits[0], rtol=1e-12, atol=0.0)
+
+
+def test_a_floor_on_the_states_scale_measures_small_states_against_it():
+    """The friction's switch on 200 intervals (a miss): a ``floor`` below the states' scales (of
+    order 1) changes nothing; one of 1e3 (``atol / rtol`` for states that small against it) measures
+    the same stray against 1e3, no miss."""
+    model = _Friction()
+    system = AugmentedSystem(model, [], DT, torch.device("cpu"))
+    t = torch.linspace(0.0, 10.0, 201, dtype=DT)
+    z = torchql.simulate(model, torch.tensor([1.0, 0.0], dtype=DT), t, rtol=1e-13, atol=1e-15)
+    lin = map_fields(linearize(system, t, z), lambda v: v.unsqueeze(0))
+    plain, low, high = (interpolation_misfit(system.f, t, z.unsqueeze(0), lin, 3, system.n, floor=floor)
+                        for floor in (0.0, 1e-2, 1e3))
+    torch.testing.assert_close(low, plain, rtol=1e-12, atol=0.0)
+    largest = float(z.abs().amax())
+    assert 0.0 < float(high) <= float(plain) * largest / 1e3 * (1 + 1e-12)
+    assert bool(storage_misses(plain, 1e-10)[0]) and not bool(storage_misses(high, 1e-10)[0])
+
+
+def test_the_same_fit_in_smaller_units_is_the_same_fit():
+    """A damped oscillation (1 % noise) with its values, noise and initial guesses in units 1e5
+    times smaller: the same estimates, to 1e-6 relative (the default ``atol = 1e-12`` is 1e-7 of
+    states of 1e-5), the same status, and no note that the storage grid missed the model (the
+    grid, sized with the absolute tolerance, is coarser there, as the tolerances allow)."""
+    torch.manual_seed(0)
+    t = torch.arange(14, dtype=DT) * 0.5
+    y = torchql.simulate(LinearOscillator(0.1, 3.0), torch.tensor([0.0, 1.0], dtype=DT), t)[:, :1]
+    y = y + 0.01 * torch.randn_like(y)
+    results = [torchql.fit(LinearOscillator(0.5, 1.0), torchql.Observations(t, y * s, observe=["y"], sigma=0.01 * s),
+                           x0=torch.tensor([0.5, 0.5], dtype=DT) * s) for s in (1.0, 1e-5)]
+    for r in results:
+        assert r.status is torchql.Status.CONVERGED and "storage grid" not in r.message
+    for name in ("A", "B"):
+        assert float(results[1].params[name]) == pytest.approx(float(results[0].params[name]), rel=1e-6)

@@ -285,7 +285,8 @@ class FinalPass(FinalDiagnosis):
         their sensitivities are integrated with their solutions from then on
         (``self.storage_missed``), and their messages say so."""
         misfit = interpolation_misfit(self.system.f, self._grid_of(rows), traj, lin,
-                                      self.spec.linear_solver.hermite_degree, self.system.n, coefficients)
+                                      self.spec.linear_solver.hermite_degree, self.system.n, coefficients,
+                                      floor=self.spec.atol / self.spec.rtol)
         missed = storage_misses(misfit, self.spec.rtol) & good
         for k in missed.nonzero().flatten().tolist():
             self.storage_missed[int(rows[k])] = float(misfit[k])

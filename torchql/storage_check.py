@@ -48,7 +48,7 @@ _CONSTANT = 1e-12
 
 
 def interpolation_misfit(f, t: torch.Tensor, traj: torch.Tensor, lin, degree: int, n: int,
-                         coefficients=None) -> torch.Tensor:
+                         coefficients=None, floor: float = 0.0) -> torch.Tensor:
     """The largest relative misfit ``(S,)`` of each sample's interpolant of ``h f`` from the model.
 
     Parameters
@@ -66,11 +66,14 @@ def interpolation_misfit(f, t: torch.Tensor, traj: torch.Tensor, lin, degree: in
     coefficients : _Coefficients, optional
         The storage's coefficients, if already built (:func:`~torchql.transfer.interval_coefficients`
         of these arguments).
+    floor : float
+        The smallest scale of a state (``atol / rtol``: below it the tolerances are absolute, as
+        :func:`torchql.grid.needed_intervals` sizes the automatic grid with them), in its units.
 
     Returns
     -------
     Tensor ``(S,)``
-        ``max |h f(t_s, z(t_s)) - (h f)(t_s)| / max_t |z_i|`` over the check points, the intervals
+        ``max |h f(t_s, z(t_s)) - (h f)(t_s)| / max(max_t |z_i|, floor)`` over the check points, the intervals
         and the states ``i``: the stray of the interval's slope, in its local time, against the
         state's scale (an interval as short as a zero-order hold's step counts as little as it
         moves the solution).
@@ -89,7 +92,7 @@ def interpolation_misfit(f, t: torch.Tensor, traj: torch.Tensor, lin, degree: in
         return traj.new_zeros(S)
     rows = torch.tensor(states, device=traj.device)
     components = perm[rows]
-    scale = traj[..., :n].abs().amax(dim=1).clamp(min=torch.finfo(traj.dtype).tiny)  # (S, n)
+    scale = traj[..., :n].abs().amax(dim=1).clamp(min=max(floor, torch.finfo(traj.dtype).tiny))  # (S, n)
     scale = scale[:, components].repeat_interleave(G - 1, dim=0).T  # (states, S N)
     points = torch.tensor(CHECK_POINTS, dtype=traj.dtype, device=traj.device)
     values = coefficients.values(points)  # (P, Q, S N): every check point at once
