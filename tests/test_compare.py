@@ -83,3 +83,36 @@ def test_validation_data_without_their_inputs_are_refused():
     bare = torchql.Observations(measured(force(4)).t, measured(force(4)).y, observe=["y"])
     with pytest.raises(ValueError, match=r"`model` takes inputs \('u',\) .* but `data` carries none"):
         torchql.compare(result, bare)
+
+
+class _Decay(torchql.ODEModel):
+    """``y' = -k y``, with two more coefficients ``k_a``, ``k_b`` for experiments' ``conditions``."""
+
+    state_names = ("y",)
+
+    def __init__(self, k: float = 1.0) -> None:
+        super().__init__()
+        for name in ("k", "k_a", "k_b"):
+            self.register_buffer(name, torch.tensor(k, dtype=DT))
+
+    def forward(self, t, x):
+        return -self.k * x
+
+
+def test_with_an_initial_state_a_fit_whose_experiments_have_their_own_coefficients_needs_experiment():
+    """Two decays fitted with ``conditions`` (``k`` is ``k_a`` in one, ``k_b`` in the other): given an
+    ``x0``, comparing without ``experiment`` is an error (it simulated the model's ``k``, the guess,
+    never fitted: 42 %); with it, each experiment's own rate fits its data exactly. Without
+    conditions the experiments share one model and need no index."""
+    t = torch.linspace(0, 3, 16, dtype=DT)
+    one = torch.ones(1, dtype=DT)
+    data = [torchql.Observations(t, torchql.simulate(_Decay(k), one, t), observe=["y"]) for k in (0.5, 2.0)]
+    result = torchql.fit(_Decay(1.0), data, x0=torch.ones(2, 1, dtype=DT), params=["k_a", "k_b"],
+                         conditions=[{"k": "k_a"}, {"k": "k_b"}])
+    assert result.success
+    with pytest.raises(ValueError, match="`experiment` must be an index 0..1 .* when its `conditions` give"):
+        torchql.compare(result, data[1], x0=one)
+    for e in (0, 1):
+        assert float(torchql.compare(result, data[e], x0=one, experiment=e).fit_percent[0]) > 99.9999
+    shared = torchql.fit(_Decay(1.0), data[:1] * 2, x0=torch.ones(2, 1, dtype=DT), params=["k"])
+    assert float(torchql.compare(shared, data[0], x0=one).fit_percent[0]) > 99.9999

@@ -99,7 +99,8 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
         Time of ``x0``; default the data's first time when ``x0`` is given, else the fit's ``t0``.
     experiment : int, optional
         With a fit of several experiments, whose initial state is the default ``x0`` and whose
-        ``conditions`` (coefficient values) apply.
+        ``conditions`` (coefficient values) apply: required where ``x0`` is not given, or where
+        the fit's ``conditions`` give its experiments their own coefficients.
 
     Returns
     -------
@@ -133,8 +134,9 @@ def compare(result: "FitResult", data: Observations, *, x0=None, t0: float | Non
             start = finite_number("t0", t0)
     else:
         start = float(data.t[0]) if t0 is None else finite_number("t0", t0)
-        if experiment is not None and result.experiment_t0 is not None:
-            model = result.experiment_model(experiment)
+        if result.experiment_t0 is not None and (experiment is not None or any(result.conditions or ())):
+            model = result.experiment_model(result._experiment_index(
+                experiment, " when its `conditions` give the experiments their own coefficients"))
     takes = tuple(getattr(model, "input_names", ()))
     if takes and data.inputs is None:  # the fitted model still holds the training signal: never use it here
         raise ValueError(f"`model` takes inputs {takes} (its `input_names`) but `data` carries none: give the "
