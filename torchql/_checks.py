@@ -38,6 +38,13 @@ def positive_number(name: str, value) -> float:
     return float(value)
 
 
+def non_negative_number(name: str, value) -> float:
+    """``value`` as a float; ``ValueError`` naming ``name`` unless it is finite and >= 0."""
+    if not _is_real_number(value) or not math.isfinite(float(value)) or float(value) < 0:
+        raise ValueError(f"`{name}` must be a non-negative finite number; received {value!r}")
+    return float(value)
+
+
 def positive_int(name: str, value, minimum: int = 1) -> int:
     """``value``; ``ValueError`` naming ``name`` unless it is an integer >= ``minimum`` (bools rejected)."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:

@@ -201,9 +201,7 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
         raise ValueError(f"`spread` must be >= 1 (a factor around the guesses); received {spread:g}")
     seed = _checks.positive_int("seed", seed, minimum=0)
     include_guess = _checks.flag("include_guess", include_guess)
-    for name, value in (("x_rtol", x_rtol), ("x_atol", x_atol)):
-        if _checks.finite_number(name, value) < 0:
-            raise ValueError(f"`{name}` must be a non-negative finite number; received {value!r}")
+    x_rtol, x_atol = _checks.non_negative_number("x_rtol", x_rtol), _checks.non_negative_number("x_atol", x_atol)
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable as callback(k, result); received {callback!r}")
     unknown = sorted(set(fit_kwargs) - _FIT_KEYWORDS)

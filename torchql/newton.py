@@ -10,6 +10,7 @@ import torch
 from torch.func import jacrev
 
 from ._arrays import float_tensor
+from ._checks import non_negative_number
 
 __all__ = ["newton_raphson", "NewtonResult", "ROOT_FALL"]
 
@@ -63,7 +64,7 @@ def newton_raphson(
     Parameters
     ----------
     residual : callable ``R(x) -> (m,)``
-        Differentiable residual function of ``x (m,)``.
+        Differentiable residual function of ``x (m,)``, of its dtype.
     x0 : Tensor ``(m,)``
         Initial guess (float64 unless given otherwise).
     max_iter : int
@@ -76,8 +77,8 @@ def newton_raphson(
         guess); else no root was found, and the message says so.
     ftol : float
         Stop when ``max |R(x)| <= ftol``, a success.
-    jacobian : callable ``J(x) -> (m, m)``, optional
-        Analytic Jacobian; default :func:`torch.func.jacrev` of ``residual``. Non-square
+    jacobian : callable ``J(x) -> (m, n)``, optional
+        Analytic Jacobian (a tensor of ``x``'s dtype); default :func:`torch.func.jacrev` of ``residual``. Non-square
         systems are solved in the least-squares sense (Gauss–Newton).
 
     Returns
@@ -91,6 +92,11 @@ def newton_raphson(
         raise ValueError("`x0` must be finite")
     if xtol is None:
         xtol = 1e-12 if x.dtype == torch.float64 else 100 * torch.finfo(x.dtype).eps
+    xtol, ftol = non_negative_number("xtol", xtol), non_negative_number("ftol", ftol)
+    if not callable(residual):
+        raise TypeError(f"`residual` must be callable as R(x) -> Tensor; received {type(residual).__name__}")
+    if jacobian is not None and not callable(jacobian):
+        raise TypeError(f"`jacobian` must be callable as J(x) -> Tensor; received {jacobian!r}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
         raise ValueError(f"`max_iter` must be a non-negative integer; received {max_iter!r}")
     jac_fn = jacobian if jacobian is not None else jacrev(residual)
@@ -99,6 +105,8 @@ def newton_raphson(
     roundoff = math.nan  # the residual's rounding at the guess's scale (set with its first Jacobian)
     if not isinstance(r, torch.Tensor) or r.dim() != 1:
         raise ValueError("`residual` must return a one-dimensional tensor (m,)")
+    if r.dtype != x.dtype:
+        raise TypeError(f"`residual` must return a tensor of x0's dtype {x.dtype}; received {r.dtype}")
     norms.append(float(r.abs().max()))
     message, success = "The maximum number of iterations was reached. Increase `max_iter`.", False
     it = 0
@@ -107,6 +115,9 @@ def newton_raphson(
                             history=history, residual_norms=norms)
     for it in range(1, max_iter + 1):
         J = jac_fn(x)
+        if not isinstance(J, torch.Tensor) or J.dtype != x.dtype:
+            what = f"a tensor of {J.dtype}" if isinstance(J, torch.Tensor) else type(J).__name__
+            raise TypeError(f"`jacobian` must return a tensor of x's dtype {x.dtype}; received {what}")
         if J.shape != (r.shape[0], x.shape[0]):
             raise ValueError(f"`jacobian` must return shape ({r.shape[0]}, {x.shape[0]}); received {tuple(J.shape)}")
         if it == 1:
