@@ -108,6 +108,14 @@ class Evaluation(GridSolve):
         d = torch.where(mask, y - predicted, zero)
         resid = torch.where(mask, y - h_ref, zero)
         C = torch.where(mask.unsqueeze(-1), C, zero)
+        # an unknown that the values read only through a cancellation below the integration's
+        # accuracy is not read: at every value |C| <= rcond (|H| |Z|), its row's terms cancelling
+        # to their error. Scaled to a unit column that error reads as a direction of its own (the
+        # sum y = x1 + x2 of two compartments with equal rates does not depend on their exchange
+        # rate, whose column was 1.6e-10 of the others' and whose step 6e8 times its scale)
+        size = torch.einsum("stkn,stnm->stkm", H.abs(), Z_obs[:, :, :n, :].abs())
+        unread = (C.abs() <= self.spec.rcond * size).flatten(1, 2).all(dim=1)  # (S, m)
+        C = C.masked_fill(unread.unsqueeze(1).unsqueeze(1), 0.0)
         return C.reshape(S, T * K, -1), d.reshape(S, -1), resid.reshape(S, -1)
 
     def _weighted(self, idx, z0, C, d):
