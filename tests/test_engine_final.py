@@ -204,13 +204,15 @@ def test_a_long_polishing_step_is_shortened_to_the_unknowns_scale(monkeypatch):
     """A Gauss–Newton step on the model longer than ``POLISH_MAX_STEP`` of the unknowns' scale is taken
     that long, along its direction (a stalled fit's rank-deficient step reached 1e15 of the scale,
     whose model took 10^5 explicit steps to fail). With the bound far below the grid's error the
-    steps are each that long, and run out before reaching the optimum: MAX_ITER, saying so."""
+    steps are each that long, and run out before reaching the optimum: STALLED (``max_iter`` was not
+    reached; the final pass's own limit is no user's), saying so."""
     monkeypatch.setattr(engine_final, "POLISH_MAX_STEP", 1e-9)
     short = _exact_fit(grid=50)
     polishing = short.history[-4:-1]  # (the last record is the final evaluation's)
     assert all(r.alpha_norm == pytest.approx(1e-9, rel=1e-12) for r in polishing)
     assert all(b.sse < a.sse for a, b in zip(polishing, polishing[1:]))  # each kept, lowering the SSE
-    assert short.status is torchql.Status.MAX_ITER and "stopped before converging" in short.message
+    assert short.status is torchql.Status.STALLED and "stopped before converging" in short.message
+    assert short.iterations < short.options.max_iter
 
 
 def test_estimates_run_away_stop_the_steps_on_the_model(monkeypatch):
@@ -218,12 +220,12 @@ def test_estimates_run_away_stop_the_steps_on_the_model(monkeypatch):
     typical magnitudes: the diagnosis calls them a divergence whatever a further step does. (A fit whose
     optimum lies at infinity doubled an initial state from 1e6 to 4e11 in 20 such steps, at one sum of
     squares, each a solve with sensitivities: 34 of its 124 s.) With the factor set below the estimates'
-    own ratio to their guesses, the grid's fixed point is kept, not converged on the model: MAX_ITER,
+    own ratio to their guesses, the grid's fixed point is kept, not converged on the model: STALLED,
     saying why."""
     polished = _exact_fit(grid=50)
     monkeypatch.setattr(engine_final, "RUNAWAY_FACTOR", 0.5)
     stopped = _exact_fit(grid=50)
-    assert stopped.status is torchql.Status.MAX_ITER and not stopped.success
+    assert stopped.status is torchql.Status.STALLED and not stopped.success
     assert "were stopped with the estimates beyond 0.5 times their typical magnitudes" in stopped.message
     assert stopped.iterations < polished.iterations
     assert float((stopped.estimates - TRUTH).abs().max()) > 1e-6  # the grid's own error, unpolished

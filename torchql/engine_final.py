@@ -15,7 +15,7 @@ falls below that bound. On the default grid the step is far below it and nothing
 short enough (:data:`LINEAR_STEP`) is taken along the sensitivities, with no new integration.
 Where the grid misses a fast change of the model (a steep ``tanh``), the fixed point may be several
 steps away: a fit whose steps on the model still exceed the bound when ``max_iter`` or
-:data:`POLISH_STEPS` runs out is not converged, and says so (``MAX_ITER``).
+:data:`POLISH_STEPS` runs out is not converged, and says so (``MAX_ITER`` or ``STALLED``).
 
 The grid's sensitivities miss such a change too, and Gauss–Newton with them may see no step left
 where there is one. So on an automatic grid the final solution checks the storage's interpolants
@@ -353,7 +353,9 @@ class FinalPass(FinalDiagnosis):
             if bool(fresh.any()):
                 here, alpha, infeasible, scaled, need = self._polish_step(r, z0, traj[k], W[k], codes)
         polish[r[~need]] = False
-        need &= ~self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS, z0)
+        out = self._out_of_steps(r, need, scaled, iterations, codes, detail, step == POLISH_STEPS, z0)
+        polish[r[out]] = False
+        need &= ~out
         trying.clear()
         trying.update(zip(r[need].tolist(), scaled[need].tolist()))
         if not bool(need.any()):
@@ -443,15 +445,17 @@ class FinalPass(FinalDiagnosis):
         ``scaled``), those that may not take it (``max_iter`` reached, the ``last`` pass, or estimates
         ``z0[rows]`` run away: an unknown beyond :data:`~torchql.diagnosis.RUNAWAY_FACTOR` times its
         typical magnitude, which the diagnosis calls a divergence whatever a further step does): their
-        fits are not converged on the model, ``MAX_ITER`` with the step's size in the message. (Steps
-        of a fit whose optimum lies at infinity doubled an initial state from 1e6 to 4e11, each at
-        the same sum of squares, each a solve with sensitivities.)"""
+        fits are not converged on the model: ``MAX_ITER`` where ``max_iter`` ran out, else
+        ``STALLED`` (:data:`POLISH_STEPS` is no user's limit), with the step's size in the message.
+        (Steps of a fit whose optimum lies at infinity doubled an initial state from 1e6 to 4e11,
+        each at the same sum of squares, each a solve with sensitivities.)"""
         away = ~(z0[rows][:, self.spec.unknown_index].abs() <= RUNAWAY_FACTOR * self._typical(rows)).all(dim=1)
-        out = need & ((iterations[rows] >= self.spec.max_iter) | last | away)
+        maxed = iterations[rows] >= self.spec.max_iter
+        out = need & (maxed | last | away)
         remedy = "" if self.spec.scheme.integrates_model else ' or `method="shooting"`'
         for j in out.nonzero().flatten().tolist():
             r = int(rows[j])
-            codes[r] = Status.MAX_ITER
+            codes[r] = Status.MAX_ITER if bool(maxed[j]) else Status.STALLED
             if bool(away[j]):
                 detail[r] = (" The final pass's Gauss–Newton steps on the model were stopped with the estimates beyond "
                              f"{RUNAWAY_FACTOR:g} times their typical magnitudes.")

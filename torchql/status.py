@@ -33,9 +33,10 @@ class Status(enum.Enum):
         "`rtol`/`atol`, or choose another `solver`."
     )
     STALLED = (
-        "The iteration stalled: no damped step lowered the sum of squares (the Levenberg-Marquardt "
-        "damping reached its limit), or only damped steps too short to matter did, and Gauss-Newton steps "
-        "on the model itself did not reach its optimum. Start from guesses closer to the solution, use `bounds` to keep "
+        "The iteration stalled: its steps stopped lowering the sum of squares before converging (no damped "
+        "step lowered it, the Levenberg-Marquardt damping reaching its limit, or only steps too short to matter "
+        "did), and Gauss-Newton steps on the model itself did not reach its optimum. Start from guesses closer "
+        "to the solution, use `bounds` to keep "
         "the unknowns in a sensible range, or try several starts (torchql.multistart)."
     )
     NOT_IDENTIFIABLE = (
