@@ -603,6 +603,18 @@ def test_observation_with_parameters_that_fails_is_named():
         torchql.fit(_ScaledDecay(), data, ONE, fixed_x0=["x"], params=["k"])
 
 
+@pytest.mark.parametrize("observe", [lambda x: torch.as_tensor(np.asarray(x.detach())[..., 0] * 1.0),
+                                     lambda x, p: p["scale"] * torch.as_tensor(np.asarray(x.detach()))])
+def test_an_observation_that_torch_func_cannot_differentiate_is_named(observe):
+    """NumPy inside ``h`` works on a plain state but not under jacrev and vmap, as the fit takes
+    ``dh/dx``: the fit said "Cannot access data pointer of Tensor that doesn't have storage" from
+    inside torch.func; it now names ``observe`` and what to write instead."""
+    data = torchql.Observations(T_DECAY, _decay_data().y, observe=observe)
+    with pytest.raises(ValueError, match=r"`observe` callable cannot be differentiated by torch.func on a state of "
+                                         r"shape \(1,\) .*Write it with torch operations on x"):
+        torchql.fit(_ScaledDecay(), data, ONE, fixed_x0=["x"], params=["k"])
+
+
 def test_an_observation_matrix_is_copied_as_the_values_are():
     """``t``, ``y``, ``sigma`` and ``exact`` were copied, ``observe`` kept by reference: scaling the
     user's matrix afterwards changed the data already built (a fit then found y(t0) = 0.75 for

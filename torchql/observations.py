@@ -443,7 +443,7 @@ class ObservationOperator:
 
     def check(self, x: torch.Tensor, params: dict | None = None) -> None:
         """Validate a callable operator on one state ``x (n,)`` (and the coefficients ``params`` for
-        ``h(x, p)``): output shape ``(K,)``, same dtype."""
+        ``h(x, p)``): output shape ``(K,)``, same dtype, differentiable by ``torch.func``."""
         if self.function is None:
             return
         try:
@@ -460,6 +460,16 @@ class ObservationOperator:
                              f"received {shape}")
         if out.dtype != x.dtype:
             raise TypeError(f"`observe` callable must return dtype {x.dtype}; received {out.dtype}")
+        call = (lambda xi: self.function(xi, params)) if self.takes_params else self.function
+        try:  # as the fit takes it: dh/dx by jacrev under vmap
+            vmap(jacrev(call))(x.unsqueeze(0))
+        except Warning:  # a warning turned error (-W error) is the warning's
+            raise
+        except Exception as exc:  # noqa: BLE001 - report any failure of user code clearly
+            raise ObserveCallableError(
+                f"`observe` callable cannot be differentiated by torch.func on a state of shape ({self.n},) (the fit "
+                f"takes dh/dx by jacrev under vmap): {type(exc).__name__}: {exc}. Write it with torch operations on x: "
+                "no NumPy, .item() or float() of x") from exc
 
     def values(self, x: torch.Tensor, params: dict | None = None) -> torch.Tensor:
         """``h(x)`` for states ``x (T, n)`` (``h(x, params)`` with the coefficients by name): ``(T, K)``."""
