@@ -49,6 +49,47 @@ def test_transform_round_trip_and_derivative():
     assert q[3] == u[3]  # unbounded: the identity
 
 
+def test_a_bound_far_from_the_iterate_is_open_to_the_change_of_variables():
+    """``u = lo + exp(q)`` resolves ``u`` only to ``eps |u - lo|``: a bound more than ``FAR_BOUND``
+    times ``max(|s|, 1)`` away is not used at that iterate (the identity there), and a step that
+    would cross it goes nine tenths of the way, blocked; near it the bound is used again."""
+    from torchql.bounds import FAR_BOUND
+
+    b = make([-1e15, -1.0, -1e7, None], [1e15, None, None, None])
+    u = torch.tensor([0.05, 0.05, 0.0, 2.0], dtype=DT)
+    assert b.transformed_at(u).tolist() == [False, True, False, False]
+    q = b.internal(u)
+    assert q[0] == u[0] and q[2] == u[2] and b.derivative(u)[0] == 1.0
+    torch.testing.assert_close(b.external(q, u), u, rtol=1e-15, atol=0.0)
+    change, blocked = b.step(u, torch.tensor([1e-12, 0.0, -3e7, 0.0], dtype=DT))
+    assert float(change[0]) == pytest.approx(1e-12, rel=1e-3)  # resolved in its own units (lo + exp(q): to 0.2)
+    assert change[2] == pytest.approx(-0.9e7, rel=1e-15) and blocked.tolist() == [False, False, True, False]
+    near = torch.tensor([0.0, 0.0, -1e7 + 0.5 * FAR_BOUND, 0.0], dtype=DT)
+    assert b.transformed_at(near)[2]
+
+
+@pytest.mark.parametrize("method", torchql.METHODS)
+def test_bounds_far_from_the_estimate_give_the_unbounded_fit(method):
+    """Bounds of +-1e15 around the oscillator's damping 0.1 "converged" at A = 0 (SSE 2.6 times the
+    optimum's, interval (0, 0)); of -1e15 alone at the guess, after 0 iterations; of +-1e308 ended
+    DIVERGED at once. Each is now the unbounded fit: estimates, SSE and intervals."""
+    free = torchql.fit(LinearOscillator(**GUESS), _noisy(), x0=X0, method=method)
+    assert free.success
+    for pair in ((-1e15, 1e15), (-1e15, None), (-1e308, 1e308), (None, 1e12)):
+        r = torchql.fit(LinearOscillator(**GUESS), _noisy(), x0=X0, method=method, bounds={"A": pair})
+        assert r.success, (pair, r.message)
+        torch.testing.assert_close(r.estimates, free.estimates, rtol=1e-9, atol=1e-12)
+        assert r.sse == pytest.approx(free.sse, rel=1e-10)
+        assert r.confidence_intervals()["A"] == pytest.approx(free.confidence_intervals()["A"], rel=1e-6)
+
+
+def _noisy():
+    t = torch.arange(14, dtype=DT) * 0.5
+    x = torchql.simulate(LinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), t, rtol=1e-13, atol=1e-15)
+    noise = 0.01 * torch.randn(14, 1, generator=torch.Generator().manual_seed(5), dtype=DT)
+    return torchql.Observations(t, x[:, :1] + noise, observe=["y"], sigma=0.01)
+
+
 def test_step_stays_strictly_inside_and_reports_blocked():
     b = make([0.2, None, None, None], [None, None, None, None])
     u = torch.tensor([0.2 + 1e-12, 1.0, 1.0, 1.0], dtype=DT)

@@ -69,6 +69,13 @@ MAX_TOWARD_STEP = math.log(10.0)
 #: It equals ``exp(-MAX_INTERNAL_STEP)``: one capped step from the unknown's scale.
 START_OFFSET = 1e-3
 
+#: A bound farther than this many times ``max(|s|, 1)`` from the iterated value ``s`` is open to the
+#: change of variables at that iterate: ``u = lo + exp(q)`` resolves ``u`` only to ``eps |u - lo|``
+#: (bounds of +-1e15 around a rate of 0.05 resolved it to 0.2, and the fit "converged" at 0 with
+#: its interval (0, 0)); there the unknown steps in its own units, and a step that would cross
+#: such a bound goes nine tenths of the way to it (:meth:`Bounds.step`), where the bound is near.
+FAR_BOUND = 1e6
+
 #: The scales an unknown may be iterated on (``"log"`` and ``"log10"`` give the same iteration).
 SCALES = ("lin", "log", "log10")
 
@@ -214,41 +221,53 @@ class Bounds:
         used = torch.where(low, torch.maximum(lo + up, inside_lo), u)
         return torch.where(moved & ~low, torch.minimum(hi - down, inside_hi), used)
 
-    def _both(self) -> torch.Tensor:
-        return self._has_lo & self._has_hi
-
     def _iterated(self, u: torch.Tensor) -> torch.Tensor:
         """``s``: ``log u`` for the log-scale unknowns, ``u`` for the others."""
         return torch.where(self.log, torch.log(u.clamp_min(torch.finfo(u.dtype).tiny)), u)
 
+    def _sides(self, u: torch.Tensor | None, like: torch.Tensor | None = None):
+        """The change of variables at the iterate ``u (..., m)``: ``(both, lo_only, hi_only, lo, hi)``,
+        the bounds it uses (those within :data:`FAR_BOUND` of the iterated value; every bound where
+        ``u`` is None, shaped as ``like``) and their values on the iterated scale (0 and 1 where unused)."""
+        s = self._iterated(u) if u is not None else torch.zeros_like(like)
+        has_lo, has_hi = self._has_lo, self._has_hi
+        if u is not None:
+            reach = FAR_BOUND * torch.maximum(s.abs(), torch.ones_like(s))
+            has_lo = has_lo & ~(s - self._lo > reach)
+            has_hi = has_hi & ~(self._hi - s > reach)
+        lo = torch.where(has_lo, self._lo, torch.zeros_like(s))
+        hi = torch.where(has_hi, self._hi, torch.ones_like(s))
+        return has_lo & has_hi, has_lo & ~has_hi, has_hi & ~has_lo, lo, hi
+
+    def transformed_at(self, u: torch.Tensor) -> torch.Tensor:
+        """Bool ``(..., m)``: the unknowns iterated through a change of variables at ``u`` (a near
+        bound, or a log scale)."""
+        both, lo_only, hi_only, _, _ = self._sides(u)
+        return both | lo_only | hi_only | self.log
+
     def internal(self, u: torch.Tensor) -> torch.Tensor:
-        """``q(u)``: shape ``(m,)``."""
+        """``q(u)``: shape ``(..., m)``."""
         s = self._iterated(u)
-        both, lo_only, hi_only = self._both(), self._has_lo & ~self._has_hi, self._has_hi & ~self._has_lo
+        both, lo_only, hi_only, lo, hi = self._sides(u)
         tiny = torch.finfo(u.dtype).tiny
-        lo = torch.where(self._has_lo, self._lo, torch.zeros_like(s))
-        hi = torch.where(self._has_hi, self._hi, torch.ones_like(s))
         q = torch.where(lo_only, torch.log((s - lo).clamp_min(tiny)), s)
         q = torch.where(hi_only, torch.log((hi - s).clamp_min(tiny)), q)
         frac = ((s - lo) / (hi - lo)).clamp(tiny, 1 - torch.finfo(u.dtype).eps)
         return torch.where(both, torch.log(frac) - torch.log1p(-frac), q)
 
-    def external(self, q: torch.Tensor) -> torch.Tensor:
-        """``u(q)``: shape ``(m,)``."""
-        both, lo_only, hi_only = self._both(), self._has_lo & ~self._has_hi, self._has_hi & ~self._has_lo
-        lo = torch.where(self._has_lo, self._lo, torch.zeros_like(q))
-        hi = torch.where(self._has_hi, self._hi, torch.ones_like(q))
+    def external(self, q: torch.Tensor, at: torch.Tensor | None = None) -> torch.Tensor:
+        """``u(q)`` in the change of variables at the iterate ``at`` (every bound's where None): shape
+        ``(..., m)``."""
+        both, lo_only, hi_only, lo, hi = self._sides(at, like=q)
         s = torch.where(lo_only, lo + torch.exp(q), q)
         s = torch.where(hi_only, hi - torch.exp(q), s)
         s = torch.where(both, lo + (hi - lo) * torch.sigmoid(q), s)
         return torch.where(self.log, torch.exp(s), s)
 
     def derivative(self, u: torch.Tensor) -> torch.Tensor:
-        """``du/dq`` at ``u``: shape ``(m,)`` (ones where neither bounded nor on a log scale)."""
+        """``du/dq`` at ``u``: shape ``(..., m)`` (ones where neither bounded nor on a log scale)."""
         s = self._iterated(u)
-        both, lo_only, hi_only = self._both(), self._has_lo & ~self._has_hi, self._has_hi & ~self._has_lo
-        lo = torch.where(self._has_lo, self._lo, torch.zeros_like(s))
-        hi = torch.where(self._has_hi, self._hi, torch.ones_like(s))
+        both, lo_only, hi_only, lo, hi = self._sides(u)
         d = torch.ones_like(s)
         d = torch.where(lo_only, s - lo, d)
         d = torch.where(hi_only, s - hi, d)
@@ -279,12 +298,13 @@ class Bounds:
         limit = self._limit(u, alpha_q)
         capped = self._capped(alpha_q, u)
         alpha_q = torch.where(capped, torch.maximum(torch.minimum(alpha_q.nan_to_num(0.0), limit), -limit), alpha_q)
-        u_new = self.external(self.internal(u) + alpha_q)
+        u_new = self.external(self.internal(u) + alpha_q, u)
         inf = torch.full_like(u, math.inf)
         low = self.has_lower & (u_new <= self.lower)
         high = self.has_upper & (u_new >= self.upper)
-        u_new = torch.where(low, torch.nextafter(self.lower, inf), u_new)
-        u_new = torch.where(high, torch.nextafter(self.upper, -inf), u_new)
+        # past a bound too far for the change of variables: nine tenths of the way to it
+        u_new = torch.where(low, torch.maximum(u + 0.9 * (self.lower - u), torch.nextafter(self.lower, inf)), u_new)
+        u_new = torch.where(high, torch.minimum(u + 0.9 * (self.upper - u), torch.nextafter(self.upper, -inf)), u_new)
         u_new = torch.where(self.log & (u_new <= 0), torch.full_like(u, torch.finfo(u.dtype).tiny), u_new)
         return torch.where(self.transformed, u_new - u, alpha_q), low | high | capped
 
@@ -309,11 +329,11 @@ class Bounds:
         away from their nearer bound (from the edge 0 of a log scale without a lower bound)."""
         both = self.has_lower & self.has_upper
         near_lo = torch.where(both, (u - self.lower) <= (self.upper - u), ~self.has_upper)
-        return self.transformed & torch.where(near_lo, direction > 0, direction < 0)
+        return self.transformed_at(u) & torch.where(near_lo, direction > 0, direction < 0)
 
     def _capped(self, alpha_q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Transformed unknowns whose internal step exceeds its limit (NaN counts as capped)."""
-        return self.transformed & ~(alpha_q.abs() <= self._limit(u, alpha_q))
+        return self.transformed_at(u) & ~(alpha_q.abs() <= self._limit(u, alpha_q))
 
     def _limit(self, u: torch.Tensor, alpha_q: torch.Tensor) -> torch.Tensor:
         """The largest internal step of each unknown at ``u`` in the direction of ``alpha_q``:

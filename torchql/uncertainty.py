@@ -226,13 +226,13 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
         inf = torch.full_like(u, math.inf)
         bounds = Bounds.of(-inf if lower is None else lower.to(u), inf if upper is None else upper.to(u), names,
                            log)
-        bounded = bounds.transformed
+        bounded = bounds.transformed_at(u)
         if bool(bounded.any()):
             se = torch.tensor(ses, dtype=u.dtype, device=u.device)
             slope = bounds.derivative(u).abs()
             se_q = torch.where(se == 0, torch.zeros_like(se), se / slope)
             q_hat = bounds.internal(u)
-            a, b = bounds.external(q_hat - q * se_q), bounds.external(q_hat + q * se_q)
+            a, b = bounds.external(q_hat - q * se_q, u), bounds.external(q_hat + q * se_q, u)
             ends = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])  # u falls with q below an upper bound only
             for i in bounded.nonzero().flatten().tolist():
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
