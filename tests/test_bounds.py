@@ -218,11 +218,24 @@ def test_vector_buffer_bound_applies_to_every_element():
     ({"A": 0.5}, TypeError, r"bounds\['A'\].*pair"),
     ({"A": (math.nan, 1.0)}, ValueError, r"bounds\['A'\]` lower bound is NaN"),
     ({"A": ("0", 1.0)}, TypeError, r"number or None"),
+    ({"A": (math.inf, None)}, ValueError, r"bounds\['A'\]` lower bound is inf: no value lies above it"),
+    ({"A": (None, -math.inf)}, ValueError, r"bounds\['A'\]` upper bound is -inf: no value lies below it"),
     ([("A", (0, 1))], TypeError, r"`bounds` must be a dict"),
 ])
 def test_bad_bounds_are_named(data, bounds, error, match):
     with pytest.raises(error, match=match):
         torchql.fit(LinearOscillator(**GUESS), data, x0=X0, bounds=bounds)
+
+
+def test_numpy_scalars_are_bounds(data):
+    """NumPy's float32 and integer scalars were refused as "a number or None" (its float64 passed)."""
+    import numpy as np
+
+    plain = torchql.fit(LinearOscillator(**GUESS), data, x0=X0, bounds={"A": (0.0, 1.0)})
+    for lo, hi in ((np.float32(0.0), np.float32(1.0)), (np.int64(0), np.int32(1))):
+        r = torchql.fit(LinearOscillator(**GUESS), data, x0=X0, bounds={"A": (lo, hi)})
+        torch.testing.assert_close(r.estimates, plain.estimates, rtol=0.0, atol=0.0)
+    assert torchql.Parameter(min=np.float32(0.0), max=np.int64(2)).min == 0.0
 
 
 def test_bound_on_a_fixed_unknown_is_an_error(data):

@@ -46,6 +46,7 @@ Its values must be positive.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -421,12 +422,15 @@ def bound_pair(name: str, pair) -> tuple[float, float]:
         if value is None:
             out.append(open_value)
             continue
-        if isinstance(value, bool) or not isinstance(value, (int, float)) and not (
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) and not (
                 isinstance(value, torch.Tensor) and value.numel() == 1):
             raise TypeError(f"`bounds[{name!r}]` {side} bound must be a number or None; received {value!r}")
         value = float(value)
         if math.isnan(value):
             raise ValueError(f"`bounds[{name!r}]` {side} bound is NaN")
+        if value == -open_value:
+            raise ValueError(f"`bounds[{name!r}]` {side} bound is {value:g}: no value lies {'above' if side == 'lower' else 'below'} "
+                             f"it; give a finite bound, or None (or {open_value:g}) for an open side")
         out.append(value)
     if out[0] == out[1]:
         raise ValueError(

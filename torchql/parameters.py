@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -79,7 +80,7 @@ class Parameter:
                             f"{type(self.expr).__name__}")
         for side in ("min", "max"):
             bound = getattr(self, side)
-            if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float))):
+            if bound is not None and (isinstance(bound, bool) or not isinstance(bound, numbers.Real)):
                 raise TypeError(f"`Parameter.{side}` must be a number or None; received {bound!r}")
             if bound is not None and math.isnan(bound):
                 raise ValueError(f"`Parameter.{side}` must be a number (or None for no bound), not NaN")
