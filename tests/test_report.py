@@ -159,6 +159,15 @@ def test_bounded_report_says_which_intervals_are_in_the_internal_variable():
     lo, hi = result.confidence_intervals(0.95)["k"]
     assert f"95% CI [{lo:.7g}, {hi:.7g}]" in text
     assert "internal variable" not in torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT)).report()
+    # an estimate on its bound gets the Wald interval clipped to the bounds, and the header says so
+    # (it named the internal variable); bounds far from the estimate give the plain Wald interval
+    on_bound = torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT), bounds={"k": (0.8, None)})
+    assert on_bound.success and "['k'] lie at their bounds" in on_bound.message
+    header = next(line for line in on_bound.report().splitlines() if line.startswith("[[Unknowns]]"))
+    assert "of k (on or near a bound) clipped to the bounds" in header and "internal variable" not in header
+    far = torchql.fit(Decay(1.0), data, x0=torch.tensor([1.0], dtype=DT), bounds={"k": (-1e9, None)})
+    header = next(line for line in far.report().splitlines() if line.startswith("[[Unknowns]]"))
+    assert header == "[[Unknowns]] (value +/- standard error (relative), 95% Wald interval)"
 
 
 # ----------------------------------------------------------------------------------------- plots

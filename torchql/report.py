@@ -110,18 +110,6 @@ def _g(x: float, digits: int = 7) -> str:
     return f"{x:.{digits}g}"
 
 
-def _bounded(result: "FitResult") -> list[str]:
-    """Names of the unknowns with a bound (their intervals are in the internal variable)."""
-    if result.lower is None and result.upper is None:
-        return []
-    m = len(result.unknown_names)
-    inf = torch.full((m,), math.inf, dtype=torch.float64)
-    lower = inf.neg() if result.lower is None else result.lower.detach().cpu().to(torch.float64)
-    upper = inf if result.upper is None else result.upper.detach().cpu().to(torch.float64)
-    flags = (torch.isfinite(lower) | torch.isfinite(upper)).tolist()
-    return [name for name, flag in zip(result.unknown_names, flags) if flag]
-
-
 def _no_errorbar_reason(result: "FitResult") -> str:
     if result.status is Status.NOT_IDENTIFIABLE:
         detail = result.message[len(result.status.value):].strip()
@@ -239,14 +227,18 @@ def _unknowns_section(result: "FitResult", level: float) -> tuple[list[str], lis
         return lines, names
     se = result.stderr
     pct = f"{100 * level:g}%"
-    cis = result.confidence_intervals(level)
-    bounded = [name for name in _bounded(result) if name not in result.log_scaled]
+    cis, kinds = result._intervals(level)
+    bounded = [name for name in names if kinds.get(name) == "mapped" and name not in result.log_scaled]
+    clipped = [name for name in names if kinds.get(name) == "clipped"]
     header = f"[[Unknowns]] (value +/- standard error (relative), {pct} Wald interval"
     if bounded:
         header += (f"; of {', '.join(bounded)} in the bounds' internal variable (log of the distance to "
                    "one bound, logit between two), mapped back: inside the bounds, asymmetric")
-    if result.log_scaled:
-        header += (f"; of {', '.join(result.log_scaled)} on the log scale (the interval of log u, inside its "
+    if clipped:
+        header += f"; of {', '.join(clipped)} (on or near a bound) clipped to the bounds"
+    logged = [name for name in result.log_scaled if kinds.get(name) != "clipped"]
+    if logged:
+        header += (f"; of {', '.join(logged)} on the log scale (the interval of log u, inside its "
                    "bounds), mapped back: asymmetric")
     lines = [header + ")"]
     missing = []

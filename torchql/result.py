@@ -298,16 +298,26 @@ class FitResult:
 
         A bounded unknown's interval is the Wald interval of its internal variable (``log`` of
         the distance to a single bound, ``logit`` of the position between two) mapped back: it
-        lies inside the bounds and is asymmetric (:func:`torchql.uncertainty.wald_intervals`).
+        lies inside the bounds and is asymmetric; on or near a bound it is the Wald interval
+        clipped to the bounds, and with bounds far from the estimate the plain Wald interval
+        (:func:`torchql.uncertainty.wald_intervals`).
         Both ends are NaN when the fit did not succeed (a ``NOT_IDENTIFIABLE`` fit keeps the
         intervals of the unknowns the data determine) and for unknowns without a standard error.
         """
+        return self._intervals(level)[0]
+
+    def _intervals(self, level: float) -> tuple[dict, dict]:
+        """:meth:`confidence_intervals`, and each interval's kind by name (``"wald"``, ``"mapped"``
+        from the internal variable or the log scale, ``"clipped"`` to the bounds near one)."""
         from .uncertainty import wald_intervals
 
         valid = self.success or self.status is Status.NOT_IDENTIFIABLE
-        return wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
-                              lower=self.lower, upper=self.upper, valid=valid,
-                              log=torch.tensor([u in self.log_scaled for u in self.unknown_names], dtype=torch.bool))
+        kinds: dict = {}
+        intervals = wald_intervals(self.unknown_names, self.estimates, self.stderr, self.dof, self.sigma_known, level,
+                                   lower=self.lower, upper=self.upper, valid=valid, kinds=kinds,
+                                   log=torch.tensor([u in self.log_scaled for u in self.unknown_names],
+                                                    dtype=torch.bool))
+        return intervals, kinds
 
     @property
     def condition_number(self) -> float:

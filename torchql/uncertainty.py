@@ -185,8 +185,10 @@ NEAR_BOUND_WIDTH = 3.0
 
 def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, level: float,
                    lower: torch.Tensor | None = None, upper: torch.Tensor | None = None,
-                   valid: bool = True, log: torch.Tensor | None = None) -> dict[str, tuple[float, float]]:
-    """Wald intervals at confidence ``level``, by name.
+                   valid: bool = True, log: torch.Tensor | None = None,
+                   kinds: dict | None = None) -> dict[str, tuple[float, float]]:
+    """Wald intervals at confidence ``level``, by name (and in ``kinds``, if given, each interval's
+    kind by name: ``"wald"``, ``"mapped"`` from the internal variable, or ``"clipped"``).
 
     An unbounded unknown gets ``estimate -/+ q * stderr``. A bounded one (``lower``/``upper``,
     Tensors ``(m,)`` in the order of ``names``, infinite where a side is open; ``None``: all
@@ -220,6 +222,8 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
     u = torch.as_tensor(estimates).detach().reshape(-1)
     ses = [float(stderr[name]) for name in names]
     out = {name: (float(v) - q * s, float(v) + q * s) for name, v, s in zip(names, u, ses)}
+    kinds = {} if kinds is None else kinds
+    kinds.update((name, "wald") for name in names)
     if lower is not None or upper is not None or (log is not None and bool(log.any())):
         from .bounds import Bounds
 
@@ -236,6 +240,7 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
             ends = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])  # u falls with q below an upper bound only
             for i in bounded.nonzero().flatten().tolist():
                 out[names[i]] = (float(ends[0, i]), float(ends[1, i]))
+                kinds[names[i]] = "mapped"
             # on its bound the internal variable's standard error is unbounded (``du/dq`` -> 0): the
             # interval about the estimate, clipped to the bounds (a c >= 0 at 4e-36 with standard
             # error 0.0047 had (0, inf)); so near one, where the mapped interval reaches past
@@ -252,4 +257,5 @@ def wald_intervals(names, estimates, stderr: dict, dof: int, sigma_known: bool, 
                 if bool(bounds.log[i]):  # a log scale's edge is 0
                     lo = max(lo, 0.0)
                 out[name] = (max(lo, float(u[i]) - q * ses[i]), min(hi, float(u[i]) + q * ses[i]))
+                kinds[name] = "clipped"
     return {name: ends if math.isfinite(s) else (nan, nan) for (name, ends), s in zip(out.items(), ses)}
