@@ -103,12 +103,14 @@ def test_tolerances_must_be_non_negative_numbers(name, value):
 @pytest.mark.parametrize("wrong, received", [(lambda J: J.numpy(), "ndarray"), (lambda J: J.float(), "torch.float32"),
                                              (lambda J: J.tolist(), "list")])
 def test_a_jacobian_of_another_type_or_dtype_is_named(wrong, received):
-    with pytest.raises(TypeError, match=f"`jacobian` must return a tensor of x's dtype torch.float64; received .*{received}"):
+    with pytest.raises(TypeError, match=f"`jacobian` must return a tensor of x's dtype torch.float64; "
+                                        f"received .*{received}"):
         torchql.newton_raphson(residual, torch.tensor([2.0, 1.0], dtype=torch.float64),
                                jacobian=lambda x: wrong(jacobian(x)))
     with pytest.raises(TypeError, match="`jacobian` must be callable"):
         torchql.newton_raphson(residual, torch.tensor([2.0, 1.0], dtype=torch.float64), jacobian=jacobian(ROOT))
-    with pytest.raises(TypeError, match="`residual` must return a tensor of x0's dtype torch.float64; received torch.float32"):
+    with pytest.raises(TypeError, match="`residual` must return a tensor of x0's dtype torch.float64; "
+                                        "received torch.float32"):
         torchql.newton_raphson(lambda x: residual(x).float(), torch.tensor([2.0, 1.0], dtype=torch.float64))
     with pytest.raises(TypeError, match="`residual` must be callable as R\\(x\\) -> Tensor; received Tensor"):
         torchql.newton_raphson(ROOT, torch.tensor([2.0, 1.0], dtype=torch.float64))

@@ -429,8 +429,9 @@ def bound_pair(name: str, pair) -> tuple[float, float]:
         if math.isnan(value):
             raise ValueError(f"`bounds[{name!r}]` {side} bound is NaN")
         if value == -open_value:
-            raise ValueError(f"`bounds[{name!r}]` {side} bound is {value:g}: no value lies {'above' if side == 'lower' else 'below'} "
-                             f"it; give a finite bound, or None (or {open_value:g}) for an open side")
+            beyond = "above" if side == "lower" else "below"
+            raise ValueError(f"`bounds[{name!r}]` {side} bound is {value:g}: no value lies {beyond} it; give a "
+                             f"finite bound, or None (or {open_value:g}) for an open side")
         out.append(value)
     if out[0] == out[1]:
         raise ValueError(

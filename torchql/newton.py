@@ -77,9 +77,9 @@ def newton_raphson(
         guess); else no root was found, and the message says so.
     ftol : float
         Stop when ``max |R(x)| <= ftol``, a success.
-    jacobian : callable ``J(x) -> (m, n)``, optional
-        Analytic Jacobian (a tensor of ``x``'s dtype); default :func:`torch.func.jacrev` of ``residual``. Non-square
-        systems are solved in the least-squares sense (Gauss–Newton).
+    jacobian : callable ``J(x) -> (len(R(x)), m)``, optional
+        Analytic Jacobian (a tensor of ``x``'s dtype); default :func:`torch.func.jacrev` of
+        ``residual``. Non-square systems are solved in the least-squares sense (Gauss–Newton).
 
     Returns
     -------
