@@ -226,16 +226,14 @@ class Bounds:
         """``s``: ``log u`` for the log-scale unknowns, ``u`` for the others."""
         return torch.where(self.log, torch.log(u.clamp_min(torch.finfo(u.dtype).tiny)), u)
 
-    def _sides(self, u: torch.Tensor | None, like: torch.Tensor | None = None):
+    def _sides(self, u: torch.Tensor):
         """The change of variables at the iterate ``u (..., m)``: ``(both, lo_only, hi_only, lo, hi)``,
-        the bounds it uses (those within :data:`FAR_BOUND` of the iterated value; every bound where
-        ``u`` is None, shaped as ``like``) and their values on the iterated scale (0 and 1 where unused)."""
-        s = self._iterated(u) if u is not None else torch.zeros_like(like)
-        has_lo, has_hi = self._has_lo, self._has_hi
-        if u is not None:
-            reach = FAR_BOUND * torch.maximum(s.abs(), torch.ones_like(s))
-            has_lo = has_lo & ~(s - self._lo > reach)
-            has_hi = has_hi & ~(self._hi - s > reach)
+        the bounds it uses (those within :data:`FAR_BOUND` of the iterated value) and their values
+        on the iterated scale (0 and 1 where unused)."""
+        s = self._iterated(u)
+        reach = FAR_BOUND * torch.maximum(s.abs(), torch.ones_like(s))
+        has_lo = self._has_lo & ~(s - self._lo > reach)
+        has_hi = self._has_hi & ~(self._hi - s > reach)
         lo = torch.where(has_lo, self._lo, torch.zeros_like(s))
         hi = torch.where(has_hi, self._hi, torch.ones_like(s))
         return has_lo & has_hi, has_lo & ~has_hi, has_hi & ~has_lo, lo, hi
@@ -256,10 +254,9 @@ class Bounds:
         frac = ((s - lo) / (hi - lo)).clamp(tiny, 1 - torch.finfo(u.dtype).eps)
         return torch.where(both, torch.log(frac) - torch.log1p(-frac), q)
 
-    def external(self, q: torch.Tensor, at: torch.Tensor | None = None) -> torch.Tensor:
-        """``u(q)`` in the change of variables at the iterate ``at`` (every bound's where None): shape
-        ``(..., m)``."""
-        both, lo_only, hi_only, lo, hi = self._sides(at, like=q)
+    def external(self, q: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
+        """``u(q)`` in the change of variables at the iterate ``at``: shape ``(..., m)``."""
+        both, lo_only, hi_only, lo, hi = self._sides(at)
         s = torch.where(lo_only, lo + torch.exp(q), q)
         s = torch.where(hi_only, hi - torch.exp(q), s)
         s = torch.where(both, lo + (hi - lo) * torch.sigmoid(q), s)
