@@ -114,9 +114,8 @@ def model_forward(rhs, t0: torch.Tensor, x0: torch.Tensor, names, coefficients: 
     if out.dtype != dtype:
         raise TypeError(f"`model` forward must return dtype {dtype} (the coefficients' dtype); received {out.dtype}")
     out = out.detach()
-    bad = (~torch.isfinite(out)).nonzero().flatten().tolist() if finite else []
-    if bad:
-        derivatives = ", ".join(f"d{names[i]}/dt = {out[i].item()}" for i in bad)
+    derivatives = non_finite_slopes(out, names) if finite else ""
+    if derivatives:
         state = ", ".join(f"{name} = {value:g}" for name, value in zip(names, x0.tolist()))
         items = list(coefficients.items())
         coefs = "".join(f", {name} = {value:g}" for name, value in items[:8]) + (", ..." if len(items) > 8 else "")
@@ -125,6 +124,12 @@ def model_forward(rhs, t0: torch.Tensor, x0: torch.Tensor, names, coefficients: 
             f"{coefs}. The model must be finite at the initial state: choose a `x0` and coefficient guesses where "
             "it is defined, or guard the forward against division by zero and log/sqrt of negative values")
     return out
+
+
+def non_finite_slopes(slope: torch.Tensor, names) -> str:
+    """The derivatives ``slope (n,)`` that are not finite, named by state (``"dy/dt = nan"``), ``""``
+    when all are."""
+    return ", ".join(f"d{name}/dt = {float(v)}" for name, v in zip(names, slope) if not torch.isfinite(v))
 
 
 def distinct_names(name: str, value, allowed, kind: str, allowed_text: str) -> list[str]:

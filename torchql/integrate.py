@@ -275,8 +275,8 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     if origin:
         t, t0_ = t - origin, t0_ - origin
     slope = _checks.model_forward(func, t0_, x0, model.state_names, {}, dtype, finite=False)
-    if not bool(torch.isfinite(slope).all()):
-        bad = ", ".join(f"d{name}/dt = {float(v)}" for name, v in zip(model.state_names, slope) if not torch.isfinite(v))
+    bad = _checks.non_finite_slopes(slope, model.state_names)
+    if bad:
         raise IntegrationError(f"`model` forward is not finite at `x0` = {x0.tolist()}: {bad} at t0 = "
                                f"{float(t0_) + origin:g}; the solution cannot start there")
     with torch.no_grad():
