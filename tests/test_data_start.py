@@ -424,7 +424,9 @@ def test_a_data_started_success_after_a_long_path_is_fitted_again_from_the_guess
     data = torchql.Observations(t, y, observe=["y"])
     x0 = torch.tensor([0.0, 0.8], dtype=DT)
     integrated = torchql.fit(LinearOscillator(A=0.2, B=64.0), data, x0=x0, initial_trajectory="integrate")
-    assert integrated.status is torchql.Status.CONVERGED
+    # (CONVERGED_SSE since a step that gained poorly is followed by a damped one: the path differs at
+    # its third iterate, and its twelfth step, 1.4e-8 of the scale, meets the SSE's test first)
+    assert integrated.status in (torchql.Status.CONVERGED, torchql.Status.CONVERGED_SSE)
     assert float(integrated.params["B"]) == pytest.approx(80, rel=0.01)
     result = torchql.fit(LinearOscillator(A=0.2, B=64.0), data, x0=x0)
     assert result.success, result.message

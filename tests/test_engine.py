@@ -14,12 +14,13 @@ from torchql.engine import FLAT_DAMPING, Engine
 DT = torch.float64
 
 
-def _flat(damping, merit_new, alpha, *, filters=True, exact=False, accept=True):
-    """``Engine._flat`` for one sample: ``|d|^2 = 2`` (w = 1), C the identity on two rows, merit 1 -> ``merit_new``."""
+def _flat(damping, merit_new, alpha, *, filters=True, exact=False, accept=True, rejected=1):
+    """``Engine._flat`` for one sample: ``|d|^2 = 2`` (w = 1), C the identity on two rows, merit 1 -> ``merit_new``;
+    ``rejected`` trials at the iterate (what damped the step)."""
     C = torch.eye(2, dtype=DT).unsqueeze(0)
     d = torch.tensor([[1.0, 1.0]], dtype=DT)
     cur = {"C": C, "d": d, "w": torch.ones(1, 2, dtype=DT), "merit": torch.tensor([1.0], dtype=DT)}
-    st = SimpleNamespace(cur=cur, damping=torch.tensor([damping], dtype=DT))
+    st = SimpleNamespace(cur=cur, damping=torch.tensor([damping], dtype=DT), rejected=torch.tensor([rejected]))
     spec = SimpleNamespace(ftol=1e-6, has_exact=exact, damping=LevenbergMarquardt() if filters else Undamped())
     engine = SimpleNamespace(spec=spec)
     trial = {"merit": torch.tensor([merit_new], dtype=DT)}
@@ -40,6 +41,8 @@ def test_the_flat_test_needs_every_condition():
     assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], accept=False)
     assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], filters=False)
     assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], exact=True)
+    # damped after a poor gain, not by rejections: the undamped step after it is tested instead
+    assert not _flat(1e-4, 1.0 - 5e-7, [1e-7, 1e-7], rejected=0)
 
 
 def test_a_stiff_batchs_samples_each_take_the_trial_tolerance_of_their_own_step():

@@ -9,6 +9,8 @@ import torch
 
 import torchql
 
+from testmodels import SIR
+
 DT = torch.float64
 
 
@@ -171,7 +173,7 @@ def test_a_trial_the_model_rejects_is_not_propagated(monkeypatch):
     from scipy.integrate import solve_ivp
     from scipy.optimize import least_squares
 
-    from testmodels import SIR, SIR_FAR, SIR_FAR_GUESSES, sir_counts
+    from testmodels import SIR_FAR, SIR_FAR_GUESSES, sir_counts
 
     data = sir_counts()
     t, y = data.t, data.y
@@ -197,3 +199,46 @@ def test_a_trial_the_model_rejects_is_not_propagated(monkeypatch):
     np.testing.assert_allclose(ours, reference.x, rtol=1e-6)
     assert result.sse == pytest.approx(2 * reference.cost, rel=1e-9)
     assert result.nfev < 1.5e7  # 5.2e7 when every trial was propagated
+
+
+def _sir_on_its_bound():
+    """Infected and recovered fractions of :class:`SIR` (``beta = 0.5``, ``gamma = 0.1``) with 1 % noise,
+    fitted with ``beta`` bounded by 0.4: the optimum lies on that bound, where the residuals stay large."""
+    t = torch.linspace(0, 60, 31, dtype=DT)
+    x0 = torch.tensor([0.99, 0.01, 0.0], dtype=DT)
+    clean = torchql.simulate(SIR(0.5, 0.1, 1.0), x0, t)[:, 1:]
+    noise = torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+    y = clean + 0.01 * clean.abs().mean(0) * noise
+    return t, x0, y
+
+
+def _bounded_sir_optimum(t, x0, y):
+    """scipy's ``least_squares`` with ``gamma`` alone (``beta`` on its bound 0.4), integrated at 1e-12."""
+    from scipy.integrate import solve_ivp
+    from scipy.optimize import least_squares
+
+    def residuals(p):
+        rhs = lambda _, x: [-0.4 * x[0] * x[1], 0.4 * x[0] * x[1] - p[0] * x[1], p[0] * x[1]]  # noqa: E731
+        sol = solve_ivp(rhs, (0, 60), x0.numpy(), t_eval=t.numpy(), rtol=1e-12, atol=1e-14)
+        return (sol.y[1:].T - y.numpy()).ravel()
+    found = least_squares(residuals, [0.1], xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    return float(found.x[0]), float(np.sum(found.fun ** 2))
+
+
+@pytest.mark.parametrize("method", ["kantorovich", "shooting"])
+def test_steps_that_gain_poorly_leave_the_next_one_damped(method):
+    """With ``beta`` on its bound the Gauss–Newton step overshot ``gamma`` by 1.86 times, its error
+    flipping sign at 0.86 of its size: every undamped step was accepted and the fit ran out of its 50
+    iterations. A step that lowers the sum of squares by less than a quarter of its linear model's
+    prediction now leaves its successor damped, and the fit converges to the bounded optimum."""
+    t, x0, y = _sir_on_its_bound()
+    gamma, sse = _bounded_sir_optimum(t, x0, y)
+    data = torchql.Observations(t, y, observe=["I", "R"])
+    fit = torchql.fit(SIR(0.3, 0.2, 1.0), data, x0=x0, fixed_x0=["S", "I", "R"], method=method,
+                      bounds={"beta": (0.0, 0.4), "gamma": (0.0, None)})
+    assert fit.success, fit.message
+    assert fit.iterations <= 25  # (scipy's trf: 19 evaluations)
+    assert 0.4 - float(fit.params["beta"]) < 1e-9
+    # gamma's standard error is 6e-4; the tolerances (rtol 1e-8) allow 1e-6 of it
+    assert float(fit.params["gamma"]) == pytest.approx(gamma, abs=1e-6)
+    assert fit.sse == pytest.approx(sse, rel=1e-8)

@@ -6,8 +6,10 @@
 
 The damping enters the iteration's least-squares update as ``lambda`` in ``min ||C a - d||^2 +
 lambda s_max^2 ||a||^2`` (``s_max`` the largest singular value of the scaled matrix,
-:func:`torchql.lstsq.solve_update_batch`): zero for a fresh iterate, raised by the strategy after
-each rejected trial of that iterate, back to zero once a trial is accepted.
+:func:`torchql.lstsq.solve_update_batch`): raised by the strategy after each rejected trial of an
+iterate, back to zero once a trial is accepted, and zero for a fresh iterate unless the undamped
+step that reached it lowered the sum of squares much less than its linear model predicted
+(:meth:`Damping.after_poor_gain`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import torch
 from .registry import Registry
 
 __all__ = ["Damping", "LevenbergMarquardt", "Undamped", "DAMPINGS", "DAMPING_START", "DAMPING_MIN", "DAMPING_MAX",
-           "RETRY_SHORTENING", "register_damping", "damping_strategy"]
+           "RETRY_SHORTENING", "POOR_GAIN", "register_damping", "damping_strategy"]
 
 #: Levenberg–Marquardt damping after the first rejected step, and its limits (relative to the
 #: largest squared singular value of the scaled least-squares matrix), for every damped solve.
@@ -27,6 +29,13 @@ DAMPING_MAX = 1e12
 #: A retry's damping must shorten the rejected trial's step at least this much along some direction
 #: (:meth:`Damping.retry`); raises that shorten it less are skipped.
 RETRY_SHORTENING = 0.3
+#: An accepted undamped step whose actual decrease of the sum of squares is below this fraction of
+#: its linear model's predicted decrease (the gain ratio, as in Moré's trust-region update, where
+#: 0.25 shrinks the region) leaves its successor damped (:meth:`Damping.after_poor_gain`). There the
+#: Gauss–Newton model misjudges the curvature: an SIR fit with its contact rate on a bound, whose
+#: residuals stay large, overshot the recovery rate by 1.86 times each step, gamma's error flipping
+#: sign at 0.86 of its size for 50 iterations (``tests/test_damping.py``).
+POOR_GAIN = 0.25
 
 
 class Damping:
@@ -76,6 +85,15 @@ class Damping:
                 break
             new = torch.where(same, self.raised(new, last), new)
         return new
+
+    def after_poor_gain(self, last: torch.Tensor, spectrum: torch.Tensor) -> torch.Tensor:
+        """The damping ``(S,)`` of a fresh iterate reached by an undamped step whose gain ratio was
+        below :data:`POOR_GAIN` (where it was not, a fresh iterate starts undamped). ``last (S,)``:
+        the damping of that step (zero), ``spectrum (S, k)`` the fresh iterate's, as :meth:`retry`'s.
+        The base strategy starts it as a retry of a rejected undamped trial: the first damping that
+        shortens the step by :data:`RETRY_SHORTENING` along some direction. Such a step is not a
+        creeping one (the engine's ``STALLED`` test judges the damping that rejections raised)."""
+        return self.retry(torch.zeros_like(last), last, spectrum)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"

@@ -284,7 +284,9 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         accept &= ~lost
         flat = self._flat(st, act, trial, accept, alpha)
         creeping = self._creeping(st, act, trial, accept & ~flat)
+        poor = self._poor_gain(st, act, trial, accept & ~flat & ~creeping, alpha)
         self._take(st, act, trial, accept)
+        self._damp_poor_gain(st, act[poor])
         self.trial_decay.difference_update(act.tolist())
         if bool(flat.any()):
             st.stop(act[flat], Status.CONVERGED_SSE)

@@ -8,7 +8,9 @@ import math
 
 import torch
 
+from .damping import POOR_GAIN
 from .engine_state import LoopState, _pick, not_above
+from .lstsq import relative_spectrum
 from .trajectory import DEFECT_TRUST
 
 __all__ = ["StepTests", "FLAT_DAMPING", "predicted_decrease"]
@@ -17,6 +19,9 @@ __all__ = ["StepTests", "FLAT_DAMPING", "predicted_decrease"]
 #: by :meth:`Engine._flat`'s test: larger damping shortens every step, and a short step's small
 #: predicted decrease says little about the minimum.
 FLAT_DAMPING = 1e-3
+#: :meth:`StepTests._poor_gain` judges a step whose predicted decrease is at least this many times
+#: what the sum of squares resolves (``ftol`` of it, or its integration error).
+GAIN_RESOLVED = 10.0
 
 
 def predicted_decrease(C: torch.Tensor, d: torch.Tensor, w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -36,10 +41,11 @@ class StepTests:
         ``|w d|^2 - |w (d - C alpha)|^2`` at most ``ftol`` relative, with damping at most
         :data:`FLAT_DAMPING`. Undamped steps have :meth:`torchql.engine.Engine._converged`'s tests;
         this one serves a fit whose Gauss–Newton steps along directions the data barely determine are too long to be
-        accepted undamped, so that no undamped step ever comes to be tested."""
+        accepted undamped, so that no undamped step ever comes to be tested (damped by rejections: a
+        step damped after a poor gain, :meth:`_poor_gain`, is followed by an undamped one, tested)."""
         spec, cur = self.spec, st.cur
         damping = st.damping[act]
-        flat = accept & (damping > 0) & (damping <= FLAT_DAMPING)
+        flat = accept & (damping > 0) & (damping <= FLAT_DAMPING) & (st.rejected[act] > 0)
         if not spec.damping.filters or spec.has_exact or not bool(flat.any()):
             return torch.zeros_like(accept)
         predicted = predicted_decrease(_pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act), alpha)
@@ -58,7 +64,7 @@ class StepTests:
         the undamped steps are rejected and heavily damped ones creep; the final pass takes
         Gauss–Newton steps on the model itself from there. A lightly damped step that lowers the
         merit little is progress along a curved valley, not a creep."""
-        damped = accept & (st.damping[act] > FLAT_DAMPING)
+        damped = accept & (st.damping[act] > FLAT_DAMPING) & (st.rejected[act] > 0)
         if self.spec.has_exact or not bool(damped.any()):  # (exact values: the final pass would not judge it)
             return torch.zeros_like(damped)
         new, old = trial["merit"], st.cur["merit"][act]
@@ -69,6 +75,38 @@ class StepTests:
         small = (((st.scaled <= self.spec.xtol) & ~st.leaving)
                  | (old - new <= torch.maximum(self.spec.ftol * new.abs(), floor)))
         return damped & small
+
+    def _poor_gain(self, st: LoopState, act, trial, accept, alpha) -> torch.Tensor:
+        """Which accepted undamped steps of samples ``act`` lowered the merit by less than
+        :data:`~torchql.damping.POOR_GAIN` of their linear model's predicted decrease
+        (:func:`predicted_decrease`): their successors start damped
+        (:meth:`~torchql.damping.Damping.after_poor_gain`, applied by :meth:`_damp_poor_gain` once
+        the steps are taken). ``alpha (A, m)`` are the steps in the unknowns' own units, as taken
+        (a bounded one capped: its capped move, the others re-solved). Not judged: steps that exact values constrain (their merit is a penalty's), and Kantorovich
+        trials far from solving the model (their merit is no sum of squares of it)."""
+        spec = self.spec
+        poor = accept & (st.damping[act] == 0)
+        if not spec.damping.filters or spec.has_exact or not bool(poor.any()):
+            return torch.zeros_like(accept)
+        if not spec.scheme.integrates_model:
+            poor &= trial["defect"] <= DEFECT_TRUST
+        cur = st.cur
+        predicted = predicted_decrease(_pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act), alpha)
+        actual = cur["merit"][act] - trial["merit"]
+        # near the optimum both decreases are the integration's noise, and their ratio says nothing
+        noise = torch.maximum(spec.ftol * trial["merit"].abs(), self._sse_error(act, cur["sse"][act], cur["w"][act]))
+        return poor & (predicted > GAIN_RESOLVED * noise) & (actual < POOR_GAIN * predicted)
+
+    def _damp_poor_gain(self, st: LoopState, rows) -> None:
+        """The fresh iterates of samples ``rows`` (reached by steps :meth:`_poor_gain` found) start
+        with the damping strategy's :meth:`~torchql.damping.Damping.after_poor_gain`."""
+        if not rows.numel():
+            return
+        spec, cur = self.spec, st.cur
+        u = _pick(cur["z0"], rows)[:, spec.unknown_index]
+        C = spec.bounds.internal_columns(_pick(cur["C"], rows), u)
+        spectrum = relative_spectrum(C, _pick(cur["w"], rows), spec.rcond)
+        st.damping[rows] = spec.damping.after_poor_gain(st.last_damping[rows], spectrum)
 
     def _lost(self, st: LoopState, act) -> torch.Tensor:
         """Bool ``(A,)``: Kantorovich iterates of samples ``act``, taken on their linear merit, from
