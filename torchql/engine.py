@@ -57,7 +57,8 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
     """The iteration of one chunk of samples (indices ``index`` of the problem's batch)."""
 
     def __init__(self, spec: Problem, index: torch.Tensor, max_time: float | None = None, history: bool = False,
-                 callback: Callable[[int, IterationRecord], None] | None = None, start: str | None = None) -> None:
+                 callback: Callable[[int, IterationRecord], None] | None = None, start: str | None = None,
+                 guesses: torch.Tensor | None = None) -> None:
         self.spec, self.max_time, self.index = spec, max_time, index
         #: the first reference: ``"data"`` or ``"integrate"`` (default: the problem's)
         self.start = spec.initial_trajectory if start is None else start
@@ -75,7 +76,9 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         self.propagation_errors: dict[int, str] = {}  # chunk row: a per-sample propagator's message
         self.stiff_met: set[int] = set()  # chunk rows whose model an explicit pair found stiff
         self.stopped_stiff: set[int] = set()  # ... and that stopped so (solver="auto" fits them again)
-        self.z0_guess = spec.z0[index].clone()
+        self.z0_guess = spec.z0[index].clone() if guesses is None else guesses.clone()
+        #: chunk row: the null directions ``(m, k)`` of a sample found not identifiable (FinalDiagnosis)
+        self.null_directions: dict[int, torch.Tensor] = {}
         #: the first iterate ``(S, M)`` and its sum of squares ``(S,)`` (the guesses and NaN until it is made)
         self.first_z0 = self.z0_guess.clone()
         self.first_sse = torch.full((index.numel(),), float("nan"), dtype=spec.dtype, device=spec.device)

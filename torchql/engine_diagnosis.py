@@ -72,6 +72,7 @@ class FinalDiagnosis:
                                    torch.zeros(n_used, dtype=torch.bool, device=dev),
                                    loose if bool(barely[k]) else spec.rcond)
                 null_text = null_detail(sol.null_vectors, spec.unknown_names)
+                self.null_directions[r] = sol.null_vectors  # (torchql.saddle: the way off a saddle, if one)
             codes[r], more = final_status(
                 code, rank_deficient=short, null_text=null_text, estimates=estimates[k], scale=scales[k],
                 unknown_names=spec.unknown_names, sse=sse_list[k],

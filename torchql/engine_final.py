@@ -38,6 +38,7 @@ from .dopri import dopri_batch
 from .dopri_sensitivity import HELD_STEP
 from .engine_state import not_above
 from .engine_steps import predicted_decrease
+from .saddle import off_saddle
 from .engine_diagnosis import FinalDiagnosis
 from .engine_grid import pad_nodes
 from .result import Status
@@ -146,6 +147,7 @@ class FinalPass(FinalDiagnosis):
                     exact_residual=exact_residual, history=self.history,
                     sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0,
                     sse_guesses=sse_at_guesses(self, codes, sse, residuals, iterations),
+                    off_saddle=off_saddle(self, codes, z0, sse),
                     stiff_met=torch.tensor([k in self.stiff_met for k in range(S)], dtype=torch.bool, device=dev))
 
     def _storage_notes(self, detail: list) -> None:

@@ -29,6 +29,7 @@ from .engine import Engine
 from .engine_state import shifted_report
 from .problem import Problem
 from .result import IterationRecord, Status
+from .saddle import SADDLE_WORDS
 
 __all__ = ["run_engine"]
 
@@ -103,7 +104,26 @@ def _fit_chunk(spec: Problem, index: torch.Tensor, max_time: float | None, repor
         stiff_met[retry] |= other["stiff_met"]
         chunk["stiff_met"] = stiff_met
         counter.nfev += again.nfev
+    _leave_saddles(spec, index, chunk, max_time, history, callback, counter)
     return chunk
+
+
+def _leave_saddles(spec: Problem, index: torch.Tensor, chunk: dict, max_time: float | None, history: bool,
+                   callback, counter: "_StiffRefit") -> None:
+    """The samples of ``chunk`` (indices ``index``) that ended on a saddle (``chunk["off_saddle"]``, a
+    lower point a step along their null directions: :func:`torchql.saddle.off_saddle`), fitted again
+    from that point, integrated; each keeps the better fit. A fit made again that won and ended on
+    another saddle is fitted again from there, at most once per unknown."""
+    for _ in range(spec.m):
+        rows = (~torch.isnan(chunk["off_saddle"][:, 0])).nonzero().flatten().tolist()
+        if not rows:
+            return
+        again = Engine(spec, index[rows], max_time, history=history, callback=callback, start="integrate",
+                       guesses=chunk["off_saddle"][rows])
+        other = again.run(lambda count: None)
+        counter.nfev += again.nfev
+        won = keep_the_better_fit(chunk, rows, other, SADDLE_WORDS)
+        chunk["off_saddle"][[k for k in rows if k not in won]] = float("nan")  # (a winner's: its own fit's)
 
 
 class _StiffRefit:
