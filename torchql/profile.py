@@ -33,8 +33,8 @@ from .initial_state import check_expressions
 from .model import _set_buffer, coefficients
 from .multi import experiment_state_name
 from .options import expand_options
-from .noise import estimate_sigma, negative_log_likelihood, sigma_group_index
-from .observations import ObservationOperator, Observations
+from .observations import Observations
+from .profile_objective import sse_noise, sse_of
 from .profile_result import ProfileResult
 from .result import FitResult, Status
 from .uncertainty import normal_quantile, student_t_quantile
@@ -339,7 +339,7 @@ class _Refitter:
             x0[self.state_index] = value
         if len(result.unknown_names) == 1:  # nothing left to fit: the SSE of the model itself
             x0 = _expressions_applied(model, x0, self.options.get("x0_expr"))
-            sse = _sse_of(model, x0, result.t0, self.data, self.options, self.likelihood)
+            sse = sse_of(model, x0, result.t0, self.data, self.options, self.likelihood)
             if not math.isfinite(sse):
                 self.failures.append((value, "INTEGRATION_FAILED"))
                 return None
@@ -444,7 +444,7 @@ def _lower_sse_note(result: FitResult, data: Observations, options: dict, name: 
     """A note when the profile found an SSE clearly below the fit's (beyond integration error); else None."""
     sse_min = threshold.sse_min
     lowest = int(torch.argmin(sses))
-    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, threshold.delta) - _sse_noise(result, data, options):
+    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, threshold.delta) - sse_noise(result, data, options, threshold.likelihood):
         return (f" The profile found a lower SSE ({float(sses[lowest]):.6g} at {name} = {float(values[lowest]):.6g}) "
                 f"than the fit ({sse_min:.6g}): the fit is not at the least-squares optimum; re-fit from there.")
     return None
@@ -462,9 +462,9 @@ def _crossing(inside: _Point, outside: _Point, excess, evaluate, tol: float):
     for _ in range(40):
         if abs(b.value - a.value) <= tol:
             break
-        x = b.value - fb * (b.value - a.value) / (fb - fa)
+        x = b.value - fb * (b.value - a.value) / (fb - fa) if fb != fa else math.nan
         lo, hi = sorted((a.value, b.value))
-        if not lo < x < hi:
+        if not lo < x < hi:  # (NaN too)
             x = 0.5 * (a.value + b.value)
         warm = a if abs(x - a.value) <= abs(x - b.value) else b
         pt = evaluate(x, warm)
@@ -525,22 +525,6 @@ def _check_bounds(bounds, theta_hat: float) -> tuple[float | None, float | None]
     return lo, hi
 
 
-def _sse_noise(result: FitResult, data, options: dict) -> float:
-    """SSE differences below this are integration error, to first order: ``2 sqrt(SSE)`` times the
-    root of ``sum (w (atol + rtol |y|))^2`` (every weighted residual off by its local tolerance, as
-    the fit's ``CONVERGED_SSE`` test takes it). The square of that root, the second-order term, took
-    a float32 fit's own estimate for a lower optimum (its re-fits at one value differ by 7e-4)."""
-    from .integrate import default_tolerances
-
-    rtol, atol = default_tolerances(result.x0.dtype, options.get("rtol"), options.get("atol"))
-    floor = 0.0
-    for part in data if isinstance(data, (list, tuple)) else [data]:  # each experiment's
-        used = part.mask & ~part.exact
-        scale = (atol + rtol * part.y.abs()) / part.sigma
-        floor += float((scale[used].to(torch.float64) ** 2).sum())
-    return 2.0 * math.sqrt(abs(result.sse) * floor)
-
-
 def _expressions_applied(model, x0: torch.Tensor, expressions: dict | None) -> torch.Tensor:
     """``x0`` with the initial states that ``x0_expr`` gives evaluated at ``model``'s coefficients,
     in the order given (as a fit completes its initial state)."""
@@ -553,36 +537,3 @@ def _expressions_applied(model, x0: torch.Tensor, expressions: dict | None) -> t
         values.update({name: x0[i] for i, name in enumerate(names)})
         x0[names.index(state)] = fn(values)
     return x0
-
-
-def _sse_of(model, x0: torch.Tensor, t0: float, data: Observations, options: dict, likelihood: bool = False) -> float:
-    """Weighted SSE over the least-squares values of ``model`` integrated from ``x0`` (no fitting);
-    with ``likelihood``, twice the negative log-likelihood (sigmas at their maximum-likelihood
-    values when estimated, log-normal values in log space; see :mod:`torchql.noise`)."""
-    from .integrate import IntegrationError, simulate
-
-    dtype, device = x0.dtype, x0.device
-    try:
-        x = simulate(model, x0, data.t.to(dtype=dtype, device=device), t0=t0, solver=options.get("solver", "dopri5"),
-                     rtol=options.get("rtol"), atol=options.get("atol"))
-    except IntegrationError:
-        return math.nan
-    operator = ObservationOperator(data.observe, model.state_names, data.n_outputs, dtype, device)
-    value = operator.values(x, coefficients(model))
-    y = data.y.to(dtype=dtype, device=device)
-    counted = data.mask.to(device) & ~data.exact.to(device)
-    log_y = torch.zeros((), dtype=dtype, device=device)
-    if data.noise == "lognormal":
-        log_y = torch.log(y)[counted].sum()
-        y, value = torch.log(y), torch.log(value)
-    sigma = data.sigma_at(coefficients(model)).to(dtype=dtype, device=device)
-    if likelihood and data.sigma_estimated:
-        _, group = sigma_group_index(data.sigma_groups, data.n_outputs, operator.labels())
-        group = torch.tensor(group, dtype=torch.long, device=device)
-        sigma = estimate_sigma((y - value).unsqueeze(0), counted.unsqueeze(0), group, int(group.max()) + 1)[0]
-        sigma = sigma[group].expand_as(y)
-    r = ((y - value) / sigma)[counted]
-    if not likelihood:
-        return float((r ** 2).sum())
-    n = torch.tensor(float(r.numel()), dtype=dtype)
-    return 2 * float(negative_log_likelihood((r ** 2).sum(), torch.log(sigma[counted]).sum(), n, log_y))
