@@ -243,7 +243,7 @@ def fit_many(
             rcond=rcond, grid=grid, damping=damping, solver=solver, linear_solver=linear_solver,
             max_steps=max_steps, chunk_size=chunk_size, started=started))
 
-    runs = _input_runs(data, t0)  # samples whose measured inputs differ
+    runs = _input_runs(data, t0, tuple(getattr(model, "input_names", ())))  # samples whose measured inputs differ
     if runs is not None:
         return by_runs(runs)
     spec = Problem(model, data, x0, params, guesses, fixed_x0, t0, max_iter, rtol, atol, xtol, ftol, rcond, grid,
@@ -305,12 +305,13 @@ def _stiffness_runs(spec: Problem) -> list[tuple[int, int]] | None:
     return _runs(len(flags), lambda start, b: flags[b] == flags[start])
 
 
-def _input_runs(data, t0: float | None) -> list[tuple[int, int]] | None:
+def _input_runs(data, t0: float | None, names: tuple[str, ...]) -> list[tuple[int, int]] | None:
     """Runs ``[start, stop)`` of consecutive samples that share their inputs, when there are
     several (samples with other inputs are other problems); ``None`` when one problem serves.
-    Each sample's signal must cover its times, from ``t0`` (else its first observation) to its
-    last observation: checked here, where the error can name the sample (a run's own problem
-    does not know where its samples sit in ``data``)."""
+    Each sample's signal must name the model's inputs ``names`` (where it declares any) and cover
+    its times, from ``t0`` (else its first observation) to its last observation: checked here,
+    where the error can name the sample (a run's own problem does not know where its samples sit
+    in ``data``)."""
     if isinstance(data, Observations):
         inputs = list(data.inputs) if isinstance(data.inputs, tuple) else None
         times = [data.t if data.t.dim() == 1 else data.t[b] for b in range(data.batch_size or 1)]
@@ -323,6 +324,8 @@ def _input_runs(data, t0: float | None) -> list[tuple[int, int]] | None:
         return None
     inputs_all_or_none(inputs)
     for b, (signal, t) in enumerate(zip(inputs, times)):
+        if names:
+            signal.select(names, where=where.format(b=b).strip("`"))
         start, end = float(t[0]) if t0 is None else min(float(t0), float(t[0])), float(t[-1])
         if not signal.covers(start, end):
             raise ValueError(f"{where.format(b=b)} must cover sample {b}'s times [{start:g}, {end:g}] (from t0 to its "
