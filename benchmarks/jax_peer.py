@@ -160,3 +160,8 @@ def versions() -> str:
 
     return (f"jax {jax.__version__}, diffrax {version('diffrax')}, optimistix {version('optimistix')} "
             f"(float64, {jax.default_backend()}, XLA_FLAGS=\"{os.environ.get('XLA_FLAGS', '')}\")")
+
+
+if __name__ == "__main__":
+    raise SystemExit("benchmarks/jax_peer.py is the JAX peer that benchmarks/batch.py measures; run "
+                     "`python benchmarks/batch.py --help`")

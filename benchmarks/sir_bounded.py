@@ -21,6 +21,7 @@ Run (from the repository root)::
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
@@ -99,4 +100,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # (--help; no options)
     main()

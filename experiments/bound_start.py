@@ -29,6 +29,8 @@ Run (from the repository root; about 10 s, prints only, writes nothing)::
 
 from __future__ import annotations
 
+import argparse
+
 import torch
 
 import torchql
@@ -91,4 +93,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # (--help; no options)
     main()

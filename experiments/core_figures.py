@@ -6,8 +6,9 @@ updates and of the final estimate (relative, absolute where the truth is 0), and
 (the first fit includes torch.func's one-time warm-up).
 """
 
-import time, math, torch, torchql
+import argparse, time, math, torch, torchql
 from torchql.models import LinearOscillator, NonlinearOscillator, HarmonicOscillator
+argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # (--help; no options)
 torch.set_num_threads(1)
 DT=torch.float64
 def data(model, dt, n):

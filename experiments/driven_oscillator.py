@@ -8,7 +8,7 @@ is the block between the markers; the rest makes the data and prints.
     python experiments/driven_oscillator.py [--plot]   # --plot writes experiments/output/driven_oscillator.png
 """
 
-import sys
+import argparse
 import time
 from pathlib import Path
 
@@ -16,6 +16,10 @@ import torch
 
 import torchql
 from torchql.models import DrivenOscillator
+
+PARSER = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+PARSER.add_argument("--plot", action="store_true", help="write experiments/output/driven_oscillator.png")
+ARGS = PARSER.parse_args()
 
 DT = torch.float64
 TRUTH = DrivenOscillator(c=0.3, k=4.0)
@@ -53,7 +57,7 @@ for name in ("c", "k"):
           f"({'inside' if low < truth < high else 'OUTSIDE'})")
 print(f"validation on a second force signal: fit {float(comparison.fit_percent[0]):.2f}% (NRMSE)")
 print(f"fit and compare: {elapsed:.2f} s")
-if "--plot" in sys.argv:
+if ARGS.plot:
     import matplotlib
 
     matplotlib.use("Agg")

@@ -668,13 +668,21 @@ def report(records: Sequence[dict], args_line: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _count(text: str) -> int:
+    """A positive whole number of the command line (argparse's error names the option otherwise)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1; received {value}")
+    return value
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=45, help="number of problems (default 45 = 5 families x 3 noises x 3)")
+    parser.add_argument("--n", type=_count, default=45, help="number of problems (default 45 = 5 families x 3 noises x 3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first problem (problem i has seed + i)")
     parser.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES))
     parser.add_argument("--max-time", type=float, default=None, help="per-fit wall-time budget, s (both methods)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--workers", type=_count, default=1, help="worker processes (default 1)")
     parser.add_argument("--write", action="store_true", help="write the report to OUT/random_problems.md")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output")
     args = parser.parse_args(argv)

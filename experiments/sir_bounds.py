@@ -5,6 +5,7 @@ exact and 3 %-noise data: iterations, estimates and SSE.
     python experiments/sir_bounds.py
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from test_bounds import SIR, SIR_POSITIVE, _fit_sir  # noqa: E402
 
 import torchql  # noqa: E402
 
+argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # (--help; no options)
 DT = torch.float64
 t = torch.arange(14, dtype=DT)
 x = torchql.simulate(SIR(), torch.tensor([762.0, 1.0, 0.0], dtype=DT), t, rtol=1e-12, atol=1e-12)

@@ -128,3 +128,12 @@ def test_lightly_damped_progress_along_a_curved_valley_is_not_taken_for_a_creep(
                          x0=torch.tensor(problem.guess_x0, dtype=torch.float64), ftol=1e-5)
     assert result.status is torchql.Status.CONVERGED_SSE, result.message
     assert max(record.damping for record in result.history) <= 1e-3
+
+
+@pytest.mark.parametrize("option", [["--n", "0"], ["--n", "-3"], ["--workers", "0"]])
+def test_counts_below_one_are_refused_by_name(rp, option, capsys):
+    """(``--n 0`` once ended in numpy's "argmax of an empty sequence".)"""
+    with pytest.raises(SystemExit) as stop:
+        rp.main(option)
+    assert stop.value.code == 2
+    assert f"argument {option[0]}: must be at least 1" in capsys.readouterr().err
