@@ -454,3 +454,19 @@ def test_a_fit_does_not_depend_on_the_time_unit(method, s):
     first units to 1e-10."""
     torch.testing.assert_close(_oscillator_in_time_units(s, method), _oscillator_in_time_units(1.0, method),
                                rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("method", torchql.METHODS)
+def test_one_observation_time_at_t0_is_a_span_of_length_zero(method):
+    """Both states measured once, at the first (and only) time, which is ``t0``: the initial state is
+    the measurement. Shooting integrated that span of length zero into a bare IndexError."""
+    data = torchql.Observations(torch.tensor([1.0], dtype=DT), torch.tensor([[[0.5, 0.1]], [[0.2, 0.3]]], dtype=DT),
+                                observe=["y", "v"])
+    guess = torch.tensor([0.2, 0.8], dtype=DT)
+    batch = torchql.fit_many(LinearOscillator(), data, x0=guess, params=[], method=method)
+    for b, expected in enumerate(([0.5, 0.1], [0.2, 0.3])):
+        single = torchql.fit(LinearOscillator(), data[b], x0=guess, params=[], method=method)
+        assert single.status is torchql.Status.CONVERGED and batch[b].status is torchql.Status.CONVERGED
+        assert single.x0.tolist() == pytest.approx(expected, abs=1e-12)
+        assert torch.equal(batch[b].x0, single.x0)
+

@@ -117,7 +117,9 @@ def dopri_batch(system: AugmentedSystem, z0: torch.Tensor, grid: torch.Tensor, *
     out = z0.new_full((S, grid.shape[-1], M), float("nan"))
     out[:, 0] = z0
     ok = torch.isfinite(z0).all(dim=1)
-    if grid.shape[-1] == 1:
+    if grid.shape[-1] == 1:  # nothing to integrate: every sample's message is its state's finiteness
+        if messages is not None:
+            messages.extend(None if good else "the initial state is not finite" for good in ok.tolist())
         return out, ok, 0
     run = _DopriRun(system, z0, grid, land, out, ok, rtol, atol, max_steps, interval_steps, stop, PAIRS[method],
                     norm, first_step)
