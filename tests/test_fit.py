@@ -470,3 +470,49 @@ def test_one_observation_time_at_t0_is_a_span_of_length_zero(method):
         assert single.x0.tolist() == pytest.approx(expected, abs=1e-12)
         assert torch.equal(batch[b].x0, single.x0)
 
+
+class _Forced(torchql.ODEModel):
+    """``y'' + A y' + B y = cos(t - t_ref)``: a forward that reads the data's own time."""
+
+    state_names = ("y", "v")
+
+    def __init__(self, A=0.1, B=3.0, t_ref=0.0):
+        super().__init__()
+        for name, value in dict(A=A, B=B, t_ref=t_ref).items():
+            self.register_buffer(name, torch.tensor(value, dtype=DT))
+
+    def forward(self, t, x):
+        y, v = x.unbind(-1)
+        return torch.stack((v, -self.A * v - self.B * y + torch.cos(t - self.t_ref)), dim=-1)
+
+
+def _on_a_clock(model, offset: float):
+    """30 irregular times in [0, 7] s on a clock at ``offset``, noisy positions of ``model`` from (0, 1)."""
+    local = torch.sort(torch.rand(30, generator=torch.Generator().manual_seed(3), dtype=DT) * 7).values
+    clean = torchql.simulate(model, torch.tensor([0.0, 1.0], dtype=DT), local, t0=0.0, rtol=1e-12, atol=1e-14)
+    y = clean[:, :1] + 0.01 * torch.randn(30, 1, generator=torch.Generator().manual_seed(4), dtype=DT)
+    return torchql.Observations(local + offset, y, observe=["y"])
+
+
+@pytest.mark.parametrize("offset", [1e3, 1.7e9])
+def test_clock_times_are_fitted_in_local_time(offset):
+    """The same times on a clock at ``offset`` (s): a model that does not read ``t`` is fitted in local
+    time from ``t0`` and equals its fit at offset 0. At 1.7e9 its grid at the data's times resolved
+    its nodes to 2.4e-7 (its intervals 0.007): 22 iterations instead of 5, and a note that the grid
+    missed a smooth model. A model that reads ``t`` is given the data's time."""
+    guess = torch.tensor([0.2, 0.8], dtype=DT)
+    fits = [torchql.fit(LinearOscillator(A=0.5, B=1.0), _on_a_clock(LinearOscillator(A=0.1, B=3.0), at), x0=guess,
+                        t0=at) for at in (0.0, offset)]
+    assert [f.status for f in fits] == [torchql.Status.CONVERGED] * 2 and fits[1].message == fits[0].message
+    assert fits[1].iterations == fits[0].iterations and fits[1].t0 == offset
+    # (the data's times at 1.7e9 are themselves rounded to 2.4e-7 s, where the positions change by
+    # about 2.4e-7: the estimates move by about that much)
+    close = dict(rtol=1e-6, atol=1e-6) if offset > 1e6 else dict(rtol=1e-9, atol=0.0)
+    assert torch.allclose(fits[1].estimates, fits[0].estimates, **close)
+    assert torch.allclose(fits[1].predict(torch.tensor([offset + 7.5], dtype=DT)),
+                          fits[0].predict(torch.tensor([7.5], dtype=DT)), rtol=1e-5, atol=1e-8)
+    if offset < 1e6:  # the forcing read at the data's times: the fit at offset 0's
+        forced = [torchql.fit(_Forced(0.5, 1.0, t_ref=at), _on_a_clock(_Forced(), at), x0=guess, t0=at,
+                              params=["A", "B"]) for at in (0.0, offset)]
+        assert forced[1].iterations == forced[0].iterations
+        assert torch.allclose(forced[1].estimates, forced[0].estimates, rtol=1e-9, atol=0)

@@ -9,6 +9,7 @@ import numpy
 import torch
 
 __all__ = ["positive_number", "finite_number", "positive_int", "flag", "model_class", "model_forward", "distinct_names",
+           "not_differentiable",
            "coefficients_text", "single_observations"]
 
 #: Floating dtypes a model may compute in (half precisions cannot resolve a fit's tolerances,
@@ -179,3 +180,10 @@ def single_observations(name: str, data) -> None:
                 f"`{arg}` holds a batch of {item.batch_size} independent datasets (values of shape (B, T, K) = "
                 f"{tuple(item.y.shape)}), but torchql.fit fits one dataset, values (T, K): fit the batch with "
                 f"torchql.fit_many(model, {arg}, x0, ...), or one sample with `{arg}[b]`")
+
+
+def not_differentiable(exc: Exception) -> ValueError:
+    """The error of a model whose forward torch.func cannot vectorize or differentiate."""
+    return ValueError("`model` forward could not be differentiated with torch.func (jacrev and jvp under "
+                      f"vmap): {exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
+                      "values.")

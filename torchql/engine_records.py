@@ -21,7 +21,9 @@ class Records:
                 ) -> IterationRecord:
         """Sample ``r``'s record of an iterate: its estimates ``z0 (M,)``, ``sse`` and trajectory ``(G, M)``."""
         n = self.system.n
-        grid = (self.grid if self.grid.dim() == 1 else self.grid[r]) + self.spec.origin  # (the data's times)
+        origin = self.spec.origin  # (the data's times: the local ones plus the sample's origin)
+        origin = origin[self.index[r]] if isinstance(origin, torch.Tensor) else origin
+        grid = (self.grid if self.grid.dim() == 1 else self.grid[r]) + origin
         params = {k: v.detach().clone() for k, v in self.system.unpack_params(z0[n:]).items()}
         return IterationRecord(iteration=iteration, params=params, x0=z0[:n].detach().clone(), sse=sse,
                                trajectory=None if traj is None else traj[:, :n].detach().clone(),

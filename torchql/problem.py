@@ -22,6 +22,7 @@ from .dopri import dopri_batch
 from .grid import AUTO_PROBE, SMOOTH_RTOL, SMOOTH_SAMPLES, make_grid, make_grids, smooth_intervals
 from .integrate import check_solver
 from .linearize import linearize, load_forward_mode
+from .local_time import local_origin, reads_time
 from .model import AugmentedSystem, attach_inputs, coefficient_names, model_dtype_device
 from .estimated_noise import EstimatedNoise
 from .noise import sigma_group_index
@@ -91,6 +92,8 @@ class Problem:
             self.z0 = self.initial.complete(self.z0)
         self.breakpoints = self._attach_inputs(model)
         self._check_model(self.z0[0, :system.n])
+        if self.inputs is None and not reads_time(system, self.t0, self.t_obs, self.z0[0]):
+            self._local_time(per_sample=True)  # (a forward that reads t is given the data's own)
         #: the options as given, for :meth:`stiff_variant`
         self.given = dict(solver=self.solver, grid=grid, linear_solver=linear_solver,
                           initial_trajectory=self.initial_trajectory)
@@ -309,7 +312,7 @@ class Problem:
                                         (self.t_obs[..., -1] - self.t0).expand(self.B),
                                         explicit=None if given is None else given.auto_solver)
         except Exception as exc:  # noqa: BLE001
-            raise _not_differentiable(exc) from exc
+            raise _checks.not_differentiable(exc) from exc
         self.linear_solver = check_linear_solver(linear_solver_for(self.solver, given, DEFAULT_LINEAR_SOLVER))
         #: whether the fit takes the stiff path (its grids then have geometric early nodes)
         self.stiff = stiff = self.solver in STIFF_SOLVERS
@@ -474,13 +477,18 @@ class Problem:
         signals = self.inputs.for_model(names, float(torch.as_tensor(self.t0).min()), float(self.t_obs[..., -1].max()),
                                         self.dtype, self.device, where=where, span="the data's times",
                                         note=" (from t0 to the last observation)")
-        # the fit runs in local time from the earliest t0: measured at t ~ 1e8 (clock times), a held
-        # input's step spanned 1e5 roundoffs of t and a fit at rtol 1e-10 failed (INTEGRATION_FAILED)
-        self.origin = float(torch.as_tensor(self.t0).min())
-        self.t_obs, self.t0, self.data_inputs = self.t_obs - self.origin, self.t0 - self.origin, signals
-        signals = signals.shifted(self.origin)
+        self.data_inputs = signals
+        signals = signals.shifted(self._local_time())
         attach_inputs(self.system.model, signals, self.origin)
         return signals.nodes
+
+    def _local_time(self, per_sample: bool = False) -> float:
+        """Shift the data's times to local time from the earliest ``t0`` (:mod:`torchql.local_time`);
+        returns that origin. ``per_sample``: each sample's own ``t0`` where each has its times."""
+        self.origin = local_origin(self.t0, self.t_obs, per_sample)
+        shift = self.origin.unsqueeze(-1) if isinstance(self.origin, torch.Tensor) else self.origin
+        self.t_obs, self.t0 = self.t_obs - shift, self.t0 - self.origin
+        return self.origin
 
     def _x0_from_data(self, names) -> torch.Tensor:
         if len(self.initial.index) == len(names):  # every state given by its expression
@@ -525,7 +533,7 @@ class Problem:
         except Warning:  # a warning turned error (-W error) is the warning's, not a fault of the model's
             raise
         except Exception as exc:  # noqa: BLE001
-            raise _not_differentiable(exc) from exc
+            raise _checks.not_differentiable(exc) from exc
         bad = (~finite).nonzero().flatten().tolist()
         if bad:
             check(bad[0], f" of `data[{bad[0]}]`" + (f" (samples {bad[:10]} alike)" if len(bad) > 1 else ""))
@@ -585,13 +593,6 @@ class Problem:
             if value.is_floating_point():
                 params[name] = (per_sample[name] if name in per_sample else value.expand(B, *value.shape)).clone()
         return params
-
-
-def _not_differentiable(exc: Exception) -> ValueError:
-    """The error of a model whose forward torch.func cannot vectorize or differentiate."""
-    return ValueError("`model` forward could not be differentiated with torch.func (jacrev and jvp under "
-                      f"vmap): {exc}. Avoid .item(), in-place updates of inputs and Python branching on tensor "
-                      "values.")
 
 
 def _coarser(data_dtype: torch.dtype, dtype: torch.dtype) -> bool:
