@@ -332,3 +332,72 @@ def test_a_log_scaled_unknown_near_its_bound_or_at_zero_gets_the_interval_about_
     lo, hi = edge.confidence_intervals(0.95)["c"]
     q = student_t_quantile(0.975, edge.dof)
     assert lo == 0.0 and hi == pytest.approx(edge.params["c"].item() + q * edge.stderr["c"], rel=1e-12)
+
+
+class _Quadratic(torchql.ODEModel):
+    """``x' = a + b t``: ``x = x0 + a t + b t^2 / 2``, linear in its unknowns (its covariance exact)."""
+
+    state_names = ("x",)
+
+    def __init__(self, a=0.5, b=0.1):
+        super().__init__()
+        self.register_buffer("a", torch.tensor(a, dtype=DT))
+        self.register_buffer("b", torch.tensor(b, dtype=DT))
+
+    def forward(self, t, x):
+        return (self.a + self.b * t).expand(x.shape[:-1]).unsqueeze(-1) + 0 * x
+
+
+def _constrained_least_squares(X, y, exact):
+    """Estimates, dof and standard errors of ``y ~ X p`` with the rows ``exact`` met exactly, by the null
+    space of their independent part (numpy)."""
+    E = X[exact]
+    rank = np.linalg.matrix_rank(E)
+    p0 = np.linalg.lstsq(E, y[exact], rcond=None)[0]
+    N = np.linalg.svd(E)[2][rank:].T
+    A = X[~exact] @ N
+    z = np.linalg.lstsq(A, y[~exact] - X[~exact] @ p0, rcond=None)[0]
+    sse = float(np.sum((y[~exact] - X[~exact] @ (p0 + N @ z)) ** 2))
+    dof = int((~exact).sum()) - N.shape[1]
+    return p0 + N @ z, dof, np.sqrt(np.diag(sse / dof * N @ np.linalg.inv(A.T @ A) @ N.T))
+
+
+def test_exact_values_that_repeat_each_other_fix_each_unknown_once():
+    """A known initial state also marked exact, and one state seen by two sensors marked exact at one
+    time with one value: each exact value was taken to fix one more unknown, and to remove a value
+    from the dof. The standard errors collapsed (a's to 0, the two sensors' up to 76 times too
+    small), the dof and AIC were one off. Their rank now counts (numpy's constrained least squares)."""
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 4, 12)
+    y = 1.0 + 2.0 * t - 0.15 * t ** 2 + 0.05 * rng.standard_normal(t.size)
+    y[0] = 1.0
+    exact = np.zeros((12, 1), bool)
+    exact[0] = True
+    data = torchql.Observations(torch.tensor(t), torch.tensor(y).reshape(-1, 1), observe=["x"], exact=torch.tensor(exact))
+    fit = torchql.fit(_Quadratic(), data, x0=torch.tensor([1.0], dtype=DT), fixed_x0=["x"])
+    X = np.stack([t, t ** 2 / 2], 1)
+    # x0 known: the exact value fixes nothing more, and the other 11 values are a plain least squares
+    estimates, dof, stderr = _constrained_least_squares(X[1:], y[1:] - 1.0, np.zeros(11, bool))
+    assert fit.dof == dof == 9
+    np.testing.assert_allclose(fit.estimates.numpy(), estimates, rtol=1e-10)
+    np.testing.assert_allclose(list(fit.stderr.values()), stderr, rtol=1e-6)
+    from torchql.report import information_criteria
+    sse = float(np.sum((y[1:] - 1.0 - X[1:] @ estimates) ** 2))
+    assert information_criteria(fit)[0] == pytest.approx(11 * math.log(sse / 11) + 2 * 2, rel=1e-9)
+
+    y2 = 1.0 + 2.0 * t - 0.15 * t ** 2 + 0.05 * rng.standard_normal(t.size)
+    y1 = y.copy()
+    y1[0] += 0.01
+    y2[5] = y1[5]
+    both = np.zeros((12, 2), bool)
+    both[5, :] = True
+    data = torchql.Observations(torch.tensor(t), torch.tensor(np.stack([y1, y2], 1)), observe=["x", "x"],
+                                exact=torch.tensor(both))
+    fit = torchql.fit(_Quadratic(), data, x0=torch.tensor([0.0], dtype=DT))
+    X1 = np.stack([np.ones_like(t), t, t ** 2 / 2], 1)
+    estimates, dof, stderr = _constrained_least_squares(np.concatenate([X1, X1]), np.concatenate([y1, y2]),
+                                                        np.concatenate([both[:, 0], both[:, 1]]))
+    assert fit.dof == dof == 20
+    np.testing.assert_allclose(fit.estimates.numpy(), estimates, rtol=1e-9)
+    # (the sensitivities at the grid's accuracy: the standard errors to about sqrt(rtol) / 16)
+    np.testing.assert_allclose(list(fit.stderr.values()), stderr, rtol=1e-6)

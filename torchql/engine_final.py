@@ -46,7 +46,7 @@ from .solvers import STIFF_SOLVERS
 from .stiffness import STIFF_LINEAR_SOLVER
 from .storage_check import interpolation_misfit, storage_misses
 from .transfer import interval_coefficients
-from .uncertainty import covariance, residual_variance
+from .uncertainty import covariance, redundant_exact, residual_variance
 
 __all__ = ["FinalPass"]
 
@@ -83,6 +83,7 @@ class FinalPass(FinalDiagnosis):
         jacobian = torch.full((S, R, m), float("nan"), dtype=dtype, device=dev)
         singular_values = torch.full((S, m), float("nan"), dtype=dtype, device=dev)
         exact_residual = torch.full((S,), float("nan"), dtype=dtype, device=dev)
+        redundant = torch.zeros(S, dtype=dtype, device=dev)  # exact values that fix nothing more (their dof's)
         objective = torch.full((S,), float("nan"), dtype=dtype, device=dev)  # the last record's value
         codes = [_STATUSES[int(c)] for c in status.tolist()]
         converged = torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
@@ -122,7 +123,10 @@ class FinalPass(FinalDiagnosis):
             deficient, singular_values[rows] = self._diagnose(rows, J, rw, w, s, z0, codes, detail, used, magnitudes)
             converged |= torch.tensor([c.success for c in codes], dtype=torch.bool, device=dev)
             exact = torch.cat([self.exact[rows], torch.zeros_like(used[:, self.exact.shape[1]:])], dim=1)
-            cov[rows] = _covariance(J_info, used, s, self.L[rows], spec, deficient | exact.any(dim=1), exact)
+            for k in exact.any(dim=1).nonzero().flatten().tolist():
+                redundant[rows[k]] = redundant_exact(J_info[k][used[k]], exact[k][used[k]], spec.rcond)
+            cov[rows] = _covariance(J_info, used, s, self.L[rows] - redundant[rows], spec,
+                                    deficient | exact.any(dim=1), exact)
             cov[~converged] = float("nan")  # as fit: no error bars about estimates that are not an optimum
         if self.history is not None:  # the estimates returned, unevaluated, where the final pass did not run
             for r in range(S):
@@ -144,7 +148,7 @@ class FinalPass(FinalDiagnosis):
         messages = [c.value + d for c, d in zip(codes, detail)]
         return dict(z0=z0, sse=sse, cov=cov, iterations=iterations, status=codes, message=messages,
                     residuals=residuals, jacobian=jacobian, singular_values=singular_values,
-                    exact_residual=exact_residual, history=self.history,
+                    exact_residual=exact_residual, redundant_exact=redundant, history=self.history,
                     sse_start=self.first_sse, sse_end=objective, z0_start=self.first_z0,
                     sse_guesses=sse_at_guesses(self, codes, sse, residuals, iterations),
                     off_saddle=off_saddle(self, codes, z0, sse),
@@ -528,7 +532,8 @@ def _fisher_rows(C_mean: torch.Tensor, w: torch.Tensor, g: torch.Tensor) -> torc
 
 def _covariance(J, used, sse, L, spec, deficient, exact) -> torch.Tensor:
     """Per-sample covariance ``(S, m, m)`` as :func:`torchql.uncertainty.covariance`: batched, and
-    per sample (``deficient``) where a direction is undetermined or values are met ``exact (S, R)``."""
+    per sample (``deficient``) where a direction is undetermined or values are met ``exact (S, R)``;
+    ``L (S,)`` the values used less the redundant exact ones."""
     S, _, m = J.shape
     s2 = residual_variance(sse, L - m, spec.sigma_known)
     scale = torch.linalg.vector_norm(J, dim=1)

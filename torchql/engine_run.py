@@ -48,7 +48,8 @@ def run_engine(spec: Problem, chunk_size: int, max_time: float | None, report: C
     out_z0 = torch.empty(B, spec.system.M, dtype=spec.dtype, device=spec.device)
     R = spec.weights.reshape(B, -1).shape[1]
     shapes = dict(sse=(B,), cov=(B, m, m), residuals=(B, R), jacobian=(B, R, m), singular_values=(B, m),
-                  sse_start=(B,), sse_end=(B,), z0_start=(B, spec.system.M), exact_residual=(B,))
+                  sse_start=(B,), sse_end=(B,), z0_start=(B, spec.system.M), exact_residual=(B,),
+                  redundant_exact=(B,))
     out = {key: torch.empty(shape, dtype=spec.dtype, device=spec.device) for key, shape in shapes.items()}
     out["iterations"] = torch.empty(B, dtype=torch.long, device=spec.device)
     statuses: list[Status] = [Status.MAX_ITER] * B

@@ -555,7 +555,7 @@ class Problem:
         if self.data_inputs is not None:  # the data's own times, not the fit's local ones
             attach_inputs(model, self.data_inputs)
         params = self._params_of(z0)
-        dof = self.L - self.m
+        dof = self.L - self.m - out["redundant_exact"].round().long()  # (exact values that fix nothing more)
         variance = residual_variance(out["sse"], dof, self.sigma_known)
         return BatchFitResult(
             success=torch.tensor([s.success for s in statuses], dtype=torch.bool, device=self.device),

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["Covariance", "covariance", "residual_variance", "normal_quantile", "student_t_quantile", "wald_intervals"]
+__all__ = ["Covariance", "covariance", "redundant_exact", "residual_variance", "normal_quantile", "student_t_quantile", "wald_intervals"]
 
 
 class Covariance(NamedTuple):
@@ -70,15 +70,14 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     """
     L, m = jacobian.shape
     nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
-    dof = L - m
+    dof = L - m - redundant_exact(jacobian, exact, rcond)
     s2 = 1.0 if sigma_known else sse / dof if dof > 0 else float("nan")  # (residual_variance, for one fit)
     if not torch.isfinite(jacobian).all():
         return Covariance(nan, dof, s2)
     free = torch.eye(m, dtype=jacobian.dtype, device=jacobian.device)
-    if bool(exact.any()):
-        E = jacobian[exact]
-        Q, _ = torch.linalg.qr(E.T, mode="complete")
-        free = Q[:, E.shape[0]:]
+    if bool(exact.any()):  # the directions the exact values leave free: their rows' null space
+        _, S_e, Vh_e = torch.linalg.svd(jacobian[exact], full_matrices=True)
+        free = Vh_e[_rank(S_e, rcond):].T
     A = jacobian[~exact] @ free
     if A.shape[1] == 0:
         return Covariance(torch.zeros_like(nan), dof, s2)
@@ -103,6 +102,24 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
         cov[undetermined, :] = float("nan")
         cov[:, undetermined] = float("nan")
     return Covariance(cov, dof, s2)
+
+
+def redundant_exact(jacobian: torch.Tensor, exact: torch.Tensor, rcond: float) -> int:
+    """How many of the values marked ``exact (L,)`` repeat what the others fix: their count less the
+    rank of their rows of ``jacobian (L, m)`` (a known initial state also marked exact, or one state
+    seen by two sensors marked exact at one time, fixes nothing more). Each independent exact value
+    fixes one unknown and is no least-squares value; a redundant one fixes none, and the fit's
+    ``dof`` is ``L - m`` less their number (with a full-rank ``dof = L - m``, ``L`` every used value)."""
+    if not bool(exact.any()) or not bool(torch.isfinite(jacobian[exact]).all()):
+        return 0
+    return int(exact.sum()) - _rank(torch.linalg.svdvals(jacobian[exact]), rcond)
+
+
+def _rank(singular_values: torch.Tensor, rcond: float) -> int:
+    """The number of ``singular_values`` (decreasing) above ``rcond`` times the largest (0 if all vanish)."""
+    if not singular_values.numel() or float(singular_values[0]) == 0.0:
+        return 0
+    return int((singular_values > rcond * singular_values[0]).sum())
 
 
 def normal_quantile(p: float) -> float:
