@@ -369,3 +369,23 @@ def test_aic_bic_count_the_unknowns_the_exact_values_leave_free():
     aic, bic = information_criteria(result)
     assert aic == pytest.approx(n * math.log(result.sse / n) + 2 * m, rel=1e-14)
     assert bic == pytest.approx(n * math.log(result.sse / n) + math.log(n) * m, rel=1e-14)
+
+
+def test_lognormal_values_without_sigma_count_their_variance_in_aic():
+    """Log-normal values without ``sigma``: the likelihood takes their variance at its maximum, SSE / n,
+    as ``sigma="estimate"`` does for the same data (the same NLL); AIC and BIC counted the model's
+    unknowns alone, 2 (and ln n) below the estimated sigma's. Both now count the variance:
+    ``2 NLL + 2 (m + 1)``, written out here from the log residuals."""
+    from testmodels import Decay
+
+    g = torch.Generator().manual_seed(4)
+    t = torch.linspace(0, 5, 15, dtype=DT)
+    y = (3.0 * torch.exp(-0.7 * t) * torch.exp(0.1 * torch.randn(15, generator=g, dtype=DT))).unsqueeze(-1)
+    fits = [torchql.fit(Decay(0.5), torchql.Observations(t, y, observe=["y"], sigma=sigma, noise="lognormal"),
+                        x0=torch.tensor([2.0], dtype=DT)) for sigma in (None, "estimate")]
+    log_residuals = y[:, 0].log() - (fits[0].x0[0] * torch.exp(-fits[0].params["k"] * t)).log()
+    variance = float(log_residuals.square().mean())
+    nll = 0.5 * 15 * math.log(2 * math.pi * variance) + 0.5 * 15 + float(y.log().sum())
+    assert fits[0].nll == pytest.approx(nll, rel=1e-9) and fits[1].nll == pytest.approx(nll, rel=1e-9)
+    for fit in fits:
+        assert information_criteria(fit) == pytest.approx((2 * nll + 2 * 3, 2 * nll + math.log(15) * 3), rel=1e-9)

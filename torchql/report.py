@@ -59,17 +59,21 @@ def information_criteria(result: "FitResult") -> tuple[float, float]:
 
     ``N ln(SSE/N) + 2 m`` and ``N ln(SSE/N) + ln(N) m``, ``N`` the least-squares values (the
     values marked exact are met exactly and do not count), ``m`` the number of unknowns less
-    those the exact values fix, one each (``N - m`` is the fit's ``dof``).
+    those the exact values fix (one each, but those that repeat what others fix: ``N - m`` is the
+    fit's ``dof``).
     ``nan`` when the SSE is not finite, ``-inf`` when it is zero. With estimated sigmas or
     log-normal noise, from the negative log-likelihood instead: ``2 NLL + 2 k`` and
-    ``2 NLL + ln(N) k``, ``k`` the unknowns and the estimated sigmas (:mod:`torchql.noise`); so
-    too with a ``sigma(p)`` function (whose parameters are among the unknowns).
+    ``2 NLL + ln(N) k``, ``k`` the unknowns and the estimated sigmas (:mod:`torchql.noise`; the
+    one variance of log-normal values without ``sigma``, at its maximum ``SSE / N``); so too with a
+    ``sigma(p)`` function (whose parameters are among the unknowns).
     """
     n_exact = int(result.exact_mask.sum())
     n = result.n_observations - n_exact
-    m = max(len(result.unknown_names) - n_exact, 0)  # (each exact value fixes one: the dof's count)
+    m = max(n - result.dof, 0)  # (the unknowns the exact values leave free: the dof's count)
     if result.sigma is not None or result.noise != "normal" or result.sigma_function:  # 2 NLL + penalty
         k = m + (len(result.sigma) if result.sigma is not None else 0)
+        if result.sigma is None and not result.sigma_known and not result.sigma_function:
+            k += 1  # (log-normal values without sigma: their variance at its maximum, SSE / n, estimated)
         if not math.isfinite(result.nll) or n <= 0:
             return math.nan, math.nan
         return 2 * result.nll + 2 * k, 2 * result.nll + math.log(n) * k

@@ -156,9 +156,12 @@ class FitResult:
     dof : int
         Degrees of freedom of the residuals, ``L - m``.
     residual_variance : float
-        ``s^2``: ``sse / dof`` when the data's ``sigma`` was not given, else 1.
+        ``s^2``: ``sse / dof`` when the data's ``sigma`` was neither given nor estimated, else 1.
     sigma_known : bool
-        Whether the data's ``sigma`` was given (known standard deviations).
+        Whether the weights are standard deviations: the data's ``sigma`` given, or estimated with
+        the unknowns (``sigma="estimate"``, whose covariance is the expected information's). Then
+        ``residual_variance`` is 1 and the Wald intervals take the normal quantile; otherwise
+        Student's t with ``dof`` and the estimated residual variance.
     exact_mask : bool Tensor ``(L,)``
         Which used values were met exactly.
     n_observations : int
