@@ -150,3 +150,29 @@ def test_a_role_that_contradicts_params_or_fixed_x0_is_named(data):
     agreed = torchql.fit(SIR(), data, x0, params=["beta", "gamma"], fixed_x0=["S", "R"],
                          parameters={"N": Parameter(763.0, vary=False), "R": Parameter(0.0, vary=False)})
     assert agreed.success and agreed.unknown_names == ["I(t0)", "beta", "gamma"]
+
+
+def test_parameters_set_an_nn_parameter_coefficient():
+    """``parameters=`` for a coefficient registered as an ``nn.Parameter`` raised a bare KeyError (its
+    value was looked up among the buffers). It is set like a buffer's, and stays a Parameter."""
+    from torch import nn
+
+    class Held(torchql.ODEModel):
+        state_names = ("y",)
+
+        def __init__(self):
+            super().__init__()
+            self.k = nn.Parameter(torch.tensor(0.5, dtype=torch.float64))
+
+        def forward(self, t, x):
+            return -self.k * x
+
+    t = torch.linspace(0, 5, 21, dtype=torch.float64)
+    data = torchql.Observations(t, torch.exp(-t).unsqueeze(-1), observe=["y"])
+    model = Held()
+    x0 = torch.tensor([1.0], dtype=torch.float64)
+    free = torchql.fit(model, data, x0=x0, fixed_x0=["y"], parameters={"k": torchql.Parameter(0.7, min=0.0)})
+    assert free.status is torchql.Status.CONVERGED and float(free.params["k"]) == pytest.approx(1.0, rel=1e-9)
+    held = torchql.fit(model, data, x0=x0, parameters={"k": torchql.Parameter(2.0, vary=False)})
+    assert held.params["k"].item() == 2.0 and isinstance(held.model.k, nn.Parameter)
+    assert model.k.item() == 0.5  # (the user's model untouched)

@@ -34,7 +34,7 @@ import torch
 from . import _checks
 from ._arrays import float_tensor
 from .bounds import SCALES
-from .model import _set_buffer, coefficient_names, model_dtype_device
+from .model import _set_buffer, coefficient_names, coefficients, model_dtype_device
 from .multi import replaced_everywhere
 
 __all__ = ["Parameter", "apply_parameters"]
@@ -214,8 +214,9 @@ def _as_parameter(name, spec) -> Parameter:
 
 
 def _set_coefficient(model, name: str, value, dtype, device) -> None:
-    """Buffer ``name`` of ``model`` set to ``value`` (a number fills a vector or matrix)."""
-    current = dict(model.named_buffers())[name]
+    """Coefficient ``name`` of ``model`` (a buffer, or an ``nn.Parameter`` kept one) set to ``value`` (a
+    number fills a vector or matrix)."""
+    current = coefficients(model)[name]
     tensor = float_tensor(value, f"parameters[{name!r}].value", dtype, device, expected="a number or a tensor").clone()
     if tensor.shape != current.shape:
         if tensor.dim() != 0:
