@@ -53,6 +53,19 @@ def test_model_with_bad_state_names():
         torchql.fit(NoStates(), decay_data())
 
 
+def test_a_state_and_a_coefficient_with_one_name():
+    """``bounds={"y": ...}`` silently bounded the coefficient ``y`` and not the state's initial value
+    (its guess outside the bounds left there). A fit refuses the model; a simulation takes it."""
+    class Clash(Decay):
+        def __init__(self):
+            super().__init__()
+            self.register_buffer("y", torch.tensor(0.1, dtype=torch.float64))
+
+    with pytest.raises(ValueError, match="`model` has a state and a coefficient both named 'y'.*rename one"):
+        torchql.fit(Clash(), decay_data(), bounds={"y": (0.0, 1.5)})
+    assert torchql.simulate(Clash(), torch.tensor([1.0], dtype=torch.float64), T).shape == (T.numel(), 1)
+
+
 def test_data_not_observations():
     with pytest.raises(TypeError, match="`data` must be a torchql.Observations or a list of them; received dict"):
         torchql.fit(Decay(), {"t": T, "y": Y})

@@ -61,9 +61,10 @@ def flag(name: str, value) -> bool:
     return bool(value)
 
 
-def model_class(model) -> None:
+def model_class(model, fitted: bool = True) -> None:
     """``TypeError``/``ValueError`` unless ``model`` is a :class:`torchql.ODEModel` with valid
-    state names and float32 or float64 coefficients (buffers and parameters)."""
+    state names and float32 or float64 coefficients (buffers and parameters); ``fitted``: its
+    states' and coefficients' names apart too (a fit's arguments name both)."""
     from .model import ODEModel, coefficients, model_dtype_device
 
     if not isinstance(model, ODEModel):
@@ -72,6 +73,10 @@ def model_class(model) -> None:
     names = () if isinstance(given, (str, bytes)) else tuple(given)  # ("xv" would read as states 'x' and 'v')
     if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
         raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {given!r}")
+    shared = [name for name in coefficients(model) if name in names] if fitted else []
+    if shared:  # (`bounds`, `guesses`, `parameters` name a state's initial value or a coefficient)
+        raise ValueError(f"`model` has a state and a coefficient both named {shared[0]!r}: the names given to "
+                         "`bounds`, `guesses` and `parameters` could not tell them apart; rename one")
     dtype, _ = model_dtype_device(model)
     if dtype not in _MODEL_DTYPES:
         which = [name for name, value in coefficients(model).items() if value.dtype not in _MODEL_DTYPES]

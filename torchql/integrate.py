@@ -248,7 +248,7 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     -------
     Tensor ``(T, n_states)``
     """
-    _checks.model_class(model)
+    _checks.model_class(model, fitted=False)
     check_solver(solver, auto=True)
     dtype, device = model_dtype_device(model)
     n = len(model.state_names)
