@@ -244,3 +244,37 @@ def test_the_batched_call_is_checked_on_a_few_rows_whatever_the_batch():
     seen.clear()
     call(t, z)
     assert not seen  # vmapped from then on
+
+
+def test_a_coefficient_tied_between_submodules():
+    """One tensor held by two submodules (PyTorch's weight tying): the fit substituted it under the first
+    name while the forward read the second, and ended NOT_IDENTIFIABLE at the guess; a fit now refuses
+    the model, naming both. One submodule registered under two names holds one coefficient: its
+    nn.Parameter raised a bare KeyError, and is now fitted (through either name)."""
+    from torch import nn
+
+    t = torch.linspace(0, 5, 21, dtype=torch.float64)
+    data = torchql.Observations(t, torch.exp(-t).unsqueeze(-1), observe=["y"])
+    x0 = torch.tensor([1.0], dtype=torch.float64)
+
+    class Tied(torchql.ODEModel):
+        state_names = ("y",)
+
+        def __init__(self, shared_module: bool):
+            super().__init__()
+            k = nn.Parameter(torch.tensor(0.5, dtype=torch.float64))
+            if shared_module:
+                self.a = self.b = nn.Module()
+                self.a.k = k
+            else:
+                self.a, self.b = nn.Module(), nn.Module()
+                self.a.k = self.b.k = k
+
+        def forward(self, t, x):
+            return -self.b.k * x
+
+    with pytest.raises(ValueError, match="one coefficient under two names, 'a.k' and 'b.k'"):
+        torchql.fit(Tied(shared_module=False), data, x0=x0)
+    fit = torchql.fit(Tied(shared_module=True), data, x0=x0, fixed_x0=["y"])
+    assert fit.status is torchql.Status.CONVERGED and fit.params["a.k"].item() == pytest.approx(1.0, rel=1e-9)
+    assert isinstance(fit.model.b.k, nn.Parameter) and fit.model.b.k.item() == pytest.approx(1.0, rel=1e-9)

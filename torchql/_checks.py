@@ -65,7 +65,7 @@ def model_class(model, fitted: bool = True) -> None:
     """``TypeError``/``ValueError`` unless ``model`` is a :class:`torchql.ODEModel` with valid
     state names and float32 or float64 coefficients (buffers and parameters); ``fitted``: its
     states' and coefficients' names apart too (a fit's arguments name both)."""
-    from .model import ODEModel, coefficients, model_dtype_device
+    from .model import ODEModel, coefficients, model_dtype_device, tied_coefficients
 
     if not isinstance(model, ODEModel):
         raise TypeError(f"`model` must be a torchql.ODEModel; received {type(model).__name__}")
@@ -73,6 +73,11 @@ def model_class(model, fitted: bool = True) -> None:
     names = () if isinstance(given, (str, bytes)) else tuple(given)  # ("xv" would read as states 'x' and 'v')
     if not names or not all(isinstance(s, str) for s in names) or len(set(names)) != len(names):
         raise ValueError(f"`model.state_names` must be a non-empty tuple of distinct strings; received {given!r}")
+    tied = tied_coefficients(model) if fitted else None
+    if tied:
+        raise ValueError(f"`model` holds one coefficient under two names, {tied[0]!r} and {tied[1]!r} (a tensor "
+                         "shared by two submodules): a fit sets it under one name only; register it once and read "
+                         "it from there")
     shared = [name for name in coefficients(model) if name in names] if fitted else []
     if shared:  # (`bounds`, `guesses`, `parameters` name a state's initial value or a coefficient)
         raise ValueError(f"`model` has a state and a coefficient both named {shared[0]!r}: the names given to "

@@ -396,10 +396,28 @@ def _parameters_to_buffers(module: nn.Module) -> dict[str, bool]:
     flags = {}
     for name, par in list(module.named_parameters(remove_duplicate=False)):
         owner, leaf = _owner(module, name)
+        if leaf not in owner._parameters:  # (a submodule registered under two names: moved already)
+            continue
         del owner._parameters[leaf]
         owner._buffers[leaf] = par.detach()
         flags[name] = par.requires_grad
     return flags
+
+
+def tied_coefficients(module: nn.Module) -> tuple[str, str] | None:
+    """Two names of one coefficient tensor held by two different submodules of ``module`` (PyTorch's
+    weight tying), or None. A fit substitutes a coefficient under one name, and a forward that reads
+    the other would not see it."""
+    seen: dict[int, tuple[str, nn.Module]] = {}
+    for name, tensor in [*module.named_buffers(remove_duplicate=False),
+                         *module.named_parameters(remove_duplicate=False)]:
+        if tensor is None or not tensor.is_floating_point():
+            continue
+        owner = _owner(module, name)[0]
+        first = seen.setdefault(id(tensor), (name, owner))
+        if first[1] is not owner:
+            return first[0], name
+    return None
 
 
 def _set_buffer(module: nn.Module, dotted: str, value: torch.Tensor) -> None:
