@@ -198,6 +198,9 @@ def test_bad_t_shape(t):
 def test_t_not_increasing(t):
     with pytest.raises(ValueError, match="`t` must be strictly increasing"):
         torchql.simulate(Decay(), [X0], t)
+    # (and where: the pair received)
+    with pytest.raises(ValueError, match=r"received t\[2\] = 2 followed by t\[3\] = 1\.5$"):
+        torchql.simulate(Decay(), [X0], [0.0, 1.0, 2.0, 1.5])
 
 
 # ------------------------------------------------------------------ validation gaps (see reasons)

@@ -259,7 +259,9 @@ def simulate(model: ODEModel, x0, t, *, t0: float | None = None, solver: str = "
     if not torch.isfinite(t).all():
         raise ValueError("`t` must be finite; received NaN or inf times")
     if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
-        raise ValueError("`t` must be strictly increasing")
+        j = int((t[1:] <= t[:-1]).nonzero()[0, 0])
+        raise ValueError(f"`t` must be strictly increasing; received t[{j}] = {t[j].item():g} followed by "
+                         f"t[{j + 1}] = {t[j + 1].item():g}")
     if x0.shape != (n,):
         raise ValueError(f"`x0` must have shape (n_states,) = ({n},); received shape {tuple(x0.shape)}")
     if not torch.isfinite(x0).all():
