@@ -104,3 +104,11 @@ def test_a_fit_whose_model_amplifies_rounding_beyond_the_data_is_diverged(option
     good = torchql.fit(LinearOscillator(0.3, 2.5), data, x0, **options)
     assert good.success, good.message
     assert abs(float(good.params["B"]) - 2.0) < 0.05 and "last digits" not in good.message
+
+
+def test_a_step_that_promises_no_decrease_is_not_said_to_promise_a_negative_one():
+    """A bounded shooting fit's message read "promises a decrease of the sum of squares by -0.28"."""
+    from torchql.engine_diagnosis import _promise
+
+    assert "promises no decrease" in _promise(-0.28, 1e-8) and "-0.28" not in _promise(-0.28, 1e-8)
+    assert "by 3e-09, below what the integration's error lets it resolve (1e-08)" in _promise(3e-9, 1e-8)

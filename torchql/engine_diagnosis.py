@@ -130,10 +130,19 @@ class FinalDiagnosis:
         stationary, flat = candidates & (size <= self.spec.xtol), candidates & (promised <= floor)
         for k in (stationary | flat).nonzero().flatten().tolist():
             r, said = int(rows[k]), (f"the Gauss-Newton step on the model is {float(size[k]):.2g} of their magnitudes, "
-                                     "below `xtol`" if stationary[k] else "the Gauss-Newton step on the model promises "
-                                     f"a decrease of the sum of squares by {float(promised[k]):.2g}, below what the "
-                                     f"integration's error lets it resolve ({float(floor[k]):.2g})")
+                                     "below `xtol`" if stationary[k] else _promise(float(promised[k]), float(floor[k])))
             detail[r] = (" Found on the model itself: the iteration stalled (no step it tried lowered the sum of "
                          f"squares enough), but at the estimates {said}.")
             codes[r] = Status.CONVERGED if stationary[k] else Status.CONVERGED_SSE
         return (stationary | flat).tolist()
+
+
+def _promise(promised: float, floor: float) -> str:
+    """What a stalled fit's Gauss–Newton step on the model promises, in words: a decrease of the sum of
+    squares ``promised`` below the integration's resolution ``floor``, or none (the step as the bounds
+    let it be taken raises the linear model's sum of squares)."""
+    if promised <= 0:
+        return ("the Gauss-Newton step on the model, as the bounds let it be taken, promises no decrease of the sum "
+                "of squares")
+    return (f"the Gauss-Newton step on the model promises a decrease of the sum of squares by {promised:.2g}, below "
+            f"what the integration's error lets it resolve ({floor:.2g})")
