@@ -4,6 +4,7 @@ noise model; and the rounding of a float32 likelihood is not taken for a lower o
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import pytest
@@ -64,3 +65,31 @@ def test_a_float32_likelihood_profile_says_nothing_of_a_lower_optimum_at_its_est
         warnings.simplefilter("error")  # (the note is also a warning)
         profile = torchql.profile(fit, "k")
     assert "lower SSE" not in profile.message and profile.closed == (True, True)
+
+
+def test_a_value_marked_exact_fixes_the_one_unknown_of_a_profile():
+    """``y' = -k y`` from a known ``y(0) = 2``, its value at t = 0.2 marked exact: that value fixes k.
+    The profile of this one unknown integrates the model at each k and left the exact value out:
+    a closed interval (0.679, 0.957) about values the fit excludes, and a warning that the fit was
+    not at its optimum. As the profile of a fit with more unknowns (whose re-fits cannot meet the
+    exact value), its interval is now the estimate itself; an exact value that does not depend on
+    k (the known initial state) leaves the profile as it was."""
+    g = torch.Generator().manual_seed(8)
+    t = torch.linspace(0.2, 4, 20, dtype=torch.float64)
+    y = (2.0 * torch.exp(-0.8 * t) + 0.03 * torch.randn(20, generator=g, dtype=torch.float64)).unsqueeze(-1)
+    exact = torch.zeros(20, 1, dtype=torch.bool)
+    exact[0] = True
+    fixing = torchql.fit(Decay(), torchql.Observations(t, y, observe=["y"], sigma=0.03, exact=exact),
+                         x0=torch.tensor([2.0], dtype=torch.float64), fixed_x0=["y"], t0=0.0)
+    assert fixing.params["k"].item() == pytest.approx(-math.log(y[0, 0].item() / 2.0) / 0.2, rel=1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        profile = torchql.profile(fixing, "k")
+    assert profile.interval == (profile.estimate, profile.estimate) and "lower SSE" not in profile.message
+    # the known initial state marked exact as well: it does not depend on k, which the data determine
+    t0_data = torchql.Observations(torch.cat([torch.zeros(1, dtype=torch.float64), t]),
+                                   torch.cat([torch.full((1, 1), 2.0, dtype=torch.float64), y]), observe=["y"],
+                                   sigma=0.03, exact=torch.arange(21).unsqueeze(-1) == 0)
+    free = torchql.fit(Decay(), t0_data, x0=torch.tensor([2.0], dtype=torch.float64), fixed_x0=["y"])
+    low, high = torchql.profile(free, "k").interval
+    assert low < free.params["k"].item() - 0.01 and high > free.params["k"].item() + 0.01

@@ -338,6 +338,9 @@ class _Refitter:
         else:
             x0[self.state_index] = value
         if len(result.unknown_names) == 1:  # nothing left to fit: the SSE of the model itself
+            if warm is not result and _fixed_by_exact(result):  # (as a re-fit: no other value meets them)
+                self.failures.append((value, Status.EXACT_INFEASIBLE.name))
+                return None
             x0 = _expressions_applied(model, x0, self.options.get("x0_expr"))
             sse = sse_of(model, x0, result.t0, self.data, self.options, self.likelihood)
             if not math.isfinite(sse):
@@ -359,6 +362,17 @@ class _Refitter:
         by_name[name] = value
         est = torch.tensor([by_name[u] for u in result.unknown_names], dtype=result.estimates.dtype)
         return _Point(value, 2 * r.nll if self.likelihood else r.sse, est, r.model, r.x0)
+
+
+def _fixed_by_exact(result: FitResult) -> bool:
+    """Whether the values marked exact of a fit of one unknown depend on it (their rows of the
+    Jacobian above ``sqrt(eps)`` of its largest): then they fix it, and no other value meets them
+    (one that does not depend on it, a known initial state also marked exact, leaves it free)."""
+    J = result.jacobian.reshape(-1)
+    exact = result.exact_mask.reshape(-1)
+    if not bool(exact.any()) or not bool(torch.isfinite(J).all()):
+        return False
+    return bool((J[exact].abs() > torch.finfo(J.dtype).eps ** 0.5 * J.abs().max()).any())
 
 
 def _search_side(refit: _Refitter, center: _Point, direction: float, limit: float | None, threshold: _Threshold,
