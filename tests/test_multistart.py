@@ -284,3 +284,33 @@ def test_fits_a_hundredth_of_a_standard_error_apart_are_one_optimum(decay_data):
     x_rtol = 1e-5 * float((stderr / fit.estimates.abs()).min())  # far below 1e-3 standard errors
     optima = _cluster([fit, near, far], x_rtol, 0.0)
     assert [o.starts for o in optima] == [[0, 1], [2]]
+
+
+def test_a_coefficient_every_condition_sets_is_not_drawn():
+    """Two experiments whose conditions set ``s`` in both (1, and the unknown ``s2``): ``fit`` leaves ``s``
+    out of its unknowns, and ``multistart`` drew and estimated it too. Nothing reads it, so every start
+    ended NOT_IDENTIFIABLE and the result listed no optimum, though each reached the fit's."""
+
+    class Scaled(torchql.ODEModel):
+        state_names = ("y",)
+
+        def __init__(self):
+            super().__init__()
+            for name in ("k", "s", "s2"):
+                self.register_buffer(name, torch.tensor(1.0, dtype=torch.float64))
+
+        def forward(self, t, x):
+            return -self.k * self.s * x
+
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0.2, 4, 12, dtype=torch.float64)
+    data = [torchql.Observations(t, torch.exp(-0.7 * s * t).unsqueeze(-1) + 0.01 * torch.randn(12, 1, generator=g,
+                                                                                                   dtype=torch.float64),
+                                 observe=["y"], sigma=0.01) for s in (1.0, 2.5)]
+    kw = dict(conditions=[{"s": 1.0}, {"s": "s2"}], t0=[0.0, 0.0])
+    x0 = torch.ones(2, 1, dtype=torch.float64)
+    single = torchql.fit(Scaled(), data, x0=x0, **kw)
+    result = torchql.multistart(Scaled(), data, x0, starts=4, **kw)
+    assert result.best.unknown_names == single.unknown_names and "s" not in single.unknown_names
+    assert all(r.status is torchql.Status.CONVERGED for r in result.results) and len(result.optima) == 1
+    assert result.best.sse == pytest.approx(single.sse, rel=1e-9)

@@ -31,6 +31,7 @@ from .batch import fit_many
 from .bounds import bound_pair
 from .fit import fit
 from .model import AugmentedSystem, _set_buffer, coefficient_names, model_dtype_device
+from .multi import replaced_everywhere
 from .observations import Observations
 from .options import expand_options
 from .parameters import apply_parameters
@@ -221,8 +222,9 @@ def multistart(model, data, x0=None, *, starts: int = 20, spread: float = 10.0, 
                                 rows=len(data) if isinstance(data, (list, tuple)) else None)
         model, x0, params, bounds = spec["model"], spec["x0"], spec["params"], spec["bounds"]
         fit_kwargs.update({key: spec[key] for key in ("fixed_x0", "scale", "x0_expr") if spec[key] is not None})
-    if params is None:
-        params = [name for name in coefficient_names(model) if name not in tuple(model.constants)]
+    if params is None:  # (fit's default: not the constants, nor a coefficient every experiment's condition sets)
+        held = tuple(model.constants) + replaced_everywhere(fit_kwargs.get("conditions"))
+        params = [name for name in coefficient_names(model) if name not in held]
     params = _checks.distinct_names("params", params, coefficient_names(model), "buffer",
                                     _checks.coefficients_text(model))
     if isinstance(data, Observations) and x0 is not None:  # (a batch of starts must not show in its shape)
