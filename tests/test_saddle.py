@@ -113,3 +113,19 @@ def test_three_decays_leave_every_saddle(rates, seed, guess, method):
     assert "saddle" in fit.message
     assert fit.sse == pytest.approx(reference.sse, rel=1e-9)
     assert sorted(fit.estimates.tolist()) == pytest.approx(sorted(reference.estimates.tolist()), rel=1e-6)
+
+
+def test_data_met_to_the_integrations_accuracy_are_on_no_saddle(monkeypatch):
+    """A product ``a b`` fitted to exact data ends NOT_IDENTIFIABLE at SSE ~1e-20: no step lowers what the
+    integration cannot resolve, and the steps are not tried (a FitzHugh–Nagumo fit of exact data spent a
+    quarter of its time on them)."""
+    import torchql.saddle
+
+    def untried(null):
+        raise AssertionError("a saddle step was tried")
+    monkeypatch.setattr(torchql.saddle, "directions", untried)
+    t = torch.linspace(0, 3, 16, dtype=DT)
+    data = torchql.Observations(t, torchql.simulate(Product(0.5, 2.0), torch.tensor([1.0], dtype=DT), t),
+                                observe=["y"])
+    fit = torchql.fit(Product(1.0, 1.5), data, x0=torch.tensor([1.0], dtype=DT), fixed_x0=["y"])
+    assert fit.status is torchql.Status.NOT_IDENTIFIABLE and fit.sse < 1e-15
