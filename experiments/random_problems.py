@@ -678,7 +678,8 @@ def _count(text: str) -> int:
 
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=_count, default=45, help="number of problems (default 45 = 5 families x 3 noises x 3)")
+    parser.add_argument("--n", type=_count, default=45,
+                        help="number of problems (default 45 = 5 families x 3 noises x 3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first problem (problem i has seed + i)")
     parser.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES))
     parser.add_argument("--max-time", type=float, default=None, help="per-fit wall-time budget, s (both methods)")

@@ -223,7 +223,8 @@ def test_inputs_that_do_not_fit_the_model_or_the_data_are_named():
     # ... and so does one whose signal has another name than the model's input
     with pytest.raises(ValueError, match="`data\\[2\\].inputs` names unknown input 'force'; the model's inputs are"):
         torchql.fit_many(DrivenOscillator(), [data, measured(force(1)), wrong], x0=GUESS_X0)
-    renamed = torchql.Observations(data.t, torch.stack([data.y, data.y]), observe=["y"], inputs=[force(0), wrong.inputs])
+    renamed = torchql.Observations(data.t, torch.stack([data.y, data.y]), observe=["y"],
+                                   inputs=[force(0), wrong.inputs])
     with pytest.raises(ValueError, match="`data.inputs\\[1\\]` names unknown input 'force'"):
         torchql.fit_many(DrivenOscillator(), renamed, x0=GUESS_X0)
     with pytest.raises(ValueError, match="`model` takes inputs \\('u',\\).*pass `inputs="):

@@ -56,8 +56,9 @@ def test_a_fit_started_on_the_symmetry_leaves_its_saddle(method):
     assert fit.sse == pytest.approx(reference.sse, rel=1e-9)
     # (the fits started apart: their estimates agree to their tolerance, 1e-8 of the stderr's 0.02)
     assert sorted(fit.estimates.tolist()) == pytest.approx(sorted(reference.estimates.tolist()), abs=1e-7)
+    guesses = {"k1": torch.tensor([0.5, 0.6], dtype=DT), "k2": torch.tensor([0.5, 0.4], dtype=DT)}
     batch = torchql.fit_many(TwoDecays(), [data, data], X0.expand(2, 2), fixed_x0=["x1", "x2"], method=method,
-                             guesses={"k1": torch.tensor([0.5, 0.6], dtype=DT), "k2": torch.tensor([0.5, 0.4], dtype=DT)})
+                             guesses=guesses)
     assert batch[0].message == fit.message and batch[1].message == reference.message
     assert torch.allclose(batch.estimates[0], fit.estimates, rtol=1e-8, atol=0)
     assert torch.allclose(batch.estimates[1], reference.estimates, rtol=1e-8, atol=0)

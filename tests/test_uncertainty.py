@@ -373,7 +373,8 @@ def test_exact_values_that_repeat_each_other_fix_each_unknown_once():
     y[0] = 1.0
     exact = np.zeros((12, 1), bool)
     exact[0] = True
-    data = torchql.Observations(torch.tensor(t), torch.tensor(y).reshape(-1, 1), observe=["x"], exact=torch.tensor(exact))
+    data = torchql.Observations(torch.tensor(t), torch.tensor(y).reshape(-1, 1), observe=["x"],
+                                exact=torch.tensor(exact))
     fit = torchql.fit(_Quadratic(), data, x0=torch.tensor([1.0], dtype=DT), fixed_x0=["x"])
     X = np.stack([t, t ** 2 / 2], 1)
     # x0 known: the exact value fixes nothing more, and the other 11 values are a plain least squares

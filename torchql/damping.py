@@ -34,7 +34,7 @@ RETRY_SHORTENING = 0.3
 #: 0.25 shrinks the region) leaves its successor damped (:meth:`Damping.after_poor_gain`). There the
 #: Gauss–Newton model misjudges the curvature: an SIR fit with its contact rate on a bound, whose
 #: residuals stay large, overshot the recovery rate by 1.86 times each step, gamma's error flipping
-#: sign at 0.86 of its size for 50 iterations (``tests/test_damping.py``).
+#: sign at 0.86 of its size for 50 iterations (``tests/test_engine_steps.py``).
 POOR_GAIN = 0.25
 
 

@@ -82,8 +82,11 @@ class StepTests:
         (:func:`predicted_decrease`): their successors start damped
         (:meth:`~torchql.damping.Damping.after_poor_gain`, applied by :meth:`_damp_poor_gain` once
         the steps are taken). ``alpha (A, m)`` are the steps in the unknowns' own units, as taken
-        (a bounded one capped: its capped move, the others re-solved). Not judged: steps that exact values constrain (their merit is a penalty's), and Kantorovich
-        trials far from solving the model (their merit is no sum of squares of it)."""
+        (a bounded one capped: its capped move, the others re-solved). Not judged: steps that exact
+        values constrain (their merit is a penalty's), Kantorovich trials far from solving the model
+        (their merit is no sum of squares of it), and steps whose predicted decrease is within
+        :data:`GAIN_RESOLVED` times what the sum of squares resolves (near the optimum both
+        decreases are the integration's noise)."""
         spec = self.spec
         poor = accept & (st.damping[act] == 0)
         if not spec.damping.filters or spec.has_exact or not bool(poor.any()):

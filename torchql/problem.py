@@ -482,7 +482,7 @@ class Problem:
         attach_inputs(self.system.model, signals, self.origin)
         return signals.nodes
 
-    def _local_time(self, per_sample: bool = False) -> float:
+    def _local_time(self, per_sample: bool = False) -> "float | torch.Tensor":
         """Shift the data's times to local time from the earliest ``t0`` (:mod:`torchql.local_time`);
         returns that origin. ``per_sample``: each sample's own ``t0`` where each has its times."""
         self.origin = local_origin(self.t0, self.t_obs, per_sample)

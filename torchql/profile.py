@@ -458,7 +458,8 @@ def _lower_sse_note(result: FitResult, data: Observations, options: dict, name: 
     """A note when the profile found an SSE clearly below the fit's (beyond integration error); else None."""
     sse_min = threshold.sse_min
     lowest = int(torch.argmin(sses))
-    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, threshold.delta) - sse_noise(result, data, options, threshold.likelihood):
+    noise = sse_noise(result, data, options, threshold.likelihood)
+    if float(sses[lowest]) < sse_min - 1e-6 * max(sse_min, threshold.delta) - noise:
         return (f" The profile found a lower SSE ({float(sses[lowest]):.6g} at {name} = {float(values[lowest]):.6g}) "
                 f"than the fit ({sse_min:.6g}): the fit is not at the least-squares optimum; re-fit from there.")
     return None

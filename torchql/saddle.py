@@ -38,7 +38,7 @@ SADDLE_GAIN = 1e-3
 #: (a FitzHugh–Nagumo fit of exact data at SSE 1e-19 spent a quarter of its time on the steps).
 SADDLE_FLOOR = 100.0
 #: With a null space of several dimensions (three rates met), the directions tried are its basis
-#: and the half-sums and half-differences of pairs of it, for at most this many basis vectors.
+#: and the normalized sums and differences of pairs of it, for at most this many basis vectors.
 SADDLE_PAIRS = 4
 #: What a result's message says when the fit was made again from off a saddle (as
 #: :data:`torchql.data_start.START_WORDS`' entries: the first fit's end, the fit kept, the second's end).

@@ -17,7 +17,8 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["Covariance", "covariance", "redundant_exact", "residual_variance", "normal_quantile", "student_t_quantile", "wald_intervals"]
+__all__ = ["Covariance", "covariance", "redundant_exact", "residual_variance", "normal_quantile", "student_t_quantile",
+           "wald_intervals"]
 
 
 class Covariance(NamedTuple):
