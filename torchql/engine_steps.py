@@ -95,10 +95,12 @@ class StepTests:
             poor &= trial["defect"] <= DEFECT_TRUST
         cur = st.cur
         predicted = predicted_decrease(_pick(cur["C"], act), _pick(cur["d"], act), _pick(cur["w"], act), alpha)
-        actual = cur["merit"][act] - trial["merit"]
+        poor &= (cur["merit"][act] - trial["merit"] < POOR_GAIN * predicted) & (predicted > 0)
+        if not bool(poor.any()):  # (the usual case: the step gained as its model said)
+            return poor
         # near the optimum both decreases are the integration's noise, and their ratio says nothing
         noise = torch.maximum(spec.ftol * trial["merit"].abs(), self._sse_error(act, cur["sse"][act], cur["w"][act]))
-        return poor & (predicted > GAIN_RESOLVED * noise) & (actual < POOR_GAIN * predicted)
+        return poor & (predicted > GAIN_RESOLVED * noise)
 
     def _damp_poor_gain(self, st: LoopState, rows) -> None:
         """The fresh iterates of samples ``rows`` (reached by steps :meth:`_poor_gain` found) start

@@ -22,18 +22,15 @@ __all__ = ["local_origin", "reads_time"]
 
 def reads_time(system, t0: torch.Tensor, t_obs: torch.Tensor, z0: torch.Tensor) -> bool:
     """Whether the forward of ``system``'s model reads ``t``: at the augmented state ``z0 (M,)`` (a
-    sample's guesses) its value differs between ``t0`` and the data's times ``t_obs``, or its
-    derivative in ``t`` at ``t0`` is not zero."""
+    sample's guesses) its value differs between ``t0`` and the data's times ``t_obs``, or depends on
+    ``t`` in autograd's graph at ``t0`` (a smooth use of ``t``, whatever its values there)."""
     t = torch.cat([t0.reshape(-1)[:1], t_obs.reshape(-1)])
     with torch.no_grad():
         values = torch.vmap(system.f)(t, z0.expand(t.numel(), -1))
-        if bool((values != values[:1]).any()):
-            return True
-        try:
-            _, slope = torch.func.jvp(lambda s: system.f(s, z0), (t[0],), (torch.ones_like(t[0]),))
-        except Exception:  # noqa: BLE001 - no forward mode through this model: its values decide
-            return False
-    return bool((slope != 0).any())
+    if bool((values != values[:1]).any()):
+        return True
+    with torch.enable_grad():
+        return bool(system.f(t[0].detach().clone().requires_grad_(True), z0.detach()).requires_grad)
 
 
 def local_origin(t0: torch.Tensor, t_obs: torch.Tensor, per_sample: bool) -> float | torch.Tensor:
