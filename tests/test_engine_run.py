@@ -114,3 +114,61 @@ def test_a_sample_found_stiff_by_its_first_reference_in_a_batch_of_grid_groups_i
         assert batch[i].status is alone.status and batch[i].iterations == alone.iterations, (i, batch[i].message)
         assert batch[i].solver_options == alone.solver_options
         torch.testing.assert_close(batch[i].estimates, alone.estimates, rtol=1e-10, atol=0)
+
+
+def test_a_callbacks_last_record_is_the_results_when_a_second_fit_loses():
+    """Thesis Table 4.5 (two digits), undamped: the fit from the data-built start fails and so does the
+    fit from the integrated guesses; the first is kept. The callback received the second fit's records
+    last (C = -10.1, where the result has C = -2.6e6); it now receives the kept fit's last record again,
+    in ``fit`` and ``fit_many``."""
+    from torchql.models import NonlinearOscillator
+
+    times = torch.tensor([0, 1, 2, 3, 4, 5, 6, 6.5], dtype=DT)
+    x = torchql.simulate(NonlinearOscillator(), torch.tensor([0.0, 1.0], dtype=DT), times, rtol=1e-13, atol=1e-15)
+    data = torchql.Observations(times, torch.round(x[:, :1] * 100) / 100, observe=["y"])
+    guess = dict(A=0.5, B=2.0, C=0.5, D=2.0)
+    x0 = torch.tensor([0.5, 0.5], dtype=DT)
+    records = []
+    fit = torchql.fit(NonlinearOscillator(**guess), data, x0=x0, max_steps=200, damping=None, callback=records.append)
+    assert not fit.success and "Integrated from the guesses instead" in fit.message
+    assert records[-1] is fit.history[-1]
+    seen = []
+    batch = torchql.fit_many(NonlinearOscillator(**guess), [data], x0[None], max_steps=200, damping=None,
+                             callback=lambda sample, record: seen.append((sample, record)))
+    assert seen[-1][0] == 0 and seen[-1][1] is batch.history[0][-1]
+    assert seen[-1][1].params["C"].item() == batch.params["C"][0].item() == fit.params["C"].item()
+
+
+def test_a_saddle_left_too_late_for_max_time_is_max_time():
+    """Two decays observed as their sum, guessed with equal rates, end on a saddle; where ``max_time`` ran
+    out in the fit made from a step off it, the saddle's NOT_IDENTIFIABLE was kept, its advice to fix an
+    unknown contradicted by the next sentence. The fit did not finish: MAX_TIME, without covariance."""
+    import time
+
+    from test_saddle import TwoDecays, _sum_of_decays
+
+    start = [None]
+
+    def slow(record):  # (the second fit's first record: the budget runs out in it)
+        if start[0] is None and record.params["k1"].item() != record.params["k2"].item():
+            start[0] = time.monotonic()
+            time.sleep(2.1)
+    x0 = torch.ones(2, dtype=DT)
+    fit = torchql.fit(TwoDecays(0.5, 0.5), _sum_of_decays(), x0=x0, fixed_x0=["x1", "x2"], max_time=2.0,
+                      callback=slow)
+    assert start[0] is not None and fit.status is torchql.Status.MAX_TIME and not fit.success
+    assert "a saddle" in fit.message and "The first fit ended NOT_IDENTIFIABLE" in fit.message
+    assert "Fix the named unknowns" not in fit.message and bool(torch.isnan(fit.covariance).all())
+
+
+def test_a_sample_found_stiff_is_not_fitted_again_once_its_time_is_up():
+    """A fit that the explicit solver found stiff and that ran out of ``max_time`` was fitted again by the
+    stiff solver with no time left: that fit ended MAX_TIME after 0 iterations at the guesses, and won
+    (k = 1, where the explicit fit had reached 3506); a larger budget gave a worse estimate."""
+    from types import SimpleNamespace
+
+    from torchql.engine_run import _StiffRefit
+
+    refit = _StiffRefit(SimpleNamespace(stiff_refit=True), max_time=1.0, history=False, callback=None)
+    chunk = {"stiff_met": torch.tensor([True, False]), "status": [torchql.Status.MAX_TIME, torchql.Status.MAX_TIME]}
+    assert refit(chunk, torch.arange(2)) == [] and refit.spec is None  # (no stiff variant made, nothing fitted)

@@ -101,7 +101,12 @@ def _fit_chunk(spec: Problem, index: torch.Tensor, max_time: float | None, repor
         again = Engine(spec, index[retry], max_time, history=history, callback=callback, start=spec.start_fallback)
         stiff_met = chunk["stiff_met"].clone()
         other = again.run(lambda count: None)
-        keep_the_better_fit(chunk, retry, other, START_WORDS[spec.start_fallback], above)
+        won = keep_the_better_fit(chunk, retry, other, START_WORDS[spec.start_fallback], above)
+        _resend_kept(chunk, retry, won, index, callback)
+        _cut_short(chunk, [k for k in retry if k in above], won, other, retry,
+                   "The fit succeeded where its start was suspect (it ended above the sum of squares at the guesses, "
+                   "or after a long path), and the fit from the other first reference, which would have told, ran "
+                   "out of `max_time`: the estimates are the first fit's.")
         stiff_met[retry] |= other["stiff_met"]
         chunk["stiff_met"] = stiff_met
         counter.nfev += again.nfev
@@ -124,7 +129,34 @@ def _leave_saddles(spec: Problem, index: torch.Tensor, chunk: dict, max_time: fl
         other = again.run(lambda count: None)
         counter.nfev += again.nfev
         won = keep_the_better_fit(chunk, rows, other, SADDLE_WORDS)
+        _resend_kept(chunk, rows, won, index, callback)
+        _cut_short(chunk, rows, won, other, rows, "The fit ended where the data could not separate some unknowns, "
+                   "but a step along them lowered the sum of squares (a saddle), and the fit made again from there "
+                   "ran out of `max_time`: the estimates are the saddle's.")
         chunk["off_saddle"][[k for k in rows if k not in won]] = float("nan")  # (a winner's: its own fit's)
+
+
+def _cut_short(chunk: dict, rows: list[int], won: list[int], other: dict, refitted: list[int], why: str) -> None:
+    """The chunk's ``rows`` whose first fit was kept (not in ``won``) because their second fit
+    (``other``, in the order of ``refitted``) ran out of ``max_time``, where the first fit's end is
+    known or suspected to be no optimum, end ``MAX_TIME``: the fit did not finish. ``why`` says so."""
+    for k in rows:
+        if k not in won and other["status"][refitted.index(k)] is Status.MAX_TIME:
+            first, chunk["status"][k] = chunk["status"][k], Status.MAX_TIME
+            chunk["message"][k] = (f"{Status.MAX_TIME.value} {why} The first fit ended {first.name} (SSE "
+                                   f"{float(chunk['sse'][k]):.6g}).")
+            chunk["cov"][k] = float("nan")  # (as every MAX_TIME fit's: no error bars about an unfinished fit)
+
+
+def _resend_kept(chunk: dict, rows: list[int], won: list[int], index: torch.Tensor, callback) -> None:
+    """After second fits of the chunk's ``rows``: where the first fit was kept (not in ``won``), the
+    ``callback`` receives its last record again, so that the last record it received for each
+    sample is the result's (it received the second fit's as they were made)."""
+    if callback is None or chunk.get("history") is None:
+        return
+    for k in rows:
+        if k not in won and chunk["history"][k]:
+            callback(int(index[k]), chunk["history"][k][-1])
 
 
 class _StiffRefit:
@@ -142,11 +174,14 @@ class _StiffRefit:
         returns the rows where the stiff fit won."""
         if not self.base.stiff_refit:
             return []
-        rows = [k for k in chunk["stiff_met"].nonzero().flatten().tolist() if not chunk["status"][k].success]
+        rows = [k for k in chunk["stiff_met"].nonzero().flatten().tolist()  # (no time is left after MAX_TIME)
+                if not chunk["status"][k].success and chunk["status"][k] is not Status.MAX_TIME]
         if not rows:
             return []
         if self.spec is None:
             self.spec = self.base.stiff_variant()
         other = _fit_chunk(self.spec, index[rows], self.max_time, lambda count: None, self.history, self.callback,
                            self)
-        return keep_the_better_fit(chunk, rows, other, STIFF_REFIT)
+        won = keep_the_better_fit(chunk, rows, other, STIFF_REFIT)
+        _resend_kept(chunk, rows, won, index, self.callback)
+        return won
