@@ -8,7 +8,8 @@ of ``t``, and fits failed. So a fit runs in local time ``s = t - origin``
 (:meth:`torchql.problem.Problem._local_time`), where the model is given the data's time:
 
 * a model with inputs through :func:`torchql.model.attach_inputs` (its signals shifted too);
-* a model whose forward does not read ``t`` (:func:`reads_time`) needs nothing;
+* a model whose forward does not read ``t`` (:func:`reads_time`) needs nothing, where its times are
+  clock times (:data:`CLOCK_RATIO`);
 * a model whose forward reads ``t`` (a forcing ``cos(t)``) and has no inputs is fitted on the data's
   own times, as given: every copy of it that a solver integrates would need the shift.
 """
@@ -17,14 +18,24 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["local_origin", "reads_time"]
+__all__ = ["CLOCK_RATIO", "local_origin", "reads_time"]
+
+#: A model that does not read ``t`` is fitted in local time where ``|t0|`` exceeds this many times
+#: the data's span: there a grid of 1,000 intervals resolves its nodes to ``eps |t0| / span`` of an
+#: interval, ``2e-10`` and more (at ``t = 1.7e9`` over 7 s, 5e-5). Nearer 0 the data's own times
+#: serve, and a forward that reads ``t`` where no probe sees it (a switch between two observation
+#: times) is given them, as it is given the data's times everywhere else.
+CLOCK_RATIO = 1e3
 
 
 def reads_time(system, t0: torch.Tensor, t_obs: torch.Tensor, z0: torch.Tensor) -> bool:
     """Whether the forward of ``system``'s model reads ``t``: at the augmented state ``z0 (M,)`` (a
-    sample's guesses) its value differs between ``t0`` and the data's times ``t_obs``, or depends on
-    ``t`` in autograd's graph at ``t0`` (a smooth use of ``t``, whatever its values there)."""
+    sample's guesses) its value differs between ``t0``, the data's times ``t_obs`` and the midpoints
+    between them, or depends on ``t`` in autograd's graph at ``t0`` (a smooth use of ``t``, whatever
+    its values there). No probe proves that a forward ignores ``t``: a switch that none of these
+    times crosses goes unseen, which :data:`CLOCK_RATIO` confines to clock times."""
     t = torch.cat([t0.reshape(-1)[:1], t_obs.reshape(-1)])
+    t = torch.cat([t, 0.5 * (t[1:] + t[:-1])])  # (and between them: a switch between two observations)
     with torch.no_grad():
         values = torch.vmap(system.f)(t, z0.expand(t.numel(), -1))
     if bool((values != values[:1]).any()):
@@ -34,9 +45,15 @@ def reads_time(system, t0: torch.Tensor, t_obs: torch.Tensor, z0: torch.Tensor) 
 
 
 def local_origin(t0: torch.Tensor, t_obs: torch.Tensor, per_sample: bool) -> float | torch.Tensor:
-    """The origin of a fit's local time: the earliest ``t0`` (``()`` or ``(B,)``); with ``per_sample``,
-    where each sample has its own ``t0`` and its own times ``t_obs (B, T)``, each sample's ``t0``
-    ``(B,)``, so that a sample of a batch computes on the local times of its own fit."""
-    if per_sample and t0.dim() == 1 and t_obs.dim() == 2:
-        return t0.clone()
-    return float(t0.min())
+    """The origin of a fit's local time: the earliest ``t0`` (``()`` or ``(B,)``; a fit with inputs).
+    With ``per_sample`` (a model that does not read ``t``): a sample's ``t0`` where it lies farther
+    than :data:`CLOCK_RATIO` times its span from 0, else 0 (the data's own times), decided for
+    each sample that has its own times ``t_obs (B, T)`` (``(B,)``: a sample of a batch computes on
+    the times of its own fit), or for all with a shared ``t0``; samples of their own ``t0`` over
+    shared times keep the data's times."""
+    if not per_sample:
+        return float(t0.min())
+    far = t0.abs() > CLOCK_RATIO * (t_obs[..., -1] - t0).abs()
+    if t0.dim() == 1 and t_obs.dim() == 2:
+        return torch.where(far, t0, torch.zeros_like(t0))
+    return float(t0) if t0.dim() == 0 and bool(far) else 0.0
