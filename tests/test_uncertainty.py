@@ -402,3 +402,19 @@ def test_exact_values_that_repeat_each_other_fix_each_unknown_once():
     np.testing.assert_allclose(fit.estimates.numpy(), estimates, rtol=1e-9)
     # (the sensitivities at the grid's accuracy: the standard errors to about sqrt(rtol) / 16)
     np.testing.assert_allclose(list(fit.stderr.values()), stderr, rtol=1e-6)
+
+
+@pytest.mark.parametrize("span, rate", [(10.0, 0.1), (1e8, 1e-8)])
+def test_exact_values_that_fix_every_unknown_in_any_units(span, rate):
+    """``x' = -k x``, its first and last values marked exact: they fix ``x0`` and ``k``, so the dof is
+    the other 8 values and the standard errors are 0. In seconds (``k = 1e-8``) the exact rows were
+    ranked in the unknowns' own units, where ``k``'s column is 1e8 times ``x0``'s: one was counted as
+    repeating the other (dof 7, standard errors 0.3 %). They are ranked with unit columns now."""
+    t = torch.linspace(0, span, 10, dtype=DT)
+    noise = 0.01 * torch.randn(10, 1, generator=torch.Generator().manual_seed(1), dtype=DT)
+    noise[0] = noise[-1] = 0.0
+    exact = torch.zeros(10, 1, dtype=torch.bool)
+    exact[0] = exact[-1] = True
+    data = torchql.Observations(t, (2.0 * torch.exp(-rate * t)).unsqueeze(-1) + noise, observe=["y"], exact=exact)
+    fit = torchql.fit(Decay(2 * rate), data, x0=torch.tensor([1.5], dtype=DT))
+    assert fit.success and fit.dof == 8 and all(v == 0.0 for v in fit.stderr.values())

@@ -77,8 +77,9 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
         return Covariance(nan, dof, s2)
     free = torch.eye(m, dtype=jacobian.dtype, device=jacobian.device)
     if bool(exact.any()):  # the directions the exact values leave free: their rows' null space
-        _, S_e, Vh_e = torch.linalg.svd(jacobian[exact], full_matrices=True)
-        free = Vh_e[_rank(S_e, rcond):].T
+        units = _column_scale(jacobian)  # (ranked in unknowns of unit columns: not in the units' sizes)
+        _, S_e, Vh_e = torch.linalg.svd(jacobian[exact] / units, full_matrices=True)
+        free = Vh_e[_rank(S_e, rcond):].T / units.unsqueeze(-1)
     A = jacobian[~exact] @ free
     if A.shape[1] == 0:
         return Covariance(torch.zeros_like(nan), dof, s2)
@@ -110,10 +111,19 @@ def redundant_exact(jacobian: torch.Tensor, exact: torch.Tensor, rcond: float) -
     rank of their rows of ``jacobian (L, m)`` (a known initial state also marked exact, or one state
     seen by two sensors marked exact at one time, fixes nothing more). Each independent exact value
     fixes one unknown and is no least-squares value; a redundant one fixes none, and the fit's
-    ``dof`` is ``L - m`` less their number (with a full-rank ``dof = L - m``, ``L`` every used value)."""
-    if not bool(exact.any()) or not bool(torch.isfinite(jacobian[exact]).all()):
+    ``dof`` is ``L - m`` less their number (with a full-rank ``dof = L - m``, ``L`` every used value).
+    Ranked with the columns scaled to unit norm over all rows (:func:`_column_scale`)."""
+    if not bool(exact.any()) or not bool(torch.isfinite(jacobian).all()):
         return 0
-    return int(exact.sum()) - _rank(torch.linalg.svdvals(jacobian[exact]), rcond)
+    return int(exact.sum()) - _rank(torch.linalg.svdvals(jacobian[exact] / _column_scale(jacobian)), rcond)
+
+
+def _column_scale(jacobian: torch.Tensor) -> torch.Tensor:
+    """Each column's norm ``(m,)`` of ``jacobian (L, m)`` (1 where it is zero): the unknowns' scaling
+    in which ranks do not depend on their units (a rate in 1/s, 1e-8, against an initial value of 1
+    had an independent exact value counted as repeating the other)."""
+    norms = torch.linalg.vector_norm(jacobian, dim=0)
+    return torch.where(norms > 0, norms, torch.ones_like(norms))
 
 
 def _rank(singular_values: torch.Tensor, rcond: float) -> int:
