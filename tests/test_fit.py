@@ -547,3 +547,18 @@ def test_a_forward_that_switches_on_t_between_the_observations_keeps_the_data_ti
     # (dopri5's data against the fit's solver: the same optimum to their tolerances)
     assert fit.params["g"].item() == pytest.approx(1.0, rel=1e-6)
     assert fit.params["k"].item() == pytest.approx(0.05, rel=1e-6)
+
+
+def test_samples_at_their_own_clock_times_from_a_shared_t0_are_their_own_fits():
+    """Two oscillators at their own times on a clock at 1.7e9 s, both from a shared ``t0``: each sample is
+    fitted in its own local time, as its own fit is, and equals it."""
+    data = [_on_a_clock(LinearOscillator(A=0.1, B=3.0), 1.7e9)]
+    shifted = _on_a_clock(LinearOscillator(A=0.2, B=2.5), 1.7e9)
+    data.append(torchql.Observations(shifted.t + 0.5, shifted.y, observe=["y"]))
+    guess = torch.tensor([0.2, 0.8], dtype=DT)
+    batch = torchql.fit_many(LinearOscillator(A=0.5, B=1.0), data, x0=guess, t0=1.7e9)
+    for b in range(2):
+        single = torchql.fit(LinearOscillator(A=0.5, B=1.0), data[b], x0=guess, t0=1.7e9)
+        assert single.status is torchql.Status.CONVERGED and batch[b].status is single.status
+        assert batch[b].iterations == single.iterations
+        assert torch.allclose(batch[b].estimates, single.estimates, rtol=1e-8, atol=1e-12)

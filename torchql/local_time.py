@@ -53,7 +53,9 @@ def local_origin(t0: torch.Tensor, t_obs: torch.Tensor, per_sample: bool) -> flo
     shared times keep the data's times."""
     if not per_sample:
         return float(t0.min())
-    far = t0.abs() > CLOCK_RATIO * (t_obs[..., -1] - t0).abs()
-    if t0.dim() == 1 and t_obs.dim() == 2:
-        return torch.where(far, t0, torch.zeros_like(t0))
-    return float(t0) if t0.dim() == 0 and bool(far) else 0.0
+    far = t0.abs() > CLOCK_RATIO * (t_obs[..., -1] - t0).abs()  # () or (B,)
+    if not bool(far.any()) or (t0.dim() == 1 and t_obs.dim() == 1):
+        return 0.0
+    if t_obs.dim() == 2:  # each sample its own times: its own decision, as its own fit's
+        return torch.where(far, t0.expand_as(far), torch.zeros_like(far, dtype=t0.dtype))
+    return float(t0)
