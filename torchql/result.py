@@ -154,7 +154,8 @@ class FitResult:
         when the iteration did not converge (every unsuccessful status but a converged
         ``NOT_IDENTIFIABLE``); NaN rows and columns for the unknowns the data do not determine.
     dof : int
-        Degrees of freedom of the residuals, ``L - m``.
+        Degrees of freedom of the residuals, ``L - m`` less the values marked exact that repeat what
+        others fix (:func:`torchql.uncertainty.redundant_exact`).
     residual_variance : float
         ``s^2``: ``sse / dof`` when the data's ``sigma`` was neither given nor estimated, else 1.
     sigma_known : bool

@@ -71,15 +71,11 @@ def covariance(jacobian: torch.Tensor, exact: torch.Tensor, sse: float, sigma_kn
     """
     L, m = jacobian.shape
     nan = torch.full((m, m), float("nan"), dtype=jacobian.dtype, device=jacobian.device)
-    dof = L - m - redundant_exact(jacobian, exact, rcond)
+    free, redundant = _exact_null_space(jacobian, exact, rcond)
+    dof = L - m - redundant
     s2 = 1.0 if sigma_known else sse / dof if dof > 0 else float("nan")  # (residual_variance, for one fit)
-    if not torch.isfinite(jacobian).all():
+    if free is None:
         return Covariance(nan, dof, s2)
-    free = torch.eye(m, dtype=jacobian.dtype, device=jacobian.device)
-    if bool(exact.any()):  # the directions the exact values leave free: their rows' null space
-        units = _column_scale(jacobian)  # (ranked in unknowns of unit columns: not in the units' sizes)
-        _, S_e, Vh_e = torch.linalg.svd(jacobian[exact] / units, full_matrices=True)
-        free = Vh_e[_rank(S_e, rcond):].T / units.unsqueeze(-1)
     A = jacobian[~exact] @ free
     if A.shape[1] == 0:
         return Covariance(torch.zeros_like(nan), dof, s2)
@@ -113,9 +109,23 @@ def redundant_exact(jacobian: torch.Tensor, exact: torch.Tensor, rcond: float) -
     fixes one unknown and is no least-squares value; a redundant one fixes none, and the fit's
     ``dof`` is ``L - m`` less their number (with a full-rank ``dof = L - m``, ``L`` every used value).
     Ranked with the columns scaled to unit norm over all rows (:func:`_column_scale`)."""
-    if not bool(exact.any()) or not bool(torch.isfinite(jacobian).all()):
-        return 0
-    return int(exact.sum()) - _rank(torch.linalg.svdvals(jacobian[exact] / _column_scale(jacobian)), rcond)
+    return _exact_null_space(jacobian, exact, rcond)[1]
+
+
+def _exact_null_space(jacobian: torch.Tensor, exact: torch.Tensor, rcond: float) -> tuple[torch.Tensor | None, int]:
+    """The directions ``(m, f)`` that the rows ``exact (L,)`` of ``jacobian (L, m)`` leave free (their
+    null space, ranked in unknowns of unit columns: :func:`_column_scale`; all ``m`` without exact
+    values), and how many of those rows repeat the others (:func:`redundant_exact`). ``(None, 0)``
+    for a Jacobian that is not finite."""
+    m = jacobian.shape[1]
+    if not bool(torch.isfinite(jacobian).all()):
+        return None, 0
+    if not bool(exact.any()):
+        return torch.eye(m, dtype=jacobian.dtype, device=jacobian.device), 0
+    units = _column_scale(jacobian)  # (ranked in unknowns of unit columns: not in the units' sizes)
+    _, S_e, Vh_e = torch.linalg.svd(jacobian[exact] / units, full_matrices=True)
+    rank = _rank(S_e, rcond)
+    return Vh_e[rank:].T / units.unsqueeze(-1), int(exact.sum()) - rank
 
 
 def _column_scale(jacobian: torch.Tensor) -> torch.Tensor:
