@@ -38,7 +38,7 @@ from .engine_grid import AutoGrid
 from .engine_state import RUNNING, LoopState, _pick, by_level, put_samples
 from .grid import last_nodes
 from .linearize import map_fields
-from .lstsq import ExactRowsError, relative_spectrum, solve_update, solve_update_batch
+from .lstsq import ExactRowsError, solve_update, solve_update_batch
 from .noise import non_finite_residuals
 from .problem import Problem
 from .result import IterationRecord, Status
@@ -462,11 +462,7 @@ class Engine(Evaluation, StepTests, FinalPass, AutoGrid, Records):
         raise_rows = rejected[~torch.isin(rejected, anchored)]
         if not raise_rows.numel():
             return
-        u = _pick(st.cur["z0"], raise_rows)[:, spec.unknown_index]  # the problem damped: in the internal variables
-        C = spec.bounds.internal_columns(_pick(st.cur["C"], raise_rows), u)
-        spectrum = relative_spectrum(C, _pick(st.cur["w"], raise_rows), spec.rcond)  # (exact values: no skipping)
-        if spec.has_exact:
-            spectrum[self.exact[raise_rows].any(dim=1)] = float("nan")
+        spectrum = self._damped_spectrum(st, raise_rows)
         d = spec.damping.retry(st.damping[raise_rows], st.last_damping[raise_rows], spectrum)
         st.damping[raise_rows] = d
         stalled = raise_rows[spec.damping.stalled(d)]

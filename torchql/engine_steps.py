@@ -107,11 +107,20 @@ class StepTests:
         with the damping strategy's :meth:`~torchql.damping.Damping.after_poor_gain`."""
         if not rows.numel():
             return
+        st.damping[rows] = self.spec.damping.after_poor_gain(st.last_damping[rows], self._damped_spectrum(st, rows))
+
+    def _damped_spectrum(self, st: LoopState, rows) -> torch.Tensor:
+        """The relative spectrum ``(R, k)`` of the current iterates' damped problems of samples ``rows``
+        (:func:`torchql.lstsq.relative_spectrum`, in the bounds' internal variables, as damped),
+        which a damping strategy reads to choose a damping; all NaN (no skipping) for a sample with
+        values marked exact."""
         spec, cur = self.spec, st.cur
         u = _pick(cur["z0"], rows)[:, spec.unknown_index]
         C = spec.bounds.internal_columns(_pick(cur["C"], rows), u)
         spectrum = relative_spectrum(C, _pick(cur["w"], rows), spec.rcond)
-        st.damping[rows] = spec.damping.after_poor_gain(st.last_damping[rows], spectrum)
+        if spec.has_exact:
+            spectrum[self.exact[rows].any(dim=1)] = float("nan")
+        return spectrum
 
     def _lost(self, st: LoopState, act) -> torch.Tensor:
         """Bool ``(A,)``: Kantorovich iterates of samples ``act``, taken on their linear merit, from
