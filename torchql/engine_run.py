@@ -101,8 +101,7 @@ def _fit_chunk(spec: Problem, index: torch.Tensor, max_time: float | None, repor
         again = Engine(spec, index[retry], max_time, history=history, callback=callback, start=spec.start_fallback)
         stiff_met = chunk["stiff_met"].clone()
         other = again.run(lambda count: None)
-        won = keep_the_better_fit(chunk, retry, other, START_WORDS[spec.start_fallback], above)
-        _resend_kept(chunk, retry, won, index, callback)
+        won = _keep_better(chunk, retry, other, START_WORDS[spec.start_fallback], index, callback, above)
         _cut_short(chunk, [k for k in retry if k in above], won, other, retry,
                    "The fit succeeded where its start was suspect (it ended above the sum of squares at the guesses, "
                    "or after a long path), and the fit from the other first reference, which would have told, ran "
@@ -128,8 +127,7 @@ def _leave_saddles(spec: Problem, index: torch.Tensor, chunk: dict, max_time: fl
                        guesses=chunk["off_saddle"][rows])
         other = again.run(lambda count: None)
         counter.nfev += again.nfev
-        won = keep_the_better_fit(chunk, rows, other, SADDLE_WORDS)
-        _resend_kept(chunk, rows, won, index, callback)
+        won = _keep_better(chunk, rows, other, SADDLE_WORDS, index, callback)
         _cut_short(chunk, rows, won, other, rows, "The fit ended where the data could not separate some unknowns, "
                    "but a step along them lowered the sum of squares (a saddle), and the fit made again from there "
                    "ran out of `max_time`: the estimates are the saddle's.")
@@ -148,15 +146,19 @@ def _cut_short(chunk: dict, rows: list[int], won: list[int], other: dict, refitt
             chunk["cov"][k] = float("nan")  # (as every MAX_TIME fit's: no error bars about an unfinished fit)
 
 
-def _resend_kept(chunk: dict, rows: list[int], won: list[int], index: torch.Tensor, callback) -> None:
-    """After second fits of the chunk's ``rows``: where the first fit was kept (not in ``won``), the
-    ``callback`` receives its last record again, so that the last record it received for each
-    sample is the result's (it received the second fit's as they were made)."""
-    if callback is None or chunk.get("history") is None:
-        return
-    for k in rows:
-        if k not in won and chunk["history"][k]:
-            callback(int(index[k]), chunk["history"][k][-1])
+def _keep_better(chunk: dict, rows: list[int], other: dict, words, index: torch.Tensor, callback,
+                 above: set[int] = frozenset()) -> list[int]:
+    """:func:`~torchql.data_start.keep_the_better_fit` of the chunk's ``rows`` (indices ``index``)
+    against their second fits ``other`` (``words``, ``above`` as it takes them); returns the rows the
+    second fit won. Where the first fit was kept, the ``callback`` receives its last record again,
+    so that the last record it received for each sample is the result's (it received the second
+    fit's as they were made)."""
+    won = keep_the_better_fit(chunk, rows, other, words, above)
+    if callback is not None and chunk.get("history") is not None:
+        for k in rows:
+            if k not in won and chunk["history"][k]:
+                callback(int(index[k]), chunk["history"][k][-1])
+    return won
 
 
 class _StiffRefit:
@@ -182,6 +184,4 @@ class _StiffRefit:
             self.spec = self.base.stiff_variant()
         other = _fit_chunk(self.spec, index[rows], self.max_time, lambda count: None, self.history, self.callback,
                            self)
-        won = keep_the_better_fit(chunk, rows, other, STIFF_REFIT)
-        _resend_kept(chunk, rows, won, index, self.callback)
-        return won
+        return _keep_better(chunk, rows, other, STIFF_REFIT, index, self.callback)
