@@ -35,7 +35,8 @@ def sse_noise(result: FitResult, data, options: dict, likelihood: bool) -> float
 
     rtol, atol = default_tolerances(result.x0.dtype, options.get("rtol"), options.get("atol"))
     floor, n = 0.0, 0
-    for part in data if isinstance(data, (list, tuple)) else [data]:  # each experiment's
+    parts = data if isinstance(data, (list, tuple)) else [data]  # each experiment's
+    for part in parts:
         used = part.mask & ~part.exact
         y = part.y.abs().to(torch.float64)
         delta = atol + rtol * y
@@ -44,8 +45,7 @@ def sse_noise(result: FitResult, data, options: dict, likelihood: bool) -> float
         floor += float(((delta / _sigmas(result, part))[used] ** 2).sum())
         n += int(used.sum())
     sse = abs(result.sse)
-    if likelihood and not any(part.sigma_given or part.sigma_estimated
-                              for part in (data if isinstance(data, (list, tuple)) else [data])):
+    if likelihood and not any(part.sigma_given or part.sigma_estimated for part in parts):
         floor, sse = floor * n / max(sse, torch.finfo(torch.float64).tiny), float(n)
     return 2.0 * math.sqrt(sse * floor)
 

@@ -66,12 +66,14 @@ def off_saddle(engine, codes: list, z0: torch.Tensor, sse: torch.Tensor) -> torc
     index = torch.tensor(rows, device=z0.device)  # (a sum of squares the integration cannot resolve: no way down)
     floor = engine._integration_floor(index, engine.w[index].reshape(index.numel(), -1))
     rows = [r for r, low in zip(rows, (sse[index] <= SADDLE_FLOOR * floor).tolist()) if not low]
+    if not rows:
+        return out
     idx = spec.unknown_index
+    typical = engine._typical(torch.tensor(rows, dtype=torch.long, device=z0.device))
     candidates, owners = [], []
-    for r in rows:
+    for r, usual in zip(rows, typical):
         u = z0[r, idx]
-        typical = engine._typical(torch.tensor([r], device=z0.device))[0]
-        scale = torch.where(u != 0, u.abs(), typical)  # (the estimates': the guesses may lie far away)
+        scale = torch.where(u != 0, u.abs(), usual)  # (the estimates': the guesses may lie far away)
         for v in directions(engine.null_directions[r]):
             for length in SADDLE_STEPS:
                 step = length * v / (v / scale).norm()
